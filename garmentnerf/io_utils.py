@@ -1,0 +1,50 @@
+"""Safe file writing: nothing a user made is lost to a crash or a second run."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_write_path(path: str | Path, overwrite: bool = True):
+    """Yield a temporary path next to ``path``; on success rename it over ``path``.
+
+    The rename is atomic on POSIX, so readers see either the old file or the complete new one.
+    With ``overwrite=False`` an existing file raises :class:`FileExistsError` before any work.
+    """
+    path = Path(path)
+    if not overwrite and path.exists():
+        raise FileExistsError(f"{path}: already exists (refusing to overwrite)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
+    try:
+        yield Path(tmp)
+        if not overwrite:
+            # link() fails if the target appeared meanwhile: never clobber.
+            os.link(tmp, path)
+            os.unlink(tmp)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def next_free_path(path: str | Path) -> Path:
+    """``path`` if free, else ``stem_001.ext``, ``stem_002.ext``, ... (first free)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    for i in range(1, 100000):
+        candidate = path.with_name(f"{path.stem}_{i:03d}{path.suffix}")
+        if not candidate.exists():
+            return candidate
+    raise FileExistsError(f"{path}: no free numbered name left")
