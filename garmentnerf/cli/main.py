@@ -1,0 +1,57 @@
+"""``garmentnerf`` command line: one entry point, one module per subcommand group.
+
+Every user-facing failure (bad file, bad name, impossible setting) ends as one line on stderr
+and exit code 2; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from garmentnerf.cli import body_cmd, bench_cmd, maps_cmd, motion_cmd
+
+
+class UserError(Exception):
+    """A problem with the user's input: printed as one line, no traceback."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="garmentnerf",
+        description="Garment Animation NeRF: bodies, motions, info maps, training and previewing.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    body_cmd.register(sub)
+    motion_cmd.register(sub)
+    maps_cmd.register(sub)
+    bench_cmd.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("garmentnerf: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the one place that turns errors into messages
+        if args.debug or not _is_user_error(exc):
+            raise
+        print(f"garmentnerf: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _is_user_error(exc: BaseException) -> bool:
+    """Errors that describe bad input rather than a bug in garmentnerf."""
+    from garmentnerf.gl.context import GLUnavailableError
+
+    return isinstance(exc, (UserError, ValueError, FileNotFoundError, FileExistsError, IsADirectoryError,
+                            PermissionError, GLUnavailableError))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,83 @@
+"""``garmentnerf maps``: the UV-space info maps (normal, velocity) of one frame."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from garmentnerf.cli.common import add_body_args, add_motion_args, check_frame, load_body, load_motion_arg
+
+DESCRIPTION = """\
+Rasterise the body's UV-space info maps for one frame of a motion and save them as .npz:
+
+  normal    (H, W, 3)   float32  unit vertex normals of the posed body with the root's
+                                 rotation removed (root-relative frame), interpolated in UV space
+  velocity  (H, W, 3k)  float32  k velocity slots; slot i (channels 3(i-1)..3i) is the vertex
+                                 displacement x(t-i+1) - x(t-i) mapped to the rest pose by the
+                                 inverse skinning matrix, in m/s x 1/6 (= the paper's x5 per frame at
+                                 30 fps). Before the motion starts the body is held at frame 0.
+  mask      (H, W)      bool     texels the UV atlas covers (gutters are filled by dilation from the
+                                 nearest covered texel, so bilinear lookups never read zeros)
+
+Rows run along v from v = 0 (row 0) to v = 1; see garmentnerf.gl.uv_raster for the exact mapping.
+"""
+
+
+def register(sub) -> None:
+    p = sub.add_parser("maps", help="UV-space normal/velocity info maps of one frame (.npz)", description=DESCRIPTION,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_body_args(p)
+    add_motion_args(p)
+    p.add_argument("--history", type=int, default=2, help="k, velocity history slots (default: 2)")
+    p.add_argument("--resolution", type=int, default=128, help="map size in texels (default: 128)")
+    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument("--png", default=None, help="also write a preview image of the maps")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.set_defaults(func=run_maps)
+
+
+def run_maps(args: argparse.Namespace) -> int:
+    from garmentnerf.gl.context import create_context
+    from garmentnerf.info_maps import InfoMapRenderer
+    from garmentnerf.io_utils import atomic_write_path
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    if args.history < 0 or args.history > 8:
+        raise ValueError(f"--history must be between 0 and 8, got {args.history}")
+    if not 8 <= args.resolution <= 4096:
+        raise ValueError(f"--resolution must be between 8 and 4096, got {args.resolution}")
+    body, betas = load_body(args)
+    motion = load_motion_arg(args, body, betas)
+    check_frame(motion, args.frame)
+    ctx = create_context()
+    renderer = InfoMapRenderer(ctx, body, resolution=args.resolution, history=args.history)
+    first = max(0, args.frame - args.history)
+    clip = motion.slice(first, args.frame + 1)
+    maps = renderer.render_clip(clip.pose(body, betas), fps=motion.fps)[args.frame - first]
+    with atomic_write_path(out) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, normal=maps.normal.numpy(), velocity=maps.velocity.numpy(), mask=maps.mask.numpy())
+    if args.png:
+        _write_preview(maps, Path(args.png))
+    print(f"wrote {out}: normal {tuple(maps.normal.shape)}, velocity {tuple(maps.velocity.shape)}, "
+          f"mask {tuple(maps.mask.shape)} ({float(maps.mask.float().mean()) * 100:.1f}% covered)")
+    return 0
+
+
+def _write_preview(maps, path: Path) -> None:
+    import imageio.v3 as iio
+
+    from garmentnerf.io_utils import atomic_write_path
+
+    normal = (maps.normal.numpy() * 0.5 + 0.5).clip(0, 1)
+    tiles = [normal]
+    vel = maps.velocity.numpy()
+    for i in range(vel.shape[-1] // 3):
+        tiles.append((vel[..., 3 * i:3 * i + 3] * 2.0 + 0.5).clip(0, 1))
+    image = (np.concatenate(tiles, axis=1)[::-1] * 255).astype(np.uint8)  # v up in the picture
+    with atomic_write_path(path) as tmp:
+        iio.imwrite(tmp, image, extension=".png")
