@@ -1,0 +1,90 @@
+"""Benchmarks of the foundation stages on the real body: info maps, camera pass, projection.
+
+Figures are medians over repeated runs after warm-up, on whatever machine runs them; the JSON
+records the machine (CPU count, GL renderer) so figures are never quoted without it.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import numpy as np
+import torch
+
+
+def median_ms(fn, runs: int, warmup: int = 2) -> float:
+    """Median wall-clock milliseconds of ``fn()`` over ``runs`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - start) * 1e3)
+    return float(np.median(times))
+
+
+def near_surface_points(vertices: torch.Tensor, normals: torch.Tensor, count: int, spread: float, seed: int = 0) -> torch.Tensor:
+    """(count, 3) points offset from random vertices along their normals by U(-spread, spread)
+    plus isotropic jitter: the distribution NeRF samples around a body have."""
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(0, vertices.shape[0], (count,), generator=g)
+    offset = (torch.rand(count, 1, generator=g) * 2 - 1) * spread
+    jitter = torch.randn(count, 3, generator=g) * spread * 0.3
+    return vertices[idx] + normals[idx] * offset + jitter
+
+
+def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_points: int = 262144) -> dict:
+    """Time the per-frame foundation stages on the bundled body posed by the ``walk`` clip.
+
+    Returns a dict of figures (milliseconds unless named otherwise) and the machine description.
+    """
+    from garmentnerf.body.model import BodyModel
+    from garmentnerf.body.surface import vertex_normals
+    from garmentnerf.conventions import orbit_camera
+    from garmentnerf.geometry.projection import SurfaceProjector
+    from garmentnerf.gl.camera_pass import CameraPass
+    from garmentnerf.gl.context import context_info, create_context
+    from garmentnerf.info_maps import InfoMapRenderer
+    from garmentnerf.motion.library import load_motion
+
+    body = BodyModel.default()
+    motion = load_motion("walk", body)
+    clip = motion.slice(0, min(clip_frames, motion.num_frames))
+    posed = clip.pose(body)
+    T = posed.vertices.shape[0]
+    ctx = create_context()
+    results: dict = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                                 "torch_threads": torch.get_num_threads(), **context_info(ctx)}}
+
+    maps = InfoMapRenderer(ctx, body, resolution=128, history=2)
+    attrs = maps.vertex_attributes(posed, motion.fps)
+    results["pose_clip_ms_per_frame"] = median_ms(lambda: clip.pose(body), max(3, runs // 4)) / T
+    results["info_vertex_attributes_ms_per_frame"] = median_ms(lambda: maps.vertex_attributes(posed, motion.fps), max(3, runs // 4)) / T
+    frame = [0]
+
+    def raster_one():
+        maps.render_attributes(attrs[frame[0] % T])
+        frame[0] += 1
+
+    results["info_maps_raster_ms_per_frame"] = median_ms(raster_one, runs)
+    results["info_maps_total_ms_per_frame"] = results["info_vertex_attributes_ms_per_frame"] + results["info_maps_raster_ms_per_frame"]
+    maps.release()
+
+    camera = orbit_camera(30.0, 10.0, 3.0, width=512, height=512)
+    verts = posed.vertices[T // 2]
+    with CameraPass(ctx) as cam_pass:
+        results["camera_pass_512_ms"] = median_ms(lambda: cam_pass.render(verts, body.faces, camera, body.uv, body.uv_faces), runs)
+        results["depth_range_512_ms"] = median_ms(lambda: cam_pass.render_depth_range(verts, body.faces, camera), runs)
+
+    projector = SurfaceProjector(body.faces, body.asset.num_vertices)
+    normals = vertex_normals(verts, body.faces)
+    points = near_surface_points(verts, normals, projection_points, spread=0.15)
+    proj_ms = median_ms(lambda: projector.project(points, verts), max(3, runs // 4), warmup=1)
+    results["projection_points"] = projection_points
+    results["projection_ms"] = proj_ms
+    results["projection_points_per_s"] = projection_points / (proj_ms / 1e3)
+    ctx.release()
+    return results
