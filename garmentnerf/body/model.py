@@ -72,13 +72,15 @@ class BodyModel:
         return BodyModel(BodyAsset.load(default_asset_path()), dtype, device)
 
     @staticmethod
-    def from_file(path: str | Path, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> "BodyModel":
-        """A baked body asset (``.npz`` with our format) or an SMPL model file (``.pkl``/``.npz``)."""
+    def from_file(path: str | Path, uv_obj: str | Path | None = None, dtype: torch.dtype = torch.float32,
+                  device: torch.device | str = "cpu") -> "BodyModel":
+        """A baked body asset (``.npz`` with our format) or an SMPL model file (``.pkl``/``.npz``,
+        with ``uv_obj`` the UV layout .obj distributed with SMPL, which model files lack)."""
         path = Path(path)
         if path.suffix == ".pkl" or (path.suffix == ".npz" and _looks_like_smpl(path)):
             from garmentnerf.body.smpl import load_smpl_asset
 
-            return BodyModel(load_smpl_asset(path), dtype, device)
+            return BodyModel(load_smpl_asset(path, uv_obj), dtype, device)
         return BodyModel(BodyAsset.load(path), dtype, device)
 
     # ---- properties ---------------------------------------------------------------------------

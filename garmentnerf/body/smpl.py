@@ -125,7 +125,7 @@ def load_smpl_asset(path: str | Path, uv_obj: str | Path | None = None, *, num_b
     # vec(R_smpl - I) = kron(C^T, C^T) vec(R - I) for row-major vec; fold that into posedirs.
     K9 = np.kron(C.T, C.T)
     P4 = posedirs.reshape(V, 3, J - 1, 9)
-    pose_dirs = np.einsum("vcja,ab,dc->jbvd", P4, K9, C).reshape(9 * (J - 1), V, 3)
+    pose_dirs = np.einsum("vcjb,dc->jbvd", P4 @ K9, C).reshape(9 * (J - 1), V, 3)
 
     skin_indices, skin_weights = _compact_weights(weights)
 
@@ -352,7 +352,7 @@ _SAFE_GLOBALS = {
     ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
     ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
     ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copyreg", "_reconstructor"), ("_codecs", "encode"),
+    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
 }
 
 

@@ -9,6 +9,8 @@ def add_body_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--body", default=None, metavar="PATH",
                         help="body model: a baked asset (.npz) or an SMPL model file (.pkl/.npz); "
                              "default: the bundled anny body")
+    parser.add_argument("--body-uv", default=None, metavar="OBJ",
+                        help="UV layout .obj for an SMPL --body (SMPL model files have no UV atlas)")
     parser.add_argument("--shape", default="average",
                         help="body shape: a preset name (average, round, thin, tall, short, female, male) "
                              "or comma-separated shape coefficients (default: average)")
@@ -27,7 +29,7 @@ def load_body(args):
     """(BodyModel, betas) from --body and --shape."""
     from garmentnerf.body.model import BodyModel
 
-    body = BodyModel.from_file(args.body) if args.body else BodyModel.default()
+    body = BodyModel.from_file(args.body, args.body_uv) if args.body else BodyModel.default()
     return body, body.betas(parse_shape(args.shape, body))
 
 
