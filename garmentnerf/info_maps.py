@@ -1,8 +1,9 @@
 """UV-space info maps of a body motion: the normal map N_t and velocity map V_t (paper, Sec. 4.1).
 
-Per-vertex quantities come from torch (:mod:`garmentnerf.body.surface`); the rasteriser spreads
-them over the UV atlas in one draw call per frame (the paper's authors spend 130 ms per frame on
-the CPU for this).
+Per-vertex quantities come from torch (:mod:`garmentnerf.body.surface`). The rasteriser spreads
+them over the UV atlas: GL rasterises the atlas once into a per-texel (face, barycentrics) table,
+after which every frame is a torch gather (the paper's authors spend 130 ms per frame on the CPU
+for this; see ``garmentnerf bench``).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@
 layout(location = 0) in vec2 in_uv;
 layout(location = 1) in vec4 in_attr[NUM_TARGETS];
 
-out vec4 v_attr[NUM_TARGETS];
+noperspective out vec4 v_attr[NUM_TARGETS];
 
 void main() {
     for (int i = 0; i < NUM_TARGETS; ++i) {

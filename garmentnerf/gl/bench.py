@@ -60,7 +60,9 @@ def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution
     """Median milliseconds (readback to torch included) of:
 
     - ``uv_raster_ms``: one ``UVAttributeRasterizer.render`` of ``channels`` per-vertex channels
-      at ``uv_resolution``^2 on a 27,648-triangle, 6-chart atlas (dilation included);
+      at ``uv_resolution``^2 on a 27,648-triangle, 6-chart atlas (dilation included), default
+      ``method="gather"``; ``uv_raster_draw_ms``: the same with ``method="draw"`` (one MRT draw
+      call + readback per frame);
     - ``camera_pass_ms``: one ``CameraPass.render`` (depth, face id, barycentrics, UV) at
       ``image_size``^2 of a 20,480-triangle icosphere filling about half the frame;
     - ``depth_range_ms``: one ``CameraPass.render_depth_range`` (two draws) of the same.
@@ -78,6 +80,8 @@ def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution
         attributes = torch.from_numpy(rng.standard_normal((len(uv), channels)).astype(np.float32))
         with UVAttributeRasterizer(ctx, uv, faces, uv_resolution) as raster:
             uv_ms = _median_ms(lambda: raster.render(attributes), runs, warmup)
+        with UVAttributeRasterizer(ctx, uv, faces, uv_resolution, method="draw") as raster:
+            uv_draw_ms = _median_ms(lambda: raster.render(attributes), runs, warmup)
 
         sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.6)
         s_verts = torch.from_numpy(np.asarray(sphere.vertices, dtype=np.float32) + np.float32([0, 0, 0.9]))
@@ -89,6 +93,7 @@ def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution
             range_ms = _median_ms(lambda: cam_pass.render_depth_range(s_verts, s_faces, camera), runs, warmup)
         return {
             "uv_raster_ms": uv_ms,
+            "uv_raster_draw_ms": uv_draw_ms,
             "uv_raster_faces": int(len(faces)),
             "uv_raster_shape": (uv_resolution, uv_resolution, channels),
             "camera_pass_ms": cam_ms,

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from garmentnerf.conventions import Camera
+from garmentnerf.gl.context import current, is_released
 from garmentnerf.gl.shaders import build_program
 
 
@@ -130,14 +131,17 @@ class _Program:
 class CameraPass:
     """Renders camera-view G-buffers of triangle meshes on one moderngl context.
 
-    Objects made here belong to ``ctx``; call :meth:`release` (or use ``with``) to free them.
-    Framebuffers are kept for the ``max_sizes`` most recently used image sizes.
+    Objects made here belong to ``ctx``, which every method makes current first (and leaves
+    current; see :func:`~garmentnerf.gl.context.make_current`), so passes on different contexts can
+    be used in any order. Call :meth:`release` (or use ``with``) to free them; releasing the
+    context frees them too. Framebuffers are kept for the ``max_sizes`` most recently used sizes.
     """
 
     def __init__(self, ctx: moderngl.Context, max_sizes: int = 4) -> None:
         self.ctx = ctx
         self.max_sizes = max(1, int(max_sizes))
-        self._programs = {False: _Program(ctx, False), True: _Program(ctx, True)}
+        with current(ctx):
+            self._programs = {False: _Program(ctx, False), True: _Program(ctx, True)}
         self._targets: OrderedDict[tuple[int, int], _Targets] = OrderedDict()
         self._released = False
 
@@ -232,43 +236,53 @@ class CameraPass:
             uv, uv_faces: optional (Nuv, 2) texture coordinates and (F, 3) indices into them.
             depth_range: also render the farthest surface per pixel (``depth_far``, ``face_id_far``).
         """
-        program = self._prepare(vertices, faces, camera, uv, uv_faces)
-        targets = self._targets_for(camera.width, camera.height)
+        with current(self.ctx):
+            program = self._prepare(vertices, faces, camera, uv, uv_faces)
+            targets = self._targets_for(camera.width, camera.height)
+            self._draw(program, targets, farthest=False)
+            main = self._read(targets, 0, 4)
+            uv_raw = self._read(targets, 1, 2) if program.has_uv else None
+            if depth_range:
+                self._draw(program, targets, farthest=True)
+                main_far = self._read(targets, 0, 4)
 
-        self._draw(program, targets, farthest=False)
-        depth, face_id, bary, mask = self._unpack(self._read(targets, 0, 4))
-        if program.has_uv:
-            uv_img = torch.from_numpy(self._read(targets, 1, 2))
+        depth, face_id, bary, mask = self._unpack(main)
+        if uv_raw is not None:
+            uv_img = torch.from_numpy(uv_raw)
         else:
             uv_img = torch.zeros((camera.height, camera.width, 2), dtype=torch.float32)
         result = CameraPassResult(depth=depth, face_id=face_id, bary=bary, uv=uv_img, mask=mask)
-
         if depth_range:
-            self._draw(program, targets, farthest=True)
-            result.depth_far, result.face_id_far, _, _ = self._unpack(self._read(targets, 0, 4))
+            result.depth_far, result.face_id_far, _, _ = self._unpack(main_far)
         return result
 
     def render_depth_range(self, vertices, faces, camera: Camera) -> DepthRange:
         """Nearest and farthest surface z per pixel (front and back faces alike), e.g. for per-ray
         sampling bounds: along a unit ray of direction d, t = z / (d . optical axis)."""
-        program = self._prepare(vertices, faces, camera)
-        targets = self._targets_for(camera.width, camera.height)
-        self._draw(program, targets, farthest=False)
-        near, _, _, mask = self._unpack(self._read(targets, 0, 4))
-        self._draw(program, targets, farthest=True)
-        far, _, _, _ = self._unpack(self._read(targets, 0, 4))
+        with current(self.ctx):
+            program = self._prepare(vertices, faces, camera)
+            targets = self._targets_for(camera.width, camera.height)
+            self._draw(program, targets, farthest=False)
+            main_near = self._read(targets, 0, 4)
+            self._draw(program, targets, farthest=True)
+            main_far = self._read(targets, 0, 4)
+        near, _, _, mask = self._unpack(main_near)
+        far, _, _, _ = self._unpack(main_far)
         return DepthRange(near=near, far=far, mask=mask)
 
     def release(self) -> None:
         """Free the GL objects (the context itself stays)."""
         if self._released:
             return
-        for targets in self._targets.values():
-            targets.release()
-        self._targets.clear()
-        for program in self._programs.values():
-            program.release()
         self._released = True
+        if is_released(self.ctx):  # the context took its objects with it
+            return
+        with current(self.ctx):
+            for targets in self._targets.values():
+                targets.release()
+            self._targets.clear()
+            for program in self._programs.values():
+                program.release()
 
     def __enter__(self) -> "CameraPass":
         return self

@@ -8,9 +8,12 @@ belongs to a pass object built on one context, so several contexts can live in o
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import moderngl
 
-#: Lowest GL version the passes need (core profile): MRT, integer targets, gl_PrimitiveID.
+#: Lowest GL version the passes need (core profile): MRT, float targets, gl_PrimitiveID.
 REQUIRED_GL_VERSION = 330
 
 #: Debian/Ubuntu packages that provide headless EGL + Mesa.
@@ -54,4 +57,28 @@ def create_context(headless: bool = True) -> moderngl.Context:
 
 def context_info(ctx: moderngl.Context) -> dict[str, str]:
     """Vendor, renderer and version strings of ``ctx`` (for logs and benchmarks)."""
+    make_current(ctx)
     return {key: str(ctx.info.get(key, "")) for key in ("GL_VENDOR", "GL_RENDERER", "GL_VERSION")}
+
+
+def make_current(ctx: moderngl.Context) -> moderngl.Context:
+    """Make ``ctx`` the current GL context of this thread, and leave it current.
+
+    moderngl puts new objects and draws on whichever context is current, so code that may share a
+    process with other contexts makes its own current first. moderngl's ``with ctx:`` is not used
+    for this: on exit it leaves *no* context current (EGL standalone), which breaks callers that
+    go on using ``ctx`` directly. Costs a few microseconds.
+    """
+    ctx.__enter__()
+    return ctx
+
+
+def is_released(ctx: moderngl.Context) -> bool:
+    """True once ``ctx.release()`` has run (its objects are gone with it)."""
+    return type(ctx.mglo).__name__ == "InvalidObject"
+
+
+@contextmanager
+def current(ctx: moderngl.Context) -> Iterator[moderngl.Context]:
+    """``with current(ctx):`` -- :func:`make_current` for a block; ``ctx`` stays current after it."""
+    yield make_current(ctx)
