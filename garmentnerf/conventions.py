@@ -150,11 +150,11 @@ def look_at(eye, target, up=UP_AXIS) -> tuple[np.ndarray, np.ndarray]:
     if norm < 1e-12:
         raise ValueError("look_at: eye and target coincide")
     z = forward / norm
-    x = np.cross(z, -np.asarray(up, dtype=np.float64))  # image right (y_cam points down)
+    x = np.cross(z, np.asarray(up, dtype=np.float64))  # image right = forward x up
     if np.linalg.norm(x) < 1e-9:
         raise ValueError("look_at: view direction is parallel to the up vector")
     x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+    y = np.cross(z, x)  # image down
     R = np.stack([x, y, z])
     return R, -R @ eye
 
