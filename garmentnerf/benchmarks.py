@@ -44,7 +44,7 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
     from garmentnerf.body.model import BodyModel
     from garmentnerf.body.surface import vertex_normals
     from garmentnerf.conventions import orbit_camera
-    from garmentnerf.geometry.projection import SurfaceProjector
+    from garmentnerf.geometry.body_points import BodyPointProjector
     from garmentnerf.gl.camera_pass import CameraPass
     from garmentnerf.gl.context import context_info, create_context
     from garmentnerf.info_maps import InfoMapRenderer
@@ -79,7 +79,7 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
         results["camera_pass_512_ms"] = median_ms(lambda: cam_pass.render(verts, body.faces, camera, body.uv, body.uv_faces), runs)
         results["depth_range_512_ms"] = median_ms(lambda: cam_pass.render_depth_range(verts, body.faces, camera), runs)
 
-    projector = SurfaceProjector(body.faces, body.asset.num_vertices)
+    projector = BodyPointProjector(body)  # closest point, signed h, b_o and uv
     normals = vertex_normals(verts, body.faces)
     points = near_surface_points(verts, normals, projection_points, spread=0.15)
     proj_ms = median_ms(lambda: projector.project(points, verts), max(3, runs // 4), warmup=1)
