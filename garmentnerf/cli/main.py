@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from garmentnerf.cli import body_cmd, bench_cmd, maps_cmd, motion_cmd
+from garmentnerf.cli import body_cmd, bench_cmd, data_cmd, maps_cmd, motion_cmd
 
 
 class UserError(Exception):
@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     body_cmd.register(sub)
     motion_cmd.register(sub)
     maps_cmd.register(sub)
+    data_cmd.register(sub)
     bench_cmd.register(sub)
     return parser
 

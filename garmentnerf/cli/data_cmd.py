@@ -1,0 +1,102 @@
+"""``garmentnerf data``: make, render, describe and preview training scenes."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(sub) -> None:
+    data = sub.add_parser("data", help="training scenes: simulate, render, inspect")
+    data_sub = data.add_subparsers(dest="data_command", metavar="ACTION", required=True)
+
+    info = data_sub.add_parser("info", help="summarise a scene (cameras, sequences, simulation statistics)")
+    info.add_argument("scene", help="scene folder")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(func=run_info)
+
+    render = data_sub.add_parser("render", help="render (and cache) the ground-truth images of a scene")
+    render.add_argument("scene", help="scene folder")
+    render.add_argument("--sequence", action="append", default=None, help="sequence name (repeatable; default: all)")
+    render.add_argument("--split", default=None, help="only cameras of this split (train, unseen_view, reference)")
+    render.set_defaults(func=run_render)
+
+    preview = data_sub.add_parser("preview", help="contact sheet of views x frames, so a person can look")
+    preview.add_argument("scene", help="scene folder")
+    preview.add_argument("--out", required=True, help="output PNG")
+    preview.add_argument("--sequence", default=None, help="sequence (default: the first)")
+    preview.add_argument("--labels", action="store_true", help="outline garment and body label regions")
+    preview.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    preview.set_defaults(func=run_preview)
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from garmentnerf.data.scene import Scene
+
+    scene = Scene.load(args.scene)
+    size_bytes = sum(p.stat().st_size for p in scene.root.rglob("*") if p.is_file() and "cache" not in p.parts)
+    summary = {
+        "scene": str(scene.root), "image_size": list(scene.image_size), "fps": scene.fps,
+        "garment": scene.garment, "body": scene.body,
+        "cameras": {split: scene.camera_names(split) for split in ("train", "unseen_view", "reference")},
+        "sequences": {name: {"frames": info.frames, "split": info.split, "motion": info.motion}
+                      for name, info in scene.sequences.items()},
+        "palette_init": scene.palette_init, "simulation": scene.simulation,
+        "size_on_disk_bytes_without_cache": size_bytes,
+    }
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"scene      {scene.root}  ({size_bytes / 2**20:.1f} MiB without the image cache)")
+    print(f"images     {scene.image_size[0]}x{scene.image_size[1]} at {scene.fps:g} fps")
+    print(f"garment    {scene.garment.get('kind')}  colour {scene.garment.get('color')}")
+    print(f"body       {scene.body.get('model')}  shape {scene.body.get('shape')}")
+    for split, names in summary["cameras"].items():
+        print(f"cameras    {split:12s} {len(names):3d}  {' '.join(names)}")
+    for name, info in summary["sequences"].items():
+        stats = scene.simulation.get(name, {})
+        extra = "".join(f"  {k}={v}" for k, v in stats.items() if not isinstance(v, (list, dict)))
+        print(f"sequence   {name:12s} {info['frames']:5d} frames  {info['split']:13s} {info['motion']}{extra}")
+    return 0
+
+
+def run_render(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from garmentnerf.data.scene import Scene, SceneImages
+
+    scene = Scene.load(args.scene)
+    sequences = args.sequence or scene.sequence_names()
+    for name in sequences:
+        scene.sequence(name)  # raises a clear error for an unknown name
+    cams = scene.camera_names(args.split) if args.split else scene.camera_names()
+    total = sum(len(cams) * scene.num_frames(s) for s in sequences)
+    rendered = 0
+    with SceneImages(scene) as images, tqdm(total=total, unit="img", desc="rendering") as bar:
+        for name in sequences:
+            done_before = bar.n
+            rendered += images.ensure(name, cams, progress=lambda done, _total: bar.update(done_before + done - bar.n))
+    print(f"{rendered} images rendered, {total - rendered} already cached, in {scene.cache_dir}")
+    return 0
+
+
+def run_preview(args: argparse.Namespace) -> int:
+    import imageio.v3 as iio
+
+    from garmentnerf.data.preview import scene_contact_sheet
+    from garmentnerf.data.scene import Scene, SceneImages
+    from garmentnerf.io_utils import atomic_write_path
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    scene = Scene.load(args.scene)
+    sequence = args.sequence or scene.sequence_names()[0]
+    scene.sequence(sequence)
+    with SceneImages(scene) as images:
+        sheet = scene_contact_sheet(scene, images, sequence, show_labels=args.labels)
+    with atomic_write_path(out) as tmp:
+        iio.imwrite(tmp, sheet, extension=".png")
+    print(f"wrote {out} ({sheet.shape[1]}x{sheet.shape[0]})")
+    return 0
