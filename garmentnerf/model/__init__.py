@@ -1,0 +1,33 @@
+"""The Garment Animation NeRF networks (pure torch: no data loading, no training loop).
+
+One concept per module:
+
+- :mod:`~garmentnerf.model.config`: :class:`ModelConfig`, every size, switch and weight.
+- :mod:`~garmentnerf.model.unet`: the U-Net of E (dynamic features) and G_en (detail features).
+- :mod:`~garmentnerf.model.image_generator`: G_img, neural texture + generator (frozen after
+  pre-training).
+- :mod:`~garmentnerf.model.detail_features`: reading f^d from the front/back detail maps.
+- :mod:`~garmentnerf.model.nerf_mlp`: M_NeRF, sample features -> (sigma, zeta).
+- :mod:`~garmentnerf.model.samplers`: where along each ray to evaluate M_NeRF.
+- :mod:`~garmentnerf.model.volume_rendering`: weights and compositing, dense and packed.
+- :mod:`~garmentnerf.model.palette`: M_D, the palette and the one composition formula.
+- :mod:`~garmentnerf.model.losses`: the training losses.
+"""
+
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.detail_features import sample_image_features, select_detail_features
+from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
+from garmentnerf.model.losses import garment_losses, offset_loss, palette_loss, sparsity_loss
+from garmentnerf.model.nerf_mlp import GarmentNeRF, density_activation, positional_encoding, trunc_exp
+from garmentnerf.model.palette import (DecomposedMaps, Palette, PaletteDecoder, check_palette, compose,
+                                       palette_from_labels)
+from garmentnerf.model.samplers import BoxStratifiedSampler, RaySamples, Sampler, body_aabb, ray_aabb_intersect
+from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder, UNet
+
+__all__ = [
+    "ModelConfig", "UNet", "DynamicFeatureEncoder", "DetailEncoder", "ImageGenerator", "NeuralTexture", "freeze",
+    "sample_image_features", "select_detail_features", "GarmentNeRF", "density_activation", "positional_encoding",
+    "trunc_exp", "Sampler", "RaySamples", "BoxStratifiedSampler", "body_aabb", "ray_aabb_intersect",
+    "PaletteDecoder", "DecomposedMaps", "Palette", "compose", "check_palette", "palette_from_labels",
+    "garment_losses", "sparsity_loss", "offset_loss", "palette_loss",
+]

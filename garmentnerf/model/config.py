@@ -1,0 +1,316 @@
+"""Every size, switch and weight of the Garment Animation NeRF model, in one dataclass.
+
+Defaults are the paper's (Sec. 4 and "Implementation details"; numbers the paper leaves out come
+from the authors' code, see ``implementation-notes.md`` Sec. 1). :meth:`ModelConfig.paper` is the
+published model; :meth:`ModelConfig.cpu_small` is a reduced model meant to train on a 2-core CPU in
+about an hour. A checkpoint stores :meth:`ModelConfig.to_dict`; :meth:`ModelConfig.from_dict`
+rejects keys it does not know, so a renamed field fails loudly instead of silently falling back
+to a default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+DETAIL_SELECTION_MODES = ("visibility", "soft_normal")
+DENSITY_ACTIVATIONS = ("softplus", "trunc_exp")
+RADIANCE_ACTIVATIONS = ("softplus", "sigmoid")
+
+
+@dataclass
+class ModelConfig:
+    """Configuration of the networks, the renderer, the losses and the optimiser schedule.
+
+    Inputs
+        history: k, number of past velocity frames in the velocity map V_t (paper: 2). The
+            dynamic feature encoder E then sees 3 (k + 1) channels (normals + k velocities).
+        info_map_resolution: side of the UV info maps N_t, V_t and of the dynamic feature map
+            F^s_t (paper: 128).
+        image_resolution: side of the output image (paper: 512).
+        reference_resolution: side of the front/back reference images of G_img and of the detail
+            feature maps F^d_t made from them by G_en (paper: 512, the image size). G_en at this
+            size is the most expensive network on a CPU, hence a separate field.
+        feature_image_resolution: side of the volume-rendered appearance feature image F^zeta_t,
+            i.e. rays per image side (paper: 128 = image / 4). Must be image_resolution divided by
+            2 ** decoder_upsample_steps.
+
+    Features
+        dynamic_feature_dim: channels of F^s_t, the output of E (paper: 8).
+        detail_feature_dim: channels of F^d_t, the output of G_en (paper: 8).
+        appearance_dim: zeta, channels of the NeRF appearance feature and of F^zeta_t (paper: 128).
+
+    U-Nets E and G_en (``model/unet.py``)
+        encoder_base_width: width of the first conv, doubled at every down block (paper: 32, so
+            32 -> 64/128/256/512).
+        encoder_depth: number of stride-2 down blocks (paper: 4; 128 -> 8x8 bottleneck for E,
+            512 -> 32x32 for G_en).
+        encoder_width_scale: multiplies every U-Net width (paper: 1.0).
+
+    Image generator G_img (``model/image_generator.py``; pre-trained, then frozen)
+        neural_texture_channels: channels of every neural-texture level and of Q_t (DNG: 16).
+        neural_texture_levels: pyramid levels, each half the previous resolution (DNG: 4).
+        neural_texture_resolution: side of the finest level (DNG: 512 -> 512/256/128/64).
+        generator_width_scale: width factor of G_img's encoder-decoder (1.0: the E/G_en widths).
+
+    NeRF MLP M_NeRF (``model/nerf_mlp.py``)
+        mlp_depth: hidden Linear + ReLU layers (paper: 6).
+        mlp_width: hidden width (paper: 256).
+        density_activation: ``"softplus"`` (default) or ``"trunc_exp"``. Never the raw output:
+            the authors' code uses the unbounded head directly as alpha.
+        density_bias: added to the raw density before the activation (default -1.0, as in
+            Mip-NeRF). With softplus the untrained density is then about 0.3 per metre: rays
+            through a 1-2 m box start half transparent, so every sample gets gradient.
+        positional_encoding_freqs: NeRF frequencies applied to b_o (paper: 0, none).
+
+    Sampling (``model/samplers.py``, ``model/volume_rendering.py``)
+        samples_per_ray: stratified samples between box entry and exit (paper: 64; no importance
+            pass).
+        bbox_padding: metres added on every side of the posed body's bounding box (paper code:
+            0.05).
+
+    Palette decoder M_D (``model/palette.py``)
+        palette_size: P, palette colours (paper: 2, garment p_G and body/other p_B).
+        decoder_upsample_steps: nearest x2 upsamplings (paper: 2, 128 -> 512).
+        decoder_width: width of the first decoder conv, halved after every upsampling down to
+            decoder_min_width (authors' code: 128 -> 64 -> 32).
+        decoder_min_width: floor of the decoder widths (authors' code: 32).
+        decoder_extra_layers: full-resolution conv3x3 + LeakyReLU layers after the upsampling
+            (authors' code: 2).
+        radiance_activation: ``"softplus"`` (default: unbounded above, shifted so the untrained
+            radiance is 1) or ``"sigmoid"``. The palette starts at mean colours, so pixels
+            brighter than the mean need r > 1, which a sigmoid cannot give.
+        radiance_channels: 3 (paper: r in R^3) or 1 (grey shading, which cannot absorb hue and
+            so makes recolouring follow the palette more faithfully).
+        offset_scale: offsets are ``offset_scale * tanh(.)`` (small, and bounded so a colour
+            p + o stays near [0, 1]).
+        blend_weight_floor: added after the softplus of the blend weights before they are
+            normalised (authors' code: 0.05), so no palette colour's weight reaches exactly 0
+            and the normalisation never divides by 0.
+        background: RGB in [0, 1] the output is composited over (default black, the background
+            of the ground-truth renders in ``garmentnerf.data.render_gt``).
+        garment_label, body_label: label-map values of garment and body pixels (0 is background),
+            used to initialise the palette from mean colours.
+
+    Ablations
+        use_dynamic_feature: feed f^s_t (from E) to the MLP (paper: on).
+        use_detail_feature: feed f^d_t (from G_img + G_en) to the MLP (paper: on).
+        detail_selection: how a sample's detail feature is taken from the front or back map:
+            ``"visibility"`` (paper: the map whose reference camera sees the projected body
+            point) or ``"soft_normal"`` (authors' code: weights (cos + 1) / 2 with cos between
+            the body normal and the direction to each camera, the pair L2-normalised).
+
+    Losses (paper Eq. for L; weights lambda_1..5)
+        w_image: L1 on the image (paper lambda_1 = 1).
+        w_mask: L1 on the mask (paper: inside L_img, weight 1).
+        w_perceptual: VGG/perceptual term (paper lambda_2 = 0.1).
+        w_sparsity: blend-weight sparsity (paper lambda_3 = 2e-4).
+        w_offset: colour-offset magnitude (paper lambda_4 = 0.03).
+        w_palette: palette drift from its initialisation (paper lambda_5 = 1e-3).
+
+    Optimisation
+        lr: initial Adam learning rate (paper: 5e-4).
+        lr_final: learning rate at the last iteration, exponential decay (paper: 5e-5).
+        iterations: training iterations (paper: 200k).
+        batch_size: images per iteration (paper: 1).
+        grad_clip_value: gradient clipping by value (authors' code: 40).
+        generator_lr: Adam learning rate of G_img pre-training (DNG: 1e-4).
+        generator_iterations: G_img pre-training iterations (DNG: 100k).
+    """
+
+    # inputs
+    history: int = 2
+    info_map_resolution: int = 128
+    image_resolution: int = 512
+    reference_resolution: int = 512
+    feature_image_resolution: int = 128
+    # features
+    dynamic_feature_dim: int = 8
+    detail_feature_dim: int = 8
+    appearance_dim: int = 128
+    # U-Nets
+    encoder_base_width: int = 32
+    encoder_depth: int = 4
+    encoder_width_scale: float = 1.0
+    # G_img
+    neural_texture_channels: int = 16
+    neural_texture_levels: int = 4
+    neural_texture_resolution: int = 512
+    generator_width_scale: float = 1.0
+    # NeRF MLP
+    mlp_depth: int = 6
+    mlp_width: int = 256
+    density_activation: str = "softplus"
+    density_bias: float = -1.0
+    positional_encoding_freqs: int = 0
+    # sampling
+    samples_per_ray: int = 64
+    bbox_padding: float = 0.05
+    # palette decoder
+    palette_size: int = 2
+    decoder_upsample_steps: int = 2
+    decoder_width: int = 64
+    decoder_min_width: int = 32
+    decoder_extra_layers: int = 2
+    radiance_activation: str = "softplus"
+    radiance_channels: int = 3
+    offset_scale: float = 0.5
+    blend_weight_floor: float = 0.05
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    garment_label: int = 2
+    body_label: int = 1
+    # ablations
+    use_dynamic_feature: bool = True
+    use_detail_feature: bool = True
+    detail_selection: str = "visibility"
+    # losses
+    w_image: float = 1.0
+    w_mask: float = 1.0
+    w_perceptual: float = 0.1
+    w_sparsity: float = 2e-4
+    w_offset: float = 0.03
+    w_palette: float = 1e-3
+    # optimisation
+    lr: float = 5e-4
+    lr_final: float = 5e-5
+    iterations: int = 200_000
+    batch_size: int = 1
+    grad_clip_value: float = 40.0
+    generator_lr: float = 1e-4
+    generator_iterations: int = 100_000
+
+    def __post_init__(self) -> None:
+        self.background = tuple(float(c) for c in self.background)
+        self.validate()
+
+    # ------------------------------------------------------------------ derived sizes
+    @property
+    def encoder_in_channels(self) -> int:
+        """3 (k + 1): normal map plus k velocity maps."""
+        return 3 * (self.history + 1)
+
+    @property
+    def geometry_dim(self) -> int:
+        """Width of x^b = [b_o (positionally encoded), h]."""
+        return 3 * (1 + 2 * self.positional_encoding_freqs) + 1
+
+    @property
+    def mlp_input_dim(self) -> int:
+        """Width of the MLP input [b_o, h, f^d, f^s] (paper: 4 + 8 + 8 = 20)."""
+        return (self.geometry_dim + self.detail_feature_dim * self.use_detail_feature
+                + self.dynamic_feature_dim * self.use_dynamic_feature)
+
+    @property
+    def decoder_out_channels(self) -> int:
+        """Raw channels of M_D: radiance, 3 offsets and 1 weight per colour, mask (paper: 12 or 13)."""
+        return self.radiance_channels + 4 * self.palette_size + 1
+
+    # ------------------------------------------------------------------ checks
+    def validate(self) -> None:
+        """Raise ValueError on inconsistent or out-of-range settings."""
+        def positive(*names):
+            for name in names:
+                if getattr(self, name) <= 0:
+                    raise ValueError(f"ModelConfig.{name} must be positive, got {getattr(self, name)}")
+
+        positive("info_map_resolution", "image_resolution", "reference_resolution", "feature_image_resolution",
+                 "dynamic_feature_dim", "detail_feature_dim", "appearance_dim", "encoder_base_width", "encoder_depth",
+                 "encoder_width_scale", "neural_texture_channels", "neural_texture_levels",
+                 "neural_texture_resolution", "generator_width_scale", "mlp_depth", "mlp_width",
+                 "samples_per_ray", "palette_size", "decoder_width", "decoder_min_width", "offset_scale",
+                 "lr", "lr_final", "iterations", "batch_size", "grad_clip_value", "generator_lr",
+                 "generator_iterations")
+        if self.history < 0:
+            raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
+        for name in ("positional_encoding_freqs", "decoder_upsample_steps", "decoder_extra_layers", "bbox_padding",
+                     "blend_weight_floor", "w_image", "w_mask", "w_perceptual", "w_sparsity", "w_offset", "w_palette"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.density_activation not in DENSITY_ACTIVATIONS:
+            raise ValueError(f"ModelConfig.density_activation must be one of {DENSITY_ACTIVATIONS}, "
+                             f"got {self.density_activation!r}")
+        if self.radiance_activation not in RADIANCE_ACTIVATIONS:
+            raise ValueError(f"ModelConfig.radiance_activation must be one of {RADIANCE_ACTIVATIONS}, "
+                             f"got {self.radiance_activation!r}")
+        if self.detail_selection not in DETAIL_SELECTION_MODES:
+            raise ValueError(f"ModelConfig.detail_selection must be one of {DETAIL_SELECTION_MODES}, "
+                             f"got {self.detail_selection!r}")
+        if self.radiance_channels not in (1, 3):
+            raise ValueError(f"ModelConfig.radiance_channels must be 1 or 3, got {self.radiance_channels}")
+        if len(self.background) != 3 or not all(0.0 <= c <= 1.0 for c in self.background):
+            raise ValueError(f"ModelConfig.background must be 3 values in [0, 1], got {self.background}")
+        if self.feature_image_resolution * 2 ** self.decoder_upsample_steps != self.image_resolution:
+            raise ValueError(
+                f"ModelConfig: feature_image_resolution ({self.feature_image_resolution}) x 2^decoder_upsample_steps "
+                f"({2 ** self.decoder_upsample_steps}) must equal image_resolution ({self.image_resolution})")
+        for name in ("info_map_resolution", "reference_resolution"):
+            size = getattr(self, name)
+            if size % 2 ** self.encoder_depth or size // 2 ** self.encoder_depth < 2:
+                raise ValueError(f"ModelConfig.{name} ({size}) must be divisible by 2^encoder_depth "
+                                 f"({2 ** self.encoder_depth}) with a bottleneck of at least 2x2")
+        if self.lr_final > self.lr:
+            raise ValueError(f"ModelConfig.lr_final ({self.lr_final}) must not exceed lr ({self.lr})")
+        if self.garment_label == self.body_label:
+            raise ValueError("ModelConfig.garment_label and body_label must differ")
+
+    # ------------------------------------------------------------------ presets
+    @classmethod
+    def paper(cls) -> "ModelConfig":
+        """The published model (all defaults)."""
+        return cls()
+
+    @classmethod
+    def cpu_small(cls) -> "ModelConfig":
+        """A reduced model for a 2-core CPU (target: a usable model in about an hour).
+
+        64 x 64 rays of 24 samples (at most 98k MLP points per image, fewer once rays missing
+        the body box are skipped), a 4 x 128 MLP, 64-d zeta, U-Nets at half width, a 256 x 256
+        output image and 128 x 128 reference images (G_en at 256 x 256 would cost more than all
+        the rest). The info maps stay at 128 x 128.
+
+        Measured on the 2 shared CPU cores of the development machine (min of 4, fwd + bwd): E
+        0.08 s, G_en on both references 0.2 s, the MLP on 49k points (half the rays, about
+        those that hit the body box) 0.4 s, M_D 0.12 s: about 1 s per iteration, hence 3000 iterations for an
+        hour. G_img pre-training at 128 x 128 costs about 0.2 s per iteration.
+        """
+        return cls(
+            image_resolution=256,
+            reference_resolution=128,
+            feature_image_resolution=64,
+            appearance_dim=64,
+            encoder_width_scale=0.5,
+            neural_texture_resolution=256,
+            generator_width_scale=0.5,
+            mlp_depth=4,
+            mlp_width=128,
+            samples_per_ray=24,
+            decoder_width=32,
+            decoder_min_width=16,
+            decoder_extra_layers=1,
+            iterations=3_000,
+            generator_iterations=3_000,
+        )
+
+    # ------------------------------------------------------------------ checkpoints
+    def to_dict(self) -> dict:
+        """Plain JSON-compatible dict of every field."""
+        out = dataclasses.asdict(self)
+        out["background"] = list(self.background)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ModelConfig":
+        """Rebuild from :meth:`to_dict`; missing keys take the defaults, unknown keys raise."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown ModelConfig key(s): {', '.join(unknown)} "
+                             f"(known: {', '.join(sorted(known))})")
+        return cls(**data)
+
+    def replace(self, **changes) -> "ModelConfig":
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+__all__ = ["ModelConfig", "DETAIL_SELECTION_MODES", "DENSITY_ACTIVATIONS", "RADIANCE_ACTIVATIONS"]

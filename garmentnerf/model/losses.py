@@ -1,0 +1,86 @@
+"""Training losses (paper Sec. 4.4):
+
+    L = lambda_1 L_img + lambda_2 L_vgg + lambda_3 L_sp + lambda_4 L_off + lambda_5 L_p
+
+with L_img = |I - I*|_1 + |M - M*|_1 (the two parts weighted separately here, both 1 in the
+paper), L_sp the blend-weight sparsity, L_off = |O|^2, L_p = |p - p*|^2 and lambda = (1, 0.1,
+2e-4, 0.03, 1e-3). Plain L1 as in the paper (the authors' code uses a pseudo-Huber).
+
+Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixel values
+(summed over palette colours and channels) averaged over pixels, as in PaletteNeRF whose weights
+the paper adopts; L_p is the sum over the palette's 3P values.
+
+The perceptual network is not defined here: pass any ``callable(pred, target) -> scalar`` (for
+example a VGG or shift-tolerant LPIPS module). Without one the ``perceptual`` term is absent
+from the result (not replaced by anything).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from garmentnerf.model.palette import DecomposedMaps
+
+
+def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error over all elements."""
+    return (pred - target).abs().mean()
+
+
+def sparsity_loss(weights: torch.Tensor) -> torch.Tensor:
+    """Blend-weight sparsity ``mean(1 / sum_i w_i^2 - 1)`` over pixels; weights (B, P, H, W).
+
+    For P = 2 with w_B = 1 - w_G this is the paper's ``1 / (w^2 + (1 - w)^2) - 1``. In general
+    1 / sum w_i^2 is the effective number of colours a pixel mixes (1 for a one-hot pixel, P
+    for a uniform mix), so the loss is 0 exactly at one-hot weights and at most P - 1.
+    """
+    return (1.0 / weights.square().sum(dim=1) - 1.0).mean()
+
+
+def offset_loss(offsets: torch.Tensor) -> torch.Tensor:
+    """``mean over pixels of sum_i |o_i|^2``; offsets (B, P, 3, H, W)."""
+    return offsets.square().sum(dim=(1, 2)).mean()
+
+
+def palette_loss(palette: torch.Tensor, initial: torch.Tensor) -> torch.Tensor:
+    """``|p - p*|^2`` summed over the (P, 3) palette values."""
+    return (palette - initial).square().sum()
+
+
+def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: DecomposedMaps,
+                   target_mask: torch.Tensor, palette: torch.Tensor, palette_initial: torch.Tensor, cfg,
+                   perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                   ) -> dict[str, torch.Tensor]:
+    """All loss terms of one batch.
+
+    Args:
+        image: (B, 3, H, W) composed prediction (:func:`~garmentnerf.model.palette.compose`).
+        target_image: (B, 3, H, W) ground truth on the same background.
+        maps: the decoder's maps (mask, weights, offsets are regularised).
+        target_mask: (B, 1, H, W) or (B, H, W) ground-truth mask of body + garment in {0, 1}.
+        palette: (P, 3) the palette *parameter* (unclamped, so L_p can pull it back into range).
+        palette_initial: (P, 3) p*.
+        cfg: anything with the weights ``w_image, w_mask, w_perceptual, w_sparsity, w_offset,
+            w_palette`` (a :class:`~garmentnerf.model.config.ModelConfig`).
+        perceptual: optional ``(pred, target) -> scalar``; its term is left out when None.
+    Returns:
+        dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette`` and
+        ``total``, the weighted sum.
+    """
+    if target_mask.ndim == 3:
+        target_mask = target_mask.unsqueeze(1)
+    terms = {
+        "image": l1(image, target_image),
+        "mask": l1(maps.mask, target_mask.to(maps.mask.dtype)),
+    }
+    if perceptual is not None:
+        terms["perceptual"] = perceptual(image, target_image)
+    terms["sparsity"] = sparsity_loss(maps.weights)
+    terms["offset"] = offset_loss(maps.offsets)
+    terms["palette"] = palette_loss(palette, palette_initial)
+    weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
+               "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette}
+    terms["total"] = sum(weights[name] * value for name, value in terms.items())
+    return terms

@@ -1,0 +1,138 @@
+"""M_NeRF: sample features -> density sigma and appearance feature zeta (paper Sec. 4.3).
+
+Input per sample: x^b = [b_o (3), h (1)], the detail feature f^d (8) and the dynamic feature
+f^s (8): 20 values, no positional encoding (paper). Six Linear(256) + ReLU layers, then two
+linear heads: density (1) and zeta (128).
+
+Density activation
+    The authors' code feeds the raw, unbounded density head to the renderer as alpha. Here the
+    head is a density in 1/metre, ``sigma = softplus(raw + bias)`` (bias -1 as in Mip-NeRF), and
+    the renderer turns it into alpha with the sample spacing
+    (:func:`garmentnerf.model.volume_rendering.alpha_from_density`), so opacity does not depend
+    on how many samples a ray takes. ``"trunc_exp"`` (instant-ngp / torch-ngp) is the
+    alternative: exp with its gradient clamped, sharper surfaces, less stable early on.
+
+zeta is left linear: it is an intermediate feature decoded by M_D, and a bounded activation
+would only saturate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: trunc_exp clamps its input's gradient here (torch-ngp's value); exp(15) ~ 3.3e6 per metre.
+TRUNC_EXP_MAX = 15.0
+
+
+class _TruncExp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return grad * torch.exp(x.clamp(max=TRUNC_EXP_MAX))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    """exp(x) whose gradient uses exp(min(x, 15)), so one large raw value cannot blow up a step."""
+    return _TruncExp.apply(x)
+
+
+def density_activation(raw: torch.Tensor, kind: str = "softplus", bias: float = -1.0) -> torch.Tensor:
+    """Density sigma >= 0 (1/metre) from the raw head output; same shape."""
+    if kind == "softplus":
+        return F.softplus(raw + bias)
+    if kind == "trunc_exp":
+        return trunc_exp(raw + bias)
+    raise ValueError(f"unknown density activation {kind!r} (known: 'softplus', 'trunc_exp')")
+
+
+def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
+    """NeRF encoding ``[x, sin(2^l pi x), cos(2^l pi x)]_{l < L}``: (N, D) -> (N, D (1 + 2 L))."""
+    if num_freqs == 0:
+        return x
+    freqs = (2.0 ** torch.arange(num_freqs, dtype=x.dtype, device=x.device)) * math.pi
+    angles = (x.unsqueeze(-1) * freqs).flatten(-2)  # (N, D L)
+    return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+
+class GarmentNeRF(nn.Module):
+    """The NeRF MLP.
+
+    Args:
+        detail_dim: width of f^d (0: the detail-feature ablation).
+        dynamic_dim: width of f^s (0: the dynamic-feature ablation).
+        appearance_dim: width of zeta (paper: 128).
+        depth, width: hidden Linear + ReLU layers (paper: 6 x 256).
+        density_activation: ``"softplus"`` or ``"trunc_exp"``.
+        density_bias: added to the raw density before the activation.
+        positional_encoding_freqs: frequencies applied to b_o (paper: 0).
+    """
+
+    def __init__(self, detail_dim: int = 8, dynamic_dim: int = 8, appearance_dim: int = 128, depth: int = 6,
+                 width: int = 256, density_activation: str = "softplus", density_bias: float = -1.0,
+                 positional_encoding_freqs: int = 0):
+        super().__init__()
+        if density_activation not in ("softplus", "trunc_exp"):
+            raise ValueError(f"unknown density activation {density_activation!r}")
+        self.detail_dim = detail_dim
+        self.dynamic_dim = dynamic_dim
+        self.appearance_dim = appearance_dim
+        self.density_kind = density_activation
+        self.density_bias = density_bias
+        self.num_freqs = positional_encoding_freqs
+        self.input_dim = 3 * (1 + 2 * positional_encoding_freqs) + 1 + detail_dim + dynamic_dim
+        layers: list[nn.Module] = []
+        for i in range(depth):
+            layers += [nn.Linear(self.input_dim if i == 0 else width, width), nn.ReLU(inplace=True)]
+        self.trunk = nn.Sequential(*layers)
+        self.density_head = nn.Linear(width, 1)
+        self.appearance_head = nn.Linear(width, appearance_dim)
+
+    @classmethod
+    def from_config(cls, cfg) -> "GarmentNeRF":
+        return cls(cfg.detail_feature_dim if cfg.use_detail_feature else 0,
+                   cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0,
+                   cfg.appearance_dim, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
+                   cfg.positional_encoding_freqs)
+
+    def _check(self, name: str, value: torch.Tensor | None, dim: int, n: int) -> None:
+        if dim == 0:
+            if value is not None:
+                raise ValueError(f"GarmentNeRF was built without the {name} feature but one was given")
+            return
+        if value is None:
+            raise ValueError(f"GarmentNeRF needs the {name} feature ({dim} channels)")
+        if value.shape != (n, dim):
+            raise ValueError(f"{name} feature must be ({n}, {dim}), got {tuple(value.shape)}")
+
+    def forward(self, canonical: torch.Tensor, distance: torch.Tensor, detail: torch.Tensor | None = None,
+                dynamic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Evaluate N samples.
+
+        Args:
+            canonical: (N, 3) b_o, the projected point on the canonical body.
+            distance: (N,) h, signed distance to the posed body (positive outside).
+            detail: (N, detail_dim) f^d, or None when built with detail_dim = 0.
+            dynamic: (N, dynamic_dim) f^s, or None when built with dynamic_dim = 0.
+        Returns:
+            sigma (N,) density >= 0 in 1/metre, zeta (N, appearance_dim).
+        """
+        n = canonical.shape[0]
+        if canonical.shape != (n, 3) or distance.shape != (n,):
+            raise ValueError(f"canonical must be (N, 3) and distance (N,), got {tuple(canonical.shape)} "
+                             f"and {tuple(distance.shape)}")
+        self._check("detail", detail, self.detail_dim, n)
+        self._check("dynamic", dynamic, self.dynamic_dim, n)
+        parts = [positional_encoding(canonical, self.num_freqs), distance.unsqueeze(-1)]
+        parts += [f for f in (detail, dynamic) if f is not None]
+        hidden = self.trunk(torch.cat(parts, dim=-1))
+        sigma = density_activation(self.density_head(hidden).squeeze(-1), self.density_kind, self.density_bias)
+        return sigma, self.appearance_head(hidden)

@@ -1,0 +1,245 @@
+"""Palette-based decomposition (paper Sec. 4.3, after PaletteNeRF): M_D, the palette, and the one
+formula that turns the decomposed maps and a palette into an image.
+
+M_D decodes the volume-rendered feature image F^zeta ``(B, 128, h, w)`` into maps at
+``(4h, 4w)``: radiance r, per-colour offsets o_i, per-colour blend weights w_i and a mask m.
+:func:`compose` then forms the image
+
+    c = m * clamp(r * sum_i w_i (p_i + o_i), 0, 1) + (1 - m) * background
+
+which for P = 2 (garment p_G, body/other p_B) and a black background is the paper's
+``c = m r [w (p_G + o_G) + (1 - w)(p_B + o_B)]``.
+
+One formula everywhere
+    Training, rendering and recolouring all call :func:`compose`. The authors' code clips each
+    palette term ``clip(r (p_i + o_i), 0, 1)`` before the weighted sum while training but clips
+    after the sum when editing, so an edited image with the *original* palette differs from
+    the trained one wherever a term leaves [0, 1]: recolouring would change pixels that should
+    not change. Clamping once, after the sum, also keeps the formula linear in the palette
+    inside [0, 1], so the change of a pixel under a new palette is exactly
+    ``m r w_i (p_i' - p_i)`` (what the viewer's shader reproduces from the cached maps).
+
+    The clamp's gradient is "restoring": zero only where it would push a value further out of
+    [0, 1]. A plain clamp would give no gradient at all to a pixel stuck above 1 (softplus
+    radiance is unbounded), so it could never come back.
+
+The foreground is clamped, then alpha-composited: a convex combination of two colours in [0, 1]
+needs no second clamp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: Makes softplus(0 + shift) = 1: the untrained radiance is 1, so the image starts at the palette.
+_SOFTPLUS_ONE = math.log(math.e - 1.0)
+
+
+class _RestoringClamp(torch.autograd.Function):
+    """clamp(x, 0, 1) whose gradient passes wherever a descent step moves x towards [0, 1]."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return x.clamp(0.0, 1.0)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        # Gradient descent moves x by -grad: above 1 that must decrease x (grad > 0), below 0
+        # increase it (grad < 0).
+        keep = ((x >= 0) & (x <= 1)) | ((x > 1) & (grad > 0)) | ((x < 0) & (grad < 0))
+        return grad * keep
+
+
+def restoring_clamp(x: torch.Tensor) -> torch.Tensor:
+    """clamp(x, 0, 1) with a gradient that can bring out-of-range values back."""
+    return _RestoringClamp.apply(x)
+
+
+def check_palette(palette: torch.Tensor) -> None:
+    """Raise ValueError unless ``palette`` is (P, 3), finite and in [0, 1]."""
+    if palette.ndim != 2 or palette.shape[-1] != 3:
+        raise ValueError(f"palette must be (P, 3), got shape {tuple(palette.shape)}")
+    if not bool(torch.isfinite(palette).all()):
+        raise ValueError("palette contains NaN or Inf")
+    if bool((palette < 0).any()) or bool((palette > 1).any()):
+        raise ValueError(f"palette colours must lie in [0, 1], got min {float(palette.min()):.4g} "
+                         f"max {float(palette.max()):.4g}")
+
+
+def compose(radiance: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, mask: torch.Tensor,
+            palette: torch.Tensor, background: torch.Tensor | tuple[float, float, float] = (0.0, 0.0, 0.0)
+            ) -> torch.Tensor:
+    """The image from decomposed maps and a palette (see the module docstring).
+
+    Args:
+        radiance: (B, 3, H, W) or (B, 1, H, W) r >= 0 (grey radiance broadcasts over RGB).
+        offsets: (B, P, 3, H, W) o_i.
+        weights: (B, P, H, W) w_i >= 0 summing to 1 over P.
+        mask: (B, 1, H, W) m in [0, 1].
+        palette: (P, 3) p_i in [0, 1].
+        background: RGB in [0, 1], tuple or (3,) tensor.
+    Returns:
+        (B, 3, H, W) image in [0, 1].
+    Raises:
+        ValueError on a palette outside [0, 1] or mismatched shapes.
+    """
+    check_palette(palette)
+    B, P = weights.shape[:2]
+    if P != palette.shape[0] or offsets.shape[:3] != (B, P, 3):
+        raise ValueError(f"palette ({palette.shape[0]} colours), offsets {tuple(offsets.shape)} and weights "
+                         f"{tuple(weights.shape)} disagree on the palette size")
+    bg = torch.as_tensor(background, dtype=radiance.dtype, device=radiance.device)
+    if bg.shape != (3,) or bool((bg < 0).any()) or bool((bg > 1).any()):
+        raise ValueError(f"background must be 3 values in [0, 1], got {background}")
+    colours = palette.to(radiance.dtype)[None, :, :, None, None] + offsets  # (B, P, 3, H, W)
+    base = (weights.unsqueeze(2) * colours).sum(dim=1)  # (B, 3, H, W)
+    foreground = restoring_clamp(radiance * base)
+    return mask * foreground + (1.0 - mask) * bg.view(1, 3, 1, 1)
+
+
+@dataclass
+class DecomposedMaps:
+    """Output of M_D; cache it to recolour without re-running any network.
+
+    Attributes:
+        radiance: (B, 3 or 1, H, W) r >= 0.
+        offsets: (B, P, 3, H, W) o_i.
+        weights: (B, P, H, W) w_i, summing to 1 over P.
+        mask: (B, 1, H, W) m in (0, 1).
+    """
+
+    radiance: torch.Tensor
+    offsets: torch.Tensor
+    weights: torch.Tensor
+    mask: torch.Tensor
+
+    def compose(self, palette: torch.Tensor, background=(0.0, 0.0, 0.0)) -> torch.Tensor:
+        """:func:`compose` with these maps."""
+        return compose(self.radiance, self.offsets, self.weights, self.mask, palette, background)
+
+    def detach(self) -> "DecomposedMaps":
+        return DecomposedMaps(self.radiance.detach(), self.offsets.detach(), self.weights.detach(),
+                              self.mask.detach())
+
+
+class PaletteDecoder(nn.Module):
+    """M_D: feature image ``(B, C, h, w)`` -> :class:`DecomposedMaps` at ``(h, w) * 2**upsample_steps``.
+
+    Layers: [nearest x2 -> conv3x3 -> LeakyReLU(0.2)] x upsample_steps (widths ``width``,
+    ``width/2``, ... floored at ``min_width``), then ``extra_layers`` conv3x3 + LeakyReLU at full
+    resolution, then a conv3x3 to the raw heads.
+
+    Heads:
+        radiance: softplus shifted so raw 0 -> 1 (default; can exceed 1 where the pixel is
+            brighter than its palette colour) or sigmoid.
+        offsets: ``offset_scale * tanh``.
+        weights: ``softplus + weight_floor``, normalised to sum 1 over the palette.
+        mask: sigmoid.
+
+    Args:
+        in_channels: C (paper: 128).
+        palette_size: P (paper: 2).
+        width, min_width, upsample_steps, extra_layers: the conv stack.
+        radiance_channels: 3 (paper) or 1.
+        radiance_activation: ``"softplus"`` or ``"sigmoid"``.
+        offset_scale, weight_floor: see the heads.
+    """
+
+    def __init__(self, in_channels: int = 128, palette_size: int = 2, width: int = 64, min_width: int = 32,
+                 upsample_steps: int = 2, extra_layers: int = 2, radiance_channels: int = 3,
+                 radiance_activation: str = "softplus", offset_scale: float = 0.5, weight_floor: float = 0.05):
+        super().__init__()
+        if radiance_activation not in ("softplus", "sigmoid"):
+            raise ValueError(f"unknown radiance activation {radiance_activation!r}")
+        if radiance_channels not in (1, 3):
+            raise ValueError(f"radiance_channels must be 1 or 3, got {radiance_channels}")
+        self.palette_size = palette_size
+        self.radiance_channels = radiance_channels
+        self.radiance_activation = radiance_activation
+        self.offset_scale = offset_scale
+        self.weight_floor = weight_floor
+        self.upsample_steps = upsample_steps
+        layers: list[nn.Module] = []
+        c = in_channels
+        for step in range(upsample_steps):
+            out = max(width // 2 ** step, min_width)
+            layers += [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(c, out, 3, padding=1),
+                       nn.LeakyReLU(0.2, inplace=True)]
+            c = out
+        for _ in range(extra_layers):
+            layers += [nn.Conv2d(c, c, 3, padding=1), nn.LeakyReLU(0.2, inplace=True)]
+        self.body = nn.Sequential(*layers)
+        self.head = nn.Conv2d(c, radiance_channels + 4 * palette_size + 1, 3, padding=1)
+
+    @classmethod
+    def from_config(cls, cfg) -> "PaletteDecoder":
+        return cls(cfg.appearance_dim, cfg.palette_size, cfg.decoder_width, cfg.decoder_min_width,
+                   cfg.decoder_upsample_steps, cfg.decoder_extra_layers, cfg.radiance_channels,
+                   cfg.radiance_activation, cfg.offset_scale, cfg.blend_weight_floor)
+
+    def forward(self, features: torch.Tensor) -> DecomposedMaps:
+        """(B, C, h, w) -> maps at (B, ., 4h, 4w) for two upsampling steps."""
+        raw = self.head(self.body(features))
+        B, _, H, W = raw.shape
+        P, Cr = self.palette_size, self.radiance_channels
+        r_raw, o_raw, w_raw, m_raw = torch.split(raw, [Cr, 3 * P, P, 1], dim=1)
+        if self.radiance_activation == "softplus":
+            radiance = F.softplus(r_raw + _SOFTPLUS_ONE)
+        else:
+            radiance = torch.sigmoid(r_raw)
+        offsets = self.offset_scale * torch.tanh(o_raw).view(B, P, 3, H, W)
+        w = F.softplus(w_raw) + self.weight_floor
+        weights = w / w.sum(dim=1, keepdim=True)
+        return DecomposedMaps(radiance, offsets, weights, torch.sigmoid(m_raw))
+
+
+class Palette(nn.Module):
+    """The learnable palette p ``(P, 3)`` and its initialisation p* (kept for L_p).
+
+    The parameter may drift outside [0, 1] under gradient descent; :meth:`forward` clamps it so
+    :func:`compose` always receives a valid palette, and L_p pulls it back towards p*.
+    """
+
+    def __init__(self, initial: torch.Tensor, learnable: bool = True):
+        super().__init__()
+        check_palette(initial)
+        self.register_buffer("initial", initial.detach().clone().float())
+        self.colours = nn.Parameter(initial.detach().clone().float(), requires_grad=learnable)
+
+    def forward(self) -> torch.Tensor:
+        """(P, 3) palette in [0, 1]."""
+        return self.colours.clamp(0.0, 1.0)
+
+
+def palette_from_labels(images: torch.Tensor, labels: torch.Tensor, classes=(2, 1)) -> torch.Tensor:
+    """Mean colour of each labelled region, the paper's p* (garment first, then body).
+
+    Args:
+        images: (N, 3, H, W) or (N, H, W, 3) RGB in [0, 1] (read as channels-first whenever
+            dimension 1 has size 3).
+        labels: (N, H, W) integer label maps (ground-truth renders: 0 background, 1 body,
+            2 garment).
+        classes: label value of each palette colour, in palette order.
+    Returns:
+        (len(classes), 3) palette.
+    Raises:
+        ValueError if a class has no pixel.
+    """
+    if images.shape[-1] == 3 and images.shape[1] != 3:
+        images = images.permute(0, 3, 1, 2)
+    pixels = images.permute(0, 2, 3, 1).reshape(-1, 3).float()
+    flat = labels.reshape(-1)
+    out = []
+    for c in classes:
+        sel = flat == c
+        if not bool(sel.any()):
+            raise ValueError(f"no pixel has label {c}; cannot initialise its palette colour")
+        out.append(pixels[sel].mean(dim=0))
+    return torch.stack(out).clamp(0.0, 1.0)

@@ -1,0 +1,251 @@
+"""Network modules: shapes, ranges, the config, and gradients through a tiny end-to-end forward."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from garmentnerf.conventions import camera_rays, orbit_camera
+from garmentnerf.model import (BoxStratifiedSampler, DetailEncoder, DynamicFeatureEncoder, GarmentNeRF,
+                               ImageGenerator, ModelConfig, NeuralTexture, Palette, PaletteDecoder, UNet,
+                               garment_losses, sample_image_features, select_detail_features)
+from garmentnerf.model import volume_rendering as vr
+from garmentnerf.model.nerf_mlp import density_activation, positional_encoding, trunc_exp
+
+
+# ---------------------------------------------------------------------------------------- U-Net
+def test_dynamic_encoder_paper_shapes_and_range():
+    torch.manual_seed(0)
+    cfg = ModelConfig.paper()
+    E = DynamicFeatureEncoder.from_config(cfg)
+    assert E.widths == [32, 64, 128, 256, 512]
+    bottleneck = {}
+    E.down[-1].register_forward_hook(lambda m, i, o: bottleneck.update(shape=o.shape))
+    x = torch.randn(1, 9, 128, 128)
+    y = E(x)
+    assert y.shape == (1, 8, 128, 128)
+    assert bottleneck["shape"] == (1, 512, 8, 8)
+    assert y.abs().max() < 1
+    assert y.std() > 1e-3  # not collapsed
+
+
+def test_small_preset_encoders():
+    torch.manual_seed(0)
+    cfg = ModelConfig.cpu_small()
+    E = DynamicFeatureEncoder.from_config(cfg)
+    G = DetailEncoder.from_config(cfg)
+    assert E.widths[0] == 16 and len(E.widths) == cfg.encoder_depth + 1
+    y = E(torch.randn(1, cfg.encoder_in_channels, cfg.info_map_resolution, cfg.info_map_resolution))
+    assert y.shape == (1, cfg.dynamic_feature_dim, cfg.info_map_resolution, cfg.info_map_resolution)
+    assert y.abs().max() < 1
+    # G_en sees front and back reference images as one batch.
+    d = G(torch.rand(2, 3, cfg.reference_resolution, cfg.reference_resolution))
+    assert d.shape == (2, cfg.detail_feature_dim, cfg.reference_resolution, cfg.reference_resolution)
+    assert d.abs().max() < 1
+
+
+def test_unet_rejects_indivisible_size():
+    with pytest.raises(ValueError, match="divisible"):
+        UNet(3, 2, base_width=4, depth=3)(torch.zeros(1, 3, 20, 24))
+    with pytest.raises(ValueError, match="bottleneck"):
+        UNet(3, 2, base_width=4, depth=3)(torch.zeros(1, 3, 8, 8))
+
+
+# ---------------------------------------------------------------------------------------- G_img
+def test_image_generator_shapes_mask_and_freeze():
+    torch.manual_seed(0)
+    gen = ImageGenerator(texture_channels=16, texture_levels=4, texture_resolution=64, base_width=8, depth=3)
+    uv = torch.rand(2, 32, 32, 2)
+    mask = torch.zeros(2, 32, 32, dtype=torch.bool)
+    mask[:, 8:24, 8:24] = True
+    q = gen.neural_image(uv, mask)
+    assert q.shape == (2, 16, 32, 32)
+    assert (q[:, :, ~mask[0]] == 0).all() and (q[:, :, mask[0]] != 0).any()
+    image = gen(uv, mask)
+    assert image.shape == (2, 3, 32, 32) and image.min() >= 0 and image.max() <= 1
+    assert [t.shape[-1] for t in gen.texture.textures] == [64, 32, 16, 8]
+    gen.freeze()
+    assert not any(p.requires_grad for p in gen.parameters()) and not gen.training
+
+
+def test_neural_texture_reads_texel_centres():
+    tex = NeuralTexture(channels=1, levels=1, resolution=4)
+    with torch.no_grad():
+        tex.textures[0].copy_(torch.arange(16.0).view(1, 1, 4, 4))
+    # Texel (row 1, column 2) has its centre at u = 2.5/4, v = 1.5/4 (row 0 is v = 0).
+    uv = torch.tensor([[[[2.5 / 4, 1.5 / 4]]]])
+    assert tex(uv).item() == pytest.approx(6.0)
+
+
+# ---------------------------------------------------------------------------------------- MLP
+def test_mlp_shapes_and_density_activation_not_raw():
+    torch.manual_seed(0)
+    mlp = GarmentNeRF.from_config(ModelConfig.paper())
+    assert mlp.input_dim == 20
+    assert sum(isinstance(m, torch.nn.Linear) for m in mlp.trunk) == 6
+    n = 50
+    args = (torch.randn(n, 3), torch.randn(n), torch.randn(n, 8), torch.randn(n, 8))
+    sigma, zeta = mlp(*args)
+    assert sigma.shape == (n,) and zeta.shape == (n, 128)
+    # A strongly negative raw head must give a small positive density, not a negative alpha.
+    with torch.no_grad():
+        mlp.density_head.bias.fill_(-50.0)
+    sigma, _ = mlp(*args)
+    assert (sigma >= 0).all() and sigma.max() < 1e-10
+    with torch.no_grad():
+        mlp.density_head.weight.zero_()
+        mlp.density_head.bias.zero_()
+    sigma, _ = mlp(*args)
+    torch.testing.assert_close(sigma, F.softplus(torch.full((n,), -1.0)))
+
+
+def test_density_activations():
+    raw = torch.tensor([-100.0, 0.0, 3.0, 40.0], requires_grad=True)
+    assert (density_activation(raw) >= 0).all()
+    torch.testing.assert_close(density_activation(raw, "trunc_exp", 0.0), torch.exp(raw))
+    (g,) = torch.autograd.grad(trunc_exp(raw).sum(), raw)
+    assert torch.isfinite(g).all() and g[-1].item() == pytest.approx(torch.exp(torch.tensor(15.0)).item())
+    with pytest.raises(ValueError):
+        density_activation(raw, "relu")
+
+
+def test_mlp_ablations_and_positional_encoding():
+    cfg = ModelConfig.paper().replace(use_detail_feature=False, positional_encoding_freqs=4)
+    mlp = GarmentNeRF.from_config(cfg)
+    assert mlp.input_dim == cfg.mlp_input_dim == 3 * 9 + 1 + 8
+    n = 4
+    sigma, zeta = mlp(torch.randn(n, 3), torch.randn(n), None, torch.randn(n, 8))
+    assert sigma.shape == (n,)
+    with pytest.raises(ValueError, match="without the detail"):
+        mlp(torch.randn(n, 3), torch.randn(n), torch.randn(n, 8), torch.randn(n, 8))
+    with pytest.raises(ValueError, match="needs the dynamic"):
+        mlp(torch.randn(n, 3), torch.randn(n), None, None)
+    assert positional_encoding(torch.zeros(2, 3), 0).shape == (2, 3)
+    assert positional_encoding(torch.zeros(2, 3), 2).shape == (2, 15)
+
+
+# ---------------------------------------------------------------------------------------- config
+def test_config_round_trip_and_unknown_keys():
+    for cfg in (ModelConfig.paper(), ModelConfig.cpu_small(), ModelConfig(detail_selection="soft_normal")):
+        data = json.loads(json.dumps(cfg.to_dict()))
+        assert ModelConfig.from_dict(data) == cfg
+    with pytest.raises(ValueError, match="unknown ModelConfig key.*samples_per_rays"):
+        ModelConfig.from_dict({**ModelConfig.paper().to_dict(), "samples_per_rays": 32})
+    # Missing keys take the defaults (older checkpoints).
+    assert ModelConfig.from_dict({"mlp_width": 64}).mlp_width == 64
+
+
+def test_config_paper_numbers_and_validation():
+    cfg = ModelConfig.paper()
+    assert (cfg.mlp_input_dim, cfg.encoder_in_channels, cfg.decoder_out_channels) == (20, 9, 12)
+    assert (cfg.w_image, cfg.w_mask, cfg.w_perceptual, cfg.w_sparsity, cfg.w_offset, cfg.w_palette) == (
+        1.0, 1.0, 0.1, 2e-4, 0.03, 1e-3)
+    assert (cfg.lr, cfg.lr_final, cfg.grad_clip_value, cfg.samples_per_ray, cfg.bbox_padding) == (
+        5e-4, 5e-5, 40.0, 64, 0.05)
+    with pytest.raises(ValueError, match="image_resolution"):
+        ModelConfig(feature_image_resolution=100)
+    with pytest.raises(ValueError, match="detail_selection"):
+        ModelConfig(detail_selection="nearest")
+    with pytest.raises(ValueError, match="density_activation"):
+        ModelConfig(density_activation="raw")
+    with pytest.raises(ValueError, match="background"):
+        ModelConfig(background=(0.0, 0.0, 2.0))
+
+
+# ---------------------------------------------------------------------------------------- features
+def test_detail_feature_lookup_and_selection():
+    fmap = torch.arange(2 * 3 * 4, dtype=torch.float32).view(2, 3, 4)
+    pixels = torch.tensor([[0.0, 0.0], [3.0, 2.0], [1.0, 1.0]])  # pixel centres (u = column, v = row)
+    out = sample_image_features(fmap, pixels)
+    torch.testing.assert_close(out, fmap[:, [0, 2, 1], [0, 3, 1]].T)
+    front, back = torch.ones(3, 2), -torch.ones(3, 2)
+    vis = torch.tensor([True, False, True])
+    torch.testing.assert_close(select_detail_features(front, back, "visibility", front_visible=vis),
+                               torch.tensor([[1.0, 1], [-1, -1], [1, 1]]))
+    soft = select_detail_features(front, back, "soft_normal", cos_front=torch.tensor([1.0, -1.0, 0.0]),
+                                  cos_back=torch.tensor([-1.0, 1.0, 0.0]))
+    s = 2 ** -0.5
+    torch.testing.assert_close(soft, torch.tensor([[1.0, 1], [-1, -1], [s - s, s - s]]))
+    with pytest.raises(ValueError):
+        select_detail_features(front, back, "visibility")
+
+
+# ---------------------------------------------------------------------------------------- end to end
+def tiny_config() -> ModelConfig:
+    return ModelConfig(info_map_resolution=32, image_resolution=32, reference_resolution=32, feature_image_resolution=8,
+                       appearance_dim=16,
+                       encoder_base_width=8, encoder_depth=3, mlp_depth=3, mlp_width=32, samples_per_ray=8,
+                       decoder_width=16, decoder_min_width=8, decoder_extra_layers=1)
+
+
+def test_gradients_reach_every_parameter_end_to_end():
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    E = DynamicFeatureEncoder.from_config(cfg)
+    G_en = DetailEncoder.from_config(cfg)
+    mlp = GarmentNeRF.from_config(cfg)
+    M_D = PaletteDecoder.from_config(cfg)
+    palette = Palette(torch.tensor([[0.7, 0.2, 0.2], [0.5, 0.45, 0.4]]))
+    sampler = BoxStratifiedSampler.from_config(cfg)
+
+    # Rays of an 8 x 8 feature image at a camera looking at a 1 x 0.6 x 1.8 m "body" box.
+    r = cfg.feature_image_resolution
+    cam = orbit_camera(20.0, 10.0, 3.0, width=r, height=r)
+    origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
+    aabb = torch.tensor([[-0.5, -0.3, 0.0], [0.5, 0.3, 1.8]])
+    samples = sampler.sample(origins, dirs, aabb, training=True)
+    assert samples.hit.float().mean() > 0.3
+    x = samples.positions.reshape(-1, 3)
+    N = x.shape[0]
+
+    # Stand-ins for the geometry stage: b_o, h, the UV of b_t and its pixel in each reference view.
+    b_o = x + 0.01 * torch.randn(N, 3)
+    h = torch.randn(N) * 0.05
+    uv = torch.rand(N, 2)
+    ref_pixels = torch.rand(2, N, 2) * (cfg.reference_resolution - 1)
+    front_visible = torch.rand(N) > 0.5
+
+    F_s = E(torch.randn(1, cfg.encoder_in_channels, cfg.info_map_resolution, cfg.info_map_resolution))
+    f_s = F.grid_sample(F_s, (2 * uv - 1).view(1, 1, N, 2), align_corners=False)[0, :, 0].T
+    F_d = G_en(torch.rand(2, 3, cfg.reference_resolution, cfg.reference_resolution))
+    f_front, f_back = (sample_image_features(F_d[i], ref_pixels[i]) for i in range(2))
+    f_d = select_detail_features(f_front, f_back, cfg.detail_selection, front_visible=front_visible)
+
+    sigma, zeta = mlp(b_o, h, f_d, f_s)
+    R, S = samples.t_starts.shape
+    weights = vr.render_weights_from_density(sigma.view(R, S), samples.deltas)
+    feature_image = vr.composite(weights, zeta.view(R, S, -1)).T.reshape(1, -1, r, r)
+    maps = M_D(feature_image)
+    image = maps.compose(palette(), cfg.background)
+    assert image.shape == (1, 3, cfg.image_resolution, cfg.image_resolution)
+
+    target = torch.rand_like(image)
+    target_mask = torch.rand(1, cfg.image_resolution, cfg.image_resolution) > 0.5
+    perceptual = lambda a, b: F.l1_loss(F.avg_pool2d(a, 4), F.avg_pool2d(b, 4))  # noqa: E731
+    losses = garment_losses(image, target, maps, target_mask, palette.colours, palette.initial, cfg, perceptual)
+    assert set(losses) == {"image", "mask", "perceptual", "sparsity", "offset", "palette", "total"}
+    assert all(torch.isfinite(v) for v in losses.values())
+    losses["total"].backward()
+
+    for name, module in (("E", E), ("G_en", G_en), ("MLP", mlp), ("M_D", M_D), ("palette", palette)):
+        for pname, p in module.named_parameters():
+            assert p.grad is not None, f"{name}.{pname} got no gradient"
+            assert torch.isfinite(p.grad).all(), f"{name}.{pname} gradient not finite"
+            assert p.grad.abs().sum() > 0, f"{name}.{pname} gradient is zero"
+
+
+def test_losses_without_perceptual_and_weighting():
+    cfg = tiny_config()
+    dec = PaletteDecoder.from_config(cfg)
+    maps = dec(torch.randn(1, cfg.appearance_dim, 2, 2))
+    p = torch.tensor([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2]])
+    image = maps.compose(p)
+    out = garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p + 0.1, p, cfg)
+    assert "perceptual" not in out
+    assert out["image"].item() == 0.0
+    assert out["palette"].item() == pytest.approx(6 * 0.01)
+    expected = sum(getattr(cfg, f"w_{k}") * out[k] for k in ("image", "mask", "sparsity", "offset", "palette"))
+    torch.testing.assert_close(out["total"], expected)

@@ -1,0 +1,162 @@
+"""The palette composition formula: identities, recolouring, range checks, the decoder's heads."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from garmentnerf.model.losses import sparsity_loss
+from garmentnerf.model.palette import (DecomposedMaps, Palette, PaletteDecoder, compose, palette_from_labels,
+                                       restoring_clamp)
+
+B, P, H, W = 2, 2, 5, 6
+GARMENT = torch.tensor([0.8, 0.2, 0.1])
+BODY = torch.tensor([0.6, 0.5, 0.4])
+PALETTE = torch.stack([GARMENT, BODY])
+
+
+def maps(weight_garment: torch.Tensor | float = 1.0, mask: float | torch.Tensor = 1.0, seed: int = 0,
+         offsets: bool = False) -> DecomposedMaps:
+    g = torch.Generator().manual_seed(seed)
+    radiance = 0.2 + 0.8 * torch.rand(B, 3, H, W, generator=g)
+    o = 0.03 * torch.randn(B, P, 3, H, W, generator=g) if offsets else torch.zeros(B, P, 3, H, W)
+    wg = torch.as_tensor(weight_garment, dtype=torch.float32).expand(B, H, W)
+    weights = torch.stack([wg, 1 - wg], dim=1)
+    m = torch.as_tensor(mask, dtype=torch.float32).expand(B, 1, H, W)
+    return DecomposedMaps(radiance, o, weights, m)
+
+
+def test_garment_weight_one_gives_radiance_times_garment_colour():
+    m = maps(1.0)
+    image = m.compose(PALETTE)
+    torch.testing.assert_close(image, (m.radiance * GARMENT.view(1, 3, 1, 1)).clamp(0, 1))
+
+
+def test_paper_formula_for_two_colours_on_black():
+    g = torch.Generator().manual_seed(3)
+    w = torch.rand(B, H, W, generator=g)
+    m = maps(w, mask=torch.rand(B, 1, H, W, generator=g), offsets=True)
+    o_g, o_b = m.offsets[:, 0], m.offsets[:, 1]
+    wv = w.unsqueeze(1)
+    paper = m.mask * m.radiance * (wv * (GARMENT.view(1, 3, 1, 1) + o_g) + (1 - wv) * (BODY.view(1, 3, 1, 1) + o_b))
+    # The paper composites over black; radiance < 1 and colours < 1 keep it inside [0, 1].
+    assert paper.max() <= 1 and paper.min() >= 0
+    torch.testing.assert_close(compose(m.radiance, m.offsets, m.weights, m.mask, PALETTE), paper)
+
+
+@pytest.mark.parametrize("background", [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (0.2, 0.4, 0.9)])
+def test_mask_zero_gives_background(background):
+    image = maps(0.7, mask=0.0, offsets=True).compose(PALETTE, background)
+    torch.testing.assert_close(image, torch.tensor(background).view(1, 3, 1, 1).expand(B, 3, H, W))
+
+
+def test_recolouring_changes_pixels_in_proportion_to_garment_weight():
+    g = torch.Generator().manual_seed(5)
+    w = torch.rand(B, H, W, generator=g)
+    w[0, 0, 0] = 0.0  # a pure body pixel must not change at all
+    m = maps(w, mask=torch.rand(B, 1, H, W, generator=g), offsets=True)
+    new = torch.stack([torch.tensor([0.1, 0.3, 0.9]), BODY])
+    before, after = m.compose(PALETTE), m.compose(new)
+    # Inside [0, 1] (no clamping) the formula is linear in the palette.
+    assert (before > 0).all() and (before < 1).all() and (after > 0).all() and (after < 1).all()
+    expected = m.mask * m.radiance * w.unsqueeze(1) * (new[0] - GARMENT).view(1, 3, 1, 1)
+    torch.testing.assert_close(after - before, expected, atol=1e-6, rtol=1e-5)
+    assert (after[0, :, 0, 0] == before[0, :, 0, 0]).all()
+    # Same palette again: bit-identical (one formula for training and editing).
+    assert torch.equal(m.compose(PALETTE.clone()), before)
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_palette_at_range_ends_is_finite(value):
+    image = maps(0.5, offsets=True).compose(torch.full((P, 3), value))
+    assert torch.isfinite(image).all()
+    assert image.min() >= 0 and image.max() <= 1
+
+
+@pytest.mark.parametrize("bad", [1.2, -0.1, float("nan")])
+def test_out_of_range_palette_raises(bad):
+    palette = PALETTE.clone()
+    palette[1, 2] = bad
+    with pytest.raises(ValueError):
+        maps().compose(palette)
+    with pytest.raises(ValueError):
+        Palette(palette)
+
+
+def test_wrong_palette_size_or_background_raises():
+    with pytest.raises(ValueError, match="palette size"):
+        maps().compose(torch.rand(3, 3))
+    with pytest.raises(ValueError, match="background"):
+        maps().compose(PALETTE, (0.0, 2.0, 0.0))
+
+
+def test_clamp_once_with_restoring_gradient():
+    x = torch.tensor([-0.5, 0.5, 1.5, 1.5, -0.5], requires_grad=True)
+    y = restoring_clamp(x)
+    torch.testing.assert_close(y, torch.tensor([0.0, 0.5, 1.0, 1.0, 0.0]))
+    # Upstream gradients: descent moves x by -grad. Entries 0 and 2 are pulled back into range
+    # (kept); entries 3 and 4 would be pushed further out (dropped).
+    (grad,) = torch.autograd.grad(y, x, torch.tensor([-1.0, 1.0, 1.0, -1.0, 1.0]))
+    torch.testing.assert_close(grad, torch.tensor([-1.0, 1.0, 1.0, 0.0, 0.0]))
+    # A saturated pixel whose target is darker still gets gradient through compose.
+    m = maps(1.0)
+    radiance = (m.radiance * 5).requires_grad_(True)
+    image = compose(radiance, m.offsets, m.weights, m.mask, PALETTE)
+    loss = (image - 0.3).abs().mean()
+    (g,) = torch.autograd.grad(loss, radiance)
+    saturated = radiance * GARMENT.view(1, 3, 1, 1) > 1
+    assert saturated.any() and (g[saturated] > 0).all()
+
+
+def test_decoder_heads():
+    torch.manual_seed(0)
+    dec = PaletteDecoder(in_channels=16, palette_size=3, width=16, min_width=8, extra_layers=1, offset_scale=0.25)
+    out = dec(torch.randn(2, 16, 4, 6))
+    assert out.radiance.shape == (2, 3, 16, 24)
+    assert out.offsets.shape == (2, 3, 3, 16, 24)
+    assert out.weights.shape == (2, 3, 16, 24)
+    assert out.mask.shape == (2, 1, 16, 24)
+    assert (out.radiance >= 0).all()
+    assert out.offsets.abs().max() <= 0.25
+    torch.testing.assert_close(out.weights.sum(dim=1), torch.ones(2, 16, 24))
+    # softplus + 0.05 before normalising: no colour's weight reaches 0.
+    assert out.weights.min() > 0
+    assert ((out.mask > 0) & (out.mask < 1)).all()
+    # Untrained radiance is 1 where the raw head is 0 (shifted softplus).
+    with torch.no_grad():
+        dec.head.weight.zero_()
+        dec.head.bias.zero_()
+    torch.testing.assert_close(dec(torch.randn(1, 16, 2, 2)).radiance, torch.ones(1, 3, 8, 8))
+    grey = PaletteDecoder(in_channels=16, radiance_channels=1, width=8, min_width=8, extra_layers=0)
+    g_out = grey(torch.randn(1, 16, 2, 2))
+    assert g_out.radiance.shape == (1, 1, 8, 8)
+    assert g_out.compose(PALETTE).shape == (1, 3, 8, 8)
+
+
+def test_sparsity_loss_two_colours_matches_paper():
+    w = torch.rand(1, 1, 4, 4)
+    weights = torch.cat([w, 1 - w], dim=1)
+    paper = (1 / (w ** 2 + (1 - w) ** 2) - 1).mean()
+    torch.testing.assert_close(sparsity_loss(weights), paper)
+    one_hot = torch.zeros(1, 3, 2, 2)
+    one_hot[:, 1] = 1
+    assert sparsity_loss(one_hot).item() == 0.0
+    assert sparsity_loss(torch.full((1, 3, 2, 2), 1 / 3)).item() == pytest.approx(2.0)
+
+
+def test_palette_module_and_init_from_labels():
+    image = torch.zeros(1, 3, 2, 2)
+    image[0, :, 0, 0] = torch.tensor([1.0, 0.0, 0.0])
+    image[0, :, 0, 1] = torch.tensor([0.0, 1.0, 0.0])
+    image[0, :, 1, 1] = torch.tensor([0.2, 0.2, 0.2])
+    labels = torch.tensor([[[2, 2], [0, 1]]])
+    p = palette_from_labels(image, labels)
+    torch.testing.assert_close(p, torch.tensor([[0.5, 0.5, 0.0], [0.2, 0.2, 0.2]]))
+    torch.testing.assert_close(palette_from_labels(image.permute(0, 2, 3, 1), labels), p)
+    with pytest.raises(ValueError, match="label 7"):
+        palette_from_labels(image, labels, classes=(2, 7))
+    module = Palette(p)
+    with torch.no_grad():
+        module.colours[0, 0] = 1.5  # drifted out of range by an optimiser step
+    assert module().max() == 1.0
+    torch.testing.assert_close(module.initial, p)

@@ -1,0 +1,238 @@
+"""Volume rendering against closed forms, numerical safety, packed == dense, and the box sampler."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from garmentnerf.model import volume_rendering as vr
+from garmentnerf.model.samplers import BoxStratifiedSampler, RaySamples, ray_aabb_intersect, stratified_intervals
+
+
+def slab_density(t: torch.Tensor, sigma: float, t0: float, t1: float) -> torch.Tensor:
+    return torch.where((t >= t0) & (t <= t1), torch.full_like(t, sigma), torch.zeros_like(t))
+
+
+def slab_expected_depth(sigma: float, t0: float, t1: float) -> float:
+    """int_t0^t1 t sigma exp(-sigma (t - t0)) dt."""
+    L = t1 - t0
+    e = math.exp(-sigma * L)
+    return t0 * (1 - e) + (1 - e) / sigma - L * e
+
+
+@pytest.mark.parametrize("sigma", [0.5, 3.0, 40.0])
+def test_constant_slab_opacity_exact_when_intervals_align(sigma):
+    t0, t1 = 1.3, 2.1
+    edges = torch.linspace(t0, t1, 9, dtype=torch.float64)
+    deltas = (edges[1:] - edges[:-1]).unsqueeze(0)
+    sigmas = torch.full_like(deltas, sigma)
+    expected = 1 - math.exp(-sigma * (t1 - t0))
+    w_density = vr.render_weights_from_density(sigmas, deltas)
+    w_alpha = vr.render_weights(vr.alpha_from_density(sigmas, deltas))
+    for w in (w_density, w_alpha):
+        assert vr.accumulate_opacity(w).item() == pytest.approx(expected, rel=1e-12, abs=1e-12)
+    # Transmittance after the slab is exp(-sigma L) for both routes.
+    T = vr.transmittance_from_density(sigmas, deltas)
+    assert T[0, 0].item() == 1.0
+    assert (T[0, -1] * (1 - vr.alpha_from_density(sigmas, deltas)[0, -1])).item() == pytest.approx(
+        1 - expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 3.0, 40.0])
+def test_constant_slab_fine_sampling_matches_closed_form(sigma):
+    t0, t1 = 1.3, 2.1
+    near, far = 0.5, 3.0
+    S = 4096
+    t, t_starts, t_ends = stratified_intervals(torch.tensor([near], dtype=torch.float64),
+                                               torch.tensor([far], dtype=torch.float64), S)
+    sigmas = slab_density(t, sigma, t0, t1)
+    w = vr.render_weights_from_density(sigmas, t_ends - t_starts)
+    opacity = vr.accumulate_opacity(w).item()
+    depth = vr.expected_depth(w, t_starts, t_ends).item()
+    assert opacity == pytest.approx(1 - math.exp(-sigma * (t1 - t0)), abs=5e-3)
+    assert depth == pytest.approx(slab_expected_depth(sigma, t0, t1), abs=5e-3)
+    # Normalised depth is the depth of the visible surface: t0 for an opaque slab.
+    if sigma == 40.0:
+        assert vr.expected_depth(w, t_starts, t_ends, normalize=True).item() == pytest.approx(t0 + 1 / sigma, abs=5e-3)
+
+
+def test_weights_sum_at_most_one_and_composite():
+    g = torch.Generator().manual_seed(0)
+    sigmas = torch.rand(64, 32, generator=g) * 50
+    deltas = torch.rand(64, 32, generator=g) * 0.1
+    w = vr.render_weights_from_density(sigmas, deltas)
+    assert (w >= 0).all()
+    assert (vr.accumulate_opacity(w) <= 1 + 1e-6).all()
+    w_alpha = vr.render_weights(vr.alpha_from_density(sigmas, deltas))
+    torch.testing.assert_close(w_alpha, w, atol=1e-5, rtol=1e-4)
+    values = torch.rand(64, 32, 5, generator=g)
+    out = vr.composite(w, values)
+    torch.testing.assert_close(out, torch.einsum("rs,rsc->rc", w, values))
+    # Composite of a constant is that constant times the opacity.
+    torch.testing.assert_close(vr.composite(w, torch.ones(64, 32, 1))[:, 0], vr.accumulate_opacity(w))
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1e8])
+@pytest.mark.parametrize("delta", [0.0, 1e6])
+def test_extreme_values_finite_with_finite_gradients(sigma, delta):
+    # Mixed row: the extreme value next to ordinary ones.
+    sigmas = torch.tensor([[1.0, sigma, 2.0, sigma], [sigma] * 4], requires_grad=True)
+    deltas = torch.tensor([[0.1, delta, 0.1, delta], [delta] * 4], requires_grad=True)
+    values = torch.rand(2, 4, 3, requires_grad=True)
+    for route in ("density", "alpha"):
+        if route == "density":
+            w = vr.render_weights_from_density(sigmas, deltas)
+        else:
+            w = vr.render_weights(vr.alpha_from_density(sigmas, deltas))
+        out = vr.composite(w, values).sum() + vr.expected_depth(w, deltas, deltas, normalize=True).sum()
+        assert torch.isfinite(w).all() and torch.isfinite(out)
+        assert (vr.accumulate_opacity(w) <= 1 + 1e-6).all()
+        grads = torch.autograd.grad(out, (sigmas, deltas, values))
+        for g in grads:
+            assert torch.isfinite(g).all(), route
+
+
+def test_extreme_values_packed_finite_gradients():
+    sigmas = torch.tensor([0.0, 1e8, 1.0, 1e8, 0.0, 3.0], requires_grad=True)
+    deltas = torch.tensor([1e6, 1e6, 0.0, 0.1, 0.0, 1e6], requires_grad=True)
+    ray_ids = torch.tensor([0, 0, 0, 2, 2, 2])
+    w = vr.render_weights_from_density_packed(sigmas, deltas, ray_ids, 3)
+    total = vr.composite_packed(w, torch.ones(6, 2), ray_ids, 3).sum()
+    assert torch.isfinite(w).all()
+    for g in torch.autograd.grad(total, (sigmas, deltas)):
+        assert torch.isfinite(g).all()
+
+
+def test_opaque_first_sample_blocks_the_rest():
+    sigmas = torch.tensor([[1e8, 5.0, 5.0]])
+    deltas = torch.tensor([[0.1, 0.1, 0.1]])
+    w = vr.render_weights_from_density(sigmas, deltas)
+    torch.testing.assert_close(w, torch.tensor([[1.0, 0.0, 0.0]]))
+    w_alpha = vr.render_weights(vr.alpha_from_density(sigmas, deltas))
+    torch.testing.assert_close(w_alpha, w, atol=1e-5, rtol=0)
+
+
+def test_packed_equals_dense():
+    g = torch.Generator().manual_seed(1)
+    R, S = 7, 11
+    sigmas = torch.rand(R, S, generator=g) * 20
+    deltas = torch.rand(R, S, generator=g) * 0.2
+    values = torch.randn(R, S, 4, generator=g)
+    t_starts = torch.cumsum(deltas, -1) - deltas
+    t_ends = t_starts + deltas
+    # Ray 2 is opaque (later rays must not notice); ray 3 has no samples at all in packed form.
+    sigmas[2] = 1e8
+    keep = torch.ones(R, S, dtype=torch.bool)
+    keep[3] = False
+    ray_ids = torch.arange(R).repeat_interleave(S)[keep.reshape(-1)]
+    flat = lambda x: x.reshape(-1, *x.shape[2:])[keep.reshape(-1)]  # noqa: E731
+
+    w_dense = vr.render_weights_from_density(sigmas, deltas)
+    w_packed = vr.render_weights_from_density_packed(flat(sigmas), flat(deltas), ray_ids, R)
+    torch.testing.assert_close(w_packed, flat(w_dense), rtol=0, atol=0)
+    alphas = vr.alpha_from_density(sigmas, deltas)
+    torch.testing.assert_close(vr.render_weights_packed(flat(alphas), ray_ids, R), flat(vr.render_weights(alphas)),
+                               rtol=0, atol=0)
+    torch.testing.assert_close(vr.transmittance_from_density_packed(flat(sigmas), flat(deltas), ray_ids, R),
+                               flat(vr.transmittance_from_density(sigmas, deltas)), rtol=0, atol=0)
+
+    out_dense = vr.composite(w_dense, values)
+    out_dense[3] = 0
+    torch.testing.assert_close(vr.composite_packed(w_packed, flat(values), ray_ids, R), out_dense)
+    opacity = vr.accumulate_opacity(w_dense)
+    opacity[3] = 0
+    torch.testing.assert_close(vr.accumulate_opacity_packed(w_packed, ray_ids, R), opacity)
+    depth = vr.expected_depth(w_dense, t_starts, t_ends)
+    depth[3] = 0
+    torch.testing.assert_close(vr.expected_depth_packed(w_packed, flat(t_starts), flat(t_ends), ray_ids, R), depth)
+
+
+def test_packed_small_terms_after_a_huge_ray_keep_precision():
+    # A global cumsum minus the ray start would lose 1e-3 next to 1e4 * S in float32.
+    sigmas = torch.tensor([1e8] * 8 + [0.01] * 8)
+    deltas = torch.tensor([1.0] * 8 + [0.1] * 8)
+    ray_ids = torch.tensor([0] * 8 + [1] * 8)
+    T = vr.transmittance_from_density_packed(sigmas, deltas, ray_ids, 2)
+    expected = torch.exp(-0.001 * torch.arange(8, dtype=torch.float32))
+    torch.testing.assert_close(T[8:], expected, rtol=1e-6, atol=0)
+
+
+def test_packed_rejects_unsorted_or_out_of_range_ray_ids():
+    x = torch.ones(3)
+    with pytest.raises(ValueError, match="sorted"):
+        vr.render_weights_packed(x * 0.5, torch.tensor([1, 0, 1]), 2)
+    with pytest.raises(ValueError, match="lie in"):
+        vr.render_weights_packed(x * 0.5, torch.tensor([0, 1, 2]), 2)
+
+
+def test_packed_empty_input():
+    empty = torch.zeros(0)
+    ids = torch.zeros(0, dtype=torch.long)
+    w = vr.render_weights_from_density_packed(empty, empty, ids, 4)
+    assert w.shape == (0,)
+    assert vr.composite_packed(w, torch.zeros(0, 3), ids, 4).shape == (4, 3)
+
+
+# ---------------------------------------------------------------------------------------- sampler
+def test_ray_aabb_slabs_with_zero_direction_components():
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    origins = torch.tensor([[-5.0, 0.0, 0.0],    # along +x through the centre
+                            [-5.0, 2.0, 0.0],    # parallel to x, outside in y -> miss
+                            [-5.0, 1.0, 0.0],    # parallel, grazing the y = 1 face -> degenerate
+                            [0.0, 0.0, 0.0],     # starts inside
+                            [5.0, 5.0, 5.0],     # pointing away -> miss
+                            [0.0, 0.0, 5.0]])    # straight down the z axis
+    dirs = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0],
+                         [0.0, 0.0, -1.0]])
+    t_near, t_far, hit = ray_aabb_intersect(origins, dirs, aabb)
+    assert hit.tolist() == [True, False, True, True, False, True]
+    torch.testing.assert_close(t_near, torch.tensor([4.0, 0.0, 4.0, 0.0, 0.0, 4.0]))
+    torch.testing.assert_close(t_far, torch.tensor([6.0, 0.0, 6.0, 1.0, 0.0, 6.0]))
+    assert torch.isfinite(t_near).all() and torch.isfinite(t_far).all()
+
+
+def test_box_sampler_intervals_and_missing_rays():
+    sampler = BoxStratifiedSampler(num_samples=16, padding=0.05)
+    aabb = torch.tensor([[-0.5, -0.5, 0.0], [0.5, 0.5, 1.8]])
+    origins = torch.tensor([[0.0, -3.0, 0.9], [0.0, -3.0, 5.0], [3.0, 3.0, 0.9]])
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]), dim=-1)
+    for training in (False, True):
+        s = sampler.sample(origins, dirs, aabb, training=training, generator=torch.Generator().manual_seed(0))
+        assert s.positions.shape == (3, 16, 3) and s.t_starts.shape == (3, 16)
+        assert s.hit.tolist() == [True, False, False]
+        # Intervals tile [entry, exit] of the padded box.
+        assert s.t_starts[0, 0].item() == pytest.approx(3.0 - 0.55)
+        assert s.t_ends[0, -1].item() == pytest.approx(3.0 + 0.55)
+        torch.testing.assert_close(s.t_ends[0, :-1], s.t_starts[0, 1:])
+        assert (s.deltas >= 0).all()
+        assert (s.deltas[1:] == 0).all()
+        # Samples lie inside the padded box.
+        inside = s.positions[0]
+        assert (inside >= aabb[0] - 0.05 - 1e-5).all() and (inside <= aabb[1] + 0.05 + 1e-5).all()
+        # Any density: missing rays render nothing.
+        sigmas = torch.full((3, 16), 1e3)
+        w = vr.render_weights_from_density(sigmas, s.deltas)
+        assert (w[1:] == 0).all()
+        assert vr.accumulate_opacity(w)[0].item() == pytest.approx(1.0)
+    eval_s = sampler.sample(origins, dirs, aabb)
+    torch.testing.assert_close(eval_s.t_mids[0], (eval_s.t_starts[0] + eval_s.t_ends[0]) / 2)
+    torch.testing.assert_close(eval_s.deltas[0], torch.full((16,), 1.1 / 16))
+
+
+def test_box_sampler_packed_drops_missing_rays():
+    sampler = BoxStratifiedSampler(num_samples=8)
+    aabb = torch.tensor([[-0.5, -0.5, 0.0], [0.5, 0.5, 1.8]])
+    origins = torch.tensor([[0.0, -3.0, 5.0], [0.0, -3.0, 0.9]])
+    dirs = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    packed = sampler.sample(origins, dirs, aabb).to_packed()
+    assert isinstance(packed, RaySamples) and packed.is_packed
+    assert packed.ray_ids.tolist() == [1] * 8
+    assert packed.positions.shape == (8, 3)
+
+
+def test_box_sampler_rejects_non_unit_directions():
+    with pytest.raises(ValueError, match="unit"):
+        BoxStratifiedSampler(4).sample(torch.zeros(1, 3), torch.tensor([[0.0, 2.0, 0.0]]),
+                                       torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
