@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from garmentnerf.cli import body_cmd, bench_cmd, data_cmd, maps_cmd, motion_cmd
+from garmentnerf.cli import body_cmd, bench_cmd, data_cmd, maps_cmd, motion_cmd, view_cmd
 
 
 class UserError(Exception):
@@ -28,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     maps_cmd.register(sub)
     data_cmd.register(sub)
     bench_cmd.register(sub)
+    view_cmd.register(sub)
     return parser
 
 

@@ -1,0 +1,628 @@
+"""The full Garment Animation NeRF forward pass (paper Sec. 4), assembled from the model modules.
+
+Two levels, so that a viewer can cache what the camera does not change:
+
+1. :meth:`GarmentAnimationNeRF.prepare_frame` ``(FrameInputs) -> FrameFeatures`` -- per body frame:
+   the dynamic feature map F^s_t = E([N_t, V_t]); the reference images I^_t(c^fr), I^_t(c^ba) =
+   G_img(body UVs at the reference cameras) (or images supplied in the inputs); the detail maps
+   F^d_t = G_en(reference images); the frame's skin surface bound for closest-point queries, its
+   vertex normals and its box. The GL passes that make :class:`FrameInputs` live in
+   :class:`~garmentnerf.model.frame_context.FrameInputBuilder`, outside this ``nn.Module``.
+2. :meth:`GarmentAnimationNeRF.render` ``(FrameFeatures, camera) -> RenderOutput`` -- per view:
+   rays through the pixel centres of the *feature image* (the camera
+   :meth:`~garmentnerf.conventions.Camera.resized` to ``cfg.feature_image_resolution``); the
+   injected sampler (default :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) places
+   samples; rays that miss the padded body box get no sample at all (packed samples: the network
+   is never evaluated where the garment cannot be). Per sample: the closest skin point b_t, its
+   signed distance h, the canonical point b_o and its atlas UV; f^s = F^s_t read bilinearly at
+   the UV; f^d = F^d_t read bilinearly where b_t projects into each reference camera, front or
+   back chosen per ``cfg.detail_selection``; M_NeRF -> (sigma, zeta); packed volume rendering ->
+   F^zeta (C_zeta, h, w); M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at
+   ``2**decoder_upsample_steps`` times the feature size; :func:`~garmentnerf.model.palette.compose`
+   with the palette -> the image.
+
+Detail-feature selection (``cfg.detail_selection``)
+    ``"visibility"`` (paper, the default): front map where b_t is visible from the front
+    reference camera, back map otherwise (seen by neither: back, as the authors' code). Visible
+    means: b_t projects inside the reference image, in front of the camera, and its camera depth
+    z is at most ``visibility_tolerance + z / f_x`` (default 2 cm plus one pixel's footprint at
+    that depth) behind the reference pass's depth at the pixel it falls in. The footprint term
+    keeps surfaces seen obliquely visible at any reference resolution; the 2 cm is below the
+    thickness of the torso and limbs (a finger is thinner: its back counts as visible, which is
+    harmless). Measured on the bundled body's torso (walk clip, reference views of 32 to 512
+    px): 98.5 % of front-facing points (normal y < -0.9) pick the front map and 3 % of the
+    back-facing ones -- all of those under the chin, where the front camera does see them --
+    while the neck points that the chin hides pick the back map.
+    ``"soft_normal"`` (authors' code): ``w = (cos + 1) / 2`` per camera with cos between the
+    interpolated posed vertex normal at b_t and the direction from b_t to the camera, the pair
+    L2-normalised (:func:`~garmentnerf.model.detail_features.select_detail_features`).
+    Both modes read the maps *bilinearly* (the authors' code reads the nearest pixel): features
+    then vary continuously with the sample and give gradients to G_en at every read.
+
+Gradients
+    Flow into E, G_en, M_NeRF, M_D and the palette. The body geometry of a sample (b_t, h, b_o,
+    UV, reference-camera projections, visibility) is computed without gradient -- it is an input
+    -- but the features read at it carry the gradient of the maps they were read from. G_img runs
+    under ``torch.no_grad`` while frozen (:meth:`GarmentAnimationNeRF.set_image_generator_frozen`;
+    frozen by default since its pre-training is a separate stage).
+
+Chunking and cancellation
+    Samples are processed in chunks of about ``chunk_points`` (default 16384; the 2-core CPU runs
+    the MLP fastest on 4k-16k points per call) cut at ray boundaries, so each chunk is volume
+    rendered on its own and, without autograd, only one chunk's per-sample tensors are alive.
+    ``should_cancel()`` is called before every chunk; when it returns True the render raises
+    :class:`RenderCancelled` (nothing is left half-written: the model holds no per-render state).
+
+Timings
+    :class:`RenderOutput` ``timings`` (milliseconds): the frame stages copied from the
+    :class:`FrameFeatures` used (``info_maps``, ``reference_passes`` from the GL builder;
+    ``surface``, ``reference_images``, ``encoders`` from :meth:`prepare_frame`; a cached frame
+    shows what it cost when it was made) and this render's stages ``rays`` (rays + sampler),
+    ``projection``, ``features`` (map reads + detail selection), ``mlp``, ``compositing``
+    (volume rendering), ``decoder`` (M_D), ``compose``; plus ``frame_total`` and
+    ``render_total``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import time
+from collections.abc import Callable
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from garmentnerf.body.surface import vertex_normals
+from garmentnerf.conventions import Camera, camera_rays, project_points
+from garmentnerf.geometry.body_points import BodyPointProjector
+from garmentnerf.geometry.projection import interpolate
+from garmentnerf.gl.uv_raster import sample_uv_map
+from garmentnerf.model import volume_rendering as vr
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.detail_features import sample_image_features, select_detail_features
+from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
+from garmentnerf.model.image_generator import ImageGenerator, freeze
+from garmentnerf.model.nerf_mlp import GarmentNeRF
+from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette, compose
+from garmentnerf.model.samplers import BoxStratifiedSampler, RaySamples, Sampler, body_aabb
+from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
+
+#: Default samples per chunk (per-sample work: projection, feature reads, MLP, compositing).
+DEFAULT_CHUNK_POINTS = 16384
+#: Default depth tolerance (metres) of the reference-camera visibility test.
+DEFAULT_VISIBILITY_TOLERANCE = 0.02
+
+#: Stages of :meth:`GarmentAnimationNeRF.prepare_frame` / the GL builder, in pipeline order.
+FRAME_STAGES = ("info_maps", "reference_passes", "surface", "reference_images", "encoders")
+#: Stages of :meth:`GarmentAnimationNeRF.render`, in pipeline order.
+RENDER_STAGES = ("rays", "projection", "features", "mlp", "compositing", "decoder", "compose")
+
+
+class RenderCancelled(RuntimeError):
+    """``should_cancel()`` returned True between two chunks; ``points_evaluated`` before it."""
+
+    def __init__(self, points_evaluated: int = 0):
+        super().__init__(f"render cancelled after {points_evaluated} sample points")
+        self.points_evaluated = points_evaluated
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view.
+
+    Attributes:
+        image: (3, H, W) composed image in [0, 1] (``H, W`` = feature size x 2^upsample_steps).
+        maps: the decoder's :class:`DecomposedMaps` (batch of 1) at the image resolution; with
+            :func:`compose` and any palette they give the recoloured image without re-rendering.
+        opacity: (h, w) accumulated opacity per feature-image ray (0 for rays not rendered).
+        depth: (h, w) opacity-normalised expected depth along each ray (metres; 0 where opacity 0).
+        feature_image: (C_zeta, h, w) F^zeta, the decoder's input.
+        palette: (P, 3) the palette the image was composed with; background: its RGB.
+        points_evaluated: samples the NeRF MLP was evaluated at.
+        rays_evaluated: rays with at least one sample (that hit the padded body box).
+        rays_total: rays asked for (the whole feature image, or the subset).
+        timings: milliseconds per stage (see the module docstring).
+    """
+
+    image: torch.Tensor
+    maps: DecomposedMaps
+    opacity: torch.Tensor
+    depth: torch.Tensor
+    feature_image: torch.Tensor
+    palette: torch.Tensor
+    background: tuple[float, float, float]
+    points_evaluated: int
+    rays_evaluated: int
+    rays_total: int
+    timings: dict[str, float]
+
+    def recolour(self, palette: torch.Tensor, background=None) -> torch.Tensor:
+        """(3, H, W) the image with another palette (no network runs)."""
+        bg = self.background if background is None else background
+        return self.maps.compose(palette.to(self.image.device), bg)[0]
+
+
+@dataclass
+class _SampleGeometry:
+    canonical: torch.Tensor  # (n, 3) b_o
+    distance: torch.Tensor  # (n,) h
+    uv: torch.Tensor  # (n, 2)
+    closest: torch.Tensor  # (n, 3) b_t
+    normal: torch.Tensor | None  # (n, 3) unit normal at b_t (soft_normal mode only)
+
+
+class _Stopwatch:
+    """Accumulates wall time per stage into a dict (ms), synchronising CUDA when used."""
+
+    def __init__(self, timings: dict[str, float], device: torch.device):
+        self.timings = timings
+        self.cuda = device.type == "cuda"
+
+    @contextmanager
+    def __call__(self, name: str):
+        if self.cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self.cuda:
+                torch.cuda.synchronize()
+            self.timings[name] = self.timings.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+def palette_initial_colours(init, palette_size: int = 2) -> torch.Tensor:
+    """The palette's starting colours p* ``(P, 3)`` from a scene's ``palette_init`` or a tensor.
+
+    Args:
+        init: ``{"garment": rgb, "body": rgb}`` (``Scene.palette_init``; garment first as in
+            :func:`~garmentnerf.model.palette.palette_from_labels`), a ``(P, 3)`` tensor / array in
+            [0, 1], or None (mid grey for every colour, for tests and untrained models).
+        palette_size: P of the config.
+    """
+    if init is None:
+        return torch.full((palette_size, 3), 0.5)
+    if isinstance(init, dict):
+        if palette_size != 2:
+            raise ValueError(f"a garment/body palette_init gives 2 colours, the config has palette_size={palette_size}")
+        missing = [k for k in ("garment", "body") if init.get(k) is None]
+        if missing:
+            raise ValueError(f"palette_init has no colour for {', '.join(missing)}")
+        out = torch.tensor([init["garment"], init["body"]], dtype=torch.float32)
+    else:
+        out = torch.as_tensor(np.asarray(init, dtype=np.float32))
+    if out.shape != (palette_size, 3):
+        raise ValueError(f"palette init must be ({palette_size}, 3), got {tuple(out.shape)}")
+    check_palette(out)
+    return out
+
+
+def reference_visibility(points: torch.Tensor, camera: Camera, depth: torch.Tensor,
+                         tolerance: float = DEFAULT_VISIBILITY_TOLERANCE) -> torch.Tensor:
+    """Which surface points a reference camera sees, from its depth pass (see the module docstring).
+
+    Args:
+        points: (N, 3) points on the body surface (b_t).
+        camera: the reference camera, at the resolution of ``depth``.
+        depth: (H, W) camera-space z of the closest body surface, +inf in background.
+        tolerance: metres a point may lie behind the surface seen at its pixel, on top of one
+            pixel's footprint ``z / f_x``.
+    Returns:
+        (N,) bool on the device of ``points``.
+    """
+    H, W = depth.shape
+    if (camera.width, camera.height) != (W, H):
+        raise ValueError(f"camera is {camera.width}x{camera.height} but the depth map is {W}x{H}")
+    pts = points.detach().to("cpu", torch.float64)
+    uv, z = project_points(camera, pts)
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > 0) & (u >= -0.5) & (u < W - 0.5) & (v >= -0.5) & (v < H - 0.5)
+    col = torch.round(u.clamp(0, W - 1)).long()
+    row = torch.round(v.clamp(0, H - 1)).long()
+    surface = depth.detach().to("cpu", torch.float64)[row, col]  # +inf in background: visible
+    footprint = z.abs() / float(camera.K[0, 0])
+    return (inside & (z <= surface + tolerance + footprint)).to(points.device)
+
+
+def _ray_aligned_chunks(counts: torch.Tensor, chunk_points: int) -> list[tuple[int, int, int, int]]:
+    """(ray_start, ray_stop, sample_start, sample_stop) chunks of about ``chunk_points`` samples,
+    never splitting a ray (a ray with more samples than that is a chunk of its own)."""
+    ends = torch.cumsum(counts, 0).tolist()
+    n_rays = len(ends)
+    chunks = []
+    r0 = s0 = 0
+    while r0 < n_rays:
+        r1 = bisect.bisect_right(ends, s0 + chunk_points, lo=r0)
+        r1 = max(r1, r0 + 1)
+        s1 = ends[r1 - 1]
+        chunks.append((r0, r1, s0, s1))
+        r0, s0 = r1, s1
+    return chunks
+
+
+def _crop_maps(maps: DecomposedMaps, height: int, width: int) -> DecomposedMaps:
+    return DecomposedMaps(maps.radiance[..., :height, :width], maps.offsets[..., :height, :width],
+                          maps.weights[..., :height, :width], maps.mask[..., :height, :width])
+
+
+def _resize_maps(maps: DecomposedMaps, height: int, width: int) -> DecomposedMaps:
+    """Bilinear resampling of every map (a convex combination: weights still sum to 1, the mask
+    stays in [0, 1], radiance >= 0)."""
+    def rs(x):
+        shape = x.shape
+        flat = x.reshape(shape[0], -1, shape[-2], shape[-1])
+        out = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False, antialias=True)
+        return out.reshape(*shape[:-2], height, width)
+
+    weights = rs(maps.weights)
+    weights = weights / weights.sum(dim=1, keepdim=True)  # antialias filters are not exactly convex
+    return DecomposedMaps(rs(maps.radiance).clamp_min(0.0), rs(maps.offsets), weights, rs(maps.mask).clamp(0.0, 1.0))
+
+
+class GarmentAnimationNeRF(nn.Module):
+    """E, G_img, G_en, M_NeRF, M_D and the palette, with the per-frame and per-view passes.
+
+    Args:
+        cfg: sizes, switches (ablations, detail selection) and the sampler settings.
+        body: the body model (its topology and template; the skin shell is used for projection).
+        palette_init: see :func:`palette_initial_colours` (a scene's ``palette_init``).
+        sampler: where to sample along rays (any :class:`~garmentnerf.model.samplers.Sampler`);
+            default ``BoxStratifiedSampler.from_config(cfg)``. Kept as a plain attribute, swappable.
+        freeze_image_generator: start with G_img frozen (its pre-training is a separate stage).
+        visibility_tolerance: metres, see :func:`reference_visibility`.
+        chunk_points: samples per chunk (see the module docstring).
+        projector: a prebuilt :class:`BodyPointProjector` for ``body`` (built here if None;
+            building it takes about 0.4 s for the bundled body).
+
+    Submodules (None when ablated): ``encoder`` (E), ``image_generator`` (G_img),
+    ``detail_encoder`` (G_en), ``nerf`` (M_NeRF), ``decoder`` (M_D), ``palette``.
+    """
+
+    def __init__(self, cfg: ModelConfig, body, palette_init=None, *, sampler: Sampler | None = None,
+                 freeze_image_generator: bool = True, visibility_tolerance: float = DEFAULT_VISIBILITY_TOLERANCE,
+                 chunk_points: int = DEFAULT_CHUNK_POINTS, projector: BodyPointProjector | None = None):
+        super().__init__()
+        cfg.validate()
+        if cfg.use_dynamic_feature and not body.has_uv:
+            raise ValueError(f"body model '{body.name}' has no UV atlas; the dynamic feature needs one")
+        if chunk_points < 1:
+            raise ValueError(f"chunk_points must be >= 1, got {chunk_points}")
+        if not visibility_tolerance >= 0:
+            raise ValueError(f"visibility_tolerance must be >= 0, got {visibility_tolerance}")
+        self.cfg = cfg
+        self.body = body
+        self.encoder = DynamicFeatureEncoder.from_config(cfg) if cfg.use_dynamic_feature else None
+        self.image_generator = ImageGenerator.from_config(cfg) if cfg.use_detail_feature else None
+        self.detail_encoder = DetailEncoder.from_config(cfg) if cfg.use_detail_feature else None
+        self.nerf = GarmentNeRF.from_config(cfg)
+        self.decoder = PaletteDecoder.from_config(cfg)
+        self.palette = Palette(palette_initial_colours(palette_init, cfg.palette_size))
+        self.sampler: Sampler = sampler if sampler is not None else BoxStratifiedSampler.from_config(cfg)
+        self.visibility_tolerance = float(visibility_tolerance)
+        self.chunk_points = int(chunk_points)
+        self.projector = projector if projector is not None else BodyPointProjector(body)
+        self._faces = body.faces.detach().cpu()
+        self._image_generator_frozen = False
+        if self.image_generator is not None and freeze_image_generator:
+            self.set_image_generator_frozen(True)
+
+    # ------------------------------------------------------------------ modules and state
+    @property
+    def device(self) -> torch.device:
+        return self.palette.colours.device
+
+    @property
+    def image_generator_frozen(self) -> bool:
+        """True while G_img is frozen (no gradients, eval mode, run under no_grad)."""
+        return self._image_generator_frozen
+
+    def set_image_generator_frozen(self, frozen: bool = True) -> None:
+        """Freeze G_img (after its pre-training) or unfreeze it (to pre-train or fine-tune)."""
+        if self.image_generator is None:
+            self._image_generator_frozen = bool(frozen)
+            return
+        if frozen:
+            freeze(self.image_generator)
+        else:
+            for p in self.image_generator.parameters():
+                p.requires_grad_(True)
+            self.image_generator.train(self.training)
+        self._image_generator_frozen = bool(frozen)
+
+    def train(self, mode: bool = True) -> "GarmentAnimationNeRF":
+        super().train(mode)
+        if self.image_generator is not None and self._image_generator_frozen:
+            self.image_generator.eval()
+        return self
+
+    def trainable_modules(self) -> dict[str, nn.Module]:
+        """The modules the NeRF training updates: ``encoder``, ``detail_encoder``, ``nerf``,
+        ``decoder``, ``palette`` (ablated ones left out), plus ``image_generator`` when unfrozen."""
+        mods = {"encoder": self.encoder, "detail_encoder": self.detail_encoder, "nerf": self.nerf,
+                "decoder": self.decoder, "palette": self.palette}
+        if not self._image_generator_frozen:
+            mods["image_generator"] = self.image_generator
+        return {k: m for k, m in mods.items() if m is not None}
+
+    # ------------------------------------------------------------------ per frame
+    def prepare_frame(self, inputs: FrameInputs) -> FrameFeatures:
+        """Everything of one frame that does not depend on the camera (see the module docstring).
+
+        Runs E, G_img (unless ``inputs.reference_images`` is given) and G_en with autograd as the
+        caller's grad mode says (G_img always without while frozen); call under
+        ``torch.no_grad()`` for viewing.
+        """
+        cfg = self.cfg
+        inputs.validate(cfg, self.body.asset.num_vertices)
+        dev = self.device
+        timings = dict(inputs.timings)
+        sw = _Stopwatch(timings, dev)
+        with sw("surface"), torch.no_grad():
+            verts = inputs.posed_vertices.detach().to("cpu", torch.float32).contiguous()
+            normals = vertex_normals(verts, self._faces)
+            surface = self.projector.projector.bind(verts, torch.float32)
+            aabb = body_aabb(verts)
+        dynamic = reference_images = detail = None
+        if cfg.use_dynamic_feature:
+            with sw("encoders"):
+                dynamic = self.encoder(inputs.info_maps.to(dev, torch.float32).unsqueeze(0))[0]
+        if cfg.use_detail_feature:
+            with sw("reference_images"):
+                if inputs.reference_images is not None:
+                    reference_images = inputs.reference_images.to(dev, torch.float32)
+                else:
+                    grad = torch.no_grad() if self._image_generator_frozen else nullcontext()
+                    with grad:
+                        reference_images = self.image_generator(inputs.reference_uv.to(dev, torch.float32),
+                                                                inputs.reference_mask.to(dev))
+            with sw("encoders"):
+                detail = self.detail_encoder(reference_images)
+        return FrameFeatures(verts, normals, surface, aabb, dynamic, reference_images, detail,
+                             tuple(inputs.reference_cameras), inputs.reference_depth.detach().cpu(), inputs.frame,
+                             timings)
+
+    # ------------------------------------------------------------------ per sample
+    def sample_geometry(self, frame: FrameFeatures, positions: torch.Tensor) -> _SampleGeometry:
+        """Body-aware coordinates of ``positions (n, 3)`` (no gradient): b_o, h, UV, b_t and, in
+        ``soft_normal`` mode, the unit posed normal at b_t. Uses the frame's bound surface (the
+        same as :meth:`BodyPointProjector.project`, without re-binding the frame)."""
+        P = self.projector
+        with torch.no_grad():
+            proj = frame.surface.project(positions.detach().to("cpu", torch.float32))
+            canonical = interpolate(P.canonical_vertices.cpu(), P.faces, proj.face, proj.bary).float()
+            if P.uv is not None:
+                uv = interpolate(P.uv.cpu(), P.uv_faces, proj.face, proj.bary).float()
+            else:
+                uv = proj.bary.new_zeros(proj.bary.shape[0], 2)
+            normal = None
+            if self.cfg.use_detail_feature and self.cfg.detail_selection == "soft_normal":
+                normal = F.normalize(interpolate(frame.vertex_normals, P.faces, proj.face, proj.bary), dim=-1)
+        return _SampleGeometry(canonical, proj.signed_distance.float(), uv, proj.closest.float(), normal)
+
+    def detail_features(self, frame: FrameFeatures, closest: torch.Tensor,
+                        normal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """f^d of surface points b_t ``(n, 3)``.
+
+        Returns:
+            (n, C_d) features and (n,) the front weight: 1/0 (front/back chosen) in
+            ``visibility`` mode, the front blend weight in ``soft_normal`` mode.
+        """
+        if frame.detail_features is None:
+            raise ValueError("this model was built without the detail feature")
+        dev = frame.detail_features.device
+        reads = []
+        for i, cam in enumerate(frame.reference_cameras):
+            pix, _ = project_points(cam, closest.detach().to("cpu", torch.float32))
+            reads.append(sample_image_features(frame.detail_features[i], pix.to(dev)))
+        if self.cfg.detail_selection == "visibility":
+            visible = reference_visibility(closest, frame.reference_cameras[0], frame.reference_depth[0],
+                                           self.visibility_tolerance).to(dev)
+            return select_detail_features(reads[0], reads[1], "visibility", front_visible=visible), visible.float()
+        if normal is None:
+            raise ValueError("detail selection 'soft_normal' needs the normal at b_t")
+        cos = []
+        for cam in frame.reference_cameras:
+            centre = torch.as_tensor(cam.center, dtype=torch.float32)
+            to_cam = F.normalize(centre - closest.detach().cpu().float(), dim=-1)
+            cos.append((normal.cpu().float() * to_cam).sum(-1).to(dev))
+        feats = select_detail_features(reads[0], reads[1], "soft_normal", cos_front=cos[0], cos_back=cos[1])
+        w = F.normalize(torch.stack(cos, -1).add(1.0).mul(0.5), p=2, dim=-1)[:, 0]
+        return feats, w
+
+    # ------------------------------------------------------------------ per view
+    def _ray_subset(self, rays, n_pixels: int, shape: tuple[int, int]) -> torch.Tensor | None:
+        if rays is None:
+            return None
+        rays = torch.as_tensor(rays)
+        if rays.dtype == torch.bool:
+            if tuple(rays.shape) not in (shape, (n_pixels,)):
+                raise ValueError(f"ray mask must be {shape} or ({n_pixels},), got {tuple(rays.shape)}")
+            return rays.reshape(-1).nonzero().squeeze(1)
+        rays = rays.reshape(-1).long()
+        if rays.numel() and (int(rays.min()) < 0 or int(rays.max()) >= n_pixels):
+            raise ValueError(f"ray indices must lie in [0, {n_pixels})")
+        if torch.unique(rays).numel() != rays.numel():
+            raise ValueError("ray indices must be unique")
+        return rays
+
+    def render_features(self, frame: FrameFeatures, camera: Camera, rays=None, *,
+                        feature_size: tuple[int, int] | None = None, training: bool | None = None,
+                        generator: torch.Generator | None = None,
+                        should_cancel: Callable[[], bool] | None = None,
+                        chunk_points: int | None = None, timings: dict | None = None) -> dict:
+        """The volume-rendering half of :meth:`render`: F^zeta, opacity, depth (no decoding).
+
+        Returns a dict with ``feature_image (C, h, w)``, ``opacity (h, w)``, ``depth (h, w)``,
+        ``points_evaluated``, ``rays_evaluated``, ``rays_total``; stage times are added to
+        ``timings`` when given.
+        """
+        cfg = self.cfg
+        fw, fh = feature_size if feature_size is not None else (cfg.feature_image_resolution,) * 2
+        training = self.training if training is None else training
+        chunk = self.chunk_points if chunk_points is None else int(chunk_points)
+        dev = self.device
+        timings = {} if timings is None else timings
+        sw = _Stopwatch(timings, dev)
+        C = cfg.appearance_dim
+        n_pixels = fw * fh
+
+        with sw("rays"):
+            fcam = camera.resized(fw, fh)
+            origins, dirs = camera_rays(fcam)
+            origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+            subset = self._ray_subset(rays, n_pixels, (fh, fw))
+            if subset is not None:
+                origins, dirs = origins[subset], dirs[subset]
+            samples: RaySamples = self.sampler.sample(origins, dirs, frame.aabb.to(origins.dtype), training=training,
+                                                      generator=generator)
+            if not samples.is_packed:
+                samples = samples.to_packed(drop_missed=True)
+            n_rays = samples.n_rays
+            counts = torch.bincount(samples.ray_ids.cpu(), minlength=n_rays)
+            chunks = _ray_aligned_chunks(counts, chunk)
+
+        feats, opacities, depths = [], [], []
+        points = 0
+        for r0, r1, s0, s1 in chunks:
+            if should_cancel is not None and should_cancel():
+                raise RenderCancelled(points)
+            n = r1 - r0
+            if s1 == s0:
+                feats.append(torch.zeros(n, C, device=dev))
+                opacities.append(torch.zeros(n, device=dev))
+                depths.append(torch.zeros(n, device=dev))
+                continue
+            with sw("projection"):
+                geo = self.sample_geometry(frame, samples.positions[s0:s1])
+            with sw("features"):
+                dynamic = detail = None
+                if cfg.use_dynamic_feature:
+                    fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
+                    dynamic = sample_uv_map(fmap, geo.uv.to(dev))
+                if cfg.use_detail_feature:
+                    detail, _ = self.detail_features(frame, geo.closest, geo.normal)
+            with sw("mlp"):
+                sigma, zeta = self.nerf(geo.canonical.to(dev), geo.distance.to(dev), detail, dynamic)
+            with sw("compositing"):
+                ids = (samples.ray_ids[s0:s1] - r0).to(dev)
+                deltas = samples.deltas[s0:s1].to(dev, sigma.dtype)
+                w = vr.render_weights_from_density_packed(sigma, deltas, ids, n)
+                feats.append(vr.composite_packed(w, zeta, ids, n))
+                opacities.append(vr.accumulate_opacity_packed(w, ids, n))
+                depths.append(vr.expected_depth_packed(w, samples.t_starts[s0:s1].to(dev, w.dtype),
+                                                       samples.t_ends[s0:s1].to(dev, w.dtype), ids, n))
+            points += s1 - s0
+
+        with sw("compositing"):
+            feat = torch.cat(feats) if feats else torch.zeros(0, C, device=dev)
+            opacity = torch.cat(opacities) if opacities else torch.zeros(0, device=dev)
+            depth = torch.cat(depths) if depths else torch.zeros(0, device=dev)
+            depth = torch.where(opacity > 0, depth / opacity.clamp_min(1e-10), torch.zeros_like(depth))
+            if subset is not None:
+                idx = subset.to(dev)
+                feat = feat.new_zeros(n_pixels, C).index_copy(0, idx, feat)
+                opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
+                depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
+            feature_image = feat.T.reshape(C, fh, fw)
+        return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
+                "points_evaluated": points, "rays_evaluated": int((counts > 0).sum()), "rays_total": n_rays}
+
+    def decode(self, feature_image: torch.Tensor, palette: torch.Tensor | None = None, background=None,
+               timings: dict | None = None) -> tuple[torch.Tensor, DecomposedMaps]:
+        """M_D and the composition: F^zeta ``(C, h, w)`` -> image (3, H, W) and the maps."""
+        timings = {} if timings is None else timings
+        sw = _Stopwatch(timings, self.device)
+        with sw("decoder"):
+            maps = self.decoder(feature_image.unsqueeze(0))
+        with sw("compose"):
+            pal = self.palette() if palette is None else palette.to(self.device)
+            bg = self.cfg.background if background is None else background
+            image = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, pal, bg)[0]
+        return image, maps
+
+    def render(self, frame: FrameFeatures, camera: Camera, rays=None, *, palette: torch.Tensor | None = None,
+               background=None, feature_size: tuple[int, int] | None = None, training: bool | None = None,
+               generator: torch.Generator | None = None, should_cancel: Callable[[], bool] | None = None,
+               chunk_points: int | None = None) -> RenderOutput:
+        """Render ``frame`` seen by ``camera`` (see the module docstring).
+
+        Args:
+            frame: from :meth:`prepare_frame`.
+            camera: the target view, any resolution: rays go through the pixel centres of the
+                camera resized to ``feature_size`` (default ``cfg.feature_image_resolution``
+                squared), so the image is ``2**decoder_upsample_steps`` times that.
+            rays: None (all), or a subset of the feature-image rays: (M,) unique row-major pixel
+                indices or an (h, w) bool mask; the others get zero features and opacity.
+            palette: (P, 3) in [0, 1] to compose with (default: the learned palette).
+            background: RGB in [0, 1] (default ``cfg.background``).
+            feature_size: (w, h) rays per side.
+            training: jittered (training-mode) samples; default ``self.training``.
+            generator: random source of the jitter.
+            should_cancel: called before every chunk; True raises :class:`RenderCancelled`.
+            chunk_points: samples per chunk (default ``self.chunk_points``).
+        """
+        t0 = time.perf_counter()
+        timings: dict[str, float] = {}
+        out = self.render_features(frame, camera, rays, feature_size=feature_size, training=training,
+                                   generator=generator, should_cancel=should_cancel, chunk_points=chunk_points,
+                                   timings=timings)
+        image, maps = self.decode(out["feature_image"], palette, background, timings)
+        render_total = (time.perf_counter() - t0) * 1e3
+        all_timings = {k: frame.timings[k] for k in FRAME_STAGES if k in frame.timings}
+        all_timings["frame_total"] = sum(all_timings.values())
+        all_timings.update({k: timings.get(k, 0.0) for k in RENDER_STAGES})
+        all_timings["render_total"] = render_total
+        pal = (self.palette() if palette is None else palette.to(self.device)).detach()
+        bg = tuple(float(c) for c in (self.cfg.background if background is None else background))
+        return RenderOutput(image, maps, out["opacity"], out["depth"], out["feature_image"], pal, bg,
+                            out["points_evaluated"], out["rays_evaluated"], out["rays_total"], all_timings)
+
+    def render_full_image(self, frame: FrameFeatures, camera: Camera, *, scale: float | None = None,
+                          **kwargs) -> RenderOutput:
+        """Render at ``camera``'s own resolution (W x H, any size), e.g. for evaluation.
+
+        The view is rendered at ``scale`` times the camera's resolution -- default
+        ``cfg.image_resolution / max(W, H)``, the pixel density the model was trained at when the
+        scene's cameras are square, which keeps the decoder's input at its training scale; 1.0
+        renders natively -- padded up to a multiple of ``2**decoder_upsample_steps`` (the padding
+        extends the image to the right and bottom, so pixel centres stay put) and cropped back.
+        When ``scale != 1`` the decomposed maps are resampled (bilinear, antialiased) to W x H and
+        composed there, so ``image`` and ``maps`` stay consistent for recolouring. ``opacity``,
+        ``depth`` and ``feature_image`` stay at the rendered feature resolution.
+        Other keyword arguments go to :meth:`render` (``rays``/``feature_size`` are not allowed).
+        """
+        if "rays" in kwargs or "feature_size" in kwargs:
+            raise TypeError("render_full_image renders every ray; use render() for subsets")
+        W, H = camera.width, camera.height
+        s = self.cfg.image_resolution / max(W, H) if scale is None else float(scale)
+        if not s > 0:
+            raise ValueError(f"scale must be > 0, got {scale}")
+        up = 2 ** self.cfg.decoder_upsample_steps
+        wr, hr = max(1, round(W * s)), max(1, round(H * s))
+        fw, fh = -(-wr // up), -(-hr // up)
+        cam_r = camera if (wr, hr) == (W, H) else camera.resized(wr, hr)
+        padded = Camera(cam_r.K, cam_r.R, cam_r.t, fw * up, fh * up, cam_r.near, cam_r.far)
+        out = self.render(frame, padded, feature_size=(fw, fh), **kwargs)
+        t0 = time.perf_counter()
+        maps = _crop_maps(out.maps, hr, wr)
+        if (wr, hr) != (W, H):
+            maps = _resize_maps(maps, H, W)
+        image = maps.compose(out.palette, out.background)[0]
+        out.timings["compose"] += (time.perf_counter() - t0) * 1e3
+        out.image, out.maps = image, maps
+        return out
+
+    def forward(self, frame: FrameInputs | FrameFeatures, camera: Camera, **kwargs) -> RenderOutput:
+        """:meth:`render`, preparing the frame first when given :class:`FrameInputs`."""
+        if isinstance(frame, FrameInputs):
+            frame = self.prepare_frame(frame)
+        return self.render(frame, camera, **kwargs)
+
+
+__all__ = ["GarmentAnimationNeRF", "RenderOutput", "RenderCancelled", "reference_visibility",
+           "palette_initial_colours", "FRAME_STAGES", "RENDER_STAGES", "DEFAULT_CHUNK_POINTS",
+           "DEFAULT_VISIBILITY_TOLERANCE"]

@@ -1,0 +1,309 @@
+"""The assembled Garment Animation NeRF forward pass on a tiny model and the bundled body."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from garmentnerf.body.model import BodyModel
+from garmentnerf.body.surface import vertex_normals
+from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera, project_points
+from garmentnerf.data.cameras import reference_cameras
+from garmentnerf.geometry.body_points import BodyPointProjector
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.detail_features import sample_image_features
+from garmentnerf.model.frame_context import FrameInputBuilder, resolve_reference_cameras
+from garmentnerf.model.palette import compose
+from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnimationNeRF, RenderCancelled,
+                                        palette_initial_colours, reference_visibility)
+from garmentnerf.model.samplers import ray_aabb_intersect
+from garmentnerf.motion.library import load_motion
+
+PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
+
+
+def tiny_config(**changes) -> ModelConfig:
+    cfg = ModelConfig.cpu_small().replace(
+        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
+        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
+        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
+        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
+    return cfg.replace(**changes) if changes else cfg
+
+
+@pytest.fixture(scope="module")
+def body():
+    return BodyModel.default()
+
+
+@pytest.fixture(scope="module")
+def projector(body):
+    return BodyPointProjector(body)
+
+
+@pytest.fixture(scope="module")
+def clip(body):
+    motion = load_motion("walk", body)
+    return motion.slice(0, 3).pose(body), motion.fps
+
+
+@pytest.fixture(scope="module")
+def inputs(gl_context, body, clip):
+    posed, fps = clip
+    with FrameInputBuilder(gl_context, body, reference_cameras(), tiny_config()) as builder:
+        yield builder.build(posed, 2, fps)
+
+
+def make_model(body, projector, seed=0, **changes) -> GarmentAnimationNeRF:
+    torch.manual_seed(seed)
+    return GarmentAnimationNeRF(tiny_config(**changes), body, PALETTE, projector=projector).eval()
+
+
+@pytest.fixture(scope="module")
+def model(body, projector):
+    return make_model(body, projector)
+
+
+@pytest.fixture(scope="module")
+def frame(model, inputs):
+    with torch.no_grad():
+        return model.prepare_frame(inputs)
+
+
+CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
+
+
+# ---------------------------------------------------------------------------------------- inputs
+def test_frame_inputs(gl_context, body, clip, inputs):
+    cfg = tiny_config()
+    assert inputs.info_maps.shape == (9, 32, 32)
+    assert inputs.reference_uv.shape == (2, 32, 32, 2)
+    assert inputs.reference_mask.shape == inputs.reference_depth.shape == inputs.reference_face.shape == (2, 32, 32)
+    for i in range(2):
+        m = inputs.reference_mask[i]
+        assert 0.05 < m.float().mean() < 0.6  # the body fills part of each reference view
+        assert torch.isfinite(inputs.reference_depth[i][m]).all() and torch.isinf(inputs.reference_depth[i][~m]).all()
+        assert (inputs.reference_face[i][m] >= 0).all()
+    assert set(inputs.timings) == {"info_maps", "reference_passes"}
+    # A single frame equals the same frame of the whole clip (velocity history included).
+    posed, fps = clip
+    with FrameInputBuilder(gl_context, body, reference_cameras(), cfg) as builder:
+        whole = builder.build_clip(posed, fps)
+    assert len(whole) == 3
+    torch.testing.assert_close(whole[2].info_maps, inputs.info_maps, atol=1e-5, rtol=0)
+    assert inputs.info_maps[3:].abs().max() > 0  # the body moves
+    with pytest.raises(ValueError, match="info_maps"):
+        inputs.validate(cfg.replace(history=1))
+
+
+def test_resolve_reference_cameras():
+    front, back = reference_cameras()
+    got = resolve_reference_cameras([back, front])  # by name
+    assert got[0] is front.camera and got[1] is back.camera
+    got = resolve_reference_cameras([back.camera, front.camera])  # plain cameras: by order
+    assert got[0] is back.camera and got[1] is front.camera
+    with pytest.raises(ValueError):
+        resolve_reference_cameras([front.camera])
+
+
+def test_palette_init():
+    p = palette_initial_colours(PALETTE)
+    torch.testing.assert_close(p, torch.tensor([PALETTE["garment"], PALETTE["body"]]))
+    assert palette_initial_colours(None, 3).shape == (3, 3)
+    with pytest.raises(ValueError):
+        palette_initial_colours(torch.zeros(3, 3), 2)
+    with pytest.raises(ValueError):
+        palette_initial_colours([[1.5, 0, 0], [0, 0, 0]], 2)
+
+
+# ---------------------------------------------------------------------------------------- render
+def test_shapes_and_timings(model, frame):
+    assert frame.dynamic_features.shape == (8, 32, 32)
+    assert frame.reference_images.shape == (2, 3, 32, 32)
+    assert frame.detail_features.shape == (2, 8, 32, 32)
+    assert frame.aabb.shape == (2, 3)
+    with torch.no_grad():
+        out = model.render(frame, CAMERA)
+    assert out.image.shape == (3, 64, 64)
+    assert out.maps.radiance.shape == (1, 3, 64, 64)
+    assert out.maps.offsets.shape == (1, 2, 3, 64, 64)
+    assert out.maps.weights.shape == (1, 2, 64, 64)
+    assert out.maps.mask.shape == (1, 1, 64, 64)
+    assert out.opacity.shape == out.depth.shape == (16, 16)
+    assert out.feature_image.shape == (16, 16, 16)
+    assert out.image.min() >= 0 and out.image.max() <= 1 and torch.isfinite(out.image).all()
+    assert 0 < out.points_evaluated == out.rays_evaluated * 8 and out.rays_total == 256
+    assert set(FRAME_STAGES) | set(RENDER_STAGES) | {"frame_total", "render_total"} == set(out.timings)
+    assert all(v >= 0 for v in out.timings.values())
+    hit = out.opacity > 0
+    near, far = np.linalg.norm(CAMERA.center) - 1.0, np.linalg.norm(CAMERA.center) + 1.0
+    assert ((out.depth[hit] > near) & (out.depth[hit] < far)).all() and (out.depth[~hit] == 0).all()
+
+
+def test_missed_rays_are_not_evaluated(model, frame):
+    calls = []
+    hook = model.nerf.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+    try:
+        with torch.no_grad():
+            out = model.render(frame, CAMERA)
+        # Independent count: rays of the feature image that enter the padded body box.
+        origins, dirs = camera_rays(CAMERA.resized(16, 16))
+        pad = torch.tensor([[-1.0], [1.0]]) * model.cfg.bbox_padding
+        _, _, hit = ray_aabb_intersect(origins.reshape(-1, 3), dirs.reshape(-1, 3), frame.aabb + pad)
+        assert 0 < int(hit.sum()) < 256  # some rays miss the box, some hit it
+        assert sum(calls) == out.points_evaluated == int(hit.sum()) * model.cfg.samples_per_ray
+        opacity = out.opacity.reshape(-1)
+        assert (opacity[~hit] == 0).all() and (opacity[hit] > 0).all()
+        # A camera looking away from the body evaluates nothing.
+        calls.clear()
+        R, t = look_at((0.0, -3.0, 1.0), (0.0, -6.0, 1.0))
+        away = Camera(intrinsics_from_fov(64, 64, 40.0), R, t, 64, 64)
+        with torch.no_grad():
+            out = model.render(frame, away)
+        assert out.points_evaluated == 0 and out.rays_evaluated == 0 and sum(calls) == 0
+        assert (out.opacity == 0).all() and out.image.shape == (3, 64, 64)
+    finally:
+        hook.remove()
+
+
+def test_gradients_reach_every_trainable_module(body, projector, inputs):
+    model = make_model(body, projector, seed=1).train()
+    frame = model.prepare_frame(inputs)
+    out = model.render(frame, CAMERA, generator=torch.Generator().manual_seed(0))
+    target = torch.rand(out.image.shape, generator=torch.Generator().manual_seed(1))
+    loss = (out.image - target).abs().mean()
+    loss.backward()
+    modules = model.trainable_modules()
+    assert set(modules) == {"encoder", "detail_encoder", "nerf", "decoder", "palette"}
+    for name, module in modules.items():
+        grads = [p.grad for p in module.parameters()]
+        assert all(g is not None and torch.isfinite(g).all() for g in grads), name
+        assert sum(float(g.abs().sum()) for g in grads) > 0, name
+    for head in (model.nerf.density_head, model.nerf.appearance_head):
+        assert head.weight.grad.abs().sum() > 0
+    assert model.palette.colours.grad.abs().sum() > 0
+    # G_img is frozen: no gradient, and its output is not part of the graph.
+    assert model.image_generator_frozen
+    assert all(p.grad is None and not p.requires_grad for p in model.image_generator.parameters())
+    assert not frame.reference_images.requires_grad and frame.detail_features.requires_grad
+    assert model.image_generator.training is False  # train() keeps the frozen G_img in eval mode
+
+
+def test_unfrozen_image_generator_gets_gradient(body, projector, inputs):
+    model = make_model(body, projector, seed=2).train()
+    model.set_image_generator_frozen(False)
+    assert "image_generator" in model.trainable_modules()
+    out = model.render(model.prepare_frame(inputs), CAMERA)
+    out.image.mean().backward()
+    assert sum(float(p.grad.abs().sum()) for p in model.image_generator.parameters()) > 0
+
+
+def test_recolouring_equals_rerendering(model, frame):
+    new = torch.tensor([[0.1, 0.3, 0.9], [0.2, 0.8, 0.3]])
+    with torch.no_grad():
+        out = model.render(frame, CAMERA)
+        again = model.render(frame, CAMERA, palette=new, background=(1.0, 1.0, 1.0))
+    maps = out.maps
+    recoloured = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, new, (1.0, 1.0, 1.0))[0]
+    torch.testing.assert_close(recoloured, again.image, atol=1e-6, rtol=0)
+    torch.testing.assert_close(out.recolour(new, (1.0, 1.0, 1.0)), again.image, atol=1e-6, rtol=0)
+    assert (recoloured - out.image).abs().max() > 1e-3  # the palette does change the image
+
+
+def test_cancellation(model, frame):
+    with torch.no_grad():
+        full = model.render(frame, CAMERA, chunk_points=64)
+    asked = []
+
+    def cancel_third():
+        asked.append(1)
+        return len(asked) >= 3
+
+    with pytest.raises(RenderCancelled) as info:
+        with torch.no_grad():
+            model.render(frame, CAMERA, chunk_points=64, should_cancel=cancel_third)
+    assert 0 < info.value.points_evaluated < full.points_evaluated
+    assert len(asked) == 3
+    with torch.no_grad():  # nothing left behind: the next render is the same as before
+        again = model.render(frame, CAMERA, chunk_points=64, should_cancel=lambda: False)
+        big_chunks = model.render(frame, CAMERA)
+    torch.testing.assert_close(again.image, full.image, atol=0, rtol=0)
+    torch.testing.assert_close(big_chunks.image, full.image, atol=1e-5, rtol=0)  # chunking changes nothing
+
+
+def test_ray_subset(model, frame):
+    mask = torch.zeros(16, 16, dtype=torch.bool)
+    mask[4:12, 6:10] = True
+    with torch.no_grad():
+        full = model.render(frame, CAMERA)
+        part = model.render(frame, CAMERA, rays=mask)
+        idx = model.render(frame, CAMERA, rays=mask.reshape(-1).nonzero().squeeze(1))
+    torch.testing.assert_close(part.feature_image[:, mask], full.feature_image[:, mask], atol=1e-6, rtol=0)
+    assert (part.feature_image[:, ~mask] == 0).all() and (part.opacity[~mask] == 0).all()
+    assert part.rays_total == 32 and part.points_evaluated < full.points_evaluated
+    torch.testing.assert_close(idx.image, part.image, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="unique"):
+        model.render(frame, CAMERA, rays=torch.tensor([3, 3]))
+
+
+def test_render_full_image_any_resolution(model, frame):
+    cam = orbit_camera(-60.0, 5.0, 3.0, width=70, height=50)
+    with torch.no_grad():
+        native = model.render_full_image(frame, cam, scale=1.0)
+        scaled = model.render_full_image(frame, cam)  # at the training pixel density, resampled
+        square = model.render_full_image(frame, CAMERA)
+        direct = model.render(frame, CAMERA)
+    for out in (native, scaled):
+        assert out.image.shape == (3, 50, 70) and out.maps.mask.shape == (1, 1, 50, 70)
+        torch.testing.assert_close(out.maps.compose(out.palette, out.background)[0], out.image)
+        torch.testing.assert_close(out.maps.weights.sum(1), torch.ones(1, 50, 70))
+    assert native.feature_image.shape[1:] == (13, 18)  # ceil(50 / 4), ceil(70 / 4)
+    # A camera at the model's resolution renders exactly as render() does.
+    torch.testing.assert_close(square.image, direct.image, atol=1e-6, rtol=0)
+
+
+def test_visibility_selects_front_for_front_and_back_for_back(model, frame, projector):
+    skin = torch.unique(projector.faces.reshape(-1))
+    verts = frame.posed_vertices[skin]
+    normals = vertex_normals(frame.posed_vertices, model.body.faces)[skin]
+    # The torso below the chin (the hands and face hold most vertices, with thin or self-hidden parts).
+    torso = (verts[:, 0].abs() < 0.1) & (verts[:, 2] > 0.9) & (verts[:, 2] < 1.35)
+    front, back = (normals[:, 1] < -0.9) & torso, (normals[:, 1] > 0.9) & torso
+    front_pts, back_pts = verts[front], verts[back]
+    assert len(front_pts) > 100 and len(back_pts) > 100
+    _, w_front = model.detail_features(frame, front_pts)
+    _, w_back = model.detail_features(frame, back_pts)
+    assert w_front.mean() > 0.97 and w_back.mean() < 0.03
+    # The same through the public test; a visible point gets exactly the front read.
+    cams, depth = frame.reference_cameras, frame.reference_depth
+    assert reference_visibility(back_pts, cams[1], depth[1]).float().mean() > 0.97
+    assert reference_visibility(front_pts, cams[1], depth[1]).float().mean() < 0.03
+    feats, w = model.detail_features(frame, front_pts)
+    pix, _ = project_points(cams[0], front_pts)
+    front_read = sample_image_features(frame.detail_features[0], pix)
+    sel = w > 0
+    torch.testing.assert_close(feats[sel], front_read[sel])
+    # Soft-normal mode (authors' code): the front weight dominates on the front, not on the back.
+    soft = make_model(model.body, projector, detail_selection="soft_normal")
+    normal_front, normal_back = normals[front], normals[back]
+    _, sw_front = soft.detail_features(frame, front_pts, normal_front)
+    _, sw_back = soft.detail_features(frame, back_pts, normal_back)
+    assert (sw_front > 0.9).float().mean() > 0.95 and (sw_back < 0.45).float().mean() > 0.95
+
+
+@pytest.mark.parametrize("changes", [dict(use_detail_feature=False), dict(use_dynamic_feature=False),
+                                     dict(use_detail_feature=False, use_dynamic_feature=False),
+                                     dict(detail_selection="soft_normal")])
+def test_ablations_and_modes(body, projector, inputs, changes):
+    model = make_model(body, projector, **changes).train()
+    frame = model.prepare_frame(inputs)
+    cfg = model.cfg
+    assert (model.encoder is None) == (frame.dynamic_features is None) == (not cfg.use_dynamic_feature)
+    assert (model.detail_encoder is None) == (frame.detail_features is None) == (not cfg.use_detail_feature)
+    assert model.nerf.input_dim == cfg.mlp_input_dim
+    out = model.render(frame, CAMERA)
+    assert out.image.shape == (3, 64, 64) and out.points_evaluated > 0
+    out.image.mean().backward()
+    for name, module in model.trainable_modules().items():
+        assert sum(float(p.grad.abs().sum()) for p in module.parameters()) > 0, name

