@@ -11,6 +11,36 @@ def register(sub) -> None:
     data = sub.add_parser("data", help="training scenes: simulate, render, inspect")
     data_sub = data.add_subparsers(dest="data_command", metavar="ACTION", required=True)
 
+    make = data_sub.add_parser(
+        "make", help="simulate a garment on body motions and write a training scene (resumable)",
+        description="Create a training scene: cameras, motions, the cloth simulation of the garment on every "
+                    "sequence (newton VBD, one process per sequence). Images are rendered on demand later. "
+                    "Interrupted runs continue where they stopped when re-run with the same arguments.")
+    make.add_argument("--garment", default="skirt", help="garment kind: skirt, tshirt, dress (default: skirt)")
+    make.add_argument("--motion", default="walk,dance_a",
+                      help="training motion: clip names joined by ',' (default: walk,dance_a)")
+    make.add_argument("--test-motion", action="append", default=[], metavar="MOTION",
+                      help="held-out motion for the unseen-motion test (repeatable)")
+    make.add_argument("--frames", type=int, default=300, help="frames of the training sequence (default: 300)")
+    make.add_argument("--test-frames", type=int, default=0, help="cap on held-out frames (default: whole clip)")
+    make.add_argument("--views", type=int, default=16, help="training cameras on the circle (default: 16)")
+    make.add_argument("--held-out-views", type=int, default=4, help="unseen-view cameras (default: 4)")
+    make.add_argument("--size", type=int, default=512, help="image side in pixels (default: 512)")
+    make.add_argument("--radius", type=float, default=3.0, help="camera circle radius, m (default: 3)")
+    make.add_argument("--height", type=float, default=1.0, help="camera height, m (default: 1)")
+    make.add_argument("--shape", default="average", help="body shape preset or coefficients (default: average)")
+    make.add_argument("--fps", type=float, default=30.0, help="frame rate (default: 30)")
+    make.add_argument("--no-in-place", action="store_true",
+                      help="keep the root's horizontal travel (default: removed, treadmill-style)")
+    make.add_argument("--processes", type=int, default=0, help="parallel simulations (default: one per core)")
+    make.add_argument("--substeps", type=int, default=None, help="solver substeps per frame (default: 10)")
+    make.add_argument("--iterations", type=int, default=None, help="VBD iterations per substep (default: 10)")
+    make.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
+                      help="any other simulation setting (see garmentnerf.data.simulate.SimSettings), repeatable")
+    make.add_argument("--drop-chunks", action="store_true", help="delete the resumable chunks when done")
+    make.add_argument("--out", required=True, help="scene folder to create (or to finish)")
+    make.set_defaults(func=run_make)
+
     info = data_sub.add_parser("info", help="summarise a scene (cameras, sequences, simulation statistics)")
     info.add_argument("scene", help="scene folder")
     info.add_argument("--json", action="store_true", help="print JSON")
@@ -29,6 +59,48 @@ def register(sub) -> None:
     preview.add_argument("--labels", action="store_true", help="outline garment and body label regions")
     preview.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     preview.set_defaults(func=run_preview)
+
+
+def run_make(args: argparse.Namespace) -> int:
+    from garmentnerf.data.make import MakeSpec, make_scene
+    from garmentnerf.data.simulate import SimSettings
+
+    spec = MakeSpec(garment=args.garment, motion=args.motion, frames=args.frames, test_motions=list(args.test_motion),
+                    test_frames=args.test_frames, views=args.views, held_out_views=args.held_out_views,
+                    size=args.size, radius=args.radius, height=args.height, shape=args.shape, fps=args.fps,
+                    in_place=not args.no_in_place, processes=args.processes)
+    changes = {k: v for k, v in (("substeps", args.substeps), ("iterations", args.iterations)) if v is not None}
+    for item in args.sim:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--sim expects KEY=VALUE, got '{item}'")
+        changes[key.strip()] = _parse_setting(value.strip())
+    known = set(SimSettings().to_dict())
+    unknown = sorted(set(changes) - known)
+    if unknown:
+        raise ValueError(f"unknown simulation setting(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+    settings = SimSettings(**changes)
+    scene = make_scene(args.out, spec, settings=settings, keep_chunks=not args.drop_chunks)
+    for name in scene.sequence_names():
+        sim = scene.simulation.get(name, {})
+        pen = sim.get("penetration_max_m")
+        pen_text = f", max penetration {pen * 1000:.1f} mm" if pen is not None else ""
+        print(f"{name}: {scene.num_frames(name)} frames ({scene.sequence(name).split}){pen_text}")
+    print(f"scene written to {scene.root}")
+    return 0
+
+
+def _parse_setting(text: str):
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--sim value '{text}' is not a number or true/false") from None
 
 
 def run_info(args: argparse.Namespace) -> int:

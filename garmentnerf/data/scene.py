@@ -72,6 +72,8 @@ MOTION_FILE = "motion.npz"
 GARMENT_FILE = "garment.npz"
 #: The array of ``garment.npz`` holding the (T, Vg, 3) vertex positions (its frame count is checked).
 GARMENT_VERTICES_KEY = "vertices"
+#: The same, quantised to uint16 over the sequence's box (:mod:`garmentnerf.data.garment_sequence`).
+GARMENT_QUANTISED_KEY = "vertices_q"
 CACHE_DIR = "cache"
 
 #: Tolerance of the rotation check (``|R R^T - I|`` entries, ``det R``): hand-written files round.
@@ -609,6 +611,8 @@ def _check_sequence_files(v: _Checker, root: Path, info: SequenceInfo, fps: floa
         with np.load(motion_file, allow_pickle=False) as npz:
             motion_fps = float(npz["fps"]) if "fps" in npz.files else None
         vert_shape = _npz_member_shape(garment_file, GARMENT_VERTICES_KEY)
+        if vert_shape is None:  # the simulation's compressed format (garment_sequence.py)
+            vert_shape = _npz_member_shape(garment_file, GARMENT_QUANTISED_KEY)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
         raise v.fail(p, f"has an unreadable file ({exc})") from exc
     if rot_shape is None or motion_fps is None:
@@ -618,7 +622,7 @@ def _check_sequence_files(v: _Checker, root: Path, info: SequenceInfo, fps: floa
     if abs(motion_fps - fps) > 1e-6 * fps:
         raise v.fail(p, f"{motion_file} is at {motion_fps:g} fps, the scene at {fps:g} fps")
     if vert_shape is None or len(vert_shape) != 3 or vert_shape[2] != 3:
-        raise v.fail(p, f"{garment_file} has no (T, Vg, 3) '{GARMENT_VERTICES_KEY}' array")
+        raise v.fail(p, f"{garment_file} has no (T, Vg, 3) '{GARMENT_VERTICES_KEY}' or '{GARMENT_QUANTISED_KEY}' array")
     if vert_shape[0] != info.frames:
         raise v.fail(f"{p}.frames", f"is {info.frames} but {garment_file} has {vert_shape[0]} frames")
 
