@@ -153,6 +153,7 @@ def _sim_dir(root: Path, sequence: str) -> Path:
 def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings_dict: dict) -> dict:
     """Worker process: simulate one sequence of the scene at ``root`` and store its garment."""
     torch.set_num_threads(1)
+    _exit_with_parent()
     from garmentnerf.body.model import BodyModel
     from garmentnerf.data.garment_sequence import save_sequence
     from garmentnerf.data.garments import make_garment
@@ -178,6 +179,23 @@ def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings
             "cpu_seconds_per_frame": (None if math.isnan(result.cpu_seconds_per_frame)
                                       else float(result.cpu_seconds_per_frame)),
             "settings": settings.to_dict()}
+
+
+def _exit_with_parent(poll_s: float = 2.0) -> None:
+    """End this worker when its parent dies (killed ``data make``): committed chunks are safe, and
+    an orphan would keep simulating into files the next run is about to write."""
+    import os
+    import threading
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(poll_s)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
 
 
 def _bound() -> float:
