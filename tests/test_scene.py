@@ -220,7 +220,7 @@ def test_bad_json_and_missing_files(tmp_path):
     expect("sequences.train.frames is 3 but")
     _write_garment(garment, 3)
     np.savez(garment, positions=np.zeros((3, 5, 3)))
-    expect("has no (T, Vg, 3) 'vertices' array")
+    expect("has no (T, Vg, 3) 'vertices' or 'vertices_q' array")
     _write_garment(garment, 3)
     shutil.rmtree(tmp_path / "s" / "sequences" / "test_run")
     expect("sequences.test_run has no folder")

@@ -637,9 +637,8 @@ class GarmentArrays:
 
 
 def read_garment_arrays(path: str | Path) -> GarmentArrays:
-    """Read ``garment.npz``: through :mod:`garmentnerf.data.garment_sequence` when it provides
-    ``load_sequence`` (an object with ``vertices`` and ``faces``), else the file's ``vertices``
-    and ``faces`` arrays directly."""
+    """Read ``garment.npz``: the simulation's compressed format (``vertices_q``) through
+    :mod:`garmentnerf.data.garment_sequence`, else the file's plain ``vertices`` and ``faces``."""
     path = Path(path)
     loader = None
     try:
@@ -648,7 +647,7 @@ def read_garment_arrays(path: str | Path) -> GarmentArrays:
         loader = getattr(garment_sequence, "load_sequence", None)
     except ImportError:
         pass
-    if loader is not None:
+    if loader is not None and _npz_member_shape(path, GARMENT_QUANTISED_KEY) is not None:
         seq = loader(path)
         verts, faces = seq.vertices, seq.faces
     else:
