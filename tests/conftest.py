@@ -16,3 +16,13 @@ def gl_context():
         pytest.skip(f"no headless OpenGL: {exc}")
     yield ctx
     ctx.release()
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory, gl_context):
+    """A small unsimulated scene (garment rigidly skinned to the body, :mod:`garmentnerf.data.synthetic`):
+    skirt on 3 walk frames, 3 training cameras + 1 held out + 2 references at 64 x 64."""
+    from garmentnerf.data.synthetic import make_rigged_scene
+
+    return make_rigged_scene(tmp_path_factory.mktemp("tiny_scene") / "scene", garment="skirt", motion="walk",
+                             frames=3, views=3, size=64, held_out_views=1, gl_context=gl_context)

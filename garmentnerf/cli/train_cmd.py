@@ -1,0 +1,78 @@
+"""``garmentnerf train``: train a model on a scene into a run folder (see garmentnerf.train)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub) -> None:
+    p = sub.add_parser("train", help="train the Garment Animation NeRF on a scene",
+                       description="Two-stage training (G_img pre-training, then the NeRF) into a run folder: "
+                                   "run.json + model.safetensors, checkpoints/, tb/ (TensorBoard). Ctrl-C saves "
+                                   "a checkpoint; --resume continues exactly. Under torchrun every process "
+                                   "trains on its share of the views (gradients averaged).")
+    p.add_argument("--scene", default=None, metavar="DIR",
+                   help="scene folder (required for a new run; on --resume default: the run's scene)")
+    p.add_argument("--out", required=True, metavar="DIR", help="run folder, e.g. runs/skirt (must be empty "
+                                                               "unless --resume)")
+    p.add_argument("--preset", default="cpu_small", choices=("paper", "cpu_small", "tiny"),
+                   help="model size (default: cpu_small; ignored on --resume: the run's config is used)")
+    p.add_argument("--iterations", type=int, default=None, metavar="N",
+                   help="NeRF training steps (default: the preset's; the lr decays over them)")
+    p.add_argument("--generator-iterations", type=int, default=None, metavar="N",
+                   help="G_img pre-training steps (default: the preset's; 0 skips pre-training)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--stop-after", type=int, default=None, metavar="STEP",
+                   help="stop with a checkpoint at this global step (resume later)")
+    p.add_argument("--log-every", type=int, default=10, metavar="N", help="steps between logged scalars")
+    p.add_argument("--image-every", type=int, default=500, metavar="N", help="steps between logged images (0: never)")
+    p.add_argument("--ckpt-every", type=int, default=1000, metavar="N", help="steps between checkpoints")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="frame range used in each training sequence, Python slice syntax (default: all)")
+    p.add_argument("--perceptual", default="auto", choices=("auto", "vgg19", "stlpips", "none"),
+                   help="perceptual loss (auto: VGG19 with --vgg19-weights, else shift-tolerant LPIPS)")
+    p.add_argument("--vgg19-weights", default=None, metavar="PTH",
+                   help="torchvision ImageNet VGG19 weights (vgg19-dcbb9e9d.pth); default $GARMENTNERF_VGG19")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _frames(text: str | None, scene_path) -> tuple[int, ...] | None:
+    if text is None:
+        return None
+    parts = text.split(":")
+    try:
+        nums = [int(x) if x.strip() else None for x in parts]
+    except ValueError:
+        raise ValueError(f"--frames must be A:B (integers), got {text!r}") from None
+    if len(nums) == 1:
+        return (nums[0],)
+    if len(nums) not in (2, 3):
+        raise ValueError(f"--frames must be A:B, got {text!r}")
+    start, stop = nums[0] or 0, nums[1]
+    if stop is None:
+        raise ValueError("--frames needs an end (A:B)")
+    step = nums[2] if len(nums) == 3 and nums[2] else 1
+    out = tuple(range(start, stop, step))
+    if not out:
+        raise ValueError(f"--frames {text} selects no frame")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from garmentnerf.train.trainer import TrainConfig, Trainer
+
+    tc = TrainConfig(scene=args.scene, out=args.out, preset=args.preset, device=args.device, seed=args.seed,
+                     iterations=args.iterations, generator_iterations=args.generator_iterations,
+                     stop_after=args.stop_after, log_every=args.log_every, image_every=args.image_every,
+                     ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames, args.scene),
+                     perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, threads=args.threads,
+                     progress=not args.no_progress)
+    if not args.resume and args.scene is None:
+        raise ValueError("--scene is required for a new run")
+    with Trainer(tc) as trainer:
+        result = trainer.train()
+    return 130 if result.interrupted else 0

