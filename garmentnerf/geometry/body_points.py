@@ -14,6 +14,7 @@ import torch
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.geometry.projection import SurfaceProjector
+from garmentnerf.geometry.projection_dense import DenseSurfaceProjector
 
 
 @dataclass
@@ -63,9 +64,16 @@ class BodyPointProjector:
     Args:
         body: the body model; its canonical surface is the template (average shape, rest pose).
         skin_only: project onto the largest connected shell only (see :func:`main_component_faces`).
+        method: "auto" (default): the exact CPU KD-tree search (:class:`SurfaceProjector`) for
+            CPU tensors, the brute-force torch search (:class:`DenseSurfaceProjector`, same
+            results up to rounding) on the device of the points otherwise; "exact" or "dense"
+            force one. Outputs are on the device of the points either way.
     """
 
-    def __init__(self, body: BodyModel, skin_only: bool = True):
+    def __init__(self, body: BodyModel, skin_only: bool = True, method: str = "auto"):
+        if method not in ("auto", "exact", "dense"):
+            raise ValueError(f"method must be 'auto', 'exact' or 'dense', got {method!r}")
+        self.method = method
         faces = body.asset.faces
         self.face_subset = torch.as_tensor(main_component_faces(faces) if skin_only else np.arange(len(faces)))
         self.faces = body.faces[self.face_subset]
@@ -73,14 +81,39 @@ class BodyPointProjector:
         self.canonical_vertices = body.template_vertices
         self.uv = body.uv if body.has_uv else None
         self.projector = SurfaceProjector(self.faces, body.asset.num_vertices)
+        self._dense: DenseSurfaceProjector | None = None  # built on first use
+        self._device_tensors: dict[str, tuple] = {}
+
+    @property
+    def dense_projector(self) -> DenseSurfaceProjector:
+        """The brute-force projector (same faces), built on first use."""
+        if self._dense is None:
+            self._dense = DenseSurfaceProjector(self.faces, self.projector.num_vertices)
+        return self._dense
+
+    def _uses_dense(self, device: torch.device) -> bool:
+        return self.method == "dense" or (self.method == "auto" and device.type != "cpu")
+
+    def _on(self, device: torch.device) -> tuple:
+        """(face_subset, faces, uv_faces, canonical_vertices, uv) on ``device`` (cached)."""
+        key = str(device)
+        if key not in self._device_tensors:
+            self._device_tensors[key] = tuple(None if t is None else t.to(device) for t in (
+                self.face_subset, self.faces, self.uv_faces, self.canonical_vertices, self.uv))
+        return self._device_tensors[key]
 
     def project(self, points: torch.Tensor, posed_vertices: torch.Tensor) -> BodyPoints:
         """Body coordinates of ``points (N, 3)`` for the body posed as ``posed_vertices (V, 3)``."""
-        proj = self.projector.project(points, posed_vertices)
-        canonical = self.projector.interpolate(self.canonical_vertices.to(proj.bary.dtype), proj.face, proj.bary)
-        if self.uv is not None:
-            uv = self.projector.interpolate(self.uv.to(proj.bary.dtype), proj.face, proj.bary, faces=self.uv_faces)
+        if self._uses_dense(points.device):
+            proj = self.dense_projector.project(points, posed_vertices)
         else:
-            uv = proj.bary.new_zeros(proj.bary.shape[0], 2)
-        return BodyPoints(face=self.face_subset[proj.face], bary=proj.bary, closest=proj.closest,
+            proj = self.projector.project(points, posed_vertices)
+        face_subset, faces, uv_faces, canonical_vertices, uv_coords = self._on(points.device)
+        face, bary = proj.face.to(points.device), proj.bary.to(points.device)
+        canonical = self.projector.interpolate(canonical_vertices.to(bary.dtype), face, bary, faces=faces)
+        if uv_coords is not None:
+            uv = self.projector.interpolate(uv_coords.to(bary.dtype), face, bary, faces=uv_faces)
+        else:
+            uv = bary.new_zeros(bary.shape[0], 2)
+        return BodyPoints(face=face_subset[face], bary=bary, closest=proj.closest,
                           signed_distance=proj.signed_distance, canonical=canonical, uv=uv)
