@@ -188,6 +188,34 @@ def test_render_worker_coalesces_requests():
         worker.stop()
 
 
+def test_render_worker_shows_frames_while_requests_never_stop():
+    """A camera moving every UI frame supersedes every render; after max_stale_s without a result
+    the render in flight must still finish and be shown, or the layer would never update."""
+    got = []
+
+    def render(request, generation):
+        for _ in range(10):  # 10 chunks of 10 ms, polling for cancellation like the real session
+            time.sleep(0.01)
+            if worker.should_cancel(generation):
+                return None
+        return request
+
+    worker = RenderWorker(render, lambda result, request, gen: got.append(result), max_stale_s=0.15)
+    try:
+        deadline = time.monotonic() + 1.5
+        r = 0
+        while time.monotonic() < deadline:
+            r += 1
+            worker.request(r)  # a new request every 5 ms, faster than any render finishes
+            time.sleep(0.005)
+        assert worker.wait_idle(5.0)
+        # without the guarantee only the very last request would ever be delivered
+        assert len(got) >= 4, got
+        assert got == sorted(got)  # results arrive in request order
+    finally:
+        worker.stop()
+
+
 def test_view_without_display_prints_one_line(monkeypatch, capsys):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
@@ -197,7 +225,7 @@ def test_view_without_display_prints_one_line(monkeypatch, capsys):
     assert args.func(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [NO_DISPLAY_MESSAGE]
-    assert "no display available; render headless with: garmentnerf" in err[0]
+    assert "no display available" in err[0] and "render headless instead: garmentnerf render" in err[0]
 
 
 # ==== GL scene (headless) ==================================================================================
@@ -466,10 +494,13 @@ def test_resize_to_zero_and_back(app, monkeypatch):
     assert app.read_framebuffer().shape == (WINDOW[1], WINDOW[0], 3)
 
 
-def test_random_ui_events_raise_nothing(app):
+def _drive_random_input(app, seed: int, count: int, sizes) -> int:
+    """Feed ``count`` seeded random UI events (keys of the shortcuts table and a few others through
+    imgui's input queue, mouse moves / buttons (drags) / wheel, window resizes, direct shortcut calls),
+    stepping a frame every 15 events; returns the number of frames stepped. Restores the view after."""
     from garmentnerf.viewer.gui_libs import glfw, imgui
 
-    rng = np.random.default_rng(1234)
+    rng = np.random.default_rng(seed)
     io = imgui.get_io()
     # imgui normally trickles queued input (one change per key/button per frame); 15 random events per
     # frame would then back up into the next tests. Off here: every queued event lands in the next frame.
@@ -478,11 +509,10 @@ def test_random_ui_events_raise_nothing(app):
     keys = [(name, getattr(imgui.Key, name)) for s in sc.SHORTCUTS for name in s.keys if s.action != "quit"]
     keys += [("a", imgui.Key.a), ("q", imgui.Key.q), ("enter", imgui.Key.enter), ("left_shift", imgui.Key.left_shift)]
     down_keys: set = set()
-    sizes = [(320, 240), (200, 150), (1, 1), (480, 320), WINDOW]
     events = 0
     steps = 0
     try:
-        while events < 3000:
+        while events < count:
             kind = rng.integers(0, 10)
             if kind < 3:
                 name, key = keys[rng.integers(len(keys))]
@@ -511,7 +541,7 @@ def test_random_ui_events_raise_nothing(app):
         app.step()
     finally:
         io.config_input_trickle_event_queue = trickle
-        glfw.set_window_size(app.window, *WINDOW)
+        glfw.set_window_size(app.window, *sizes[-1])
         app.show_help = False
         app.show_ui = True
         app.timeline.pause()
@@ -520,10 +550,15 @@ def test_random_ui_events_raise_nothing(app):
         app.controller.reset()
         for _ in range(3):
             app.step()
-    assert steps >= 200
     cam = app.controller
     assert np.isfinite([cam.azimuth, cam.elevation, cam.distance, *cam.target]).all()
     assert 0 <= app.timeline.frame < app.timeline.num_frames
+    return steps
+
+
+def test_random_ui_events_raise_nothing(app):
+    steps = _drive_random_input(app, 1234, 3000, [(320, 240), (200, 150), (1, 1), (480, 320), WINDOW])
+    assert steps >= 200
 
 
 def test_real_x_key_event_reaches_shortcuts(app):
@@ -572,3 +607,183 @@ def test_run_frame_limit_and_quit(xvfb, body, walk, monkeypatch, tmp_path):
         assert viewer.run(max_frames=10) == 0  # quit: the loop ends at once
     assert not list(tmp_path.iterdir())
     assert not os.path.exists("imgui.ini")
+
+
+# ==== dynamic resolution (pure logic) =========================================================================
+def test_quality_controller_moving_still_floor_and_hysteresis():
+    from garmentnerf.viewer.quality import PRESETS, QualityController
+
+    q = QualityController(preset="high", target_ms=100.0, floor=0.125, settle_seconds=0.3)
+    assert q.quality(0.0) == 1.0  # nothing changed yet: still, full quality
+    q.view_changed("a", 1.0)
+    assert q.moving(1.1) and not q.moving(1.31)
+    q.observe(1.0, 400.0)  # 400 ms at full quality: sqrt(100 / 400) = 0.5 while moving
+    assert q.quality(1.1) == 0.5
+    assert q.quality(1.4) == 1.0  # still again: full
+    q.observe(0.5, 110.0)  # within +-20 %: the moving quality stays put (no flicker)
+    q.view_changed("b", 2.0)
+    assert q.quality(2.05) == 0.5
+    for _ in range(30):
+        q.observe(1.0, 1e6)  # hopeless machine: never below the floor
+    assert q.quality(2.1) == q.floor
+    before = q.unit_ms
+    q.observe(1.0, 1.0)  # one absurdly fast sample moves the estimate by at most max_jump
+    assert q.unit_ms >= before / q.max_jump * (1 - q.smoothing)
+    q.set_preset("low")
+    assert q.full == PRESETS["low"] and q.quality(10.0) == PRESETS["low"]
+    assert q.quality(2.1) <= PRESETS["low"]
+    fixed = QualityController(preset="medium", dynamic=False)
+    fixed.view_changed("x", 0.0)
+    assert fixed.quality(0.01) == PRESETS["medium"]
+    with pytest.raises(ValueError):
+        q.set_preset("ultra")
+
+
+# ==== the neural layer in the window (untrained run on the tiny scene) ========================================
+def _tiny_run_config():
+    from garmentnerf.model.config import ModelConfig
+
+    return ModelConfig.cpu_small().replace(
+        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
+        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
+        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
+        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
+
+
+@pytest.fixture(scope="module")
+def untrained_run(tiny_scene, tmp_path_factory):
+    from garmentnerf.train.run import create_untrained_run
+
+    return create_untrained_run(tmp_path_factory.mktemp("viewer_run") / "run", tiny_scene.root, _tiny_run_config())
+
+
+def _settle(app, seconds=60.0):
+    """Step until the worker is idle, the view is still and the newest result is on the GPU."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        app.step()
+        if app.neural.worker.idle() and not app._neural_done and not app.quality.moving(app.clock()):
+            app.step()
+            return
+        time.sleep(0.02)
+
+
+def test_neural_viewer_palette_is_a_uniform_and_modes_switch(xvfb, untrained_run, tmp_path):
+    from garmentnerf.viewer.app import App
+
+    with App(motion=None, run=untrained_run, size=(320, 240), samples=0, vsync=False, playing=False,
+             snapshot_dir=tmp_path) as viewer:
+        assert viewer.motion_name == "train" and viewer.ground_truth_available()
+        assert viewer.wait_for_neural(180), viewer.neural_error()
+        _settle(viewer)
+        viewer.show_ui = False
+        layer = viewer.scene.palette_layer
+        assert viewer.view_mode == "neural" and not viewer.scene.body.visible
+        before = viewer.read_framebuffer()
+        uploads, renders = layer.uploads, viewer.neural.stats.renders
+        viewer.set_palette_colour(0, (1.0, 0.0, 0.0))
+        recoloured = viewer.read_framebuffer()
+        assert layer.uploads == uploads and viewer.neural.stats.renders == renders  # no re-render, no upload
+        diff = np.abs(recoloured.astype(int) - before.astype(int))
+        assert diff.max() > 10 and diff[..., 0].sum() > diff[..., 2].sum()  # more red
+        viewer.reset_palette()
+        assert np.abs(viewer.read_framebuffer().astype(int) - before.astype(int)).max() <= 1
+        for mode in ("side_by_side", "difference", "maps", "ground_truth"):
+            viewer.set_view_mode(mode)
+            _settle(viewer)
+            assert layer.has_ground_truth
+            assert viewer.read_framebuffer().shape == before.shape
+        viewer.set_view_mode("body")
+        assert viewer.scene.body.visible and not layer.visible
+        stats = viewer.stats()["neural"]
+        assert stats["renders"] >= 2 and stats["errors"] == 0 and stats["timings"]["render_total"] > 0
+
+
+def test_view_command_with_run_renders_a_neural_frame(xvfb, untrained_run, tmp_path):
+    import json
+    import sys
+
+    stats = tmp_path / "stats.json"
+    env = dict(os.environ, GARMENTNERF_VIEWER_FRAMES="5", GARMENTNERF_VIEWER_STATS=str(stats))
+    proc = subprocess.run([sys.executable, "-m", "garmentnerf.cli.main", "view", "--run", str(untrained_run),
+                           "--size", "240x180", "--no-vsync", "--paused", "--snapshot-dir", str(tmp_path / "s")],
+                          env=env, capture_output=True, text=True, timeout=400)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(stats.read_text())
+    assert data["view_mode"] == "neural" and data["motion"] == "train"
+    assert data["neural"]["renders"] >= 1 and data["neural"]["layer_has_image"], data
+    assert data["neural"]["errors"] == 0
+    assert "neural frame(s)" in proc.stdout
+
+
+def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
+    """``garmentnerf view --bench`` with a tiny run for ~2 s: every figure is present and finite, a
+    palette change shows within the frame budget without a new neural render."""
+    import json
+    import math
+    import sys
+
+    from garmentnerf.viewer.quality import PRESETS
+
+    out = tmp_path / "view_bench.json"
+    env = dict(os.environ)
+    env.pop("GARMENTNERF_VIEWER_FRAMES", None)
+    proc = subprocess.run([sys.executable, "-m", "garmentnerf.cli.main", "view", "--bench", "--run", str(untrained_run),
+                           "--size", "240x180", "--bench-seconds", "2", "--bench-repeats", "1", "--json", str(out),
+                           "--snapshot-dir", str(tmp_path / "s")],
+                          env=env, capture_output=True, text=True, timeout=500)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "UI while worker busy" in proc.stdout and "recolour latency" in proc.stdout
+    data = json.loads(out.read_text())
+
+    def finite(x):
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+    ui = data["ui_busy"]
+    for key in ("fps", "frame_ms_median", "frame_ms_p95", "frame_ms_max", "worker_busy_fraction", "seconds"):
+        assert finite(ui[key]), (key, ui)
+    assert ui["fps"] > 0 and ui["frames"] >= 2 and 1.5 < ui["seconds"] < 60
+    rc = data["recolour"]
+    assert rc["available"] and finite(rc["latency_frames"]) and 1 <= rc["latency_frames"] <= 10, rc
+    assert rc["worker_renders"] == 0 and rc["layer_uploads"] == 0, rc  # a uniform, not a re-render
+    assert set(data["presets"]) == set(PRESETS)
+    for name, p in data["presets"].items():
+        assert finite(p["render_ms_median"]) and p["render_ms_median"] > 0, (name, p)
+        assert p["quality"] == PRESETS[name] and len(p["render_size"]) == 2
+    sizes = [data["presets"][n]["render_size"][0] for n in ("low", "medium", "high")]
+    assert sizes[0] < sizes[1] < sizes[2]  # higher presets render more pixels
+    assert data["worker"]["errors"] == 0
+
+
+def test_neural_viewer_survives_random_input_and_zero_size(xvfb, untrained_run, tmp_path, monkeypatch):
+    """The neural window under seeded random input (view modes cycle with V, the worker renders and is
+    superseded meanwhile), then minimised to 0 x 0 and back: nothing raises, the worker reports no
+    error, and the neural layer shows a frame again afterwards."""
+    from garmentnerf.viewer.app import App
+    from garmentnerf.viewer.gui_libs import glfw
+
+    size = (320, 240)
+    with App(motion=None, run=untrained_run, size=size, samples=0, vsync=False, playing=False,
+             snapshot_dir=tmp_path) as viewer:
+        assert viewer.wait_for_neural(180), viewer.neural_error()
+        steps = _drive_random_input(viewer, 4321, 1500, [(160, 120), (1, 1), (400, 300), size])
+        assert steps >= 100
+        with monkeypatch.context() as m:  # minimised: a 0 x 0 framebuffer
+            m.setattr(glfw, "get_framebuffer_size", lambda window: (0, 0))
+            m.setattr(glfw, "get_window_size", lambda window: (0, 0))
+            for _ in range(3):
+                assert viewer.step()
+            assert viewer.minimized and viewer.read_framebuffer().shape == (0, 0, 3)
+        deadline = time.monotonic() + 5
+        while viewer.framebuffer_size != size and time.monotonic() < deadline:
+            viewer.step()
+            time.sleep(0.01)
+        viewer.set_view_mode("neural")
+        _settle(viewer)
+        assert viewer.neural.stats.errors == 0, viewer.neural_error()
+        assert viewer.scene.palette_layer.has_image
+        assert viewer.read_framebuffer().shape == (size[1], size[0], 3)
+    from PIL import Image
+
+    for path in tmp_path.iterdir():  # snapshots the random S presses took: whole PNGs, no temporary files left
+        assert path.suffix == ".png" and Image.open(path).format == "PNG", path

@@ -16,6 +16,18 @@ Test hooks: ``max_frames`` (or the environment variable ``GARMENTNERF_VIEWER_FRA
 :meth:`App.handle_key`, :meth:`App.set_frame` drive it from a test; :meth:`App.read_framebuffer`
 returns what the window shows (scene and panels), row 0 at the top.
 
+Neural layer (``run``): a :class:`~garmentnerf.viewer.worker.NeuralRenderer` renders the newest
+(frame, camera, quality) on its worker thread through the same
+:class:`~garmentnerf.render.session.RenderSession` as ``garmentnerf render``; the decomposed maps
+land in :class:`~garmentnerf.viewer.scene_gl.PaletteLayer`, which composes them with the palette in
+a fragment shader (a palette edit only changes a uniform). A
+:class:`~garmentnerf.viewer.quality.QualityController` asks for coarse renders while the view
+changes and full ones once it is still. View modes (:data:`VIEW_MODES`): the network's image,
+ground truth, side by side, difference, body only, and the raw maps. With a frame limit
+(``GARMENTNERF_VIEWER_FRAMES``) :meth:`App.run` also waits (up to :data:`NEURAL_WAIT_SECONDS`) for
+the first neural frame, and ``GARMENTNERF_VIEWER_STATS=path.json`` writes the frame and neural-render
+statistics there when the window closes (test hooks).
+
 HiDPI: the scene renders at the framebuffer size (pixels), imgui lays out in window units and its
 fonts are scaled by the window's content scale divided by the framebuffer/window ratio (on macOS
 the ratio already carries the scale; on Linux/Windows the content scale does).
@@ -35,6 +47,7 @@ import numpy as np
 from garmentnerf.viewer import panels
 from garmentnerf.viewer.camera import OrbitController
 from garmentnerf.viewer.export import check_size, save_snapshot
+from garmentnerf.viewer.quality import QualityController
 from garmentnerf.viewer.gui_libs import glfw, imgui
 from garmentnerf.viewer.scene_gl import RenderTarget, SceneRenderer, read_image
 from garmentnerf.viewer.sequence import BodySequence, SequenceLoader
@@ -43,6 +56,14 @@ from garmentnerf.viewer.timeline import Timeline
 
 #: Environment variable: run this many frames, then return from run() (tests, frame-rate checks).
 ENV_FRAMES = "GARMENTNERF_VIEWER_FRAMES"
+#: Environment variable: write statistics (JSON) to this path when the window closes.
+ENV_STATS = "GARMENTNERF_VIEWER_STATS"
+#: With a frame limit, how long run() waits for the first neural frame (seconds).
+NEURAL_WAIT_SECONDS = 180.0
+
+#: View modes: label per key, in menu order.
+VIEW_MODES = {"neural": "Neural render", "ground_truth": "Ground truth", "side_by_side": "Side by side",
+              "difference": "Difference", "body": "Body only", "maps": "Maps"}
 
 #: Longest UI-frame time the timeline advances by (a stall, e.g. a snapshot, does not jump ahead).
 MAX_STEP_SECONDS = 0.25
@@ -130,23 +151,41 @@ class App:
         fixed_dt: advance the timeline by this many seconds per frame instead of the measured time.
         playing: start playing.
         sequence: a ready :class:`BodySequence` (skips loading ``motion``).
+        run: a run folder or :class:`~garmentnerf.train.run.LoadedRun` whose neural garment to show
+            (None: body only). ``motion`` None then means the run scene's first training sequence;
+            body and shape come from the run.
     Raises:
         NoDisplayError: no display / GLFW cannot initialise.
         GLUnavailableError: the window has no OpenGL >= 3.3 core context.
     """
 
-    def __init__(self, motion: str = "walk", body=None, betas=None, size: tuple[int, int] = (1280, 800),
+    def __init__(self, motion: str | None = "walk", body=None, betas=None, size: tuple[int, int] = (1280, 800),
                  samples: int | None = None, snapshot_samples: int = 4, render_scale: float = 1.0, vsync: bool = True,
                  visible: bool = True, snapshot_dir: str | Path = "snapshots",
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
-                 title: str = "garmentnerf view", clock=time.perf_counter) -> None:
+                 title: str = "garmentnerf view", clock=time.perf_counter, run=None) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
         if not display_available():
             raise NoDisplayError("no display available (neither DISPLAY nor WAYLAND_DISPLAY is set)")
         # -- data first: a bad motion name fails before a window opens --------------------------------
+        self.run_data = None
+        self.neural_motion = None
+        if run is not None:
+            if not hasattr(run, "model"):
+                from garmentnerf.train.run import load_run
+
+                run = load_run(run)
+            self.run_data = run
+            body = run.model.body
+            if getattr(run, "betas", None) is not None and betas is None:
+                betas = run.betas
+            if sequence is None:
+                sequence, self.neural_motion = self._run_sequence(run, body, betas, motion)
+        elif motion is None:
+            motion = "walk"
         if body is None:
             from garmentnerf.body.model import BodyModel
 
@@ -159,6 +198,8 @@ class App:
         self.body, self.betas = body, betas
         self.sequence = sequence if sequence is not None else BodySequence.load(body, betas, motion)
         self.motion_name = motion if sequence is None else sequence.name
+        if self.run_data is not None and self.neural_motion is None:
+            self.neural_motion = self.motion_name
         self._sequence_serial = 0
         self.loader = SequenceLoader(body, betas)
         from garmentnerf.motion.library import available_motions
@@ -197,6 +238,18 @@ class App:
         self._busy_frames = 0
         self._applied_ui_scale = 1.0
         self._target: RenderTarget | None = None
+        # -- neural layer state (used when a run is shown) ---------------------------------------------
+        self.neural = None
+        self.view_mode = "neural" if self.run_data is not None else "body"
+        self.quality = QualityController()
+        self.learned_palette = None
+        self.palette = None
+        self.gt_camera: str | None = None
+        self.body_with_neural = False
+        self.neural_stats: dict = {}
+        self._neural_done: deque = deque(maxlen=64)
+        self._last_request_key = None
+        self._neural_serial = 0
         self.actions = {
             "toggle_play": self.timeline.toggle_play,
             "step_back": lambda: self.timeline.step(-1),
@@ -217,12 +270,160 @@ class App:
             "toggle_ui": self._toggle_ui,
             "toggle_help": self._toggle_help,
             "quit": self.quit,
+            "next_view_mode": self.next_view_mode,
         }
         missing = [s.action for s in SHORTCUTS if s.action not in self.actions]
         if missing:
             raise RuntimeError(f"shortcuts name unknown actions: {missing}")
 
         self._open_window(width, height, title, samples, snapshot_samples, vsync, visible)
+        if self.run_data is not None:
+            self._start_neural()
+
+    # ---- the neural layer ------------------------------------------------------------------------------
+    @staticmethod
+    def _run_sequence(run, body, betas, motion):
+        """(BodySequence, motion spec) of the motion the run's session will render."""
+        import torch
+
+        from garmentnerf.render.session import resolve_motion
+
+        if betas is None or isinstance(betas, str):
+            betas = body.betas(betas)
+        clip, seq = resolve_motion(motion, body, betas, run.scene)
+        with torch.no_grad():
+            posed = clip.pose(body, betas)
+        name = seq or clip.name
+        spec = seq if seq is not None else (motion if motion is not None else clip.name)
+        return BodySequence.from_vertices(name, clip.fps, posed.vertices, body.faces), spec
+
+    def _start_neural(self) -> None:
+        from garmentnerf.viewer.worker import NeuralRenderer
+
+        run = self.run_data
+        self.learned_palette = run.palette().detach().cpu().numpy().astype(np.float32)
+        self.palette = self.learned_palette.copy()
+        layer = self.scene.palette_layer
+        layer.set_palette(self.palette)
+        layer.background = tuple(float(c) for c in run.config.background)
+        scene = run.scene
+        if scene is not None:
+            names = scene.camera_names("train") or scene.camera_names()
+            self.gt_camera = names[0] if names else None
+        self.set_view_mode(self.view_mode)
+        self.neural = NeuralRenderer(run, self._neural_sink, self.neural_motion)
+
+    def _neural_sink(self, result, request) -> None:
+        """Worker thread: hand the maps to the layer (thread-safe) and note the cost."""
+        layer = self.scene.palette_layer
+        layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality))
+        if result.ground_truth is not None:
+            layer.submit_ground_truth(result.ground_truth)
+        self._neural_done.append(result)
+
+    def ground_truth_available(self) -> bool:
+        run = self.run_data
+        return (run is not None and run.scene is not None and self.gt_camera is not None
+                and self.neural_motion in run.scene.sequences)
+
+    def set_view_mode(self, mode: str) -> None:
+        if mode not in VIEW_MODES:
+            raise ValueError(f"unknown view mode '{mode}' (known: {', '.join(VIEW_MODES)})")
+        if self.run_data is None and mode != "body":
+            self._set_status("no run loaded: body only (open one with garmentnerf view --run DIR)")
+            mode = "body"
+        self.view_mode = mode
+        layer = self.scene.palette_layer
+        layer.visible = mode != "body"
+        layer.side_by_side = mode == "side_by_side"
+        layer.mode = {"side_by_side": "neural"}.get(mode, mode if mode != "body" else "neural")
+        layer.use_depth = mode == "neural" and self.body_with_neural
+        self.scene.body.visible = mode == "body" or (mode == "neural" and self.body_with_neural)
+        if mode in ("ground_truth", "side_by_side", "difference") and not self.ground_truth_available():
+            self._set_status("no ground truth for this motion (only the run scene's sequences have it)")
+
+    def next_view_mode(self) -> None:
+        modes = list(VIEW_MODES)
+        self.set_view_mode(modes[(modes.index(self.view_mode) + 1) % len(modes)])
+
+    def set_body_with_neural(self, on: bool) -> None:
+        """Draw the rasterised body too, composited with the network's image by depth."""
+        self.body_with_neural = bool(on)
+        self.set_view_mode(self.view_mode)
+
+    def set_palette_colour(self, index: int, rgb) -> None:
+        """Change one palette colour (only the shader's uniform changes; nothing re-renders)."""
+        if self.palette is None:
+            return
+        self.palette[index] = np.clip(np.asarray(rgb, dtype=np.float32)[:3], 0.0, 1.0)
+        self.scene.palette_layer.set_palette(self.palette)
+
+    def reset_palette(self) -> None:
+        if self.learned_palette is not None:
+            self.palette = self.learned_palette.copy()
+            self.scene.palette_layer.set_palette(self.palette)
+
+    def _neural_camera(self, camera):
+        """(camera, ground-truth camera name or None) for the current view mode."""
+        if self.view_mode in ("ground_truth", "side_by_side", "difference") and self.ground_truth_available():
+            return self.run_data.scene.camera(self.gt_camera).camera, self.gt_camera
+        return camera, None
+
+    def _update_neural(self, camera) -> None:
+        """Drain finished renders into the stats/quality controller and request the next one."""
+        if self.neural is None:
+            return
+        while self._neural_done:
+            result = self._neural_done.popleft()
+            self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
+            self.neural_stats = {"renders": self.neural.stats.renders, "quality": result.quality,
+                                 "render_size": list(result.render_size), "frame": result.frame,
+                                 "cached_frame": result.cached_frame,
+                                 "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
+        if self.view_mode == "body":
+            return
+        cam, gt = self._neural_camera(camera)
+        frame = self.timeline.frame
+        now = self.clock()
+        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height, frame,
+               self.neural_motion, self._neural_serial)
+        self.quality.view_changed(key, now)
+        q = self.quality.quality(now)
+        request_key = (key, q, gt)
+        if request_key != self._last_request_key:
+            from garmentnerf.viewer.worker import NeuralRequest
+
+            self._last_request_key = request_key
+            self.neural.request(NeuralRequest(frame, cam, q, self.neural_motion, gt))
+
+    def neural_error(self) -> str:
+        return self.neural.stats.last_error if self.neural is not None else ""
+
+    def stats(self) -> dict:
+        """What the stats hook writes: UI timing and the neural layer's state."""
+        t = self.timer
+        out = {"frames": t.frames, "fps": t.fps if math.isfinite(t.fps) else None, "view_mode": self.view_mode,
+               "framebuffer": list(self.framebuffer_size), "motion": self.motion_name}
+        if self.neural is not None:
+            st = self.neural.stats
+            out["neural"] = {"renders": st.renders, "dropped": st.dropped, "errors": st.errors,
+                             "last_error": st.last_error, "last_ms": st.last_ms,
+                             "layer_has_image": self.scene.palette_layer.has_image, **self.neural_stats}
+            out["palette"] = self.palette.tolist() if self.palette is not None else None
+        return out
+
+    def wait_for_neural(self, timeout: float = NEURAL_WAIT_SECONDS) -> bool:
+        """Keep drawing frames until the first neural frame is on the GPU (or an error, or timeout)."""
+        if self.neural is None:
+            return False
+        deadline = time.monotonic() + timeout
+        while not self.closed and time.monotonic() < deadline:
+            if self.scene.palette_layer.has_image or self.neural.stats.errors:
+                break
+            if not self.step():
+                break
+            time.sleep(0.01)
+        return self.scene.palette_layer.has_image
 
     # ---- window, GL and imgui ------------------------------------------------------------------------
     def _open_window(self, width: int, height: int, title: str, samples: int | None, snapshot_samples: int,
@@ -299,6 +500,16 @@ class App:
             return
         self.closed = True
         self.loader.close()
+        if self.neural is not None:
+            self.neural.stop()
+        path = os.environ.get(ENV_STATS, "").strip()
+        if path:
+            import json
+
+            from garmentnerf.io_utils import atomic_write_path
+
+            with atomic_write_path(path) as tmp:
+                tmp.write_text(json.dumps(self.stats(), indent=1, default=str), encoding="utf-8")
         if getattr(self, "window", None) is not None:
             glfw.make_context_current(self.window)
             if getattr(self, "imgui_ctx", None) is not None:
@@ -353,6 +564,8 @@ class App:
                 break
             frames += 1
             if limit is not None and frames >= limit:
+                if self.neural is not None and not self.scene.palette_layer.has_image and self.view_mode != "body":
+                    self.wait_for_neural()
                 break
         return frames
 
@@ -360,7 +573,10 @@ class App:
         if self._busy_frames > 0:
             self._busy_frames -= 1
             return False
-        return not (self.timeline.playing or self._drag or self.loader.loading or self._snapshot_requested)
+        neural_busy = self.neural is not None and (not self.neural.worker.idle() or bool(self._neural_done)
+                                                   or self.quality.moving(self.clock()))
+        return not (self.timeline.playing or self._drag or self.loader.loading or self._snapshot_requested
+                    or neural_busy)
 
     def step(self) -> bool:
         """One UI frame; returns False once the window should close."""
@@ -416,6 +632,7 @@ class App:
         camera = self.controller.camera(fb_w, fb_h)
         rw, rh = self.render_size
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
+        self._update_neural(camera)
         target = self._target_for(rw, rh)
         self.scene.render(target, camera)
         self.scene.present(target, self.ctx.screen, fb_w, fb_h)
@@ -543,16 +760,28 @@ class App:
             self._set_status(f"saved {path}")
 
     # ---- motions ------------------------------------------------------------------------------------------
+    def _scene_sequences(self) -> list[str]:
+        run = self.run_data
+        return list(run.scene.sequences) if run is not None and run.scene is not None else []
+
     def motion_names(self) -> list[str]:
-        names = [m.name for m in self._motion_infos]
+        seqs = self._scene_sequences()
+        names = seqs + [m.name for m in self._motion_infos if m.name not in seqs]
         return names if self.motion_name in names else [self.motion_name] + names
 
     def motion_labels(self) -> list[str]:
         by_name = {m.name: m for m in self._motion_infos}
-        return [f"{n}  ({by_name[n].duration:.1f} s)" if n in by_name else n for n in self.motion_names()]
+        seqs = set(self._scene_sequences())
+        return [f"{n}  (scene sequence)" if n in seqs else f"{n}  ({by_name[n].duration:.1f} s)" if n in by_name
+                else n for n in self.motion_names()]
 
     def load_motion(self, name: str) -> None:
         """Start loading a motion in the background; the view switches when it is ready."""
+        run = self.run_data
+        if run is not None and run.scene is not None and name in run.scene.sequences:
+            sequence, spec = self._run_sequence(run, self.body, self.betas, name)  # a scene sequence: short
+            self.set_sequence(sequence, spec)
+            return
         self.loader.request(name)
         self._set_status(f"loading {name} ...")
 
@@ -570,6 +799,10 @@ class App:
         """Show a new posed clip (timeline restarts at frame 0 with the clip's frame rate)."""
         self.sequence = sequence
         self.motion_name = name or sequence.name
+        if self.run_data is not None:
+            self.neural_motion = self.motion_name  # the worker's session switches to it at the next request
+            self._neural_serial += 1
+            self.scene.palette_layer.submit_ground_truth(None)
         self._sequence_serial += 1
         self.timeline.reset(sequence.num_frames, sequence.fps)
         self._aim_home(sequence)  # R now centres the new clip; the current view stays

@@ -94,6 +94,7 @@ def draw_controls(app: "App") -> None:
         _motion_section(app, em)
         _camera_section(app, em)
         _display_section(app)
+        _neural_section(app, em)
         _palette_section(app)
         _snapshot_section(app, em)
         imgui.separator()
@@ -166,17 +167,68 @@ def _display_section(app: "App") -> None:
         app.set_render_scale(scale)
 
 
-def _palette_section(app: "App") -> None:
-    if not imgui.collapsing_header("Garment palette"):
+def _neural_section(app: "App", em: float) -> None:
+    if app.run_data is None or not imgui.collapsing_header("Neural render", imgui.TreeNodeFlags_.default_open):
         return
-    imgui.text_wrapped("No garment model loaded. Recolouring the neural garment through its palette "
-                       "arrives with trained models; the swatches below are placeholders.")
-    imgui.begin_disabled(True)
-    for i, (r, g, b) in enumerate(app.palette_placeholder):
-        if i:
-            imgui.same_line()
-        imgui.color_button(f"##palette{i}", imgui.ImVec4(r, g, b, 1.0))
-    imgui.end_disabled()
+    from garmentnerf.viewer.app import VIEW_MODES
+    from garmentnerf.viewer.quality import PRESETS
+    from garmentnerf.viewer.scene_gl import MAP_VIEWS
+
+    keys = list(VIEW_MODES)
+    imgui.set_next_item_width(-6 * em)
+    changed, index = imgui.combo("View (V)", keys.index(app.view_mode), [VIEW_MODES[k] for k in keys])
+    if changed:
+        app.set_view_mode(keys[index])
+    if app.view_mode == "maps":
+        layer = app.scene.palette_layer
+        imgui.set_next_item_width(-6 * em)
+        changed, index = imgui.combo("Map", MAP_VIEWS.index(layer.map_view), list(MAP_VIEWS))
+        if changed:
+            layer.map_view = MAP_VIEWS[index]
+    if app.view_mode == "neural":
+        changed, on = imgui.checkbox("Rasterised body too (by depth)", app.body_with_neural)
+        if changed:
+            app.set_body_with_neural(on)
+    scene = app.run_data.scene
+    if scene is not None and app.view_mode in ("ground_truth", "side_by_side", "difference"):
+        names = scene.camera_names()
+        current = names.index(app.gt_camera) if app.gt_camera in names else 0
+        imgui.set_next_item_width(-6 * em)
+        changed, index = imgui.combo("Scene camera", current, names)
+        if changed:
+            app.gt_camera = names[index]
+        if not app.ground_truth_available():
+            imgui.text_disabled("no ground truth: pick a scene sequence")
+    presets = list(PRESETS)
+    q = app.quality
+    imgui.set_next_item_width(-6 * em)
+    changed, index = imgui.combo("Quality", presets.index(q.preset), presets)
+    if changed:
+        q.set_preset(presets[index])
+    _, q.dynamic = imgui.checkbox("Coarser while moving", q.dynamic)
+    error = app.neural_error()
+    if error:
+        imgui.text_colored(imgui.ImVec4(1.0, 0.45, 0.4, 1.0), "render failed:")
+        imgui.text_wrapped(error)
+
+
+def _palette_section(app: "App") -> None:
+    if not imgui.collapsing_header("Garment palette", imgui.TreeNodeFlags_.default_open if app.palette is not None
+                                   else 0):
+        return
+    if app.palette is None:
+        imgui.text_wrapped("No garment model loaded (body only). Open a run with garmentnerf view --run DIR "
+                           "to recolour its neural garment.")
+        return
+    names = ["Garment", "Body / other"] + [f"Colour {i}" for i in range(2, len(app.palette))]
+    flags = imgui.ColorEditFlags_.float | imgui.ColorEditFlags_.display_hex
+    for i in range(len(app.palette)):
+        changed, col = imgui.color_edit3(names[i], [float(c) for c in app.palette[i]], flags)
+        if changed:
+            app.set_palette_colour(i, col[:3])
+    if imgui.button("Reset to learned palette"):
+        app.reset_palette()
+    imgui.text_disabled("recolouring only changes a shader uniform")
 
 
 def _snapshot_section(app: "App", em: float) -> None:
@@ -212,6 +264,22 @@ def draw_stats(app: "App") -> None:
     w, h = app.framebuffer_size
     imgui.text_disabled(f"{w}x{h} px, {app.scene.samples}x MSAA, scale {app.content_scale:g}")
     imgui.text_disabled(app.gl_renderer)
+    if app.neural is not None:
+        st = app.neural.stats
+        n = app.neural_stats
+        if n:
+            w, h = n["render_size"]
+            imgui.text(f"neural {n['timings'].get('render_total', 0.0):6.0f} ms  q {n['quality']:.2f} ({w}x{h})  "
+                       f"frame {n['frame']}{'' if n['cached_frame'] else ' (new)'}")
+            t = n["timings"]
+            stages = [("frame", t.get("frame_total", 0.0))] if not n["cached_frame"] else []
+            stages += [(k, t.get(k, 0.0)) for k in ("rays", "projection", "features", "mlp", "compositing", "decoder")]
+            imgui.text_disabled("  ".join(f"{k} {v:.0f}" for k, v in stages) + " ms")
+        else:
+            imgui.text_disabled("neural: waiting for the first frame ...")
+        imgui.text_disabled(f"renders {st.renders}, superseded {st.dropped}, errors {st.errors}")
+        if st.last_error:
+            imgui.text_colored(imgui.ImVec4(1.0, 0.45, 0.4, 1.0), st.last_error[:120])
     imgui.end()
 
 

@@ -5,7 +5,16 @@ Requests coalesce: while a render runs, newer requests replace each other and on
 rendered next, so a moving camera never builds a queue. Each request gets a generation number; the
 render function may call :meth:`RenderWorker.is_stale` with it and give up early (return None) when a
 newer request has arrived, which keeps a slow high-resolution render from blocking the next view.
+Progress is guaranteed, though: once the screen has gone ``max_stale_s`` without a new result, the
+render in flight is no longer cancelled and is shown even if a newer request exists (a camera that
+moves every UI frame would otherwise cancel every render, and the layer would never update).
 No GL here: the GL thread uploads what the sink received.
+
+:class:`NeuralRenderer` is the neural layer's worker: it runs
+:meth:`garmentnerf.render.session.RenderSession.render` for the newest :class:`NeuralRequest`
+(frame, camera, quality), cancels a superseded render between chunks of samples, and hands the
+decomposed maps (packed for the palette shader) to the GL thread. Its session and that session's
+headless GL context live on the worker thread.
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ class RenderWorker:
     """
 
     def __init__(self, render: Callable[[Any, int], Any], sink: Callable[[Any, Any, int], None],
-                 name: str = "garmentnerf-render") -> None:
+                 name: str = "garmentnerf-render", max_stale_s: float = 0.5) -> None:
         self._render = render
         self._sink = sink
         self._cond = threading.Condition()
@@ -43,6 +52,8 @@ class RenderWorker:
         self._generation = 0
         self._stop = False
         self._busy = False
+        self.max_stale_s = float(max_stale_s)
+        self._last_delivery = time.monotonic()
         self.stats = WorkerStats()
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
@@ -66,6 +77,16 @@ class RenderWorker:
         """True when a newer request exists (or the worker is stopping)."""
         with self._cond:
             return self._stop or generation != self._generation
+
+    def should_cancel(self, generation: int) -> bool:
+        """True when the render of ``generation`` should give up: it is stale *and* the screen got
+        a result less than ``max_stale_s`` ago (otherwise finishing it is the better choice)."""
+        with self._cond:
+            if self._stop:
+                return True
+            if generation == self._generation:
+                return False
+            return time.monotonic() - self._last_delivery < self.max_stale_s
 
     def idle(self) -> bool:
         with self._cond:
@@ -97,10 +118,12 @@ class RenderWorker:
             try:
                 start = time.perf_counter()
                 result = self._render(request, generation)
-                if result is None or self.is_stale(generation):
+                if result is None or self.should_cancel(generation):
                     self.stats.dropped += 1
                 else:
                     self._sink(result, request, generation)
+                    with self._cond:
+                        self._last_delivery = time.monotonic()
                     self.stats.renders += 1
                     self.stats.last_ms = 1000.0 * (time.perf_counter() - start)
             except Exception as exc:  # noqa: BLE001 - a failed render must not kill the UI's worker
@@ -109,3 +132,144 @@ class RenderWorker:
             finally:
                 with self._cond:
                     self._busy = False
+
+
+# ---- the neural render worker -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class NeuralRequest:
+    """What to render: body ``frame`` of ``motion`` (a scene sequence or motion name) seen by ``camera``
+    at ``quality``; ``gt_camera`` names the scene camera whose ground truth to load (or None)."""
+
+    frame: int
+    camera: Any
+    quality: float
+    motion: Any = None
+    gt_camera: str | None = None
+
+
+@dataclass
+class NeuralResult:
+    """One finished neural frame, as numpy for the GL thread (see ``scene_gl.pack_maps``)."""
+
+    layers: Any
+    depth: Any
+    image_size: tuple[int, int]
+    render_size: tuple[int, int]
+    quality: float
+    frame: int
+    timings: dict
+    cached_frame: bool
+    learned_palette: Any
+    ground_truth: Any = None
+    gt_key: Any = None
+
+
+class NeuralRenderer:
+    """Runs :class:`garmentnerf.render.session.RenderSession` on a :class:`RenderWorker` thread.
+
+    The session (and the headless GL context its input passes need) is made *on the worker thread*
+    at the first request, so the window's GL context is never touched from there. Each render polls
+    :meth:`RenderWorker.is_stale` between chunks of samples: a newer request cancels it
+    (:class:`~garmentnerf.model.pipeline.RenderCancelled`, counted as dropped). Results go to
+    ``sink(result, request)``, errors to :attr:`RenderWorker.stats` (``last_error``), which the
+    window shows.
+
+    Args:
+        run: a :class:`~garmentnerf.train.run.LoadedRun`.
+        sink: called on the worker thread with each :class:`NeuralResult` and its request.
+        motion: the session's first motion (None: the run scene's first training sequence).
+    """
+
+    def __init__(self, run, sink: Callable[[NeuralResult, NeuralRequest], None], motion: Any = None) -> None:
+        self.run = run
+        self._sink = sink
+        self._motion = motion
+        self._session = None
+        self._ctx = None
+        self._images = None
+        self._gt_cache: dict = {}
+        self.last: NeuralResult | None = None
+        self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural")
+
+    @property
+    def stats(self) -> WorkerStats:
+        return self.worker.stats
+
+    def request(self, request: NeuralRequest) -> int:
+        return self.worker.request(request)
+
+    def _ensure_session(self, motion):
+        if self._session is None:
+            from garmentnerf.gl.context import create_context
+            from garmentnerf.render.session import RenderSession
+
+            self._ctx = create_context(headless=True)
+            self._session = RenderSession(self.run, self._ctx, motion)
+            self._motion = motion
+        elif motion != self._motion:
+            self._session.set_motion(motion)
+            self._motion = motion
+        return self._session
+
+    def _ground_truth(self, session, request: NeuralRequest):
+        scene = session.scene
+        if request.gt_camera is None or scene is None or session.sequence is None:
+            return None, None
+        if request.gt_camera not in scene.camera_names():
+            return None, None
+        key = (session.sequence, request.gt_camera, request.frame)
+        if key not in self._gt_cache:
+            from garmentnerf.data.scene import SceneImages
+
+            if self._images is None:
+                self._images = SceneImages(scene, body_model=session.body)
+            rgb, _ = self._images.image(session.sequence, request.gt_camera, request.frame)
+            self._gt_cache.clear()  # one image is enough: the view shows one frame
+            self._gt_cache[key] = rgb
+        return self._gt_cache[key], key
+
+    def _render(self, request: NeuralRequest, generation: int):
+        from garmentnerf.model.pipeline import RenderCancelled
+
+        if request is _CLOSE:
+            self._close_on_thread()
+            return None
+        from garmentnerf.viewer.scene_gl import pack_maps
+
+        session = self._ensure_session(request.motion)
+        frame = min(max(0, int(request.frame)), session.num_frames - 1)
+        try:
+            nf = session.render(frame, request.camera, request.quality,
+                                should_cancel=lambda: self.worker.should_cancel(generation))
+        except RenderCancelled:
+            return None
+        m = nf.maps
+        layers = pack_maps(m.radiance[0].numpy(), m.offsets[0].numpy(), m.weights[0].numpy(), m.mask[0].numpy())
+        gt, gt_key = self._ground_truth(session, request)
+        return NeuralResult(layers, nf.depth, nf.output_size, nf.render_size, nf.quality, frame, nf.timings,
+                            nf.cached_frame, nf.palette.numpy(), gt, gt_key)
+
+    def _deliver(self, result: NeuralResult, request: NeuralRequest, generation: int) -> None:
+        self.last = result
+        self._sink(result, request)
+
+    def _close_on_thread(self) -> None:
+        """Free the session, the ground-truth renderer and the GL context (on the worker thread,
+        which made them)."""
+        for obj in (self._session, self._images, self._ctx):
+            if obj is None:
+                continue
+            try:
+                (obj.release if obj is self._ctx else obj.close)()
+            except Exception:  # noqa: BLE001 - best effort at shutdown
+                pass
+        self._session = self._images = self._ctx = None
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Cancel any render, free the worker's GL objects on its thread, and end it."""
+        self.worker.request(_CLOSE)
+        self.worker.wait_idle(timeout)
+        self.worker.stop(timeout)
+
+
+_CLOSE = NeuralRequest(-1, None, 0.0)

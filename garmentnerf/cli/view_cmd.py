@@ -10,10 +10,12 @@ from pathlib import Path
 
 from garmentnerf.cli.common import add_body_args
 
+#: The bundled demo run, opened by a plain ``garmentnerf view`` when it is installed.
+DEMO_RUN = Path(__file__).resolve().parent.parent / "assets" / "demo" / "run"
+
 #: Printed (as the one line on stderr) when no window can be opened; exit code 2.
-NO_DISPLAY_MESSAGE = ("garmentnerf: no display available; render headless with: "
-                      "garmentnerf body export --motion MOTION --frame N --out body.glb "
-                      "(or garmentnerf maps ...)")
+NO_DISPLAY_MESSAGE = ("garmentnerf: no display available (DISPLAY/WAYLAND_DISPLAY unset); render headless "
+                      "instead: garmentnerf render --camera orbit --frames 0:30 --out frames/")
 
 
 def register(sub) -> None:
@@ -23,9 +25,15 @@ def register(sub) -> None:
                     "snapshots. Press H in the window for the shortcuts. Without a display it prints how to "
                     "render headless instead and exits with code 2.")
     add_body_args(view)
-    view.add_argument("--motion", default="walk",
-                      help="motion name (see 'garmentnerf motion list'), names joined by ',', or a motion/AMASS "
-                           ".npz file (default: walk)")
+    view.add_argument("--run", default=None, metavar="DIR",
+                      help="a training run folder: show its neural garment (default: the bundled demo run when "
+                           "installed, else the body only)")
+    view.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+    view.add_argument("--body-only", action="store_true", help="show only the body (no run, not even the demo)")
+    view.add_argument("--motion", default=None,
+                      help="motion name (see 'garmentnerf motion list'), names joined by ',', a motion/AMASS "
+                           ".npz file, or a sequence of the run's scene (default: the run scene's first training "
+                           "sequence, else walk)")
     view.add_argument("--size", default="1280x800", help="window size WIDTHxHEIGHT in screen units (default: 1280x800)")
     view.add_argument("--snapshot-dir", default="snapshots", help="folder for snapshots (default: ./snapshots)")
     view.add_argument("--snapshot-size", default="1920x1080",
@@ -38,6 +46,16 @@ def register(sub) -> None:
                            "on a software rasteriser; default: 1)")
     view.add_argument("--paused", action="store_true", help="start paused")
     view.add_argument("--no-vsync", action="store_true", help="do not wait for the display refresh")
+    bench = view.add_argument_group("benchmark (--bench)")
+    bench.add_argument("--bench", action="store_true",
+                       help="measure the previewer instead of showing it: UI frame rate while the neural worker "
+                            "renders, recolour latency in frames, neural frame time per quality preset; prints "
+                            "the figures (vsync off; still needs a display, e.g. Xvfb)")
+    bench.add_argument("--json", default=None, metavar="PATH", help="with --bench: also write the figures as JSON")
+    bench.add_argument("--bench-seconds", type=float, default=5.0,
+                       help="with --bench: how long to measure the busy UI frame rate (default: 5)")
+    bench.add_argument("--bench-repeats", type=int, default=3,
+                       help="with --bench: neural renders timed per quality preset (default: 3)")
     view.set_defaults(func=run_view)
 
 
@@ -80,21 +98,49 @@ def run_view(args: argparse.Namespace) -> int:
         raise ValueError(f"--msaa must be >= 0, got {args.msaa}")
     if not (0.25 <= args.render_scale <= 1.0):
         raise ValueError(f"--render-scale must be in [0.25, 1], got {args.render_scale}")
+    bench = getattr(args, "bench", False)
+    if bench and not (args.bench_seconds > 0 and args.bench_repeats >= 1):
+        raise ValueError("--bench-seconds must be > 0 and --bench-repeats >= 1")
+    if not bench and getattr(args, "json", None):
+        raise ValueError("--json needs --bench")
     app_module = import_viewer("app")
     if not app_module.display_available():
         print(NO_DISPLAY_MESSAGE, file=sys.stderr)
         return 2
     from garmentnerf.cli.common import load_body
 
-    body, betas = load_body(args)
+    run = None
+    run_dir = args.run
+    if run_dir is None and not args.body_only and DEMO_RUN.joinpath("run.json").is_file():
+        run_dir = DEMO_RUN
+    if run_dir is not None and not args.body_only:
+        from garmentnerf.train.run import load_run
+
+        run = load_run(run_dir, scene=args.scene)
+        body = betas = None
+    else:
+        body, betas = load_body(args)
     try:
-        app = app_module.App(motion=args.motion, body=body, betas=betas, size=size, samples=args.msaa,
-                             render_scale=args.render_scale, vsync=not args.no_vsync, snapshot_dir=args.snapshot_dir, snapshot_size=snapshot_size,
-                             playing=not args.paused)
+        app = app_module.App(motion=args.motion if run is not None else (args.motion or "walk"), body=body,
+                             betas=betas, run=run, size=size, samples=args.msaa,
+                             render_scale=args.render_scale, vsync=not (args.no_vsync or bench),
+                             snapshot_dir=args.snapshot_dir, snapshot_size=snapshot_size,
+                             playing=not args.paused and not bench)
     except app_module.NoDisplayError:
         print(NO_DISPLAY_MESSAGE, file=sys.stderr)
         return 2
-    app.shape_label = args.shape
+    if run is None:
+        app.shape_label = args.shape
+    if bench:
+        from garmentnerf.cli import view_bench
+
+        with app:
+            result = view_bench.run_bench(app, seconds=args.bench_seconds, repeats=args.bench_repeats)
+        view_bench.print_figures(result)
+        if args.json:
+            view_bench.write_json(result, args.json)
+            print(f"wrote {args.json}")
+        return 0
     with app:
         frames = app.run()
         if app.max_frames is not None:
@@ -102,4 +148,9 @@ def run_view(args: argparse.Namespace) -> int:
             w, h = app.framebuffer_size
             print(f"viewer: {frames} frames, UI {t.fps:.1f} fps ({t.interval_ms:.1f} ms/frame, "
                   f"work {t.work_ms:.1f} ms, scene {t.scene_ms:.1f} ms) at {w}x{h} on {app.gl_renderer}")
+            if app.neural is not None:
+                st, n = app.neural.stats, app.neural_stats
+                last = f", last {n['timings'].get('render_total', 0):.0f} ms at quality {n['quality']:.2f}" if n else ""
+                print(f"viewer: {st.renders} neural frame(s){last}; errors {st.errors}"
+                      + (f" ({st.last_error})" if st.last_error else ""))
     return 0

@@ -1,0 +1,184 @@
+"""``garmentnerf render``: headless renders of a run (PNG frames and an mp4), through the same
+:class:`~garmentnerf.render.session.RenderSession` the viewer uses."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "render", help="render a trained run headless to PNG frames (and an mp4)",
+        description="Render a run's neural garment for a motion and a camera path into PNG frames (and an mp4 "
+                    "with --video). Existing files are never overwritten. Ctrl-C stops cleanly: the frames "
+                    "written so far stay, and the video holds them.")
+    p.add_argument("--run", default=None, metavar="DIR",
+                   help="run folder (run.json + model.safetensors); default: the bundled demo run")
+    p.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+    p.add_argument("--motion", default=None,
+                   help="a scene sequence name or a motion name/file (default: the scene's first training "
+                        "sequence, else walk)")
+    p.add_argument("--camera", default="orbit",
+                   help="orbit (a turntable over the frames), orbit:AZ[:EL] (fixed), or a scene camera name or "
+                        "index (default: orbit)")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="frames A..B-1 of the motion (A:B, A:, :B or N; default: all)")
+    p.add_argument("--size", default="256",
+                   help="output size: N (longer side; orbit views are square) or WxH (default: 256)")
+    p.add_argument("--quality", type=float, default=1.0,
+                   help="rays per output pixel as a fraction of the training density (default: 1)")
+    p.add_argument("--palette", default=None,
+                   help="palette colours '#garment[,#body,...]' as hex (default: the learned palette)")
+    p.add_argument("--body-colour", "--body-color", dest="body_colour", default=None, metavar="HEX",
+                   help="replace the body/other palette colour (palette colour 1)")
+    p.add_argument("--background", default=None, metavar="HEX", help="background colour (default: the model's)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (made if needed)")
+    p.add_argument("--video", action="store_true", help="also write an mp4 of the frames")
+    p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the motion's)")
+    p.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_render)
+
+
+_RANGE = re.compile(r"^\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
+
+
+def parse_frames(text: str | None, num_frames: int, motion: str = "motion") -> list[int]:
+    """``A:B`` (B exclusive), ``A:``, ``:B``, ``N`` -> frame list; ValueError when out of range."""
+    if text is None or not str(text).strip():
+        return list(range(num_frames))
+    m = _RANGE.match(str(text))
+    if not m or (m.group(1) == "" and m.group(2) is None):
+        raise ValueError(f"--frames must look like A:B, A:, :B or N, got '{text}'")
+    last = num_frames - 1
+    if m.group(2) is None:
+        a = int(m.group(1))
+        b = a + 1
+    else:
+        a = int(m.group(1)) if m.group(1) else 0
+        b = int(m.group(2)) if m.group(2) else num_frames
+    if not (0 <= a < b <= num_frames):
+        raise ValueError(f"--frames {text.strip()} is out of range for {motion} ({num_frames} frames: 0..{last})")
+    return list(range(a, b))
+
+
+def parse_output_size(text: str):
+    t = str(text).strip()
+    if re.fullmatch(r"\d+", t):
+        n = int(t)
+        if not 8 <= n <= 8192:
+            raise ValueError(f"--size must be in 8..8192, got {n}")
+        return n
+    m = re.fullmatch(r"(\d+)\s*[xX]\s*(\d+)", t)
+    if not m:
+        raise ValueError(f"--size must be N or WIDTHxHEIGHT, got '{text}'")
+    w, h = int(m.group(1)), int(m.group(2))
+    if not (8 <= w <= 8192 and 8 <= h <= 8192):
+        raise ValueError(f"--size {w}x{h} is out of range (8..8192 per side)")
+    return (w, h)
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", Path(str(name)).stem or "render").strip("-.") or "render"
+
+
+def run_render(args: argparse.Namespace) -> int:
+    from garmentnerf.gl.context import create_context
+    from garmentnerf.render.cameras import cameras_for, parse_camera_spec
+    from garmentnerf.render.colors import build_palette, parse_hex_color
+    from garmentnerf.render.session import RenderSession
+    from garmentnerf.render.video import FrameWriter, VideoWriter
+    from garmentnerf.train.run import load_run
+
+    # -- everything that can be wrong with the arguments fails before the model loads -----------------
+    size = parse_output_size(args.size)
+    if not (args.quality > 0 and args.quality <= 4):
+        raise ValueError(f"--quality must be in (0, 4], got {args.quality}")
+    if args.palette is not None:
+        for i, item in enumerate(c.strip() for c in args.palette.split(",")):
+            if item not in ("", "-"):
+                parse_hex_color(item, f"--palette colour {i}")
+    if args.body_colour is not None:
+        parse_hex_color(args.body_colour, "--body-colour")
+    background = parse_hex_color(args.background, "--background") if args.background else None
+    if args.fps is not None and not args.fps > 0:
+        raise ValueError(f"--fps must be > 0, got {args.fps}")
+
+    run_dir = args.run
+    if run_dir is None:
+        from garmentnerf.cli.view_cmd import DEMO_RUN
+
+        if not (DEMO_RUN / "run.json").is_file():
+            raise FileNotFoundError(f"{DEMO_RUN}: the bundled demo run is not installed; pass --run DIR")
+        run_dir = DEMO_RUN
+    run = load_run(run_dir, device=args.device, scene=args.scene)
+    spec = parse_camera_spec(args.camera, run.scene)
+    palette = build_palette(run.palette(), args.palette, args.body_colour)
+    ctx = create_context(headless=True)
+    session = None
+    try:
+        session = RenderSession(run, ctx, args.motion)
+        motion_name = session.sequence or session.motion.name
+        frames = parse_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+        centers = [session.body_center(f)[:2] for f in frames]
+        cameras = cameras_for(spec, frames, size, run.scene, centers)
+        out = Path(args.out)
+        writer = FrameWriter(out, prefix="frame")
+        writer.check(frames)
+        cam_label = spec.name if spec.kind == "scene" else spec.kind
+        video_path = out / f"{_safe(motion_name)}_{_safe(cam_label)}.mp4"
+        video = VideoWriter(video_path, args.fps or session.fps) if args.video else None
+        interrupted = False
+        times = []
+        progress = None
+        if not args.no_progress:
+            from tqdm import tqdm
+
+            progress = tqdm(total=len(frames), unit="frame", desc="render", file=sys.stderr)
+        try:
+            for f, cam in zip(frames, cameras):
+                nf = session.render(f, cam, args.quality)
+                image = nf.composite(palette, background)
+                writer.write(f, image)
+                if video is not None:
+                    video.append(image)
+                times.append(nf.timings["total"])
+                if progress is not None:
+                    progress.set_postfix_str(f"{nf.timings['total']:.0f} ms")
+                    progress.update(1)
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            if progress is not None:
+                progress.close()
+            if video is not None:
+                try:
+                    written_video = video.close()
+                except BaseException:
+                    video.abort()
+                    raise
+            else:
+                written_video = None
+        n = len(writer.written)
+        mean = sum(times) / len(times) if times else float("nan")
+        where = f"{out}" + (f" and {written_video}" if written_video else "")
+        w, h = (cameras[0].width, cameras[0].height) if cameras else (0, 0)
+        print(f"render: {n} frame(s) {w}x{h} of {motion_name} ({cam_label}) into {where}; "
+              f"{mean:.0f} ms/frame; palette {', '.join(_hex(c) for c in palette.tolist())}")
+        if interrupted:
+            print(f"garmentnerf: interrupted after {n} of {len(frames)} frames", file=sys.stderr)
+            return 130
+        return 0
+    finally:
+        if session is not None:
+            session.close()
+        ctx.release()
+
+
+def _hex(rgb) -> str:
+    from garmentnerf.render.colors import to_hex
+
+    return to_hex(rgb)

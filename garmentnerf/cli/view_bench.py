@@ -1,0 +1,249 @@
+"""``garmentnerf view --bench``: measure the previewer in a real window (needs a display).
+
+Three figures, measured by driving the real :class:`~garmentnerf.viewer.app.App` (GLFW window,
+imgui panels, the neural worker thread) the way a user would, with vsync off so the frame rate is
+what the machine can do rather than the display's refresh:
+
+* **UI frame rate while the worker is busy** (goal >= 30 fps): the timeline plays and the camera
+  orbits a little every UI frame, so the neural worker always has a newer view to render (renders
+  are superseded and cancelled, as while dragging). Reported: frames per second over the whole
+  measurement, median / 95th percentile / worst frame time, and the fraction of UI frames during
+  which the worker was rendering. Without a run (body only) the worker part is absent.
+* **Recolour latency** (goal: the next frame): with the view still and the newest neural frame on
+  the GPU, each palette entry is set to its complement and the window is read back after every UI
+  frame; the latency is the number of frames until the garment's pixels change (1 = the next frame).
+  The worker must not render again for it (palette edits are a shader uniform): ``worker_renders``
+  counts the renders that happened during the recolour test (expected 0).
+* **Neural frame time per quality preset** (:data:`garmentnerf.viewer.quality.PRESETS`): with the
+  dynamic resolution off, the camera steps a little and the full-quality render of the preset is
+  awaited; median (and each) of ``RenderSession.render``'s total time, the render size, and the
+  worker's wall time per render.
+
+The JSON (``--json PATH``, written atomically) holds the same figures; numbers that could not be
+measured are null.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+import time
+
+import numpy as np
+
+#: UI frames read back after a palette change before giving up on seeing it.
+RECOLOUR_MAX_FRAMES = 10
+#: Smallest per-channel change (0..255) that counts as "the garment changed colour".
+RECOLOUR_THRESHOLD = 8
+#: Camera step per UI frame while measuring the busy frame rate (pixels of mouse drag).
+ORBIT_STEP = 4.0
+
+
+def _percentile(values, q: float) -> float:
+    if not values:
+        return float("nan")
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q))
+
+
+def _finite(x):
+    """JSON-safe: NaN/inf become None."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def _wait_settled(app, timeout: float) -> bool:
+    """Step UI frames until the worker is idle, the view still and every result drained."""
+    def settled() -> bool:
+        neural = app.neural
+        return neural is None or (neural.worker.idle() and not app._neural_done and not app.quality.moving(app.clock()))
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not app.closed:
+        app.step()
+        if settled():
+            app.step()  # a still view asks for its full quality here; the last result reaches the GPU
+            if settled():
+                return True
+        time.sleep(0.005)
+    return False
+
+
+def measure_busy_fps(app, seconds: float) -> dict:
+    """UI frame rate while the timeline plays, the camera orbits and the worker renders."""
+    app.timeline.play()
+    intervals: list[float] = []
+    busy = 0
+    frames = 0
+    renders0 = app.neural.stats.renders if app.neural is not None else 0
+    dropped0 = app.neural.stats.dropped if app.neural is not None else 0
+    start = last = time.perf_counter()
+    while time.perf_counter() - start < seconds and not app.closed:
+        app.controller.orbit(ORBIT_STEP, 0.0)
+        if not app.step():
+            break
+        now = time.perf_counter()
+        intervals.append(now - last)
+        last = now
+        frames += 1
+        if app.neural is not None and not app.neural.worker.idle():
+            busy += 1
+    elapsed = time.perf_counter() - start
+    app.timeline.pause()
+    ms = [1000.0 * x for x in intervals]
+    out = {"seconds": elapsed, "frames": frames, "fps": frames / elapsed if elapsed > 0 else float("nan"),
+           "frame_ms_median": _percentile(ms, 50), "frame_ms_p95": _percentile(ms, 95),
+           "frame_ms_max": max(ms) if ms else float("nan"), "goal_fps": 30.0,
+           # the App's own split of the last frames: time inside a frame before the swap, and the scene's share
+           "work_ms": app.timer.work_ms, "scene_ms": app.timer.scene_ms}
+    if app.neural is not None:
+        out["worker_busy_fraction"] = busy / frames if frames else float("nan")
+        out["worker_renders"] = app.neural.stats.renders - renders0
+        out["worker_superseded"] = app.neural.stats.dropped - dropped0
+    out["meets_goal"] = bool(out["fps"] >= 30.0)
+    return out
+
+
+def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
+    """Frames from a palette change to changed garment pixels, per palette entry (1 = next frame)."""
+    if app.neural is None or app.palette is None:
+        return {"available": False}
+    _wait_settled(app, settle_timeout)
+    show_ui = app.show_ui
+    app.show_ui = False  # the panels show the palette too: judge the scene only
+    renders0 = app.neural.stats.renders
+    uploads0 = app.scene.palette_layer.uploads
+    per_entry = []
+    try:
+        for index in range(len(app.palette)):
+            before = app.read_framebuffer()
+            old = app.palette[index].copy()
+            app.set_palette_colour(index, 1.0 - old)
+            latency = None
+            for n in range(1, RECOLOUR_MAX_FRAMES + 1):
+                shot = app.read_framebuffer()
+                changed = shot.shape == before.shape and np.abs(shot.astype(int) - before.astype(int)).max()
+                if changed > RECOLOUR_THRESHOLD:
+                    latency = n
+                    break
+            app.set_palette_colour(index, old)
+            app.read_framebuffer()
+            per_entry.append(latency)
+    finally:
+        app.show_ui = show_ui
+    seen = [x for x in per_entry if x is not None]
+    return {"available": True, "latency_frames": max(seen) if seen else None, "per_entry": per_entry,
+            "entries_visible": len(seen), "entries": len(per_entry),
+            "worker_renders": app.neural.stats.renders - renders0,
+            "layer_uploads": app.scene.palette_layer.uploads - uploads0,
+            "threshold": RECOLOUR_THRESHOLD, "goal_frames": 1,
+            "meets_goal": bool(seen) and max(seen) <= 1 and app.neural.stats.renders == renders0}
+
+
+def measure_presets(app, repeats: int, timeout: float) -> dict:
+    """Neural frame time at each quality preset (full quality, dynamic resolution off)."""
+    if app.neural is None:
+        return {}
+    from garmentnerf.viewer.quality import PRESETS
+
+    q = app.quality
+    saved = (q.preset, q.dynamic)
+    out = {}
+    try:
+        q.dynamic = False
+        for name, quality in PRESETS.items():
+            q.set_preset(name)
+            totals, walls, sizes, cached = [], [], [], []
+            for _ in range(max(1, repeats)):
+                renders = app.neural.stats.renders
+                app.controller.orbit(2.0, 0.0)  # a new view: one new request at the preset's quality
+                deadline = time.monotonic() + timeout
+                while time.monotonic() < deadline and not app.closed:
+                    app.step()
+                    last = app.neural.last
+                    if (app.neural.stats.renders > renders and app.neural.worker.idle() and last is not None
+                            and abs(last.quality - quality) < 1e-6):
+                        break
+                    if app.neural.stats.errors:
+                        break
+                    time.sleep(0.005)
+                last = app.neural.last
+                if last is None or app.neural.stats.renders <= renders or abs(last.quality - quality) > 1e-6:
+                    continue
+                totals.append(float(last.timings.get("total", float("nan"))))
+                walls.append(float(app.neural.stats.last_ms))
+                sizes.append(list(last.render_size))
+                cached.append(bool(last.cached_frame))
+            out[name] = {"quality": quality, "render_ms_median": statistics.median(totals) if totals else None,
+                         "render_ms": totals, "worker_ms": walls, "render_size": sizes[-1] if sizes else None,
+                         "cached_frame": cached}
+    finally:
+        q.dynamic = saved[1]
+        q.set_preset(saved[0])
+    return out
+
+
+def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.0) -> dict:
+    """All three measurements on an open ``app`` (see the module docstring); returns the figures."""
+    w, h = app.framebuffer_size
+    result = {"window": [w, h], "gl_renderer": app.gl_renderer, "run": None, "motion": app.motion_name,
+              "neural": app.neural is not None}
+    if app.run_data is not None:
+        result["run"] = str(getattr(app.run_data, "root", getattr(app.run_data, "path", "")) or "")
+    for _ in range(3):
+        app.step()
+    if app.neural is not None:
+        t0 = time.perf_counter()
+        ok = app.wait_for_neural(timeout)
+        result["first_neural_frame_s"] = time.perf_counter() - t0
+        if not ok:
+            raise RuntimeError(f"no neural frame within {timeout:.0f} s ({app.neural_error() or 'no error'})")
+    result["ui_busy"] = measure_busy_fps(app, seconds)
+    result["recolour"] = measure_recolour(app, timeout)
+    result["presets"] = measure_presets(app, repeats, timeout)
+    if app.neural is not None:
+        st = app.neural.stats
+        result["worker"] = {"renders": st.renders, "superseded": st.dropped, "errors": st.errors,
+                            "last_error": st.last_error}
+    return result
+
+
+def print_figures(result: dict, file=sys.stdout) -> None:
+    ui = result["ui_busy"]
+    w, h = result["window"]
+    busy = (f", worker busy in {100 * ui['worker_busy_fraction']:.0f}% of frames, {ui['worker_renders']} renders "
+            f"finished, {ui['worker_superseded']} superseded") if "worker_busy_fraction" in ui else " (no run)"
+    print(f"view bench: {w}x{h} on {result['gl_renderer']}", file=file)
+    print(f"  UI while worker busy: {ui['fps']:.1f} fps (goal >= 30) over {ui['frames']} frames; frame "
+          f"{ui['frame_ms_median']:.1f} ms median, {ui['frame_ms_p95']:.1f} ms p95, {ui['frame_ms_max']:.1f} ms worst "
+          f"(work {ui['work_ms']:.1f} ms, scene {ui['scene_ms']:.1f} ms)"
+          f"{busy}", file=file)
+    rc = result["recolour"]
+    if rc.get("available"):
+        lat = rc["latency_frames"]
+        print(f"  recolour latency: {lat if lat is not None else 'not seen'} frame(s) (goal 1) over "
+              f"{rc['entries_visible']}/{rc['entries']} palette entries visible; worker renders meanwhile: "
+              f"{rc['worker_renders']}", file=file)
+    else:
+        print("  recolour latency: n/a (no run)", file=file)
+    for name, p in result.get("presets", {}).items():
+        med = p["render_ms_median"]
+        size = "x".join(map(str, p["render_size"])) if p["render_size"] else "?"
+        print(f"  neural frame, preset {name} (quality {p['quality']}): "
+              f"{f'{med:.0f} ms' if med is not None else 'not measured'} at {size}", file=file)
+
+
+def write_json(result: dict, path) -> None:
+    from garmentnerf.io_utils import atomic_write_path
+
+    with atomic_write_path(path) as tmp:
+        tmp.write_text(json.dumps(_finite(result), indent=1, default=str), encoding="utf-8")
+
+
+__all__ = ["run_bench", "print_figures", "write_json", "measure_busy_fps", "measure_recolour", "measure_presets"]

@@ -1,0 +1,12 @@
+"""Rendering a trained (or untrained) run: ONE path for the headless command, the viewer,
+snapshots and video export, so their images agree.
+
+* :mod:`~garmentnerf.render.session` -- :class:`RenderSession` (model + body + GL input builder +
+  per-frame feature cache) and :class:`NeuralFrame` (the decomposed maps of one view, composed
+  with any palette by :func:`garmentnerf.model.palette.compose`).
+* :mod:`~garmentnerf.render.cameras` -- turntable/orbit camera sequences, scene cameras by name or
+  index, and the ``--camera`` argument.
+* :mod:`~garmentnerf.render.video` -- PNG frames written atomically (never overwriting) and mp4
+  through imageio-ffmpeg.
+* :mod:`~garmentnerf.render.colors` -- hex colour and palette parsing.
+"""

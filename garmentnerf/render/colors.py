@@ -1,0 +1,61 @@
+"""Colours on the command line and in the viewer: ``#rrggbb`` / ``#rgb`` hex, and palettes.
+
+Palette order is the model's: colour 0 is the garment (p_G), colour 1 the body/other (p_B)
+(:func:`garmentnerf.model.pipeline.palette_initial_colours`).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import torch
+
+_HEX = re.compile(r"^#?([0-9a-fA-F]{6}|[0-9a-fA-F]{3})$")
+
+
+def parse_hex_color(text: str, what: str = "colour") -> tuple[float, float, float]:
+    """``'#c03030'`` (or ``c03030``, ``#c33``) -> RGB in [0, 1]; ValueError with a one-line message."""
+    t = str(text).strip()
+    m = _HEX.match(t)
+    if not m:
+        raise ValueError(f"{what} '{text}' is not a hex colour; use #rrggbb (e.g. #c03030)")
+    h = m.group(1)
+    if len(h) == 3:
+        h = "".join(c * 2 for c in h)
+    return tuple(int(h[i:i + 2], 16) / 255.0 for i in (0, 2, 4))
+
+
+def to_hex(rgb) -> str:
+    """RGB in [0, 1] -> ``'#rrggbb'``."""
+    r, g, b = (int(round(float(np.clip(c, 0.0, 1.0)) * 255)) for c in rgb)
+    return f"#{r:02x}{g:02x}{b:02x}"
+
+
+def build_palette(learned: torch.Tensor, colors: str | None = None, body: str | None = None) -> torch.Tensor:
+    """The palette to compose with: the learned one, with colours replaced.
+
+    Args:
+        learned: (P, 3) learned palette.
+        colors: ``'#garment'`` or ``'#c0,#c1,...'`` replacing colours 0, 1, ... (``-`` or an empty
+            item keeps that learned colour); None keeps them all.
+        body: replaces colour 1 (the body/other colour).
+    """
+    pal = learned.detach().to("cpu", torch.float32).clone()
+    P = pal.shape[0]
+    if colors is not None and str(colors).strip():
+        items = [c.strip() for c in str(colors).split(",")]
+        if len(items) > P:
+            raise ValueError(f"--palette has {len(items)} colours but the model's palette has {P}")
+        for i, item in enumerate(items):
+            if item in ("", "-"):
+                continue
+            pal[i] = torch.tensor(parse_hex_color(item, f"palette colour {i}"))
+    if body is not None:
+        if P < 2:
+            raise ValueError("the model's palette has no body colour (palette size 1)")
+        pal[1] = torch.tensor(parse_hex_color(body, "body colour"))
+    return pal
+
+
+__all__ = ["parse_hex_color", "to_hex", "build_palette"]

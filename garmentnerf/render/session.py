@@ -1,0 +1,311 @@
+"""The one render path: :class:`RenderSession` renders views of a run's model; :class:`NeuralFrame`
+holds the decomposed maps of one view and composes them with any palette.
+
+What the network outputs (and why there is no body-only fallback)
+    The model is trained on ground-truth images of the body *and* the garment over a black
+    background (``garmentnerf.data.render_gt``), with the mask covering both; the palette has a
+    garment colour p_0 and a body/other colour p_1. So the neural image already shows the body,
+    and where the mask is 0 there is nothing but background: :meth:`NeuralFrame.composite` is
+    ``compose(maps, palette, background)`` and nothing else. (The viewer's "body only" mode draws
+    the rasterised body instead of the network; the two are never mixed per pixel.)
+
+Resolution
+    :meth:`RenderSession.render` renders a camera ``W x H`` at ``scale`` times its pixels, as
+    :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.render_full_image` does: default
+    ``scale = quality * cfg.image_resolution / max(W, H)``, i.e. ``quality = 1`` is the pixel
+    density the model was trained at and lower qualities are proportionally coarser (fewer rays:
+    the cost is about ``quality**2``). The rendered size is padded to a multiple of the decoder's
+    upsampling factor and cropped back. The :class:`NeuralFrame` keeps the maps at the *rendered*
+    size; :meth:`NeuralFrame.maps_at` resamples them (bilinear, antialiased, weights renormalised:
+    :func:`garmentnerf.model.pipeline._resize_maps`) to any output size, and the composition
+    happens there. The viewer uploads the rendered-size maps and lets the GPU upsample them
+    bilinearly before the same formula (``shaders/viewer_palette.frag``), which equals the CPU
+    path wherever the resampling is plain bilinear (upsampling).
+
+Caching
+    The per-frame work (GL passes for the info maps and reference G-buffers, E, G_img, G_en, the
+    bound surface) does not depend on the camera: :class:`FrameFeatures` are kept in a small LRU
+    keyed by frame, so orbiting a still frame only re-runs the per-ray work.
+
+Threads
+    A session is used from one thread at a time (the viewer's worker thread owns one, created on
+    that thread with its own headless GL context). ``should_cancel`` is polled between chunks of
+    samples; a cancelled render raises :class:`~garmentnerf.model.pipeline.RenderCancelled` and
+    leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from garmentnerf.conventions import Camera
+from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
+
+#: Default number of per-frame feature sets kept.
+DEFAULT_CACHE_FRAMES = 8
+
+
+@dataclass
+class NeuralFrame:
+    """One rendered view: the decomposed maps and what is needed to compose and display them.
+
+    Attributes:
+        maps: :class:`DecomposedMaps` (batch 1, CPU float32) at ``render_size``.
+        camera: the target camera (the output size is ``camera.width x camera.height``).
+        render_size: (w, h) the maps' size.
+        depth: (h, w) float32 camera-space z (metres) of the rendered surface, 0 where the
+            network saw nothing (opacity ~ 0); nearest-upsampled from the feature image.
+        palette: (P, 3) the run's learned palette.
+        background: RGB in [0, 1] the model composes over by default.
+        frame: the body frame.
+        quality: the quality it was rendered at; scale: rendered pixels per output pixel.
+        timings: milliseconds per stage (model stages, plus ``cache`` hit/miss info and ``total``).
+        cached_frame: whether the frame's features came from the cache.
+    """
+
+    maps: DecomposedMaps
+    camera: Camera
+    render_size: tuple[int, int]
+    depth: np.ndarray
+    palette: torch.Tensor
+    background: tuple[float, float, float]
+    frame: int
+    quality: float
+    scale: float
+    timings: dict[str, float] = field(default_factory=dict)
+    cached_frame: bool = False
+
+    @property
+    def output_size(self) -> tuple[int, int]:
+        return self.camera.width, self.camera.height
+
+    def maps_at(self, width: int | None = None, height: int | None = None) -> DecomposedMaps:
+        """The maps resampled to ``width x height`` (default: the camera's size)."""
+        from garmentnerf.model.pipeline import _resize_maps
+
+        w = self.camera.width if width is None else int(width)
+        h = self.camera.height if height is None else int(height)
+        if (w, h) == self.render_size:
+            return self.maps
+        return _resize_maps(self.maps, h, w)
+
+    def composite(self, palette: torch.Tensor | np.ndarray | None = None, background=None,
+                  size: tuple[int, int] | None = None) -> np.ndarray:
+        """(H, W, 3) float32 image in [0, 1]: :func:`compose` of the maps (at ``size``, default the
+        camera's) with ``palette`` (default: the learned one) over ``background``."""
+        pal = self.palette if palette is None else torch.as_tensor(np.asarray(palette, dtype=np.float32))
+        check_palette(pal)
+        bg = self.background if background is None else tuple(float(c) for c in background)
+        w, h = size if size is not None else self.output_size
+        maps = self.maps_at(w, h)
+        with torch.no_grad():
+            image = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, pal.float(), bg)[0]
+        return image.permute(1, 2, 0).contiguous().numpy().astype(np.float32, copy=False)
+
+    def mask(self, size: tuple[int, int] | None = None) -> np.ndarray:
+        """(H, W) float32 mask m."""
+        w, h = size if size is not None else self.output_size
+        return self.maps_at(w, h).mask[0, 0].numpy()
+
+    def weights(self, size: tuple[int, int] | None = None) -> np.ndarray:
+        """(P, H, W) float32 blend weights."""
+        w, h = size if size is not None else self.output_size
+        return self.maps_at(w, h).weights[0].numpy()
+
+
+def resolve_motion(motion, body, betas, scene=None):
+    """(Motion, sequence name or None) from None / a scene sequence name / a motion name / a Motion.
+
+    None: the scene's first training sequence when there is a scene, else the ``walk`` clip. A name
+    that is one of the scene's sequences loads that sequence's motion (ground truth then exists
+    for it); any other name goes to :func:`garmentnerf.motion.library.load_motion`.
+    """
+    from garmentnerf.motion.library import load_motion
+    from garmentnerf.motion.motion import Motion
+
+    if isinstance(motion, Motion):
+        return motion, None
+    if motion is None:
+        if scene is not None and scene.sequences:
+            names = scene.sequence_names("train") or scene.sequence_names()
+            return scene.load_motion(names[0]), names[0]
+        motion = "walk"
+    name = str(motion)
+    if scene is not None and name in scene.sequences:
+        return scene.load_motion(name), name
+    fps = scene.fps if scene is not None else None
+    return load_motion(name, body, betas=betas, fps=fps), None
+
+
+class RenderSession:
+    """Renders views of a run's model for a motion (see the module docstring).
+
+    Args:
+        run: a :class:`garmentnerf.train.run.LoadedRun` (uses ``model``, ``config``, ``scene``,
+            ``palette()``).
+        gl_ctx: a moderngl context for the input passes (headless is fine); must be usable on the
+            thread that calls :meth:`render`.
+        motion: None, a scene sequence name, a motion name, or a Motion (see :func:`resolve_motion`).
+        cache_frames: frames whose features are kept.
+    """
+
+    def __init__(self, run, gl_ctx, motion=None, *, cache_frames: int = DEFAULT_CACHE_FRAMES) -> None:
+        from garmentnerf.data.cameras import reference_cameras
+        from garmentnerf.model.frame_context import FrameInputBuilder
+
+        self.run = run
+        self.model = run.model.eval()
+        self.config = run.config
+        self.scene = getattr(run, "scene", None)
+        self.body = self.model.body
+        betas = getattr(run, "betas", None)
+        if betas is None:
+            shape = self.scene.body.get("shape", "average") if self.scene is not None else "average"
+            betas = self.body.betas(shape)
+        self.betas = betas
+        refs = self.scene if self.scene is not None else reference_cameras()
+        self.gl_ctx = gl_ctx
+        self.builder = FrameInputBuilder(gl_ctx, self.body, refs, self.config)
+        self.cache_frames = max(1, int(cache_frames))
+        self._cache: OrderedDict[int, object] = OrderedDict()
+        self.cache_hits = 0
+        self.cache_misses = 0
+        self.motion = None
+        self.sequence: str | None = None
+        self.posed = None
+        self.set_motion(motion)
+
+    # ---- motion -----------------------------------------------------------------------------------
+    def set_motion(self, motion) -> None:
+        """Switch to another motion (clears the frame cache)."""
+        clip, sequence = resolve_motion(motion, self.body, self.betas, self.scene)
+        with torch.no_grad():
+            posed = clip.pose(self.body, self.betas)
+        self.motion, self.sequence, self.posed = clip, sequence, posed
+        self._cache.clear()
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.posed.vertices.shape[0])
+
+    @property
+    def fps(self) -> float:
+        return float(self.motion.fps)
+
+    def body_center(self, frame: int) -> np.ndarray:
+        """(3,) mean posed vertex of ``frame`` (a turntable's target)."""
+        return self.posed.vertices[frame].detach().double().mean(dim=0).cpu().numpy()
+
+    def check_frame(self, frame: int) -> int:
+        n = self.num_frames
+        if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or not 0 <= int(frame) < n:
+            raise ValueError(f"frame {frame!r} is out of range for motion '{self.motion.name}' ({n} frames: 0..{n - 1})")
+        return int(frame)
+
+    # ---- palette ------------------------------------------------------------------------------------
+    def learned_palette(self) -> torch.Tensor:
+        """(P, 3) CPU float32 learned palette."""
+        pal = self.run.palette() if hasattr(self.run, "palette") else self.model.palette()
+        return pal.detach().to("cpu", torch.float32).clone()
+
+    # ---- frames -------------------------------------------------------------------------------------
+    def frame_features(self, frame: int):
+        """(FrameFeatures, was_cached) of ``frame``."""
+        frame = self.check_frame(frame)
+        feats = self._cache.get(frame)
+        if feats is not None:
+            self._cache.move_to_end(frame)
+            self.cache_hits += 1
+            return feats, True
+        self.cache_misses += 1
+        inputs = self.builder.build(self.posed, frame, self.fps)
+        with torch.no_grad():
+            feats = self.model.prepare_frame(inputs).detach()
+        self._cache[frame] = feats
+        while len(self._cache) > self.cache_frames:
+            self._cache.popitem(last=False)
+        return feats, False
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
+
+    # ---- views --------------------------------------------------------------------------------------
+    def render_scale(self, camera: Camera, quality: float = 1.0) -> float:
+        """Rendered pixels per output pixel for ``camera`` at ``quality`` (see the module docstring)."""
+        if not (np.isfinite(quality) and quality > 0):
+            raise ValueError(f"quality must be a number > 0, got {quality!r}")
+        return float(quality) * self.config.image_resolution / max(camera.width, camera.height)
+
+    def render(self, frame: int, camera: Camera, quality: float = 1.0, *, scale: float | None = None,
+               should_cancel: Callable[[], bool] | None = None) -> NeuralFrame:
+        """Render body frame ``frame`` seen by ``camera``.
+
+        Args:
+            quality: fraction of the training pixel density (ignored when ``scale`` is given).
+            scale: rendered pixels per output pixel (overrides ``quality``).
+            should_cancel: polled between chunks; True raises RenderCancelled.
+        """
+        from garmentnerf.model.pipeline import _crop_maps
+
+        t0 = time.perf_counter()
+        feats, cached = self.frame_features(frame)
+        W, H = camera.width, camera.height
+        s = self.render_scale(camera, quality) if scale is None else float(scale)
+        if not s > 0:
+            raise ValueError(f"scale must be > 0, got {scale!r}")
+        up = 2 ** self.config.decoder_upsample_steps
+        wr, hr = max(1, round(W * s)), max(1, round(H * s))
+        fw, fh = -(-wr // up), -(-hr // up)
+        cam_r = camera if (wr, hr) == (W, H) else camera.resized(wr, hr)
+        padded = Camera(cam_r.K, cam_r.R, cam_r.t, fw * up, fh * up, cam_r.near, cam_r.far)
+        with torch.no_grad():
+            out = self.model.render(feats, padded, feature_size=(fw, fh), should_cancel=should_cancel)
+        maps = _crop_maps(out.maps, hr, wr)
+        maps = DecomposedMaps(*(x.detach().to("cpu", torch.float32).contiguous()
+                                for x in (maps.radiance, maps.offsets, maps.weights, maps.mask)))
+        depth = _camera_depth(out.depth.detach().cpu(), out.opacity.detach().cpu(), padded.resized(fw, fh))
+        depth = np.repeat(np.repeat(depth, up, axis=0), up, axis=1)[:hr, :wr]
+        timings = dict(out.timings)
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
+                           self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
+                           timings, cached)
+
+    def render_image(self, frame: int, camera: Camera, palette=None, background=None, quality: float = 1.0,
+                     **kwargs) -> np.ndarray:
+        """(H, W, 3) float32: :meth:`render` then :meth:`NeuralFrame.composite` at the camera's size."""
+        return self.render(frame, camera, quality, **kwargs).composite(palette, background)
+
+    # ---- lifetime -------------------------------------------------------------------------------------
+    def close(self) -> None:
+        self._cache.clear()
+        if self.builder is not None:
+            self.builder.release()
+            self.builder = None
+
+    def __enter__(self) -> "RenderSession":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _camera_depth(distance: torch.Tensor, opacity: torch.Tensor, camera: Camera,
+                  min_opacity: float = 0.05) -> np.ndarray:
+    """Ray distances (h, w) -> camera-space z, 0 where the opacity is below ``min_opacity``."""
+    from garmentnerf.conventions import camera_rays
+
+    _, dirs = camera_rays(camera, torch.float64)
+    cos = (dirs @ torch.as_tensor(camera.R, dtype=torch.float64).T)[..., 2]  # z of the unit camera ray
+    z = distance.double() * cos
+    z = torch.where(opacity >= min_opacity, z, torch.zeros_like(z))
+    return z.float().numpy()
+
+
+__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "DEFAULT_CACHE_FRAMES"]

@@ -1,0 +1,274 @@
+"""The one render path (garmentnerf.render): the headless ``garmentnerf render`` command on the tiny
+scene with an untrained run, the palette composition, and the viewer's palette shader against
+:func:`garmentnerf.model.palette.compose`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from garmentnerf.cli.main import main
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.palette import compose
+from garmentnerf.render.cameras import fit_size, orbit_view, parse_camera_spec, turntable
+from garmentnerf.render.colors import build_palette, parse_hex_color, to_hex
+from garmentnerf.render.video import FrameWriter, VideoWriter, count_video_frames
+
+
+def tiny_config() -> ModelConfig:
+    return ModelConfig.cpu_small().replace(
+        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
+        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
+        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
+        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(request, tmp_path_factory):
+    try:
+        scene = request.getfixturevalue("tiny_scene")
+        return scene.root if hasattr(scene, "root") else scene
+    except pytest.FixtureLookupError:
+        from garmentnerf.data.synthetic import make_rigged_scene
+
+        gl = request.getfixturevalue("gl_context")
+        root = tmp_path_factory.mktemp("scene") / "tiny"
+        return make_rigged_scene(root, frames=4, views=4, size=64, gl_context=gl).root
+
+
+@pytest.fixture(scope="module")
+def run_dir(scene_dir, tmp_path_factory):
+    from garmentnerf.train.run import create_untrained_run
+
+    return create_untrained_run(tmp_path_factory.mktemp("run") / "untrained", scene_dir, tiny_config(), seed=0)
+
+
+@pytest.fixture(scope="module")
+def session(run_dir, gl_context):
+    from garmentnerf.render.session import RenderSession
+    from garmentnerf.train.run import load_run
+
+    s = RenderSession(load_run(run_dir), gl_context)
+    yield s
+    s.close()
+
+
+# ---- pure parts ---------------------------------------------------------------------------------
+def test_colours_and_palette_parsing():
+    assert parse_hex_color("#c03030") == pytest.approx((192 / 255, 48 / 255, 48 / 255))
+    assert parse_hex_color("fff") == (1.0, 1.0, 1.0)
+    assert to_hex((0.752941, 0.188235, 0.188235)) == "#c03030"
+    for bad in ("#12345", "red", "#gg0000", ""):
+        with pytest.raises(ValueError, match="not a hex colour"):
+            parse_hex_color(bad)
+    learned = torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]])
+    pal = build_palette(learned, "#ff0000")
+    assert pal[0].tolist() == [1.0, 0.0, 0.0] and torch.equal(pal[1], learned[1])
+    pal = build_palette(learned, "-,#00ff00", body="#0000ff")
+    assert torch.equal(pal[0], learned[0]) and pal[1].tolist() == [0.0, 0.0, 1.0]
+    with pytest.raises(ValueError, match="3 colours"):
+        build_palette(learned, "#000,#111,#222")
+
+
+def test_cameras():
+    assert parse_camera_spec("orbit").kind == "turntable"
+    spec = parse_camera_spec("orbit:90:10")
+    assert (spec.kind, spec.azimuth, spec.elevation) == ("orbit", 90.0, 10.0)
+    with pytest.raises(ValueError, match="unknown camera 'cam99'"):
+        parse_camera_spec("cam99")
+    with pytest.raises(ValueError, match="needs a scene"):
+        parse_camera_spec("3")
+    cams = turntable(4, 32, 32)
+    centres = np.array([c.center for c in cams])
+    assert np.allclose(np.linalg.norm(centres[:, :2], axis=1), np.linalg.norm(centres[0, :2]))
+    assert cams[0].center[1] < 0  # azimuth 0: in front of the character (-Y)
+    wide = fit_size(orbit_view(0, width=200, height=100), 64)
+    assert (wide.width, wide.height) == (64, 32)
+
+
+def test_frame_and_video_writers_never_overwrite(tmp_path):
+    w = FrameWriter(tmp_path / "out")
+    img = np.zeros((9, 7, 3), np.uint8)
+    w.write(3, img)
+    with pytest.raises(FileExistsError):
+        w.write(3, img + 1)
+    with pytest.raises(FileExistsError, match="frame_0003.png"):
+        w.check([2, 3])
+    with VideoWriter(tmp_path / "v.mp4", 10) as v:
+        for i in range(3):
+            v.append(np.full((9, 7, 3), 40 * i, np.uint8))  # odd sizes are padded
+    assert count_video_frames(tmp_path / "v.mp4") == 3
+    with pytest.raises(FileExistsError):
+        VideoWriter(tmp_path / "v.mp4", 10)
+    assert not [p for p in tmp_path.rglob(".*")]  # no temporary files left
+
+
+# ---- the session ------------------------------------------------------------------------------------
+def test_session_caches_frames_and_scales(session):
+    cam = orbit_view(30.0, width=96, height=96)
+    first = session.render(1, cam)
+    again = session.render(1, orbit_view(60.0, width=96, height=96))
+    assert not first.cached_frame and again.cached_frame
+    assert first.render_size == (64, 64)  # training density: 64 px for the 64 px model
+    low = session.render(1, cam, quality=0.5)
+    assert low.render_size == (32, 32)
+    img = low.composite()
+    assert img.shape == (96, 96, 3) and img.dtype == np.float32 and 0 <= img.min() and img.max() <= 1
+    assert first.depth.shape == (64, 64) and (first.depth >= 0).all()
+    with pytest.raises(ValueError, match="out of range"):
+        session.render(99, cam)
+
+
+def test_palette_change_only_moves_garment_weighted_pixels(session):
+    nf = session.render(2, orbit_view(0.0, width=64, height=64))
+    learned = nf.palette
+    new = learned.clone()
+    new[0] = torch.tensor([0.9, 0.1, 0.1])
+    a, b = nf.composite(learned), nf.composite(new)
+    maps = nf.maps_at()
+    # the change is m * r * w_0 * (p0' - p0) wherever the foreground is not clamped (compose is
+    # linear in the palette inside [0, 1])
+    base_old = (maps.weights.unsqueeze(2) * (learned[None, :, :, None, None] + maps.offsets)).sum(1)
+    base_new = (maps.weights.unsqueeze(2) * (new[None, :, :, None, None] + maps.offsets)).sum(1)
+    inside = ((maps.radiance * base_old).clamp(0, 1) == maps.radiance * base_old) & \
+             ((maps.radiance * base_new).clamp(0, 1) == maps.radiance * base_new)
+    predicted = (maps.mask * maps.radiance * maps.weights[:, :1] * (new[0] - learned[0]).view(1, 3, 1, 1))[0]
+    diff = torch.from_numpy(b - a).permute(2, 0, 1)
+    sel = inside[0]
+    assert sel.float().mean() > 0.5
+    assert torch.allclose(diff[sel], predicted[sel], atol=1e-5)
+    # the same palette gives the same image: recolouring with the learned palette changes nothing
+    assert np.array_equal(nf.composite(learned.clone()), a)
+    # and compose() on the maps is what composite() returns
+    ref = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, new, nf.background)[0].permute(1, 2, 0)
+    assert np.allclose(ref.numpy(), b, atol=1e-6)
+
+
+# ---- the command --------------------------------------------------------------------------------
+def test_render_command_writes_frames_and_video(run_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["render", "--run", str(run_dir), "--motion", "train", "--camera", "orbit", "--frames", "0:3",
+            "--size", "48", "--out", str(out), "--video", "--no-progress"]
+    assert main(argv) == 0
+    pngs = sorted(out.glob("*.png"))
+    assert [p.name for p in pngs] == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    from PIL import Image
+
+    assert all(Image.open(p).size == (48, 48) for p in pngs)
+    videos = list(out.glob("*.mp4"))
+    assert len(videos) == 1 and count_video_frames(videos[0]) == 3
+    stamp = [p.stat().st_mtime_ns for p in pngs]
+    capsys.readouterr()
+    assert main(argv) == 2  # never overwrites
+    assert "already exists" in capsys.readouterr().err
+    assert [p.stat().st_mtime_ns for p in pngs] == stamp
+
+
+def test_render_command_palette_and_scene_camera(run_dir, tmp_path, session):
+    a, b = tmp_path / "a", tmp_path / "b"
+    common = ["render", "--run", str(run_dir), "--motion", "train", "--frames", "2", "--camera", "0",
+              "--size", "64", "--no-progress"]
+    assert main(common + ["--out", str(a)]) == 0
+    assert main(common + ["--out", str(b), "--palette", "#c03030"]) == 0
+    from PIL import Image
+
+    ia = np.asarray(Image.open(a / "frame_0002.png")).astype(float) / 255
+    ib = np.asarray(Image.open(b / "frame_0002.png")).astype(float) / 255
+    # the same render through the session: the command's images are composite() of its maps
+    cam = session.scene.camera(session.scene.camera_names()[0]).camera
+    nf = session.render(2, cam)
+    new = nf.palette.clone()
+    new[0] = torch.tensor(parse_hex_color("#c03030"))
+    assert np.abs(ia - nf.composite()).max() <= 1 / 255 + 1e-6
+    assert np.abs(ib - nf.composite(new)).max() <= 1 / 255 + 1e-6
+    # each pixel moved by m * r * w_garment * (p_new - p_old), up to the 8-bit rounding of both files
+    m = nf.maps
+    predicted = (m.mask * m.radiance * m.weights[:, :1] * (new[0] - nf.palette[0]).view(1, 3, 1, 1))[0]
+    unclamped = (nf.composite(new) < 1) & (nf.composite(new) > 0) & (nf.composite() < 1) & (nf.composite() > 0)
+    err = np.abs((ib - ia) - predicted.permute(1, 2, 0).numpy())[unclamped]
+    assert unclamped.mean() > 0.9 and err.max() <= 1 / 255 + 1e-6
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--palette", "#zz0000"], "not a hex colour"),
+    (["--body-colour", "blue"], "not a hex colour"),
+    (["--camera", "nope"], "unknown camera 'nope'"),
+    (["--camera", "42"], "camera index 42 is out of range"),
+    (["--frames", "2:99"], "out of range"),
+    (["--frames", "x"], "--frames must look like"),
+    (["--motion", "no_such_motion"], "no_such_motion"),
+])
+def test_render_command_errors_are_one_line(run_dir, tmp_path, capsys, args, message):
+    code = main(["render", "--run", str(run_dir), "--out", str(tmp_path / "o"), "--no-progress"] + args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0]
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())
+
+
+# ---- the viewer's palette shader == compose() -----------------------------------------------------
+def _gl_compose(ctx, maps, palette, background):
+    import moderngl
+
+    from garmentnerf.cli.view_cmd import import_viewer
+
+    scene_gl = import_viewer("scene_gl")
+    from garmentnerf.gl.context import current
+
+    B, P, H, W = maps["weights"].shape
+    layers = scene_gl.pack_maps(maps["radiance"][0].numpy(), maps["offsets"][0].numpy(),
+                                maps["weights"][0].numpy(), maps["mask"][0].numpy())
+    with current(ctx):
+        layer = scene_gl.PaletteLayer(ctx)
+        tex = ctx.texture((W, H), 4, dtype="f4")
+        fbo = ctx.framebuffer(color_attachments=[tex])
+        try:
+            layer.submit(layers, np.zeros((H, W), np.float32), (W, H))
+            layer.prepare()
+            layer.set_palette(palette.numpy())
+            layer.opaque = True
+            layer.background = background
+            fbo.use()
+            ctx.viewport = (0, 0, W, H)
+            ctx.enable_only(moderngl.NOTHING)
+            fbo.clear(0.0, 0.0, 0.0, 0.0)
+            layer.draw(scene_gl.ViewParams.of(orbit_view(0.0, width=W, height=H)))
+            data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype=np.float32).reshape(H, W, 4)
+            return data[::-1, :, :3].copy()  # GL rows bottom-first -> image rows top-first
+        finally:
+            fbo.release()
+            tex.release()
+            layer.release()
+
+
+@pytest.mark.parametrize("radiance_channels", [3, 1])
+def test_palette_shader_matches_compose(gl_context, radiance_channels):
+    g = torch.Generator().manual_seed(0)
+    H, W, P = 24, 40, 2
+    maps = {"radiance": torch.rand(1, radiance_channels, H, W, generator=g) * 1.6,  # some foregrounds clamp
+            "offsets": (torch.rand(1, P, 3, H, W, generator=g) - 0.5) * 0.6,
+            "weights": torch.softmax(torch.randn(1, P, H, W, generator=g) * 2, dim=1),
+            "mask": torch.rand(1, 1, H, W, generator=g)}
+    maps["mask"][..., :4, :] = 0.0  # some pure background rows
+    palette = torch.tensor([[0.75, 0.19, 0.19], [0.8, 0.63, 0.53]])
+    background = (0.1, 0.2, 0.3)
+    ref = compose(maps["radiance"], maps["offsets"], maps["weights"], maps["mask"], palette, background)[0]
+    ref = ref.permute(1, 2, 0).numpy()
+    got = _gl_compose(gl_context, maps, palette, background)
+    assert np.abs(got - ref).max() < 2 / 255
+    # recolour: only the uniform changes
+    new = palette.clone()
+    new[0] = torch.tensor([0.1, 0.8, 0.2])
+    ref2 = compose(maps["radiance"], maps["offsets"], maps["weights"], maps["mask"], new, background)[0]
+    got2 = _gl_compose(gl_context, maps, new, background)
+    assert np.abs(got2 - ref2.permute(1, 2, 0).numpy()).max() < 2 / 255
+
+
+def test_palette_shader_matches_session_composite(gl_context, session):
+    nf = session.render(0, orbit_view(45.0, width=64, height=64))
+    m = nf.maps
+    maps = {"radiance": m.radiance, "offsets": m.offsets, "weights": m.weights, "mask": m.mask}
+    pal = nf.palette.clone()
+    pal[0] = torch.tensor([0.2, 0.3, 0.9])
+    got = _gl_compose(gl_context, maps, pal, (0.0, 0.0, 0.0))
+    assert np.abs(got - nf.composite(pal, (0.0, 0.0, 0.0), size=nf.render_size)).max() < 2 / 255
