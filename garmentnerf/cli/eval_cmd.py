@@ -1,0 +1,143 @@
+"""``garmentnerf eval``: score a run on a scene split (PSNR, SSIM, LPIPS / ST-LPIPS, tOF) through the
+same render path as the viewer and ``garmentnerf render`` (see :mod:`garmentnerf.eval.evaluate`).
+``garmentnerf report``: train and evaluate the paper's ablations into a markdown report
+(:mod:`garmentnerf.eval.report`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "eval", help="evaluate a run on a scene split with the paper's metrics",
+        description="Render a run's views of a scene split at the model's image resolution and compare them with "
+                    "the ground truth: PSNR, SSIM, LPIPS (needs $GARMENTNERF_LPIPS_ALEXNET, else reported "
+                    "unavailable), shift-tolerant LPIPS and tOF. Splits: seen (training motion and cameras; "
+                    "subsampled by default to 4 cameras x 30 frames), unseen_view (training motion, held-out "
+                    "cameras), unseen_motion (held-out motions, training cameras; 4 cameras by default).")
+    p.add_argument("--run", required=True, metavar="DIR", help="run folder (run.json + model.safetensors)")
+    # not argparse choices: an unknown split is a one-line error like every other bad input
+    p.add_argument("--split", required=True, metavar="SPLIT", help="seen, unseen_view or unseen_motion")
+    p.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="frames A..B-1 of every sequence of the split (A:B, A:, :B or N; default: the split's "
+                        "default, see above)")
+    p.add_argument("--cameras", default=None, metavar="NAMES",
+                   help="comma-separated camera names of the split (default: the split's default)")
+    p.add_argument("--baseline", action="store_true",
+                   help="also score the nearest-training-view baseline (split unseen_view only)")
+    p.add_argument("--json", default=None, metavar="FILE", help="write the full result (per frame) as JSON")
+    p.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_eval)
+
+    r = sub.add_parser(
+        "report", help="train and evaluate the paper's ablations into a markdown report",
+        description="Train every ablation variant of the paper's tables (full; no detail feature; no dynamic "
+                    "feature; neither; k history frames; number of training views) on a scene, evaluate each on "
+                    "every split the scene has, and write markdown tables shaped like the paper's, with the "
+                    "nearest-view baseline. Resumable: finished runs and evaluations in --runs-dir are reused, "
+                    "unfinished runs resume from their checkpoint.")
+    r.add_argument("--scene", required=True, metavar="DIR", help="scene folder")
+    r.add_argument("--out", required=True, metavar="FILE", help="report file (markdown), written atomically")
+    r.add_argument("--iterations", type=int, default=None, metavar="N",
+                   help="NeRF training steps per variant (default: the preset's)")
+    r.add_argument("--generator-iterations", type=int, default=None, metavar="N",
+                   help="G_img pre-training steps per variant with the detail feature (default: the preset's)")
+    r.add_argument("--preset", default="cpu_small", metavar="NAME",
+                   help="model preset: tiny, cpu_small or paper (default: cpu_small)")
+    r.add_argument("--runs-dir", default=None, metavar="DIR",
+                   help="where the variants' runs go (default: <report name>_runs beside the report)")
+    r.add_argument("--variants", default=None, metavar="NAMES",
+                   help="comma-separated variants (full, no_detail, no_dynamic, no_features, k<N>, views_<N>; "
+                        "default: all; full is always included)")
+    r.add_argument("--views", default="4,8,16", metavar="N,..",
+                   help="training-view counts of the views_<N> variants (default: 4,8,16)")
+    r.add_argument("--history", default="0,1,2", metavar="K,..",
+                   help="history frame counts k of the k<K> variants (default: 0,1,2)")
+    r.add_argument("--splits", default=None, metavar="NAMES",
+                   help="comma-separated splits (default: every split the scene has)")
+    r.add_argument("--frames", default=None, metavar="A:B",
+                   help="frames evaluated in every split (default: each split's default)")
+    r.add_argument("--perceptual", default="auto", metavar="LOSS",
+                   help="training perceptual loss: auto, stlpips, vgg19 or none (default: auto)")
+    r.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    r.add_argument("--seed", type=int, default=0, help="training seed of every variant (default: 0)")
+    r.add_argument("--no-progress", action="store_true", help="no progress bars")
+    r.set_defaults(func=run_report)
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from garmentnerf.eval.evaluate import SPLITS, evaluate_run, format_result_table, parse_frame_range
+    from garmentnerf.io_utils import atomic_write_path
+    from garmentnerf.train.run import load_run
+
+    # everything that can be wrong with the arguments fails before the model loads
+    if args.split not in SPLITS:
+        raise ValueError(f"unknown split '{args.split}' (known: {', '.join(SPLITS)})")
+    if args.baseline and args.split != "unseen_view":
+        raise ValueError(f"--baseline (nearest training view) is defined for --split unseen_view only, "
+                         f"not '{args.split}'")
+    frames = parse_frame_range(args.frames)
+    if args.json is not None:
+        out = Path(args.json)
+        if out.is_dir():
+            raise IsADirectoryError(f"--json {out}: is a folder")
+        if not out.parent.exists():
+            raise FileNotFoundError(f"--json {out}: folder {out.parent} does not exist")
+    if args.scene is not None and not (Path(args.scene) / "scene.json").is_file():
+        raise FileNotFoundError(f"--scene {args.scene}: no scene.json")
+    run = load_run(args.run, device=args.device, scene=args.scene)
+    if run.scene is None:
+        raise ValueError(f"{args.run}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
+                         f"pass --scene DIR")
+    result = evaluate_run(run, args.split, frames=frames, cameras=args.cameras, progress=not args.no_progress,
+                          baseline=args.baseline)
+    print(format_result_table(result))
+    if args.json is not None:
+        text = json.dumps(result, indent=1, allow_nan=False)
+        with atomic_write_path(args.json) as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+        print(f"eval: wrote {args.json}")
+    return 0
+
+
+def _int_list(text: str, option: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(x) for x in str(text).split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"{option} must be comma-separated integers, got '{text}'") from None
+    if any(v < 0 for v in values):
+        raise ValueError(f"{option} must be >= 0, got '{text}'")
+    return values
+
+
+def run_report(args: argparse.Namespace) -> int:
+    from garmentnerf.eval.evaluate import SPLITS, parse_frame_range
+    from garmentnerf.eval.report import build_report
+    from garmentnerf.train.trainer import PRESETS
+
+    if args.preset not in PRESETS:
+        raise ValueError(f"unknown preset '{args.preset}' (known: {', '.join(PRESETS)})")
+    if args.perceptual not in ("auto", "stlpips", "vgg19", "none"):
+        raise ValueError(f"unknown perceptual loss '{args.perceptual}' (known: auto, stlpips, vgg19, none)")
+    splits = None
+    if args.splits is not None:
+        splits = [s.strip() for s in args.splits.split(",") if s.strip()]
+        for s in splits:
+            if s not in SPLITS:
+                raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()] if args.variants else None
+    frames = args.frames
+    parse_frame_range(frames)  # fails early on a malformed range
+    out = build_report(args.scene, args.out, iterations=args.iterations,
+                       generator_iterations=args.generator_iterations, preset=args.preset, runs_dir=args.runs_dir,
+                       variants=variants, views=_int_list(args.views, "--views"),
+                       histories=_int_list(args.history, "--history"), splits=splits, frames=frames,
+                       perceptual=args.perceptual, device=args.device, seed=args.seed,
+                       progress=not args.no_progress)
+    print(f"report: wrote {out}")
+    return 0

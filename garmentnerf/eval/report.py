@@ -1,0 +1,541 @@
+"""The paper's ablation tables, reproduced on a scene: train every variant, evaluate it, write markdown.
+
+Variants (:func:`default_variants`; each is one training run of the same preset, seed and schedule)
+    ``full``          the model as configured (detail + dynamic features, k = the preset's history,
+                      every training camera of the scene);
+    ``no_detail``     ``use_detail_feature=False`` (no G_img / G_en; no G_img pre-training);
+    ``no_dynamic``    ``use_dynamic_feature=False`` (no E);
+    ``no_features``   both off (the paper's first row of its feature table);
+    ``k0``, ``k1``... ``history=k`` for each asked k other than the preset's (that one is ``full``);
+    ``views_N``       trained on N of the scene's training cameras, evenly spread over them. N equal
+                      to the scene's count is ``full``; N larger than it is skipped (noted in the
+                      report).
+
+Tables (shaped like the paper's: rows = variants, column groups = splits, each PSNR / SSIM /
+LPIPS / tOF)
+    comparison (paper Table 1) -- ``nearest view`` baseline and ``ours`` (= ``full``);
+    input features (Table 2) -- detail / dynamic check marks;
+    number of training views (Table 3);
+    history frames k (Table 4).
+    Splits are those the scene has, see :mod:`garmentnerf.eval.evaluate` (the paper's "seen
+    motion" columns correspond to ``unseen_view`` here: its seen-motion numbers are on held-out
+    views). The perceptual column is LPIPS when the AlexNet backbone is supplied
+    (``$GARMENTNERF_LPIPS_ALEXNET``), else shift-tolerant LPIPS, labelled as such (never
+    presented as LPIPS). Values missing for a reason (baseline on a split where it is undefined,
+    tOF on too few frames) are ``-`` with a note.
+
+Resumable
+    Runs live in ``runs_dir/<variant>``. A finished run (``run.json`` step = the expected total)
+    with the expected model config and training cameras is not trained again; an unfinished one
+    is resumed from its newest checkpoint; one trained with other settings is an error (choose
+    another ``--runs-dir``). Evaluations are cached as ``runs_dir/<variant>/eval/<split>.json``
+    and reused while the run's step and the frame selection are unchanged. The report is
+    written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from garmentnerf.eval.evaluate import SPLITS, _spread, evaluate_run
+from garmentnerf.io_utils import atomic_write_path
+
+__all__ = ["Variant", "default_variants", "build_report", "train_variant", "render_markdown", "report_summary",
+           "VARIANT_KINDS"]
+
+#: Kinds of variants a user can ask for by name (``k<N>`` and ``views_<N>`` are patterns).
+VARIANT_KINDS = ("full", "no_detail", "no_dynamic", "no_features", "k<N>", "views_<N>")
+
+_SPLIT_TITLE = {"seen": "seen", "unseen_view": "unseen view", "unseen_motion": "unseen motion"}
+_PSNR_CAP = 100.0
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One ablation run.
+
+    Attributes:
+        name: folder name and identifier (``full``, ``no_detail``, ``k0``, ``views_4``...).
+        changes: :class:`ModelConfig` fields changed from the preset.
+        views: number of training cameras (None: every ``train`` camera of the scene).
+        cameras: the training cameras (None: the scene's default).
+        note: why the variant is skipped, or None.
+    """
+
+    name: str
+    changes: dict = field(default_factory=dict)
+    views: int | None = None
+    cameras: tuple[str, ...] | None = None
+    note: str | None = None
+
+
+def default_variants(scene, base_history: int, names: list[str] | None = None,
+                     views: tuple[int, ...] = (4, 8, 16), histories: tuple[int, ...] = (0, 1, 2)) -> list[Variant]:
+    """The variants of the report (see the module docstring).
+
+    Args:
+        scene: the :class:`~garmentnerf.data.scene.Scene` (its training cameras).
+        base_history: the preset's k (that variant is ``full``).
+        names: keep only these (``full`` is always added: the baseline and the other tables
+            refer to it); unknown names raise ValueError.
+        views, histories: the N of ``views_N`` and the k of ``k<k>``.
+    """
+    train_cams = scene.camera_names("train")
+    out = [Variant("full"), Variant("no_detail", {"use_detail_feature": False}),
+           Variant("no_dynamic", {"use_dynamic_feature": False}),
+           Variant("no_features", {"use_detail_feature": False, "use_dynamic_feature": False})]
+    for k in histories:
+        if int(k) != int(base_history):
+            out.append(Variant(f"k{int(k)}", {"history": int(k)}))
+    for n in views:
+        n = int(n)
+        if n < 1:
+            raise ValueError(f"views must be >= 1, got {n}")
+        if n == len(train_cams):
+            continue  # the full model
+        if n > len(train_cams):
+            out.append(Variant(f"views_{n}", views=n, note=f"the scene has only {len(train_cams)} training cameras"))
+        else:
+            out.append(Variant(f"views_{n}", views=n, cameras=tuple(_spread(train_cams, n))))
+    if names is not None:
+        known = {v.name: v for v in out}
+        wanted = []
+        for name in names:
+            v = known.get(name)
+            if v is None:
+                v = _parse_variant(name, train_cams, base_history)
+            wanted.append(v)
+        if not any(v.name == "full" for v in wanted):
+            wanted.insert(0, known["full"])
+        seen = set()
+        out = [v for v in wanted if not (v.name in seen or seen.add(v.name))]
+    return out
+
+
+def _parse_variant(name: str, train_cams: list[str], base_history: int) -> Variant:
+    import re
+
+    m = re.fullmatch(r"k(\d+)", name)
+    if m:
+        k = int(m.group(1))
+        return Variant("full") if k == base_history else Variant(name, {"history": k})
+    m = re.fullmatch(r"views_(\d+)", name)
+    if m:
+        n = int(m.group(1))
+        if n < 1:
+            raise ValueError(f"variant '{name}': views must be >= 1")
+        if n == len(train_cams):
+            return Variant("full")
+        if n > len(train_cams):
+            return Variant(name, views=n, note=f"the scene has only {len(train_cams)} training cameras")
+        return Variant(name, views=n, cameras=tuple(_spread(train_cams, n)))
+    raise ValueError(f"unknown variant '{name}' (known: full, no_detail, no_dynamic, no_features, k<N>, views_<N>)")
+
+
+# ---------------------------------------------------------------------------------------------
+# Training (resumable)
+# ---------------------------------------------------------------------------------------------
+
+def _expected(cfg, iterations: int | None, generator_iterations: int | None):
+    """(model config as the trainer records it, G_img steps, total steps)."""
+    changes = {}
+    if iterations is not None:
+        changes["iterations"] = int(iterations)
+    if generator_iterations:
+        changes["generator_iterations"] = int(generator_iterations)
+    cfg = cfg.replace(**changes) if changes else cfg
+    gen = cfg.generator_iterations if generator_iterations is None else int(generator_iterations)
+    gen = gen if cfg.use_detail_feature else 0
+    return cfg, gen, gen + cfg.iterations
+
+
+def train_variant(scene_path, run_dir, cfg, cameras=None, *, iterations: int | None = None,
+                  generator_iterations: int | None = None, perceptual: str = "auto", device: str = "cpu",
+                  seed: int = 0, progress: bool = True, gl_context=None,
+                  log: Callable[[str], None] | None = None) -> str:
+    """Train one variant into ``run_dir`` unless it is already there; returns ``"trained"``,
+    ``"resumed"`` or ``"skipped"``.
+
+    Raises:
+        ValueError: ``run_dir`` holds a run with other settings, or something that is not a run.
+    """
+    from garmentnerf.model.config import ModelConfig
+    from garmentnerf.train.run import RUN_FILE, read_run_info
+    from garmentnerf.train.trainer import TrainConfig, Trainer, latest_checkpoint
+
+    run_dir = Path(run_dir)
+    expected_cfg, gen, total = _expected(cfg, iterations, generator_iterations)
+    resume = False
+    if (run_dir / RUN_FILE).is_file():
+        info = read_run_info(run_dir)
+        try:
+            recorded = ModelConfig.from_dict(dict(info["model_config"]))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{run_dir / RUN_FILE}: model_config: {exc}") from exc
+        rec_cams = (info.get("train") or {}).get("cameras")
+        want_cams = list(cameras) if cameras else None
+        differences = []
+        if recorded != expected_cfg:
+            a, b = recorded.to_dict(), expected_cfg.to_dict()
+            differences += [f"{k} {a.get(k)!r} (want {b.get(k)!r})" for k in sorted(b) if a.get(k) != b.get(k)]
+        if (rec_cams or None) != want_cams:
+            differences.append(f"training cameras {rec_cams} (want {want_cams})")
+        if not differences and "generator_iterations" in info and int(info["generator_iterations"]) != gen:
+            differences.append(f"generator_iterations {info['generator_iterations']} (want {gen})")
+        if differences:
+            raise ValueError(f"{run_dir}: holds a run trained with other settings ({'; '.join(differences)}); "
+                             f"use another --runs-dir or remove it")
+        if int(info["step"]) >= total:
+            return "skipped"
+        if latest_checkpoint(run_dir) is None:
+            raise ValueError(f"{run_dir}: unfinished run (step {info['step']} of {total}) without a checkpoint "
+                             f"to resume from; remove it to train again")
+        resume = True
+    elif run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+        raise ValueError(f"{run_dir}: exists and is not a run folder; use another --runs-dir")
+    tc = TrainConfig(scene=scene_path, out=run_dir, model_config=cfg, device=device, seed=seed,
+                     iterations=iterations, generator_iterations=generator_iterations, resume=resume,
+                     cameras=tuple(cameras) if cameras else None, perceptual=perceptual, progress=progress,
+                     image_every=0)
+    with Trainer(tc, gl_context, log=log) as trainer:
+        result = trainer.train()
+    if result.interrupted:
+        raise KeyboardInterrupt
+    return "resumed" if resume else "trained"
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation (cached)
+# ---------------------------------------------------------------------------------------------
+
+def _write_json(path: Path, data: dict) -> None:
+    text = json.dumps(data, indent=1, allow_nan=False)
+    with atomic_write_path(path) as tmp:
+        tmp.write_text(text + "\n", encoding="utf-8")
+
+
+def _cached_eval(path: Path, request: dict, step: int, compute: Callable[[], dict]) -> dict:
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+            if old.get("request") == request and int(old.get("step", -1)) == int(step):
+                return old
+        except (OSError, ValueError):
+            pass  # unreadable cache: evaluate again
+    result = compute()
+    result["request"] = request
+    _write_json(path, result)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# Markdown
+# ---------------------------------------------------------------------------------------------
+
+def _num(v) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, str):
+        try:
+            return float(v)
+        except ValueError:
+            return None
+    return float(v)
+
+
+def _cell(result: dict | None, metric: str) -> str:
+    if result is None:
+        return "-"
+    v = _num(result.get("means", {}).get(metric))
+    if v is None or math.isnan(v):
+        return "-"
+    if math.isinf(v):
+        return "inf"
+    return f"{v:.2f}" if metric == "psnr" else f"{v:.3f}"
+
+
+def _perceptual_metric(results: list[dict]) -> tuple[str, str]:
+    """(metric key, column name): LPIPS when any result has it, else shift-tolerant LPIPS."""
+    for r in results:
+        if "lpips_alex" in r.get("means", {}):
+            return "lpips_alex", "LPIPS↓"
+    return "stlpips_alex", "ST-LPIPS↓"
+
+
+def _table(first_cols: list[str], rows: list[tuple[list[str], dict[str, dict | None]]], splits: list[str],
+           perceptual: tuple[str, str]) -> list[str]:
+    metrics = [("psnr", "PSNR↑"), ("ssim", "SSIM↑"), perceptual, ("tof", "tOF↓")]
+    header = list(first_cols) + [f"{_SPLIT_TITLE[s]} {name}" for s in splits for _, name in metrics]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+    for labels, per_split in rows:
+        cells = list(labels) + [_cell(per_split.get(s), key) for s in splits for key, _ in metrics]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def render_markdown(meta: dict, variants: list[Variant], results: dict[str, dict[str, dict]],
+                    baseline: dict | None, splits: list[str]) -> str:
+    """The report's markdown.
+
+    Args:
+        meta: ``scene``, ``preset``, ``iterations``, ``generator_iterations``, ``seed``,
+            ``history`` (the preset's k), ``train_cameras`` (count), ``runs_dir``, ``seconds``.
+        variants: the variants (skipped ones carry a ``note``).
+        results: variant name -> split -> :func:`evaluate_run` result.
+        baseline: the nearest-view baseline result on ``unseen_view`` (or None).
+        splits: the evaluated splits, in column order.
+    """
+    all_results = [r for per in results.values() for r in per.values()] + ([baseline] if baseline else [])
+    perceptual = _perceptual_metric(all_results)
+    out = ["# Garment Animation NeRF: ablation report", ""]
+    out.append(f"Scene `{meta['scene']}`, preset `{meta['preset']}`, {meta['iterations']} NeRF + "
+               f"{meta['generator_iterations']} G_img pre-training steps per variant (none without the detail "
+               f"feature), seed {meta['seed']}; runs in `{meta['runs_dir']}`.")
+    out.append("")
+    out.append("How the numbers are made: each run renders through the one render path at the model's image "
+               "resolution and is compared with the ground truth area-downsampled to it, over the full frame on "
+               "the model's background (data range 1; PSNR capped at 100 dB per frame; SSIM with an 11-tap "
+               "Gaussian window, valid region). tOF is TecoGAN's (Farneback flow, 2 frames skipped at each end).")
+    if perceptual[0] == "stlpips_alex":
+        reason = next((r.get("unavailable", {}).get("lpips_alex") for r in all_results
+                       if r.get("unavailable", {}).get("lpips_alex")), None)
+        out.append("")
+        out.append("**The perceptual column is shift-tolerant LPIPS (AlexNet-like, stlpips-pytorch weights), not "
+                   "the paper's LPIPS**" + (f": LPIPS is unavailable ({reason})." if reason else "."))
+    out.append("")
+    out.append("Splits: " + "; ".join(_split_text(s, results, baseline) for s in splits) + ". The paper's "
+               "\"seen motion\" columns are on held-out views of the training motion, i.e. `unseen view` here.")
+    notes = []
+    for s in splits:
+        for name, per in results.items():
+            r = per.get(s)
+            if r and "tof" in r.get("unavailable", {}):
+                notes.append(f"tOF unavailable on {_SPLIT_TITLE[s]}: {r['unavailable']['tof']}")
+                break
+    for n in dict.fromkeys(notes):
+        out.append("")
+        out.append(f"Note: {n}.")
+
+    def row(name: str) -> dict:
+        return results.get(name, {})
+
+    # Table 1: comparison
+    out += ["", "## Comparison with the nearest training view (paper Table 1)", ""]
+    rows = []
+    if baseline is not None:
+        rows.append((["nearest view"], {"unseen_view": baseline}))
+    if "full" in results:
+        rows.append((["ours (full)"], row("full")))
+    out += _table(["method"], rows, splits, perceptual)
+    if baseline is not None:
+        out += ["", "The nearest-view baseline is the ground-truth image of the training camera nearest in "
+                    "optical-axis angle at the same frame, not reprojected (nearest: "
+                + ", ".join(f"{c} -> {n}" for c, n in baseline.get("nearest_camera", {}).items())
+                + "); it is defined on unseen views only."]
+
+    # Table 2: features
+    feat = [("no_features", "", ""), ("no_detail", "", "✓"), ("no_dynamic", "✓", ""), ("full", "✓", "✓")]
+    rows = [([d, s], row(n)) for n, d, s in feat if n in results]
+    if len(rows) > 1:
+        out += ["", "## Input features (paper Table 2)", ""]
+        out += _table(["detail feature", "dynamic feature"], rows, splits, perceptual)
+
+    # Table 3: views
+    view_rows = []
+    for v in variants:
+        if v.name.startswith("views_") and v.name in results:
+            view_rows.append((v.views, [str(v.views)], row(v.name)))
+    if view_rows and "full" in results:
+        view_rows.append((meta["train_cameras"], [f"{meta['train_cameras']} (full)"], row("full")))
+        view_rows.sort(key=lambda t: t[0])
+        out += ["", "## Number of training views (paper Table 3)", ""]
+        out += _table(["# views"], [(lab, r) for _, lab, r in view_rows], splits, perceptual)
+
+    # Table 4: history
+    k_rows = []
+    for v in variants:
+        if v.name in results and "history" in v.changes and len(v.changes) == 1:
+            k_rows.append((v.changes["history"], [str(v.changes["history"])], row(v.name)))
+    if k_rows and "full" in results:
+        k_rows.append((meta["history"], [f"{meta['history']} (full)"], row("full")))
+        k_rows.sort(key=lambda t: t[0])
+        out += ["", "## History frames k (paper Table 4)", ""]
+        out += _table(["k"], [(lab, r) for _, lab, r in k_rows], splits, perceptual)
+
+    # runs
+    out += ["", "## Runs", "", "| variant | changes | training cameras | step | status |", "|---|---|---|---|---|"]
+    for v in variants:
+        changes = ", ".join(f"{k}={val}" for k, val in v.changes.items()) or ("-" if v.views is None else
+                                                                                f"{v.views} views")
+        cams = ", ".join(v.cameras) if v.cameras else "all"
+        if v.note is not None:
+            out.append(f"| {v.name} | {changes} | - | - | skipped: {v.note} |")
+            continue
+        per = results.get(v.name, {})
+        step = next((r.get("step") for r in per.values()), "-")
+        status = meta.get("status", {}).get(v.name, "")
+        out.append(f"| {v.name} | {changes} | {cams} | {step} | {status} |")
+    out += ["", f"Made in {meta.get('seconds', 0.0):.0f} s by `garmentnerf report`.", ""]
+    return "\n".join(out)
+
+
+def _split_text(split: str, results: dict, baseline: dict | None) -> str:
+    r = next((per[split] for per in results.values() if split in per), None)
+    if r is None and split == "unseen_view":
+        r = baseline
+    if r is None:
+        return f"`{_SPLIT_TITLE[split]}` (not evaluated)"
+    if split == "seen" and "full" in results and "seen" in results["full"]:
+        r = results["full"]["seen"]
+    frames = sum(len(f) for f in r.get("sequences", {}).values())
+    seqs = ", ".join(r.get("sequences", {}))
+    cams = ", ".join(r.get("cameras", []))
+    if split == "seen":
+        cams = f"each run's own training cameras (full: {cams})"
+    else:
+        cams = f"camera(s) {cams}"
+    return (f"`{_SPLIT_TITLE[split]}` = sequence(s) {seqs} x {cams} "
+            f"({frames} frame(s) per camera{', subsampled' if r.get('subsampled') else ''})")
+
+
+# ---------------------------------------------------------------------------------------------
+# The entry point
+# ---------------------------------------------------------------------------------------------
+
+def _available_splits(scene) -> list[str]:
+    splits = []
+    if scene.sequence_names("train") and scene.camera_names("train"):
+        splits.append("seen")
+    if scene.sequence_names("train") and scene.camera_names("unseen_view"):
+        splits.append("unseen_view")
+    if scene.sequence_names("unseen_motion") and scene.camera_names("train"):
+        splits.append("unseen_motion")
+    return splits
+
+
+def build_report(scene, out, *, iterations: int | None = None, generator_iterations: int | None = None,
+                 preset: str = "cpu_small", runs_dir=None, variants: list[str] | None = None,
+                 views: tuple[int, ...] = (4, 8, 16), histories: tuple[int, ...] = (0, 1, 2),
+                 splits: list[str] | None = None, frames=None, perceptual: str = "auto", device: str = "cpu",
+                 seed: int = 0, progress: bool = True, log: Callable[[str], None] | None = None) -> Path:
+    """Train (or reuse) every variant, evaluate it on every split, write the markdown report.
+
+    Args:
+        scene: the scene folder.
+        out: the report file (``.md``), written atomically.
+        iterations: NeRF steps per variant (default: the preset's).
+        generator_iterations: G_img pre-training steps (default: the preset's; 0 skips it).
+        preset: ``tiny``, ``cpu_small`` or ``paper``.
+        runs_dir: where the runs go (default: ``<out without suffix>_runs`` beside the report).
+        variants: variant names (default: all of :func:`default_variants`).
+        views, histories: the ``views_N`` and ``k<k>`` variants.
+        splits: the splits (default: every split the scene has).
+        frames: frame selection for every split (default: each split's default).
+        perceptual: the training perceptual loss (``auto``, ``stlpips``, ``vgg19``, ``none``).
+        log: where progress messages go (default: stderr).
+    Returns:
+        the report's path.
+    """
+    from garmentnerf.gl.context import create_context
+    from garmentnerf.train.run import load_run, load_scene
+    from garmentnerf.train.trainer import PRESETS, model_config_for
+
+    t0 = time.perf_counter()
+    say = log or (lambda m: print(f"garmentnerf report: {m}", file=sys.stderr))
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset '{preset}' (known: {', '.join(PRESETS)})")
+    if iterations is not None and iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if generator_iterations is not None and generator_iterations < 0:
+        raise ValueError(f"generator iterations must be >= 0, got {generator_iterations}")
+    scene_path = Path(scene)
+    if not (scene_path / "scene.json").is_file():
+        raise FileNotFoundError(f"{scene_path / 'scene.json'}: missing (--scene must be a scene folder)")
+    scene_obj = load_scene(scene_path)
+    out = Path(out)
+    if out.is_dir():
+        raise IsADirectoryError(f"{out}: is a folder (the report is a markdown file)")
+    runs_dir = Path(runs_dir) if runs_dir is not None else out.with_name(out.stem + "_runs")
+    base_cfg = model_config_for(preset)
+    have = _available_splits(scene_obj)
+    if splits is None:
+        splits = have
+    else:
+        for s in splits:
+            if s not in SPLITS:
+                raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
+            if s not in have:
+                raise ValueError(f"{scene_obj.scene_file}: the scene has nothing to evaluate for split '{s}'")
+    if not splits:
+        raise ValueError(f"{scene_obj.scene_file}: no split to evaluate (no training sequence or camera)")
+    variant_list = default_variants(scene_obj, base_cfg.history, variants, tuple(views), tuple(histories))
+    _, gen_full, _ = _expected(base_cfg, iterations, generator_iterations)
+    n_iter = iterations if iterations is not None else base_cfg.iterations
+    from garmentnerf.eval.perceptual import lpips_available
+
+    # an evaluation is reused only for the same frame selection and the same metric set
+    request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0])}
+
+    results: dict[str, dict[str, dict]] = {}
+    status: dict[str, str] = {}
+    baseline = None
+    ctx = create_context(headless=True)
+    try:
+        for v in variant_list:
+            if v.note is not None:
+                say(f"{v.name}: skipped ({v.note})")
+                continue
+            run_dir = runs_dir / v.name
+            cfg = base_cfg.replace(**v.changes) if v.changes else base_cfg
+            say(f"{v.name}: training into {run_dir}")
+            status[v.name] = train_variant(scene_path, run_dir, cfg, v.cameras, iterations=iterations,
+                                           generator_iterations=generator_iterations, perceptual=perceptual,
+                                           device=device, seed=seed, progress=progress, gl_context=ctx, log=say)
+            say(f"{v.name}: {status[v.name]}")
+            run = None
+            per: dict[str, dict] = {}
+            from garmentnerf.train.run import read_run_info
+
+            step = int(read_run_info(run_dir)["step"])
+            for split in splits:
+                def compute(split=split):
+                    nonlocal run
+                    if run is None:
+                        run = load_run(run_dir, device=device, scene=scene_path)
+                    return evaluate_run(run, split, frames=frames, progress=progress, gl_context=ctx)
+
+                say(f"{v.name}: evaluating {split}")
+                per[split] = _cached_eval(run_dir / "eval" / f"{split}.json", request, step, compute)
+            results[v.name] = per
+            if v.name == "full" and "unseen_view" in splits:
+                def compute_baseline():
+                    r = load_run(run_dir, device=device, scene=scene_path)
+                    return evaluate_run(r, "unseen_view", frames=frames, progress=progress, gl_context=ctx,
+                                        model=False, baseline=True)
+
+                say("nearest-view baseline: evaluating unseen_view")
+                baseline = _cached_eval(runs_dir / "baseline_unseen_view.json", request, step,
+                                        compute_baseline)
+            del run
+    finally:
+        ctx.release()
+    meta = {"scene": str(scene_path), "preset": preset, "iterations": n_iter, "generator_iterations": gen_full,
+            "seed": seed, "history": base_cfg.history, "train_cameras": len(scene_obj.camera_names("train")),
+            "runs_dir": str(runs_dir), "seconds": time.perf_counter() - t0, "status": status}
+    text = render_markdown(meta, variant_list, results, baseline, list(splits))
+    with atomic_write_path(out) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    say(f"wrote {out}")
+    return out
+
+
+def report_summary(results: dict[str, dict[str, dict]]) -> dict[str, Any]:
+    """variant -> split -> means (for scripts)."""
+    return {v: {s: r.get("means", {}) for s, r in per.items()} for v, per in results.items()}

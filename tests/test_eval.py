@@ -1,0 +1,293 @@
+"""Evaluation of runs (garmentnerf.eval.evaluate), the nearest-view baseline, ``garmentnerf eval`` and
+``garmentnerf report`` on a small rigged scene with untrained / 2-step models."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from garmentnerf.cli.main import main
+from garmentnerf.eval.evaluate import (DEFAULT_LIMITS, SPLITS, _middle_window, _Scores, _spread, evaluate_run,
+                                       format_result_table, nearest_camera, parse_frame_range, select_views)
+from garmentnerf.eval.metrics import PSNR_CAP_DB, psnr, ssim
+
+FRAMES = 6  # tOF needs 6 frames (2 skipped at each end, then one pair)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory, gl_context):
+    """Skirt on 6 walk frames + 6 run frames (unseen motion), 3 training cameras + 1 held out, 64 x 64."""
+    from garmentnerf.data.synthetic import make_rigged_scene
+
+    return make_rigged_scene(tmp_path_factory.mktemp("eval_scene") / "scene", frames=FRAMES, views=3, size=64,
+                             held_out_views=1, test_motion="run", test_frames=FRAMES, gl_context=gl_context)
+
+
+@pytest.fixture(scope="module")
+def run_dir(scene, tmp_path_factory):
+    from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.train.trainer import tiny_config
+
+    return create_untrained_run(tmp_path_factory.mktemp("eval_run") / "untrained", scene.root, tiny_config(), seed=0)
+
+
+@pytest.fixture(scope="module")
+def loaded(run_dir):
+    from garmentnerf.train.run import load_run
+
+    return load_run(run_dir)
+
+
+@pytest.fixture(scope="module")
+def unseen_view_result(loaded, gl_context):
+    return evaluate_run(loaded, "unseen_view", progress=False, baseline=True, gl_context=gl_context)
+
+
+# ---- pure parts ----------------------------------------------------------------------------------
+def test_perfect_prediction():
+    rng = np.random.default_rng(0)
+    img = rng.random((32, 32, 3))
+    assert psnr(img, img) == math.inf
+    assert ssim(img, img) == pytest.approx(1.0, abs=1e-12)
+    scores = _Scores([])
+    for f in range(3):
+        scores.add("s", "c", f, img, img)
+    part = scores.finish({"s": True}, tof=True)
+    assert part["means"]["psnr"] == PSNR_CAP_DB  # +inf per frame, capped in the mean
+    assert part["means"]["ssim"] == pytest.approx(1.0, abs=1e-12)
+    assert "tof" in part["unavailable"]  # 3 frames are too few for TecoGAN's tOF
+    from garmentnerf.eval.metrics import _encode_float
+
+    text = json.dumps(_encode_float(part), allow_nan=False)
+    assert json.loads(text)["per_frame"][0]["psnr"] == "inf"
+    # a perfect sequence long enough for tOF scores 0
+    scores = _Scores([])
+    frames = [np.roll(img, k, axis=1) for k in range(FRAMES)]
+    frames = [np.pad(f, ((8, 8), (8, 8), (0, 0))) for f in frames]  # 48 x 48: the smallest tOF frame
+    for k, f in enumerate(frames):
+        scores.add("s", "c", k, f, f)
+    part = scores.finish({"s": True})
+    assert part["means"]["tof"] == 0.0 and part["counts"]["tof_pairs"] == FRAMES - 5
+
+
+def test_selection_helpers():
+    assert _spread(list("abcdefgh"), 4) == list("aceg")
+    assert _spread(list("abc"), 4) == list("abc")
+    assert _middle_window(100, 30) == list(range(35, 65))
+    assert _middle_window(6, 30) == list(range(6))
+    assert parse_frame_range("2:5") == slice(2, 5)
+    assert parse_frame_range("3") == slice(3, 4)
+    assert parse_frame_range(None) is None
+    for bad in ("a:b", "1:2:3", "-1:2"):
+        with pytest.raises(ValueError):
+            parse_frame_range(bad)
+    assert set(DEFAULT_LIMITS) == set(SPLITS)
+
+
+def test_select_views(loaded, scene):
+    sel = select_views(loaded, scene, "seen")
+    assert sel["cameras"] == ["cam00", "cam01", "cam02"] and sel["sequences"] == {"train": list(range(FRAMES))}
+    assert not sel["subsampled"]
+    sel = select_views(loaded, scene, "unseen_motion", frames="1:4", cameras="cam01")
+    assert sel["sequences"] == {"test": [1, 2, 3]} and sel["cameras"] == ["cam01"]
+    with pytest.raises(ValueError, match="unknown split"):
+        select_views(loaded, scene, "bogus")
+    with pytest.raises(ValueError, match="not one of the unseen_view cameras"):
+        select_views(loaded, scene, "unseen_view", cameras=["cam00"])
+    with pytest.raises(ValueError, match="out of range"):
+        select_views(loaded, scene, "seen", frames="0:99")
+
+
+# ---- evaluate_run on an untrained run ---------------------------------------------------------------
+def test_evaluate_run_untrained(unseen_view_result, scene):
+    r = unseen_view_result
+    assert r["format"] == "garmentnerf-eval" and r["split"] == "unseen_view" and r["method"] == "model"
+    assert r["cameras"] == scene.camera_names("unseen_view") == ["held00"]
+    assert r["sequences"] == {"train": list(range(FRAMES))}
+    assert r["resolution_wh"] == [64, 64]
+    assert r["counts"] == {"images": FRAMES, "tof_pairs": FRAMES - 5}
+    assert len(r["per_frame"]) == FRAMES and [f["frame"] for f in r["per_frame"]] == list(range(FRAMES))
+    for key in ("psnr", "ssim", "stlpips_alex", "tof"):
+        assert isinstance(r["means"][key], float) and math.isfinite(r["means"][key]), key
+    assert 0 < r["means"]["psnr"] < 60 and -1 <= r["means"]["ssim"] <= 1
+    assert len(r["per_camera"]) == 1 and r["per_camera"][0]["tof"]["pairs"] == [[2, 3]]
+    if "lpips_alex" not in r["means"]:
+        assert "GARMENTNERF_LPIPS_ALEXNET" in r["unavailable"]["lpips_alex"]
+    # strict JSON round trip
+    text = json.dumps(r, allow_nan=False)
+    assert json.loads(text) == r
+    assert "psnr" in format_result_table(r) or "PSNR" in format_result_table(r)
+
+
+def test_evaluate_matches_render_path(loaded, scene, gl_context, unseen_view_result):
+    """The evaluated prediction is the RenderSession image: recompute one frame's PSNR directly."""
+    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.render.session import RenderSession
+
+    with RenderSession(loaded, gl_context, "train") as s:
+        pred = s.render_image(3, scene.camera("held00").camera)
+    images = SceneImages(scene)
+    try:
+        gt, _ = images.image("train", "held00", 3)
+    finally:
+        images.close()
+    from skimage.metrics import peak_signal_noise_ratio
+
+    ref = peak_signal_noise_ratio(gt.astype(np.float64), pred.astype(np.float64), data_range=1.0)
+    row = next(f for f in unseen_view_result["per_frame"] if f["frame"] == 3)
+    assert row["psnr"] == pytest.approx(ref, abs=1e-4)
+
+
+def test_nearest_view_baseline_matches_skimage(unseen_view_result, scene):
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    from garmentnerf.data.scene import SceneImages
+
+    b = unseen_view_result["baseline"]
+    assert b["method"] == "nearest_view" and b["counts"]["images"] == FRAMES
+    near = b["nearest_camera"]["held00"]
+    assert near in scene.camera_names("train")
+    # nearest by optical-axis angle, computed here independently
+    axis = {c: np.asarray(scene.camera(c).camera.R)[2] for c in scene.camera_names()}
+    angles = {c: math.degrees(math.acos(np.clip(axis["held00"] @ axis[c], -1, 1)))
+              for c in scene.camera_names("train")}
+    assert angles[near] <= min(angles.values()) + 1e-6
+    assert nearest_camera(scene, "held00", scene.camera_names("train"))[0] == near
+    images = SceneImages(scene)  # scene size 64 = the model's 64: no resize; black background
+    try:
+        for row in b["per_frame"]:
+            gt = images.image("train", "held00", row["frame"])[0].astype(np.float64)
+            pred = images.image("train", near, row["frame"])[0].astype(np.float64)
+            assert row["psnr"] == pytest.approx(peak_signal_noise_ratio(gt, pred, data_range=1.0), abs=1e-6)
+            ref_ssim = structural_similarity(gt, pred, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                             data_range=1.0, channel_axis=-1)
+            assert row["ssim"] == pytest.approx(ref_ssim, abs=1e-5)
+    finally:
+        images.close()
+    assert math.isfinite(b["means"]["tof"]) and math.isfinite(b["means"]["stlpips_alex"])
+
+
+def test_baseline_only_on_unseen_view(loaded, gl_context):
+    with pytest.raises(ValueError, match="unseen_view"):
+        evaluate_run(loaded, "seen", baseline=True, progress=False, gl_context=gl_context)
+    with pytest.raises(ValueError, match="unknown split"):
+        evaluate_run(loaded, "bogus", progress=False, gl_context=gl_context)
+
+
+# ---- CLI ------------------------------------------------------------------------------------------
+def _one_line_error(capsys, argv, match):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1 and err.startswith("garmentnerf: error:") and match in err, err
+
+
+def test_cli_errors(run_dir, tmp_path, capsys, scene):
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "bogus"], "unknown split 'bogus'")
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--baseline"], "unseen_view only")
+    _one_line_error(capsys, ["eval", "--run", str(tmp_path / "nope"), "--split", "seen"], "no such run folder")
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--frames", "x:y"], "A:B")
+    # a run whose scene folder is gone
+    import shutil
+
+    moved = tmp_path / "moved_run"
+    shutil.copytree(run_dir, moved)
+    info = json.loads((moved / "run.json").read_text())
+    info["scene"] = str(tmp_path / "gone_scene")
+    (moved / "run.json").write_text(json.dumps(info))
+    _one_line_error(capsys, ["eval", "--run", str(moved), "--split", "seen"], "pass --scene")
+    _one_line_error(capsys, ["report", "--scene", str(tmp_path / "none"), "--out", str(tmp_path / "r.md")],
+                    "scene.json")
+    _one_line_error(capsys, ["report", "--scene", str(scene.root), "--out", str(tmp_path / "r.md"),
+                             "--variants", "bogus"], "unknown variant")
+
+
+def test_cli_eval_json(run_dir, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    rc = main(["eval", "--run", str(run_dir), "--split", "unseen_motion", "--frames", "0:2", "--cameras", "cam01",
+               "--json", str(out), "--no-progress"])
+    printed = capsys.readouterr().out
+    assert rc == 0
+    assert "PSNR" in printed and "unseen_motion" in printed
+    data = json.loads(out.read_text())
+    assert data["sequences"] == {"test": [0, 1]} and data["cameras"] == ["cam01"]
+    assert len(data["per_frame"]) == 2 and "tof" in data["unavailable"]  # 2 frames: no tOF
+
+
+# ---- report --------------------------------------------------------------------------------------
+def test_render_markdown_shape():
+    from garmentnerf.eval.report import Variant, render_markdown
+
+    def res(p):
+        return {"means": {"psnr": p, "ssim": 0.9, "stlpips_alex": 0.1, "tof": 0.5}, "sequences": {"train": [0, 1]},
+                "cameras": ["c"], "unavailable": {"lpips_alex": "no weights"}, "step": 2}
+
+    variants = [Variant("full"), Variant("no_detail", {"use_detail_feature": False}), Variant("k0", {"history": 0}),
+                Variant("views_4", views=4, cameras=("a", "b", "c", "d")), Variant("views_16", views=16, note="few")]
+    results = {v.name: {"seen": res(20.0 + i), "unseen_view": res(18.0 + i)} for i, v in enumerate(variants[:4])}
+    meta = {"scene": "s", "preset": "tiny", "iterations": 2, "generator_iterations": 1, "seed": 0, "history": 2,
+            "train_cameras": 8, "runs_dir": "r", "seconds": 1.0}
+    md = render_markdown(meta, variants, results, {**res(15.0), "nearest_camera": {"h": "c"}}, ["seen", "unseen_view"])
+    assert "| nearest view | - | - | - | - | 15.00 | 0.900 | 0.100 | 0.500 |" in md
+    assert "| ours (full) | 20.00 |" in md
+    assert "| ✓ | ✓ | 20.00 |" in md and "|  | ✓ | 21.00 |" in md
+    assert "| 4 | 23.00 |" in md and "| 8 (full) | 20.00 |" in md
+    assert "| 0 | 22.00 |" in md and "| 2 (full) | 20.00 |" in md
+    assert "ST-LPIPS↓" in md and "not the paper's LPIPS" in md and "no weights" in md
+    assert "skipped: few" in md
+
+
+@pytest.mark.slow
+def test_report_tiny(scene, tmp_path):
+    """Two variants x 2 NeRF steps (+1 G_img step), every split; a second call reuses everything."""
+    from garmentnerf.eval.report import build_report
+
+    out = tmp_path / "report.md"
+    kw = dict(iterations=2, generator_iterations=1, preset="tiny", runs_dir=tmp_path / "runs",
+              variants=["full", "no_detail"], views=(), histories=(), perceptual="none", frames="0:6",
+              progress=False, log=lambda m: None)
+    build_report(scene.root, out, **kw)
+    md = out.read_text()
+    assert "| nearest view |" in md and "| ours (full) |" in md
+    assert "|  | ✓ |" in md and "| ✓ | ✓ |" in md  # no_detail and full rows of the features table
+    assert "seen PSNR↑" in md and "unseen view PSNR↑" in md and "unseen motion PSNR↑" in md
+    for v in ("full", "no_detail"):
+        info = json.loads((tmp_path / "runs" / v / "run.json").read_text())
+        assert info["step"] == (3 if v == "full" else 2)
+        assert all((tmp_path / "runs" / v / "eval" / f"{s}.json").is_file() for s in SPLITS)
+    stamp = (tmp_path / "runs" / "full" / "eval" / "seen.json").stat().st_mtime_ns
+    messages = []
+    build_report(scene.root, out, **{**kw, "log": messages.append})
+    assert "full: skipped" in messages and "no_detail: skipped" in messages
+    assert (tmp_path / "runs" / "full" / "eval" / "seen.json").stat().st_mtime_ns == stamp
+    assert "| full | - | all | 3 | skipped |" in out.read_text()
+    # other settings in the same runs folder: refused
+    with pytest.raises(ValueError, match="other settings"):
+        build_report(scene.root, out, **{**kw, "iterations": 3})
+
+
+def test_train_variant_resumes_and_skips(scene, gl_context, tmp_path):
+    """An unfinished run is resumed from its checkpoint, a finished one is left alone."""
+    from garmentnerf.eval.report import train_variant
+    from garmentnerf.train.trainer import TrainConfig, Trainer, tiny_config
+
+    cfg = tiny_config().replace(use_detail_feature=False, use_dynamic_feature=False)  # no G_img: cheapest
+    run = tmp_path / "runs" / "no_features"
+    tc = TrainConfig(scene=scene.root, out=run, model_config=cfg, iterations=2, stop_after=1, perceptual="none",
+                     progress=False, image_every=0, cameras=("cam00",))
+    with Trainer(tc, gl_context, log=lambda m: None) as t:
+        t.train()
+    assert json.loads((run / "run.json").read_text())["step"] == 1
+    kw = dict(iterations=2, perceptual="none", progress=False, gl_context=gl_context, log=lambda m: None)
+    assert train_variant(scene.root, run, cfg, ("cam00",), **kw) == "resumed"
+    assert json.loads((run / "run.json").read_text())["step"] == 2
+    assert train_variant(scene.root, run, cfg, ("cam00",), **kw) == "skipped"
+    with pytest.raises(ValueError, match="training cameras"):
+        train_variant(scene.root, run, cfg, ("cam01",), **kw)
+    (tmp_path / "runs" / "junk").mkdir()
+    (tmp_path / "runs" / "junk" / "file.txt").write_text("x")
+    with pytest.raises(ValueError, match="not a run folder"):
+        train_variant(scene.root, tmp_path / "runs" / "junk", cfg, None, **kw)
