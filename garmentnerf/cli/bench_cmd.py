@@ -1,9 +1,22 @@
-"""``garmentnerf bench``: time the per-frame stages and print (and optionally save) the figures."""
+"""``garmentnerf bench``: time the per-frame stages and print (and optionally save) the figures.
+
+Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.benchmarks.foundation_benchmark`).
+
+With ``--run DIR``: every render preset (:mod:`garmentnerf.perf.presets`) on the run's model, in
+one process so the ratios to ``reference`` compare like with like: ms per frame (one view of one
+body frame: the frame stages plus the view's render) with a stage breakdown like the paper's,
+points evaluated by the MLP per frame, and PSNR/SSIM against the ground truth of the run's
+scene (images composited on the model's background over the full frame, data range 1). Times are
+the fastest of ``--repeats`` renders of each view (the development machine's 2 cores are shared,
+so the minimum is the least noisy), then the median over the views and frames measured.
+``--plot`` draws ms/frame (log) against PSNR per preset (PIL; matplotlib is not needed).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 
 ROWS = [
@@ -17,20 +30,284 @@ ROWS = [
     ("projection_points_per_s", "surface projection throughput", "points/s"),
 ]
 
+#: Paper-like stages of one frame -> the pipeline's timing keys that make them up.
+PAPER_STAGES = {
+    "info_maps": ("info_maps",),
+    "reference_images": ("reference_passes", "reference_images"),
+    "encoders": ("encoders",),
+    "projection": ("surface", "rays", "projection", "features"),
+    "mlp": ("mlp",),
+    "compositing": ("compositing",),
+    "decoder": ("decoder", "compose"),
+}
+
 
 def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmark the per-frame stages (prints figures, writes JSON)")
+    p = sub.add_parser("bench", help="benchmark the per-frame stages (prints figures, writes JSON); "
+                                     "with --run: the render presets of a trained run")
     p.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     p.add_argument("--runs", type=int, default=20, help="timed repetitions per stage (median is reported)")
+    p.add_argument("--run", default=None, metavar="DIR", help="benchmark the render presets of this run folder")
+    p.add_argument("--plot", default=None, metavar="PNG", help="with --run: speed/accuracy plot")
+    p.add_argument("--presets", default=None, help="with --run: comma-separated presets (default: all)")
+    p.add_argument("--frames", type=int, default=2, help="with --run: body frames measured")
+    p.add_argument("--views", type=int, default=2, help="with --run: cameras measured per frame")
+    p.add_argument("--repeats", type=int, default=2, help="with --run: renders per view (fastest counts)")
+    p.add_argument("--sequence", default=None, help="with --run: scene sequence (default: the first training one)")
     p.set_defaults(func=run_bench)
 
 
+# ---------------------------------------------------------------------------------------------
+# the run benchmark
+# ---------------------------------------------------------------------------------------------
+def _median(values):
+    import numpy as np
+
+    values = [v for v in values if v is not None]
+    return float(np.median(values)) if values else None
+
+
+def _pick(items, count):
+    import numpy as np
+
+    if count >= len(items):
+        return list(items)
+    return [items[int(i)] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
+
+
+def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, repeats: int = 2,
+                     sequence: str | None = None, gl_context=None, log=print) -> dict:
+    """Measure every preset on a run (see the module docstring). Returns a JSON-ready dict."""
+    import numpy as np
+    import torch
+
+    import os
+    import platform
+
+    from garmentnerf.eval.metrics import psnr, ssim
+    from garmentnerf.gl.context import context_info, create_context
+    from garmentnerf.model.frame_context import FrameInputBuilder
+    from garmentnerf.model.pipeline import FRAME_STAGES, RENDER_STAGES
+    from garmentnerf.perf.presets import PRESET_NAMES, apply_preset, get_preset, height_range_for_run
+    from garmentnerf.render.session import resolve_motion
+    from garmentnerf.train.run import load_run
+
+    for name, value in (("frames", frames), ("views", views), ("repeats", repeats)):
+        if value < 1:
+            raise ValueError(f"--{name} must be at least 1, got {value}")
+    names = list(presets) if presets else list(PRESET_NAMES)
+    chosen = [get_preset(n) for n in names]
+    if "reference" not in [p.name for p in chosen]:
+        chosen.insert(0, get_preset("reference"))  # ratios are to a reference measured in the same run
+    own_ctx = gl_context is None
+    ctx = create_context(headless=True) if own_ctx else gl_context
+    run = load_run(run_dir)
+    model, cfg, scene = run.model.eval(), run.config, run.scene
+    images = None
+    try:
+        body = model.body
+        betas = run.betas if run.betas is not None else body.betas("average")
+        motion, seq = resolve_motion(sequence, body, betas, scene)
+        with torch.no_grad():
+            posed = motion.pose(body, betas)
+        T = int(posed.vertices.shape[0])
+        frame_ids = _pick(list(range(T)), frames)
+        if scene is not None:
+            split = "unseen_view" if scene.camera_names("unseen_view") else "train"
+            cams = _pick(scene.cameras(split), views)
+            if seq is not None:
+                from garmentnerf.data.render_gt import GroundTruthRenderer
+                from garmentnerf.data.scene import SceneImages
+
+                images = SceneImages(scene, renderer=GroundTruthRenderer(ctx), body_model=body)
+        else:
+            from garmentnerf.data.cameras import default_rig
+
+            split = "orbit"
+            rig = default_rig(width=cfg.image_resolution, height_px=cfg.image_resolution, references=False)
+            cams = _pick(rig, views)
+        band = height_range_for_run(run)
+        log(f"run {run_dir}: step {run.step}, {cfg.feature_image_resolution}^2 rays x {cfg.samples_per_ray} samples, "
+            f"MLP {cfg.mlp_depth}x{cfg.mlp_width}; motion {motion.name} frames {frame_ids}; "
+            f"{len(cams)} '{split}' views; height band [{band.h_min:.3f}, {band.h_max:.3f}] m ({band.source})")
+        refs = scene if scene is not None else None
+        if refs is None:
+            from garmentnerf.data.cameras import reference_cameras
+
+            refs = reference_cameras()
+        # Frame stages do not depend on the preset: measured once per frame (after a warm-up).
+        feats, frame_timings, gts = {}, {}, {}
+        with FrameInputBuilder(ctx, body, refs, cfg) as builder, torch.no_grad():
+            model.prepare_frame(builder.build(posed, frame_ids[0], motion.fps))
+            for f in frame_ids:
+                fr = model.prepare_frame(builder.build(posed, f, motion.fps)).detach()
+                feats[f] = fr
+                frame_timings[f] = {k: fr.timings.get(k, 0.0) for k in FRAME_STAGES}
+        if images is not None:
+            for f in frame_ids:
+                for c in cams:
+                    gts[(f, c.name)] = images.image(seq, c.name, f)[0]
+        results = []
+        for preset in chosen:
+            applied = apply_preset(model, preset, height_range=band, gl_context=ctx)
+            with torch.no_grad():  # warm-up (GL objects, allocator)
+                model.render_full_image(feats[frame_ids[0]], cams[0].camera,
+                                        scale=applied.render_scale(cfg, cams[0].camera))
+            per_view = []
+            for f in frame_ids:
+                for c in cams:
+                    best = None
+                    for _ in range(repeats):
+                        with torch.no_grad():
+                            out = model.render_full_image(feats[f], c.camera, scale=applied.render_scale(cfg, c.camera))
+                        if best is None or out.timings["render_total"] < best.timings["render_total"]:
+                            best = out
+                    stats = dict(getattr(applied.sampler, "last_stats", {}) or {})
+                    timings = dict(frame_timings[f])
+                    timings.update({k: best.timings.get(k, 0.0) for k in RENDER_STAGES})
+                    frame_ms = sum(frame_timings[f].values())
+                    entry = {"frame": f, "camera": c.name, "render_ms": best.timings["render_total"],
+                             "frame_ms": frame_ms, "ms_per_frame": frame_ms + best.timings["render_total"],
+                             "points": best.points_evaluated, "rays": best.rays_evaluated,
+                             "rays_total": best.rays_total, "timings": timings,
+                             "samples_candidate": stats.get("samples_candidate", best.points_evaluated),
+                             "points_projected": stats.get("points_projected", best.points_evaluated)}
+                    gt = gts.get((f, c.name))
+                    if gt is not None:
+                        img = best.image.detach().cpu().permute(1, 2, 0).numpy().astype(np.float32)
+                        entry["psnr"], entry["ssim"] = psnr(img, gt), ssim(img, gt)
+                    per_view.append(entry)
+            row = {"preset": preset.name, "settings": preset.to_dict(), "samples_per_ray": applied.samples_per_ray,
+                   "ms_per_frame": _median([e["ms_per_frame"] for e in per_view]),
+                   "render_ms": _median([e["render_ms"] for e in per_view]),
+                   "frame_ms": _median([e["frame_ms"] for e in per_view]),
+                   "points_per_frame": _median([e["points"] for e in per_view]),
+                   "samples_candidate_per_frame": _median([e["samples_candidate"] for e in per_view]),
+                   "points_projected_per_frame": _median([e["points_projected"] for e in per_view]),
+                   "rays_per_frame": _median([e["rays"] for e in per_view]),
+                   "feature_rays_total": _median([e["rays_total"] for e in per_view]),
+                   "psnr": _median([e.get("psnr") for e in per_view]),
+                   "ssim": _median([e.get("ssim") for e in per_view]),
+                   "stages_ms": {k: _median([sum(e["timings"].get(s, 0.0) for s in keys) for e in per_view])
+                                 for k, keys in PAPER_STAGES.items()},
+                   "raw_stages_ms": {k: _median([e["timings"].get(k, 0.0) for e in per_view])
+                                     for k in (*FRAME_STAGES, *RENDER_STAGES)},
+                   "views": per_view}
+            results.append(row)
+            log(f"  {preset.name:12s} {row['ms_per_frame']:9.1f} ms/frame (render {row['render_ms']:8.1f} ms)  "
+                f"{row['points_per_frame']:>10,.0f} points" + (f"  PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f}"
+                                                              if row["psnr"] is not None else ""))
+        apply_preset(model, "reference")
+        ref = next(r for r in results if r["preset"] == "reference")
+        for r in results:
+            r["speedup_vs_reference"] = ref["ms_per_frame"] / r["ms_per_frame"]
+            r["render_speedup_vs_reference"] = ref["render_ms"] / r["render_ms"]
+            r["points_ratio_vs_reference"] = (r["points_per_frame"] / ref["points_per_frame"]
+                                              if ref["points_per_frame"] else None)
+            r["psnr_vs_reference_db"] = (r["psnr"] - ref["psnr"]) if r["psnr"] is not None and ref["psnr"] is not None else None
+        return {"kind": "preset_benchmark", "run": str(run_dir), "step": run.step, "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+                "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)}, "torch_threads": torch.get_num_threads(),
+                "model": {k: getattr(cfg, k) for k in ("image_resolution", "feature_image_resolution", "samples_per_ray",
+                                                          "mlp_depth", "mlp_width", "appearance_dim")},
+                "motion": motion.name, "sequence": seq, "frames": frame_ids, "cameras": [c.name for c in cams],
+                "camera_split": split, "ground_truth": images is not None, "height_range": band.to_dict(),
+                "presets": results}
+    finally:
+        if images is not None:
+            images.close()
+        sampler = getattr(model, "sampler", None)
+        if hasattr(sampler, "release"):
+            sampler.release()
+        if own_ctx:
+            ctx.release()
+
+
+def write_plot(results: dict, path) -> Path:
+    """ms/frame (log x) against PSNR (or points per frame without ground truth), one labelled
+    point per preset, as a PNG drawn with PIL."""
+    import math
+
+    from PIL import Image, ImageDraw
+
+    rows = [r for r in results["presets"] if r["ms_per_frame"]]
+    use_psnr = all(r["psnr"] is not None for r in rows)
+    ys = [r["psnr"] if use_psnr else math.log10(max(r["points_per_frame"], 1)) for r in rows]
+    xs = [math.log10(r["ms_per_frame"]) for r in rows]
+    W, H, ml, mr, mt, mb = 720, 480, 80, 30, 50, 60
+    img = Image.new("RGB", (W, H), "white")
+    d = ImageDraw.Draw(img)
+    x0, x1 = math.floor(min(xs) * 10) / 10 - 0.1, math.ceil(max(xs) * 10) / 10 + 0.1
+    y_pad = max(0.5, (max(ys) - min(ys)) * 0.15)
+    y0, y1 = min(ys) - y_pad, max(ys) + y_pad
+
+    def px(x, y):
+        return ml + (x - x0) / (x1 - x0) * (W - ml - mr), H - mb - (y - y0) / (y1 - y0) * (H - mt - mb)
+
+    d.rectangle([ml, mt, W - mr, H - mb], outline="black")
+    for e in range(int(math.floor(x0)), int(math.ceil(x1)) + 1):
+        for m in (1, 2, 5):
+            lx = e + math.log10(m)
+            if x0 <= lx <= x1:
+                gx, _ = px(lx, y0)
+                d.line([gx, mt, gx, H - mb], fill=(225, 225, 225))
+                d.text((gx - 12, H - mb + 6), f"{m * 10 ** e:g}", fill="black")
+    for i in range(6):
+        y = y0 + (y1 - y0) * i / 5
+        _, gy = px(x0, y)
+        d.line([ml, gy, W - mr, gy], fill=(235, 235, 235))
+        d.text((8, gy - 6), f"{y:.2f}" if use_psnr else f"1e{y:.1f}", fill="black")
+    d.text((W // 2 - 60, H - 25), "ms per frame (log)", fill="black")
+    d.text((8, 12), ("PSNR (dB) vs ground truth" if use_psnr else "log10 points per frame") +
+           f"   {results['machine'].get('cpus', '?')} CPUs, {results.get('run', '')}", fill="black")
+    pts = sorted(zip(xs, ys, rows), key=lambda t: t[0])
+    d.line([px(x, y) for x, y, _ in pts], fill=(120, 160, 220), width=2)
+    for i, (x, y, r) in enumerate(pts):
+        cx, cy = px(x, y)
+        d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=(30, 80, 200))
+        cy += 30 if i % 2 else -10  # alternate labels below/above: neighbours on a flat curve do not overlap
+        d.text((cx + 8, cy - 16), f"{r['preset']} {r['ms_per_frame']:.0f} ms, x{r['speedup_vs_reference']:.1f}",
+               fill="black")
+        d.text((cx + 8, cy - 4), f"{r['points_per_frame']:,.0f} pts", fill=(90, 90, 90))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img.save(path)
+    return path
+
+
+def _print_presets(results: dict) -> None:
+    print(f"{'preset':12s} {'ms/frame':>9s} {'speed-up':>8s} {'points':>10s} {'PSNR':>6s} {'SSIM':>6s}  "
+          + " ".join(f"{k[:9]:>9s}" for k in PAPER_STAGES))
+    for r in results["presets"]:
+        psnr = f"{r['psnr']:6.2f}" if r["psnr"] is not None else "   n/a"
+        ssim = f"{r['ssim']:6.3f}" if r["ssim"] is not None else "   n/a"
+        print(f"{r['preset']:12s} {r['ms_per_frame']:9.1f} {r['speedup_vs_reference']:7.2f}x "
+              f"{r['points_per_frame']:10,.0f} {psnr} {ssim}  "
+              + " ".join(f"{r['stages_ms'][k]:9.1f}" for k in PAPER_STAGES))
+
+
+# ---------------------------------------------------------------------------------------------
 def run_bench(args: argparse.Namespace) -> int:
-    from garmentnerf.benchmarks import foundation_benchmark
     from garmentnerf.io_utils import atomic_write_path
 
     if args.runs < 1:
         raise ValueError(f"--runs must be at least 1, got {args.runs}")
+    if getattr(args, "run", None):
+        presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
+        results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
+                                   sequence=args.sequence)
+        _print_presets(results)
+        if args.json:
+            with atomic_write_path(Path(args.json)) as tmp:
+                tmp.write_text(json.dumps(results, indent=1))
+            print(f"wrote {args.json}")
+        if args.plot:
+            write_plot(results, args.plot)
+            print(f"wrote {args.plot}")
+        return 0
+    if getattr(args, "plot", None):
+        raise ValueError("--plot needs --run")
+    from garmentnerf.benchmarks import foundation_benchmark
+
     results = foundation_benchmark(runs=args.runs)
     machine = results["machine"]
     print(f"machine: {machine.get('cpus')} CPUs, torch threads {machine.get('torch_threads')}, "

@@ -1,0 +1,1 @@
+"""Speed/accuracy settings of rendering (presets) and their measurement."""

@@ -1,0 +1,314 @@
+"""The shell sampler, the height band and early termination (garmentnerf.model.samplers_culled),
+the render presets and ``garmentnerf bench --run``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from garmentnerf.body.model import BodyModel
+from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera
+from garmentnerf.data.cameras import reference_cameras
+from garmentnerf.geometry.body_points import BodyPointProjector
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.frame_context import FrameInputBuilder
+from garmentnerf.model.pipeline import GarmentAnimationNeRF
+from garmentnerf.model.samplers import BoxStratifiedSampler, body_aabb
+from garmentnerf.model.samplers_culled import (HeightRange, ShellSampler, install_culled_renderer,
+                                               measure_height_range, point_in_shell, render_features_culled,
+                                               uninstall_culled_renderer, winding_number)
+from garmentnerf.motion.library import load_motion
+
+PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
+BAND = HeightRange(-0.05, 0.10)
+CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
+
+
+def tiny_config(**changes) -> ModelConfig:
+    cfg = ModelConfig.cpu_small().replace(
+        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
+        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
+        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=32,
+        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
+    return cfg.replace(**changes) if changes else cfg
+
+
+class Banded(torch.nn.Module):
+    """Wraps a NeRF MLP: density zero wherever h is outside the band (and optionally scaled)."""
+
+    def __init__(self, inner, band: HeightRange, scale: float = 1.0):
+        super().__init__()
+        self.inner, self.band, self.scale = inner, band, scale
+
+    def forward(self, canonical, distance, detail=None, dynamic=None):
+        sigma, zeta = self.inner(canonical, distance, detail, dynamic)
+        inside = (distance >= self.band.h_min) & (distance <= self.band.h_max)
+        return sigma * inside.to(sigma.dtype) * self.scale, zeta
+
+
+@pytest.fixture(scope="module")
+def body():
+    return BodyModel.default()
+
+
+@pytest.fixture(scope="module")
+def projector(body):
+    return BodyPointProjector(body)
+
+
+@pytest.fixture(scope="module")
+def posed(body):
+    motion = load_motion("walk", body)
+    return motion.slice(0, 3).pose(body), motion.fps
+
+
+@pytest.fixture(scope="module")
+def inputs(gl_context, body, posed):
+    clip, fps = posed
+    with FrameInputBuilder(gl_context, body, reference_cameras(), tiny_config()) as builder:
+        yield builder.build(clip, 2, fps)
+
+
+def banded_model(body, projector, scale=1.0, **changes):
+    torch.manual_seed(0)
+    model = GarmentAnimationNeRF(tiny_config(**changes), body, PALETTE, projector=projector).eval()
+    model.nerf = Banded(model.nerf, BAND, scale)
+    return model
+
+
+@pytest.fixture(scope="module")
+def model_and_frame(body, projector, inputs):
+    model = banded_model(body, projector)
+    with torch.no_grad():
+        frame = model.prepare_frame(inputs)
+    return model, frame
+
+
+def _surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, within: float) -> np.ndarray:
+    """Unsigned distance to the mesh with trimesh (inf where certainly farther than ``within``)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    edge = float(np.linalg.norm(vertices[faces[:, 0]] - vertices[faces[:, 1]], axis=1).max())
+    dv, _ = cKDTree(vertices[np.unique(faces)]).query(points)
+    cand = np.flatnonzero(dv <= within + edge)  # nearest vertex - longest edge bounds the distance below
+    out = np.full(len(points), np.inf)
+    for i in range(0, len(cand), 4000):
+        c = cand[i:i + 4000]
+        _, d, _ = trimesh.proximity.closest_point(mesh, points[c])
+        out[c] = d
+    return out
+
+
+def _keys(ray_ids, t_starts):
+    return set(zip(ray_ids.tolist(), np.round(t_starts.double().numpy() * 1e4).astype(np.int64).tolist()))
+
+
+# ---------------------------------------------------------------------------------------------
+def test_shell_contains_every_box_sample_near_the_body(gl_context, posed, projector):
+    clip, _ = posed
+    verts = clip.vertices[2].float()
+    sampler = ShellSampler(64, BAND, faces=projector.faces, gl_context=gl_context)
+    cam = CAMERA.resized(40, 40)
+    origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
+    aabb = body_aabb(verts)
+    sampler.bind(verts, cam)
+    shell = sampler.sample(origins, dirs, aabb, pixel_index=torch.arange(origins.shape[0]))
+    box = BoxStratifiedSampler(64).sample(origins, dirs, aabb).to_packed()
+    # Independent: trimesh distances of the box samples to the posed skin; every sample within
+    # h_max of the skin (inside or outside: a superset of the band) must be in the shell's set.
+    dist = _surface_distance(box.positions.double().numpy(), verts.double().numpy(), projector.faces.numpy(),
+                             BAND.h_max)
+    near = dist <= BAND.h_max
+    have = _keys(shell.ray_ids, shell.t_starts)
+    box_keys = list(zip(box.ray_ids.tolist(), np.round(box.t_starts.double().numpy() * 1e4).astype(np.int64).tolist()))
+    missing = [k for k, n in zip(box_keys, near) if n and k not in have]
+    assert near.sum() > 1000 and not missing
+    # Shell samples are the box's own samples (same intervals), and far fewer.
+    assert have <= set(box_keys)
+    assert shell.positions.shape[0] < 0.5 * box.positions.shape[0]
+    # Without a pixel index the rays are matched to the bound camera: the same samples.
+    again = sampler.sample(origins, dirs, aabb)
+    assert torch.equal(again.ray_ids, shell.ray_ids) and torch.equal(again.t_starts, shell.t_starts)
+    # Rays the bound camera cannot index (another resolution): conservative fitted raster, a superset.
+    cam2 = CAMERA.resized(24, 24)
+    o2, d2 = (x.reshape(-1, 3) for x in camera_rays(cam2))
+    sampler.bind(verts, cam2)
+    exact = sampler.sample(o2, d2, aabb, pixel_index=torch.arange(o2.shape[0]))
+    sampler.bind(verts)  # no camera: the sampler fits its own raster to the rays
+    fitted = sampler.sample(o2, d2, aabb)
+    assert sampler.last_stats["culled_by_shell"]
+    assert _keys(exact.ray_ids, exact.t_starts) <= _keys(fitted.ray_ids, fitted.t_starts)
+    sampler.release()
+
+
+def test_rays_that_miss_get_nothing(gl_context, posed, projector):
+    clip, _ = posed
+    verts = clip.vertices[2].float()
+    sampler = ShellSampler(16, BAND, faces=projector.faces, gl_context=gl_context)
+    cam = CAMERA.resized(32, 32)
+    origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
+    sampler.bind(verts, cam)
+    out = sampler.sample(origins, dirs, body_aabb(verts), pixel_index=torch.arange(1024))
+    bounds = sampler._bounds
+    hit_rays = torch.unique(out.ray_ids)
+    assert 0 < hit_rays.numel() < 1024
+    assert bounds.hit.reshape(-1)[hit_rays].all()  # only rays that cross the shell have samples
+    assert (~out.hit[~bounds.hit.reshape(-1)]).all()
+    # Samples lie between the shell's near and far (up to one bin).
+    t = out.t_mids
+    bin_len = (out.t_ends - out.t_starts).max()
+    near, far = bounds.near.reshape(-1)[out.ray_ids], bounds.far.reshape(-1)[out.ray_ids]
+    assert (t >= near - bin_len).all() and (t <= far + bin_len).all()
+    # A camera looking away from the body: no samples at all.
+    R, tvec = look_at((0.0, -3.0, 1.0), (0.0, -6.0, 1.0))
+    away = Camera(intrinsics_from_fov(32, 32, 40.0), R, tvec, 32, 32)
+    o, d = (x.reshape(-1, 3) for x in camera_rays(away))
+    sampler.bind(verts, away)
+    none = sampler.sample(o, d, body_aabb(verts), pixel_index=torch.arange(1024))
+    assert none.positions.shape[0] == 0 and not none.hit.any()
+    sampler.release()
+
+
+def test_inside_the_shell_and_far_away(gl_context, posed, projector):
+    clip, _ = posed
+    verts = clip.vertices[2].float()
+    faces = projector.faces
+    centre = verts[faces.reshape(-1)].mean(0)
+    torso = torch.tensor([float(centre[0]), float(centre[1]), 1.2])
+    assert winding_number(torso, verts, faces) > 0.9
+    assert winding_number(torso + torch.tensor([0.0, 0.0, 5.0]), verts, faces) < 0.1
+    assert point_in_shell(torso, verts, faces, 0.1)
+    sampler = ShellSampler(16, BAND, faces=faces, gl_context=gl_context)
+    R, t = look_at(torso.numpy(), (torso + torch.tensor([0.0, -1.0, 0.0])).numpy())
+    inside = Camera(intrinsics_from_fov(16, 16, 90.0), R, t, 16, 16)
+    o, d = (x.reshape(-1, 3) for x in camera_rays(inside))
+    sampler.bind(verts, inside)
+    out = sampler.sample(o, d, body_aabb(verts), pixel_index=torch.arange(256))
+    assert sampler._bounds.hit.all() and (sampler._bounds.near == 0).all()
+    assert out.hit.all() and (out.t_starts.reshape(-1)[:1] == 0).all()
+    far_cam = orbit_camera(0.0, 0.0, 1000.0, width=16, height=16, fov_y_deg=0.1, far=2000.0)
+    sampler.bind(verts, far_cam)
+    o, d = (x.reshape(-1, 3) for x in camera_rays(far_cam))
+    out = sampler.sample(o, d, body_aabb(verts), pixel_index=torch.arange(256))
+    assert out.positions.shape[0] > 0 and torch.isfinite(out.positions).all()
+    sampler.release()
+
+
+# ---------------------------------------------------------------------------------------------
+def test_culled_render_equals_reference(gl_context, model_and_frame):
+    model, frame = model_and_frame
+    with torch.no_grad():
+        ref = model.render(frame, CAMERA)
+    sampler = ShellSampler(model.cfg.samples_per_ray, BAND, termination_eps=0.0, gl_context=gl_context)
+    install_culled_renderer(model, sampler)
+    try:
+        with torch.no_grad():
+            out = model.render(frame, CAMERA)
+        assert 0 < out.points_evaluated < 0.5 * ref.points_evaluated
+        torch.testing.assert_close(out.feature_image, ref.feature_image, atol=1e-5, rtol=0)
+        torch.testing.assert_close(out.opacity, ref.opacity, atol=1e-6, rtol=0)
+        torch.testing.assert_close(out.image, ref.image, atol=1e-5, rtol=0)
+        # A subset of rays renders as the same rays of the full image.
+        mask = torch.zeros(16, 16, dtype=torch.bool)
+        mask[3:13, 5:11] = True
+        with torch.no_grad():
+            ref_sub = render_features_culled(model, frame, CAMERA, mask)
+        torch.testing.assert_close(ref_sub["feature_image"][:, mask], out.feature_image[:, mask], atol=1e-6, rtol=0)
+    finally:
+        uninstall_culled_renderer(model)
+    assert isinstance(model.sampler, BoxStratifiedSampler) and "render_features" not in model.__dict__
+
+
+def test_height_band_drop_does_not_change_the_image(model_and_frame):
+    """Same (box) samples with and without the band: a model with zero density outside it renders
+    the same image, while evaluating fewer points."""
+    model, frame = model_and_frame
+    wide = HeightRange(-10.0, 10.0)
+    with torch.no_grad():
+        everything = render_features_culled(model, frame, CAMERA, sampler=model.sampler, height_range=wide,
+                                            termination_eps=0.0)
+        banded = render_features_culled(model, frame, CAMERA, sampler=model.sampler, height_range=BAND,
+                                        termination_eps=0.0)
+    assert banded["points_evaluated"] < 0.5 * everything["points_evaluated"]
+    torch.testing.assert_close(banded["feature_image"], everything["feature_image"], atol=1e-6, rtol=0)
+    torch.testing.assert_close(banded["opacity"], everything["opacity"], atol=1e-6, rtol=0)
+    image_all, _ = model.decode(everything["feature_image"])
+    image_band, _ = model.decode(banded["feature_image"])
+    torch.testing.assert_close(image_band, image_all, atol=1e-5, rtol=0)
+
+
+def test_early_termination(gl_context, body, projector, inputs):
+    """An opaque model: rays stop once T < eps; the result moves by at most about eps."""
+    model = banded_model(body, projector, scale=200.0)
+    with torch.no_grad():
+        frame = model.prepare_frame(inputs)
+        ref = model.render(frame, CAMERA)
+    assert ref.opacity.max() > 0.999
+    eps = 1e-3
+    sampler = ShellSampler(model.cfg.samples_per_ray, BAND, termination_eps=eps, gl_context=gl_context)
+    install_culled_renderer(model, sampler)
+    try:
+        with torch.no_grad():
+            out = model.render(frame, CAMERA, chunk_points=512)
+        stats = sampler.last_stats
+        assert stats["rays_terminated"] > 0 and stats["points_projected"] < stats["samples_candidate"]
+        zmax = float(ref.feature_image.abs().max())
+        assert (out.opacity - ref.opacity).abs().max() <= eps + 1e-6
+        assert (out.feature_image - ref.feature_image).abs().max() <= eps * max(zmax, 1.0) * 20
+        assert torch.isfinite(out.image).all()
+    finally:
+        uninstall_culled_renderer(model)
+
+
+def test_measure_height_range(tiny_scene, body, projector):
+    band = measure_height_range(tiny_scene, body, projector=projector)
+    assert band.h_min < 0 < band.h_max < 0.6
+    assert "train" in band.source
+    assert HeightRange.from_dict(band.to_dict()) == band
+    with pytest.raises(ValueError):
+        HeightRange(0.2, 0.1)
+
+
+def test_presets_apply_and_render(gl_context, model_and_frame):
+    from garmentnerf.perf.presets import PRESETS, apply_preset, get_preset
+
+    model, frame = model_and_frame
+    points = {}
+    for name in ("reference", "full", "balanced", "interactive"):
+        applied = apply_preset(model, name, height_range=BAND, gl_context=gl_context)
+        scale = applied.render_scale(model.cfg, CAMERA)
+        with torch.no_grad():
+            out = model.render_full_image(frame, CAMERA, scale=scale)
+        assert out.image.shape == (3, 64, 64) and torch.isfinite(out.image).all()
+        points[name] = out.points_evaluated
+    assert points["reference"] > points["full"] > points["balanced"] > points["interactive"] > 0
+    apply_preset(model, "reference")
+    assert isinstance(model.sampler, BoxStratifiedSampler) and "render_features" not in model.__dict__
+    assert set(PRESETS) == {"reference", "full", "balanced", "interactive"}
+    with pytest.raises(ValueError, match="unknown preset"):
+        get_preset("warp")
+
+
+def test_bench_cli_with_run(tmp_path, tiny_scene):
+    from garmentnerf.cli.main import main
+    from garmentnerf.train.run import create_untrained_run
+
+    run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config(samples_per_ray=8))
+    out_json, out_png = tmp_path / "bench.json", tmp_path / "bench.png"
+    rc = main(["bench", "--run", str(run), "--json", str(out_json), "--plot", str(out_png), "--frames", "1",
+               "--views", "1", "--repeats", "1", "--presets", "full,interactive"])
+    assert rc in (0, None)
+    data = json.loads(out_json.read_text())
+    names = [p["preset"] for p in data["presets"]]
+    assert names == ["reference", "full", "interactive"]  # reference always measured alongside
+    for p in data["presets"]:
+        assert p["ms_per_frame"] > 0 and p["points_per_frame"] >= 0 and np.isfinite(p["psnr"])
+        assert set(p["stages_ms"]) == {"info_maps", "reference_images", "encoders", "projection", "mlp",
+                                       "compositing", "decoder"}
+    assert data["presets"][0]["speedup_vs_reference"] == 1.0
+    assert out_png.stat().st_size > 1000
