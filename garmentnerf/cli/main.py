@@ -9,7 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from garmentnerf.cli import body_cmd, bench_cmd, data_cmd, maps_cmd, motion_cmd, view_cmd
+from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd, train_cmd,
+                             view_cmd)
 
 
 class UserError(Exception):
@@ -29,6 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     data_cmd.register(sub)
     bench_cmd.register(sub)
     view_cmd.register(sub)
+    render_cmd.register(sub)
+    train_cmd.register(sub)
+    eval_cmd.register(sub)  # eval and report
     return parser
 
 
