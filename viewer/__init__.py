@@ -12,6 +12,8 @@ process):
   scene renderer that draws them into an off-screen target.
 * :mod:`~garmentnerf.viewer.worker` -- the render worker thread that will fill the neural layer.
 * :mod:`~garmentnerf.viewer.export` -- snapshots: off-screen render at any resolution, atomic PNG.
+* :mod:`~garmentnerf.viewer.exporter` -- the export thread: neural snapshots and mp4 videos (turntable or
+  timeline range) through the headless command's render path, with progress and cancel.
 * :mod:`~garmentnerf.viewer.panels` -- the imgui panels.
 * :mod:`~garmentnerf.viewer.app` -- the window, the main loop and its frame-time measurement.
 

@@ -28,6 +28,12 @@ ground truth, side by side, difference, body only, and the raw maps. With a fram
 the first neural frame, and ``GARMENTNERF_VIEWER_STATS=path.json`` writes the frame and neural-render
 statistics there when the window closes (test hooks).
 
+Snapshots and video export (:mod:`~garmentnerf.viewer.exporter`): in the "neural" view of a run a
+snapshot renders the network at full quality (``snapshot_quality`` >= 1, never the preview's) on the
+exporter's own thread through the headless command's path, and videos (turntable or timeline range)
+render there too; the window keeps drawing meanwhile, shows the progress and can cancel. Body-only
+snapshots (and those of the diagnostic view modes) are the GL scene, taken at once.
+
 HiDPI: the scene renders at the framebuffer size (pixels), imgui lays out in window units and its
 fonts are scaled by the window's content scale divided by the framebuffer/window ratio (on macOS
 the ratio already carries the scale; on Linux/Windows the content scale does).
@@ -46,7 +52,9 @@ import numpy as np
 
 from garmentnerf.viewer import panels
 from garmentnerf.viewer.camera import OrbitController
-from garmentnerf.viewer.export import check_size, save_snapshot
+from garmentnerf.viewer.export import check_size, save_snapshot, snapshot_name, video_name
+from garmentnerf.viewer.exporter import (MAX_QUALITY, MIN_SNAPSHOT_QUALITY, ExportJob, ExportSettings, Exporter,
+                                         plan_range, plan_turntable)
 from garmentnerf.viewer.quality import QualityController
 from garmentnerf.viewer.gui_libs import glfw, imgui
 from garmentnerf.viewer.scene_gl import RenderTarget, SceneRenderer, read_image
@@ -146,7 +154,7 @@ class App:
             stretched to the window; lower is faster on a software rasteriser. Snapshots ignore it.
         vsync: swap interval 1 (else 0: run flat out).
         visible: show the window (tests may hide it; rendering is the same).
-        snapshot_dir: where snapshots go; snapshot_size: their default resolution.
+        snapshot_dir: where snapshots (and exported videos) go; snapshot_size: their default resolution.
         max_frames: :meth:`run` returns after this many frames (default: $GARMENTNERF_VIEWER_FRAMES).
         fixed_dt: advance the timeline by this many seconds per frame instead of the measured time.
         playing: start playing.
@@ -220,6 +228,12 @@ class App:
         self.snapshot_dir = Path(snapshot_dir)
         self.snapshot_size = (int(snapshot_size[0]), int(snapshot_size[1]))
         self.last_snapshot: Path | None = None
+        # -- exports (snapshots of the network, videos): one job at a time on the exporter's thread --------
+        self.snapshot_quality = 1.0
+        self.export_settings = ExportSettings(range_last=self.sequence.num_frames - 1)
+        self.exporter: Exporter | None = None  # made at the first export (its thread and GL context)
+        self.export_job: ExportJob | None = None  # the newest job run by the exporter
+        self.last_export: Path | None = None
         self.palette_placeholder = [(0.75, 0.22, 0.20), (0.20, 0.36, 0.62), (0.86, 0.80, 0.66), (0.18, 0.18, 0.20)]
         self.fixed_dt = fixed_dt
         self.clock = clock
@@ -410,6 +424,10 @@ class App:
                              "last_error": st.last_error, "last_ms": st.last_ms,
                              "layer_has_image": self.scene.palette_layer.has_image, **self.neural_stats}
             out["palette"] = self.palette.tolist() if self.palette is not None else None
+        if self.export_job is not None:
+            p = self.export_job.progress()
+            out["export"] = {"kind": self.export_job.kind, "state": p.state, "done": p.done, "total": p.total,
+                             "seconds": p.elapsed_s, "written": self.export_job.written}
         return out
 
     def wait_for_neural(self, timeout: float = NEURAL_WAIT_SECONDS) -> bool:
@@ -485,6 +503,13 @@ class App:
         self._update_sizes()
         self._update_ui_scale()
 
+    def _make_current(self) -> None:
+        """Make the window's GL context current on this thread. A headless EGL context used on this
+        thread meanwhile (a test's reference render) is released first: see
+        :func:`_release_current_egl_context`."""
+        _release_current_egl_context()
+        glfw.make_context_current(self.window)
+
     def _destroy_window(self) -> None:
         global _OPEN_WINDOWS
         if getattr(self, "window", None) is not None:
@@ -500,6 +525,8 @@ class App:
             return
         self.closed = True
         self.loader.close()
+        if self.exporter is not None:
+            self.exporter.close()  # cancels a running export: it leaves no file
         if self.neural is not None:
             self.neural.stop()
         path = os.environ.get(ENV_STATS, "").strip()
@@ -511,7 +538,7 @@ class App:
             with atomic_write_path(path) as tmp:
                 tmp.write_text(json.dumps(self.stats(), indent=1, default=str), encoding="utf-8")
         if getattr(self, "window", None) is not None:
-            glfw.make_context_current(self.window)
+            self._make_current()
             if getattr(self, "imgui_ctx", None) is not None:
                 imgui.set_current_context(self.imgui_ctx)
                 imgui.backends.opengl3_shutdown()
@@ -603,9 +630,10 @@ class App:
             measured = min(MAX_STEP_SECONDS, max(0.0, start - self._last_time))
             dt = self.fixed_dt if self.fixed_dt is not None else measured
         self._last_time = start
-        glfw.make_context_current(self.window)
+        self._make_current()
         imgui.set_current_context(self.imgui_ctx)
         self._poll_loader()
+        self._poll_exports()
         self._update_sizes()
         fb_w, fb_h = self.framebuffer_size
         win_w, win_h = self.window_size
@@ -740,24 +768,166 @@ class App:
 
     def snapshot(self, width: int | None = None, height: int | None = None,
                  directory: str | Path | None = None) -> Path:
-        """Render the current view off-screen at ``width`` x ``height`` (default: the snapshot size) and
-        write a PNG under ``directory`` (default: the snapshot folder); returns its path. Never
-        overwrites: a taken name gets a numbered suffix."""
+        """Take a snapshot (see :meth:`start_snapshot`) and wait for it, drawing frames meanwhile;
+        returns its path. RuntimeError when it was cancelled or failed."""
+        return self.wait_export(self.start_snapshot(width, height, directory))
+
+    def snapshot_is_neural(self) -> bool:
+        """Whether a snapshot renders the network (a run's "neural" view) rather than the GL scene."""
+        return self.run_data is not None and self.view_mode == "neural"
+
+    def start_snapshot(self, width: int | None = None, height: int | None = None,
+                       directory: str | Path | None = None) -> ExportJob:
+        """Snapshot the current view at ``width`` x ``height`` (default: the snapshot size) into
+        ``directory`` (default: the snapshot folder). Never overwrites: a taken name gets a numbered suffix.
+
+        The network's view (:meth:`snapshot_is_neural`) renders on the exporter's thread at
+        ``snapshot_quality`` (>= 1) with the current palette, exactly as ``garmentnerf render``
+        does; the returned job is still running (RuntimeError when another export runs). Other
+        views are the GL scene, rendered off-screen at once: the returned job is already done.
+        """
         w, h = (width or self.snapshot_size[0]), (height or self.snapshot_size[1])
-        glfw.make_context_current(self.window)
-        self._sync_scene()
-        path = save_snapshot(self.scene, self.controller, w, h, directory or self.snapshot_dir, self.sequence.name,
-                             self.timeline.frame)
-        self.last_snapshot = path
-        return path
+        check_size(w, h, "snapshot size")
+        directory = Path(directory) if directory is not None else self.snapshot_dir
+        if not self.snapshot_is_neural():
+            self._make_current()
+            self._sync_scene()
+            path = save_snapshot(self.scene, self.controller, w, h, directory, self.sequence.name,
+                                 self.timeline.frame)
+            return ExportJob.completed("snapshot", path)
+        frame = self.timeline.frame
+        self.controller.update_anchor(self.sequence.centers[frame])  # the camera the window shows
+        quality = min(MAX_QUALITY, max(MIN_SNAPSHOT_QUALITY, self.snapshot_quality))
+        job = ExportJob("snapshot", [(frame, self.controller.camera(w, h))],
+                        directory / snapshot_name(self.sequence.name, frame), source="neural", quality=quality,
+                        palette=self.palette.copy(), motion=self.neural_motion, fps=self.sequence.fps)
+        return self._submit_export(job)
+
+    def set_snapshot_quality(self, quality: float) -> None:
+        """Render quality of neural snapshots, clamped to [1, 4] (1: the training pixel density)."""
+        if math.isfinite(quality):
+            self.snapshot_quality = min(MAX_QUALITY, max(MIN_SNAPSHOT_QUALITY, float(quality)))
 
     def _snapshot_with_status(self) -> None:
         try:
-            path = self.snapshot()
-        except (OSError, ValueError) as exc:
+            job = self.start_snapshot()
+        except (OSError, ValueError, RuntimeError) as exc:
             self._set_status(f"snapshot failed: {exc}")
+            return
+        if job.finished:
+            self._report_export(job)
+
+    # ---- video export ---------------------------------------------------------------------------------
+    def export_source(self) -> str:
+        """``"neural"`` (the run's network) unless no run is loaded or the view shows the body only."""
+        return "neural" if self.run_data is not None and self.view_mode != "body" else "body"
+
+    @property
+    def exporting(self) -> bool:
+        """Whether an export job (neural snapshot or video) is queued or running."""
+        return self.export_job is not None and not self.export_job.finished
+
+    def set_export_range(self, first: int, last: int) -> None:
+        """Timeline range of range exports, inclusive (clamped to the clip; ``last`` >= ``first``)."""
+        top = self.timeline.last_frame
+        first = min(max(0, int(first)), top)
+        self.export_settings.range_first = first
+        self.export_settings.range_last = min(max(first, int(last)), top)
+
+    def set_export_size(self, width: int, height: int) -> None:
+        try:
+            check_size(int(width), int(height), "video size")
+        except ValueError as exc:
+            self._set_status(str(exc))
+            return
+        self.export_settings.size = (int(width), int(height))
+
+    def export_plan(self, settings: ExportSettings | None = None) -> tuple[list, str]:
+        """((frame, camera) per output frame, file label) of a video with ``settings`` (default: the
+        panel's) from the current view."""
+        s = settings or self.export_settings
+        s.check(self.sequence.num_frames)
+        frame, centers = self.timeline.frame, self.sequence.centers
+        self.controller.update_anchor(centers[frame])
+        if s.mode == "turntable":
+            plan = plan_turntable(self.controller, s.size, s.turntable_frames, frame, self.sequence.num_frames,
+                                  s.turntable_plays, centers)
+            return plan, "turntable" if s.turntable_plays else f"turntable_f{frame:04d}"
+        plan = plan_range(self.controller, s.size, s.range_first, s.range_last, centers)
+        return plan, f"f{s.range_first:04d}-{s.range_last:04d}"
+
+    def start_video_export(self, settings: ExportSettings | None = None,
+                           directory: str | Path | None = None) -> ExportJob:
+        """Start an mp4 export (turntable or timeline range, see :class:`ExportSettings`) into
+        ``directory`` (default: the snapshot folder) under a never-overwritten name; returns the
+        running job. ValueError for bad settings, RuntimeError while another export runs."""
+        s = settings or self.export_settings
+        plan, label = self.export_plan(s)
+        directory = Path(directory) if directory is not None else self.snapshot_dir
+        options = {"floor": self.scene.floor.visible, "grid": self.scene.floor.show_lines,
+                   "body": self.scene.body.visible,
+                   "samples": self.scene.snapshot_samples}
+        job = ExportJob("video", plan, directory / video_name(self.sequence.name, label), source=self.export_source(),
+                        quality=s.quality, palette=None if self.palette is None else self.palette.copy(),
+                        motion=self.neural_motion, fps=self.sequence.fps, sequence=self.sequence,
+                        scene_options=options)
+        return self._submit_export(job)
+
+    def start_export_with_status(self) -> None:
+        """The Export panel's Start: errors go to the status line, never up."""
+        try:
+            self.start_video_export()
+        except (OSError, ValueError, RuntimeError) as exc:
+            self._set_status(f"export failed: {exc}")
+
+    def cancel_export(self) -> None:
+        """Cancel the running export (it leaves no file)."""
+        if self.exporting:
+            self.export_job.cancel()
+            self._set_status(f"{self.export_job.label}: cancelling ...")
+
+    def wait_export(self, job: ExportJob, timeout: float | None = None) -> Path:
+        """Keep drawing frames until ``job`` has finished; returns the file it wrote. RuntimeError
+        when it was cancelled, failed, or did not finish within ``timeout`` seconds. For scripts and
+        tests (it runs the loop itself): not from inside a frame."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not job.finished and (deadline is None or time.monotonic() < deadline):
+            if self.closed or not self.step():
+                job.wait(None if deadline is None else max(0.0, deadline - time.monotonic()))
+                break
+            job.wait(0.01)  # leave the CPU to the export between UI frames
+        if not job.finished:
+            raise RuntimeError(f"{job.label} did not finish within {timeout} s")
+        self._report_export(job)
+        if job.state != "done":
+            raise RuntimeError(job.status_line())
+        return job.written
+
+    def _submit_export(self, job: ExportJob) -> ExportJob:
+        if self.exporter is None:
+            self.exporter = Exporter(self.run_data)
+        self.exporter.submit(job)
+        self.export_job = job  # its progress shows in the timeline bar and the panels until it ends
+        return job
+
+    def _poll_exports(self) -> None:
+        """UI thread, once per frame: tell the user how a finished export ended."""
+        job = self.export_job
+        if job is not None and job.finished and not job.reported:
+            self._report_export(job)
+
+    def _report_export(self, job: ExportJob) -> None:
+        if job.reported:
+            return
+        job.reported = True
+        if job.state == "done":
+            if job.kind == "snapshot":
+                self.last_snapshot = job.written
+            else:
+                self.last_export = job.written
+            self._set_status(f"saved {job.written}")
         else:
-            self._set_status(f"saved {path}")
+            self._set_status(job.status_line())
 
     # ---- motions ------------------------------------------------------------------------------------------
     def _scene_sequences(self) -> list[str]:
@@ -805,6 +975,7 @@ class App:
             self.scene.palette_layer.submit_ground_truth(None)
         self._sequence_serial += 1
         self.timeline.reset(sequence.num_frames, sequence.fps)
+        self.set_export_range(0, sequence.num_frames - 1)
         self._aim_home(sequence)  # R now centres the new clip; the current view stays
         self._set_status(f"{sequence.name}: {sequence.num_frames} frames")
         if getattr(self, "window", None) is not None:
@@ -840,29 +1011,42 @@ def _env_frames() -> int | None:
     return int(text)
 
 
+_EGL_LIBRARY = None  # libEGL once the process has loaded it (it stays loaded)
+
+
+def _loaded_egl():
+    """The process's libEGL, or None while it is not loaded (then no EGL context can be current)."""
+    global _EGL_LIBRARY
+    if _EGL_LIBRARY is None and hasattr(os, "RTLD_NOLOAD"):
+        for name in ("libEGL.so.1", "libEGL.so"):
+            try:
+                _EGL_LIBRARY = ctypes.CDLL(name, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
+                break
+            except OSError:
+                continue
+    return _EGL_LIBRARY
+
+
 def _release_current_egl_context() -> None:
     """Unbind an EGL context current on this thread (e.g. a headless one made earlier in the process).
 
-    With Mesa, the first glXMakeCurrent of a process (GLFW makes the new window's context current)
-    fails with BadAccess while an EGL context is current, and Xlib's default handler then exits the
-    process. eglReleaseThread unbinds it; the EGL context stays valid and is made current again by
-    whoever uses it next (garmentnerf's passes always make their context current first). Only done
-    when libEGL is already loaded: otherwise no EGL context can be current.
+    With Mesa, a glXMakeCurrent fails with BadAccess while an EGL context is current on the thread
+    when no GLX context was current before (seen for the process's first, and for the first after
+    another window was destroyed), and Xlib's default handler then exits the process. The window
+    therefore calls this before each make-current (:meth:`App._make_current`; a few microseconds). eglReleaseThread unbinds it; the EGL context
+    stays valid and is made current again by whoever uses it next (garmentnerf's passes always make
+    their context current first). Only done when libEGL is already loaded: otherwise no EGL context
+    can be current.
     """
-    if not hasattr(os, "RTLD_NOLOAD"):
+    egl = _loaded_egl()
+    if egl is None:
         return
-    for name in ("libEGL.so.1", "libEGL.so"):
-        try:
-            egl = ctypes.CDLL(name, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
-        except OSError:
-            continue
-        try:
-            egl.eglGetCurrentContext.restype = ctypes.c_void_p
-            if egl.eglGetCurrentContext():
-                egl.eglReleaseThread()
-        except AttributeError:
-            pass
-        return
+    try:
+        egl.eglGetCurrentContext.restype = ctypes.c_void_p
+        if egl.eglGetCurrentContext():
+            egl.eglReleaseThread()
+    except AttributeError:
+        pass
 
 
 def _glfw_error() -> str:

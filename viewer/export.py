@@ -1,4 +1,9 @@
-"""Snapshots: the scene rendered off-screen at a chosen resolution, saved as PNG.
+"""Snapshots: the scene rendered off-screen at a chosen resolution, saved as PNG; export file names.
+
+This module holds the GL snapshot (body only, and the viewer's diagnostic view modes), taken at once
+on the UI thread. Snapshots of the neural garment and videos take longer and render on their own
+thread through the headless command's path: see :mod:`~garmentnerf.viewer.exporter`, which writes
+its PNGs with :func:`write_png` (the same names and never-overwrite rule).
 
 The snapshot resolution is independent of the window: the camera controller produces a camera of
 the requested size (same vertical field of view; the horizontal extent follows the aspect ratio) and
@@ -39,10 +44,20 @@ def check_size(width: int, height: int, what: str = "size") -> None:
         raise ValueError(f"{what} {width}x{height} is out of range (1..{MAX_SIDE} per side)")
 
 
+def _safe_stem(motion: str) -> str:
+    """``motion``'s name with characters unsafe in file names replaced."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", Path(str(motion)).stem or "body").strip("-.") or "body"
+
+
 def snapshot_name(motion: str, frame: int) -> str:
     """File name for a snapshot of ``motion`` at ``frame`` (characters unsafe in file names replaced)."""
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", Path(str(motion)).stem or "body").strip("-.") or "body"
-    return f"{safe}_f{int(frame):04d}.png"
+    return f"{_safe_stem(motion)}_f{int(frame):04d}.png"
+
+
+def video_name(motion: str, label: str) -> str:
+    """File name of a video export, e.g. ``walk_turntable.mp4`` or ``walk_f0003-0010.mp4``."""
+    tag = re.sub(r"[^A-Za-z0-9_.-]+", "-", str(label)).strip("-.") or "video"
+    return f"{_safe_stem(motion)}_{tag}.mp4"
 
 
 def write_png(image: np.ndarray, path: str | Path, attempts: int = 20) -> Path:

@@ -10,6 +10,7 @@ import math
 from typing import TYPE_CHECKING
 
 from garmentnerf.viewer.camera import PRESETS
+from garmentnerf.viewer.exporter import EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY, MIN_SNAPSHOT_QUALITY
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.shortcuts import MOUSE_HELP, help_rows
 from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED
@@ -75,6 +76,8 @@ def draw_timeline(app: "App") -> None:
     if message:
         imgui.same_line()
         imgui.text_disabled(f"  {message}")
+    if app.exporting:  # a row of its own while an export runs, whichever panels are open
+        _export_progress(app.export_job, -1.0)
     imgui.set_next_item_width(-1.0)
     changed, frame = imgui.slider_int("##frame", tl.frame, 0, tl.last_frame, "%d")
     app.scrubbing = imgui.is_item_active()
@@ -97,6 +100,7 @@ def draw_controls(app: "App") -> None:
         _neural_section(app, em)
         _palette_section(app)
         _snapshot_section(app, em)
+        _export_section(app, em)
         imgui.separator()
         imgui.text_disabled("H or F1: shortcuts and mouse help")
     imgui.end()
@@ -238,14 +242,96 @@ def _snapshot_section(app: "App", em: float) -> None:
     changed, size = imgui.input_int2("Size (px)", list(app.snapshot_size))
     if changed:
         app.set_snapshot_size(*size)
+    if app.run_data is not None:
+        imgui.set_next_item_width(-6 * em)
+        changed, q = imgui.slider_float("Quality##snapshot", app.snapshot_quality, MIN_SNAPSHOT_QUALITY, MAX_QUALITY,
+                                        "%.2f")
+        if changed:
+            app.set_snapshot_quality(q)
+    neural = app.snapshot_is_neural()
+    imgui.text_disabled("the network's image, as garmentnerf render" if neural else "the GL scene of this view")
+    busy = neural and app.exporting  # one export at a time; GL snapshots never wait
+    imgui.begin_disabled(busy)
     if imgui.button("Window size"):
         app.set_snapshot_size(*app.framebuffer_size)
     imgui.same_line()
     if imgui.button("Save PNG (S)"):
         app.do("snapshot")
+    imgui.end_disabled()
+    job = app.export_job
+    if job is not None and job.kind == "snapshot" and not job.finished:
+        _export_progress(job, -1.0)
+        if imgui.button("Cancel snapshot"):
+            app.cancel_export()
     imgui.text_disabled(f"into {app.snapshot_dir}")
     if app.last_snapshot is not None:
         imgui.text_wrapped(f"last: {app.last_snapshot}")
+
+
+def _export_section(app: "App", em: float) -> None:
+    if not imgui.collapsing_header("Export video"):
+        return
+    s = app.export_settings
+    imgui.begin_disabled(app.exporting)  # the settings of a running export are fixed
+    modes = list(EXPORT_MODES)
+    imgui.set_next_item_width(-6 * em)
+    changed, index = imgui.combo("Mode", modes.index(s.mode), [EXPORT_MODES[m] for m in modes])
+    if changed:
+        s.mode = modes[index]
+    imgui.set_next_item_width(-6 * em)
+    if s.mode == "turntable":
+        changed, count = imgui.input_int("Frames", s.turntable_frames, 1, 10)
+        if changed:
+            s.turntable_frames = min(MAX_VIDEO_FRAMES, max(1, count))
+        _, s.turntable_plays = imgui.checkbox("Motion plays during the turn", s.turntable_plays)
+    else:
+        changed, frames = imgui.input_int2("Frames A..B", [s.range_first, s.range_last])
+        if changed:
+            app.set_export_range(*frames)
+        if imgui.button("Whole clip"):
+            app.set_export_range(0, app.timeline.last_frame)
+        imgui.same_line()
+        if imgui.button("From this frame"):
+            app.set_export_range(app.timeline.frame, s.range_last)
+    imgui.set_next_item_width(-6 * em)
+    changed, size = imgui.input_int2("Size (px)##export", list(s.size))
+    if changed:
+        app.set_export_size(*size)
+    neural = app.export_source() == "neural"
+    if neural:
+        imgui.set_next_item_width(-6 * em)
+        changed, q = imgui.slider_float("Quality##export", s.quality, MIN_QUALITY, MAX_QUALITY, "%.2f",
+                                        imgui.SliderFlags_.logarithmic)
+        if changed:
+            s.quality = q
+    imgui.end_disabled()
+    count = s.turntable_frames if s.mode == "turntable" else s.range_last - s.range_first + 1
+    what = "the network's image" if neural else "the GL scene"
+    imgui.text_disabled(f"{count} frames at {app.sequence.fps:g} fps, {what}")
+    job = app.export_job
+    if app.exporting and job.kind == "video":
+        _export_progress(job, -1.0)
+        if imgui.button("Cancel export"):
+            app.cancel_export()
+    else:
+        imgui.begin_disabled(app.exporting)  # a snapshot is rendering: one export at a time
+        if imgui.button("Start export"):
+            app.start_export_with_status()
+        imgui.end_disabled()
+    if job is not None and job.finished and job.state == "failed":
+        imgui.text_colored(imgui.ImVec4(1.0, 0.45, 0.4, 1.0), f"{job.label} failed:")
+        imgui.text_wrapped(job.error)
+    if app.last_export is not None:
+        imgui.text_wrapped(f"last: {app.last_export}")
+
+
+def _export_progress(job, width: float, overlay: str | None = None) -> None:
+    """A progress bar of ``job`` with ``overlay`` over it (default: its status line: frames, ETA);
+    ``width`` -1: the panel's."""
+    p = job.progress()
+    # a negative, moving value is imgui's indeterminate bar (a single frame reports no progress)
+    fraction = p.fraction if p.fraction is not None else -1.0 * imgui.get_time()
+    imgui.progress_bar(fraction, imgui.ImVec2(width, 0.0), job.status_line() if overlay is None else overlay)
 
 
 # ---- stats overlay (top right) ------------------------------------------------------------------

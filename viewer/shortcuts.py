@@ -44,7 +44,7 @@ SHORTCUTS: tuple[Shortcut, ...] = (
     Shortcut(("r",), "reset_camera", "camera: reset to the home view"),
     Shortcut(("t",), "toggle_follow", "camera: follow the body on / off"),
     Shortcut(("g",), "toggle_grid", "floor grid on / off"),
-    Shortcut(("s",), "snapshot", "save a snapshot PNG (off-screen, snapshot resolution)"),
+    Shortcut(("s",), "snapshot", "save a snapshot PNG (snapshot resolution; the network at full quality in the neural view)"),
     Shortcut(("v",), "next_view_mode", "next view mode (neural, ground truth, side by side, difference, body, maps)"),
     Shortcut(("tab",), "toggle_ui", "hide / show the panels"),
     Shortcut(("h", "f1"), "toggle_help", "this help"),
