@@ -160,3 +160,43 @@ def test_palette_module_and_init_from_labels():
         module.colours[0, 0] = 1.5  # drifted out of range by an optimiser step
     assert module().max() == 1.0
     torch.testing.assert_close(module.initial, p)
+
+
+def test_restoring_sigmoid_forward_and_gradient():
+    from garmentnerf.model.palette import RESTORING_SIGMOID_FLOOR, restoring_sigmoid
+
+    x = torch.tensor([-16.0, -16.0, 0.5, 16.0, 16.0], dtype=torch.float64, requires_grad=True)
+    y = restoring_sigmoid(x)
+    assert torch.allclose(y, torch.sigmoid(x.detach()), atol=0, rtol=0)
+    # L1 towards targets: up for the first (restoring), down for the second (further into saturation)
+    target = torch.tensor([1.0, 0.0, 1.0, 1.0, 0.0], dtype=torch.float64)
+    (y - target).abs().sum().backward()
+    s = torch.sigmoid(x.detach())
+    plain = s * (1 - s)  # analytic sigmoid slope
+    expect = torch.sign(s - target) * plain
+    expect[0] = -RESTORING_SIGMOID_FLOOR  # saturated low, pulled up: the floor
+    expect[4] = RESTORING_SIGMOID_FLOOR  # saturated high, pushed down: the floor
+    assert torch.allclose(x.grad, expect, rtol=1e-12, atol=1e-15), (x.grad, expect)
+    # in the sensitive region it is the plain sigmoid: finite differences
+    xs = torch.linspace(-3, 3, 13, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: restoring_sigmoid(t), (xs,))
+
+
+def test_opacity_loss_against_block_means():
+    from garmentnerf.model.losses import opacity_loss
+
+    mask = torch.zeros(1, 1, 4, 4)
+    mask[0, 0, :2, :2] = 1.0  # top-left 2x2 block full
+    mask[0, 0, 2, 2] = 1.0  # one of four pixels of the bottom-right block
+    opacity = torch.tensor([[[1.0, 0.5], [0.0, 0.0]]])
+    # block means: [[1, 0], [0, 0.25]] -> |diff| = [[0, 0.5], [0, 0.25]] -> mean 0.1875
+    assert float(opacity_loss(opacity, mask)) == pytest.approx(0.1875, abs=1e-7)
+
+
+def test_density_scale_multiplies_the_activation():
+    from garmentnerf.model.nerf_mlp import density_activation
+
+    raw = torch.linspace(-5, 5, 11)
+    for kind, act in (("softplus", torch.nn.functional.softplus), ("trunc_exp", torch.exp)):
+        got = density_activation(raw, kind, bias=-3.0, scale=10.0)
+        assert torch.allclose(got, 10.0 * act(raw - 3.0), rtol=1e-6)

@@ -274,6 +274,75 @@ def test_measure_height_range(tiny_scene, body, projector):
         HeightRange(0.2, 0.1)
 
 
+def test_per_vertex_band_is_tight_where_the_garment_never_goes(tiny_scene, body, projector):
+    import trimesh
+
+    band = measure_height_range(tiny_scene, body, projector=projector, rings=2)
+    v = band.vertex_h_max
+    assert v is not None and v.shape == (projector.canonical_vertices.shape[0],)
+    assert float(v.min()) == pytest.approx(0.03, abs=1e-6)  # bare skin: just the margin
+    assert float(v.max()) == pytest.approx(band.h_max, abs=1e-6)
+    assert float((v > 0.05).float().mean()) < 0.5  # the tiny scene's garment covers a minority
+    # every garment vertex lies under its face's interpolated bound (what the cull relies on)
+    from garmentnerf.data.scene import read_garment_arrays
+
+    g = read_garment_arrays(tiny_scene.garment_path("train"))
+    motion = tiny_scene.load_motion("train")
+    posed = motion.slice(1, 2).pose(body, body.betas("average")).vertices[0].float()
+    proj = projector.project(torch.from_numpy(g.vertices[1]).float(), posed)
+    bound = band.upper_bound(proj.face, proj.bary, projector.faces)
+    assert bool((proj.signed_distance <= bound + 1e-6).all())
+    # dilation: the value spreads exactly over the mesh's k-ring (graph distance from trimesh)
+    faces = projector.faces.cpu().numpy()
+    mesh = trimesh.Trimesh(projector.canonical_vertices.cpu().numpy(), faces, process=False)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    e = mesh.edges_unique
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(len(mesh.vertices),) * 2)
+    seed = int(faces[0, 0])
+    hops = shortest_path(graph, directed=False, unweighted=True, indices=seed)
+    rings = np.flatnonzero(hops <= 3).tolist()
+    one = torch.zeros(mesh.vertices.shape[0])
+    one[seed] = 1.0
+    from garmentnerf.model.samplers_culled import dilate_vertex_values
+
+    got = set(torch.nonzero(dilate_vertex_values(one, projector.faces, 3)).squeeze(1).tolist())
+    assert got == set(rings)
+
+
+def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, posed, projector):
+    clip, _ = posed
+    verts = clip.vertices[2].float()
+    V = verts.shape[0]
+    reach = 0.03
+    thin = HeightRange(-0.05, 0.30, vertex_h_max=torch.full((V,), reach))
+    wide = HeightRange(-0.05, 0.30)
+    cam = CAMERA.resized(40, 40)
+    origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
+    aabb = body_aabb(verts)
+    kept = {}
+    for name, band in (("thin", thin), ("wide", wide)):
+        s = ShellSampler(64, band, faces=projector.faces, gl_context=gl_context)
+        s.bind(verts, cam)
+        kept[name] = s.sample(origins, dirs, aabb, pixel_index=torch.arange(origins.shape[0]))
+        s.release()
+    # Conservative: every box sample within the thin reach of the skin (trimesh) is kept ...
+    box = BoxStratifiedSampler(64).sample(origins, dirs, aabb).to_packed()
+    dist = _surface_distance(box.positions.double().numpy(), verts.double().numpy(), projector.faces.numpy(), reach)
+    near = dist <= reach
+    have = _keys(kept["thin"].ray_ids, kept["thin"].t_starts)
+    box_keys = list(zip(box.ray_ids.tolist(), np.round(box.t_starts.double().numpy() * 1e4).astype(np.int64).tolist()))
+    assert near.sum() > 500 and not [k for k, n in zip(box_keys, near) if n and k not in have]
+    # ... and far fewer samples than the uniform shell keeps.
+    assert kept["thin"].positions.shape[0] < 0.6 * kept["wide"].positions.shape[0], (
+        kept["thin"].positions.shape[0], kept["wide"].positions.shape[0])
+    # The per-sample bound interpolates the vertex values: constant here.
+    proj = projector.project(kept["thin"].positions.float(), verts)
+    bound = thin.upper_bound(proj.face, proj.bary, projector.faces)
+    assert torch.allclose(bound, torch.full_like(bound, reach))
+
+
 def test_presets_apply_and_render(gl_context, model_and_frame):
     from garmentnerf.perf.presets import PRESETS, apply_preset, get_preset
 

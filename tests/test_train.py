@@ -156,6 +156,32 @@ def test_cli_train(tiny_scene, tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err
 
 
+def test_cli_init_generator_skips_pretraining_with_the_same_g_img(tiny_scene, tmp_path, capsys):
+    from safetensors.torch import load_file
+
+    from garmentnerf.cli.main import main
+
+    first, second = tmp_path / "first", tmp_path / "second"
+    common = ["--scene", str(tiny_scene.root), "--preset", "tiny", "--generator-iterations", "2",
+              "--no-progress", "--threads", "1", "--perceptual", "none"]
+    assert main(["train", "--out", str(first), "--iterations", "1", *common]) == 0
+    donor = load_file(str(first / "model.safetensors"))
+    args = ["train", "--out", str(second), "--iterations", "2", "--stop-after", "3",
+            "--init-generator", str(first / "model.safetensors"), *common]
+    assert main(args) == 0
+    assert "pre-training skipped, starting at step 2" in capsys.readouterr().err
+    trained = load_file(str(second / "model.safetensors"))
+    g_keys = [k for k in donor if k.startswith("image_generator.")]
+    assert g_keys and all(torch.equal(donor[k], trained[k]) for k in g_keys)  # frozen in stage 2
+    assert load_run(second).step == 3
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a weights file")
+    assert main(["train", "--out", str(tmp_path / "third"), "--iterations", "1", "--init-generator", str(bad),
+                 *common]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "Traceback" not in err
+
+
 # ---------------------------------------------------------------------------------------- DDP
 def _free_port() -> int:
     with socket.socket() as s:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 
 
 def register(sub) -> None:
@@ -35,6 +36,9 @@ def register(sub) -> None:
                    help="perceptual loss (auto: VGG19 with --vgg19-weights, else shift-tolerant LPIPS)")
     p.add_argument("--vgg19-weights", default=None, metavar="PTH",
                    help="torchvision ImageNet VGG19 weights (vgg19-dcbb9e9d.pth); default $GARMENTNERF_VGG19")
+    p.add_argument("--init-generator", default=None, metavar="SAFETENSORS",
+                   help="start a new run from the pre-trained G_img in this weights file (a run's "
+                        "model.safetensors or checkpoint) and skip G_img pre-training")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -70,9 +74,18 @@ def run(args: argparse.Namespace) -> int:
                      stop_after=args.stop_after, log_every=args.log_every, image_every=args.image_every,
                      ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames, args.scene),
                      perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, threads=args.threads,
-                     progress=not args.no_progress)
+                     progress=not args.no_progress, init_generator=args.init_generator)
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")
-    with Trainer(tc) as trainer:
-        result = trainer.train()
+    # `kill` (SIGTERM, what schedulers and `timeout` send) saves a checkpoint like Ctrl-C does.
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        with Trainer(tc) as trainer:
+            result = trainer.train()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 130 if result.interrupted else 0
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt

@@ -49,10 +49,22 @@ def palette_loss(palette: torch.Tensor, initial: torch.Tensor) -> torch.Tensor:
     return (palette - initial).square().sum()
 
 
+def opacity_loss(opacity: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
+    """L1 between opacity (B, h, w) and the mask (B, 1, H, W) area-averaged to (h, w)."""
+    import torch.nn.functional as F
+
+    if target_mask.ndim == 3:
+        target_mask = target_mask.unsqueeze(1)
+    if opacity.ndim == 2:
+        opacity = opacity.unsqueeze(0)
+    target = F.adaptive_avg_pool2d(target_mask.to(opacity.dtype), tuple(opacity.shape[-2:]))[:, 0]
+    return (opacity - target).abs().mean()
+
+
 def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: DecomposedMaps,
                    target_mask: torch.Tensor, palette: torch.Tensor, palette_initial: torch.Tensor, cfg,
-                   perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
-                   ) -> dict[str, torch.Tensor]:
+                   perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                   opacity: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """All loss terms of one batch.
 
     Args:
@@ -65,9 +77,11 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         cfg: anything with the weights ``w_image, w_mask, w_perceptual, w_sparsity, w_offset,
             w_palette`` (a :class:`~garmentnerf.model.config.ModelConfig`).
         perceptual: optional ``(pred, target) -> scalar``; its term is left out when None.
+        opacity: optional (B, h, w) accumulated opacity of the feature rays; with ``cfg.w_opacity``
+            > 0 it is held to the target mask area-averaged to (h, w) (:func:`opacity_loss`).
     Returns:
-        dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette`` and
-        ``total``, the weighted sum.
+        dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette,
+        [opacity]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
@@ -80,7 +94,10 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     terms["sparsity"] = sparsity_loss(maps.weights)
     terms["offset"] = offset_loss(maps.offsets)
     terms["palette"] = palette_loss(palette, palette_initial)
+    w_opacity = float(getattr(cfg, "w_opacity", 0.0))
+    if opacity is not None and w_opacity > 0:
+        terms["opacity"] = opacity_loss(opacity, target_mask)
     weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
-               "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette}
+               "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity}
     terms["total"] = sum(weights[name] * value for name, value in terms.items())
     return terms

@@ -45,12 +45,13 @@ def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     return _TruncExp.apply(x)
 
 
-def density_activation(raw: torch.Tensor, kind: str = "softplus", bias: float = -1.0) -> torch.Tensor:
-    """Density sigma >= 0 (1/metre) from the raw head output; same shape."""
+def density_activation(raw: torch.Tensor, kind: str = "softplus", bias: float = -1.0,
+                       scale: float = 1.0) -> torch.Tensor:
+    """Density sigma >= 0 (1/metre) from the raw head output: ``scale * act(raw + bias)``; same shape."""
     if kind == "softplus":
-        return F.softplus(raw + bias)
+        return scale * F.softplus(raw + bias)
     if kind == "trunc_exp":
-        return trunc_exp(raw + bias)
+        return scale * trunc_exp(raw + bias)
     raise ValueError(f"unknown density activation {kind!r} (known: 'softplus', 'trunc_exp')")
 
 
@@ -78,7 +79,7 @@ class GarmentNeRF(nn.Module):
 
     def __init__(self, detail_dim: int = 8, dynamic_dim: int = 8, appearance_dim: int = 128, depth: int = 6,
                  width: int = 256, density_activation: str = "softplus", density_bias: float = -1.0,
-                 positional_encoding_freqs: int = 0):
+                 positional_encoding_freqs: int = 0, density_scale: float = 1.0):
         super().__init__()
         if density_activation not in ("softplus", "trunc_exp"):
             raise ValueError(f"unknown density activation {density_activation!r}")
@@ -87,6 +88,7 @@ class GarmentNeRF(nn.Module):
         self.appearance_dim = appearance_dim
         self.density_kind = density_activation
         self.density_bias = density_bias
+        self.density_scale = float(density_scale)
         self.num_freqs = positional_encoding_freqs
         self.input_dim = 3 * (1 + 2 * positional_encoding_freqs) + 1 + detail_dim + dynamic_dim
         layers: list[nn.Module] = []
@@ -101,7 +103,7 @@ class GarmentNeRF(nn.Module):
         return cls(cfg.detail_feature_dim if cfg.use_detail_feature else 0,
                    cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0,
                    cfg.appearance_dim, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
-                   cfg.positional_encoding_freqs)
+                   cfg.positional_encoding_freqs, cfg.density_scale)
 
     def _check(self, name: str, value: torch.Tensor | None, dim: int, n: int) -> None:
         if dim == 0:
@@ -134,5 +136,6 @@ class GarmentNeRF(nn.Module):
         parts = [positional_encoding(canonical, self.num_freqs), distance.unsqueeze(-1)]
         parts += [f for f in (detail, dynamic) if f is not None]
         hidden = self.trunk(torch.cat(parts, dim=-1))
-        sigma = density_activation(self.density_head(hidden).squeeze(-1), self.density_kind, self.density_bias)
+        sigma = density_activation(self.density_head(hidden).squeeze(-1), self.density_kind, self.density_bias,
+                                   self.density_scale)
         return sigma, self.appearance_head(hidden)

@@ -62,6 +62,43 @@ def restoring_clamp(x: torch.Tensor) -> torch.Tensor:
     return _RestoringClamp.apply(x)
 
 
+#: Smallest slope :func:`restoring_sigmoid` passes back towards the sigmoid's sensitive region.
+RESTORING_SIGMOID_FLOOR = 0.02
+
+
+class _RestoringSigmoid(torch.autograd.Function):
+    """sigmoid(x) whose backward slope is at least ``floor`` where descent moves x towards 0."""
+
+    @staticmethod
+    def forward(ctx, x, floor):
+        y = torch.sigmoid(x)
+        ctx.save_for_backward(x, y)
+        ctx.floor = floor
+        return y
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, y = ctx.saved_tensors
+        slope = y * (1.0 - y)
+        # Descent moves x by -grad: towards 0 from below when grad < 0, from above when grad > 0.
+        restoring = ((x < 0) & (grad < 0)) | ((x > 0) & (grad > 0))
+        slope = torch.where(restoring, slope.clamp_min(ctx.floor), slope)
+        return grad * slope, None
+
+
+def restoring_sigmoid(x: torch.Tensor, floor: float = RESTORING_SIGMOID_FLOOR) -> torch.Tensor:
+    """sigmoid(x), except that a saturated unit the loss wants back still gets a gradient.
+
+    Why: with an L1 mask loss on mostly-background images the cheapest early descent is to push
+    every mask logit far below 0; the plain sigmoid's slope there (~1e-7 at x = -16) then starves
+    the foreground pixels, the features that feed the mask get no gradient, and training stays
+    at an all-black image. Here a foreground pixel at x = -16 is pulled up with slope ``floor``,
+    while a background pixel is never pushed further into saturation faster than the plain
+    sigmoid would (no drift of the logits to -inf).
+    """
+    return _RestoringSigmoid.apply(x, float(floor))
+
+
 def check_palette(palette: torch.Tensor) -> None:
     """Raise ValueError unless ``palette`` is (P, 3), finite and in [0, 1]."""
     if palette.ndim != 2 or palette.shape[-1] != 3:
@@ -197,7 +234,7 @@ class PaletteDecoder(nn.Module):
         offsets = self.offset_scale * torch.tanh(o_raw).view(B, P, 3, H, W)
         w = F.softplus(w_raw) + self.weight_floor
         weights = w / w.sum(dim=1, keepdim=True)
-        return DecomposedMaps(radiance, offsets, weights, torch.sigmoid(m_raw))
+        return DecomposedMaps(radiance, offsets, weights, restoring_sigmoid(m_raw))
 
 
 class Palette(nn.Module):

@@ -153,6 +153,8 @@ class _SampleGeometry:
     uv: torch.Tensor  # (n, 2)
     closest: torch.Tensor  # (n, 3) b_t
     normal: torch.Tensor | None  # (n, 3) unit normal at b_t (soft_normal mode only)
+    face: torch.Tensor | None = None  # (n,) skin face of b_t
+    bary: torch.Tensor | None = None  # (n, 3) barycentric coordinates of b_t in that face
 
 
 class _Stopwatch:
@@ -401,7 +403,8 @@ class GarmentAnimationNeRF(nn.Module):
             normal = None
             if self.cfg.use_detail_feature and self.cfg.detail_selection == "soft_normal":
                 normal = F.normalize(interpolate(frame.vertex_normals, P.faces, proj.face, proj.bary), dim=-1)
-        return _SampleGeometry(canonical, proj.signed_distance.float(), uv, proj.closest.float(), normal)
+        return _SampleGeometry(canonical, proj.signed_distance.float(), uv, proj.closest.float(), normal,
+                               proj.face, proj.bary)
 
     def detail_features(self, frame: FrameFeatures, closest: torch.Tensor,
                         normal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

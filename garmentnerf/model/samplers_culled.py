@@ -6,7 +6,8 @@ fewer points. Three culls, each exact for a model with no density where it culls
 
 1. **Shell bounds per ray** (:class:`ShellRaster`, ``shaders/shell_bounds.*``). The skin (the
    projector's main component) is inflated: every vertex pushed out along its unit vertex normal
-   by ``shell_margin`` (default: the height range's ``h_max`` + 3 cm). One GL draw at the
+   by ``shell_margin`` (default: the height range's ``h_max`` + 3 cm, per vertex where the
+   range has a per-vertex bound). One GL draw at the
    feature-image resolution, no depth test, MIN blending into an RGBA32F target, writes per
    pixel-centre ray the distance of the nearest *entering* face (the face plane faces the
    camera: near), minus the farthest distance of any face (far) and the nearest *leaving* face.
@@ -15,7 +16,8 @@ fewer points. Three culls, each exact for a model with no density where it culls
    samples. The raster's near/far planes are fitted to the shell (not the camera's), so cameras
    1 km away still see it.
 2. **Height band** ``h_min <= h <= h_max`` (:class:`HeightRange`, measured from the training
-   garments by :func:`measure_height_range`): samples whose signed distance to the posed body
+   garments by :func:`measure_height_range`; the upper bound per skin vertex where measured, so
+   the shell hugs the skin wherever the garment never goes): samples whose signed distance to the posed body
    lies outside are dropped after the (cheap, ~0.4 us/point) projection and before the (~4
    us/point) MLP. Dropping a sample is giving its interval zero density: the render of a model
    whose density is zero outside the band is unchanged.
@@ -56,7 +58,7 @@ from __future__ import annotations
 import functools
 import math
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -76,6 +78,8 @@ HEIGHT_MARGIN_IN = 0.05
 #: Used when no training data is at hand to measure the band (generous: a skirt's hem swings
 #: about 0.3 m from the legs).
 DEFAULT_HEIGHT_RANGE = (-0.10, 0.40)
+#: Mesh rings over which a garment vertex's height spreads in the per-vertex band.
+VERTEX_BAND_RINGS = 4
 SPACINGS = ("box", "shell")
 PRECISIONS = ("float32", "bfloat16", "float16", "auto")
 _BIG = 1.0e37
@@ -86,36 +90,84 @@ _BIG = 1.0e37
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class HeightRange:
-    """The band of signed body distances h (metres, positive outside) the model may occupy."""
+    """The band of signed body distances h (metres, positive outside) the model may occupy.
+
+    ``vertex_h_max`` (V,) optionally tightens the upper bound per skin vertex: above vertex v the
+    model may reach ``vertex_h_max[v]`` (<= ``h_max``), interpolated over the skin faces. A skirt
+    reaches 0.3 m out from the thighs but only a few centimetres from the face or the arms, so a
+    per-vertex bound shrinks the shell around everything the garment does not cover.
+    """
 
     h_min: float
     h_max: float
     source: str = "given"
+    vertex_h_max: torch.Tensor | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.h_min) and math.isfinite(self.h_max) and self.h_min < self.h_max):
             raise ValueError(f"HeightRange needs finite h_min < h_max, got [{self.h_min}, {self.h_max}]")
         if self.h_max <= 0:
             raise ValueError(f"HeightRange.h_max must be > 0 (the shell is the body inflated by it), got {self.h_max}")
+        if self.vertex_h_max is not None:
+            v = torch.as_tensor(self.vertex_h_max, dtype=torch.float32).detach().cpu().reshape(-1)
+            if not bool(torch.isfinite(v).all()) or float(v.min()) <= 0 or float(v.max()) > self.h_max + 1e-6:
+                raise ValueError(f"HeightRange.vertex_h_max must be finite and in (0, h_max={self.h_max}]")
+            object.__setattr__(self, "vertex_h_max", v)
 
     @classmethod
     def default(cls) -> "HeightRange":
         return cls(*DEFAULT_HEIGHT_RANGE, source="default")
 
+    def shell_margins(self, extra: float = SHELL_EXTRA_MARGIN) -> float | torch.Tensor:
+        """The shell inflation: a scalar ``h_max + extra`` or, per vertex, ``vertex_h_max + extra``."""
+        if self.vertex_h_max is None:
+            return self.h_max + extra
+        return self.vertex_h_max + extra
+
+    def upper_bound(self, face: torch.Tensor | None, bary: torch.Tensor | None, faces: torch.Tensor) -> torch.Tensor | float:
+        """(n,) the largest h allowed above surface points given by ``face (n,)`` and ``bary (n, 3)``
+        of the skin ``faces (F, 3)``; the scalar ``h_max`` without a per-vertex bound."""
+        if self.vertex_h_max is None or face is None or bary is None:
+            return self.h_max
+        corner = self.vertex_h_max[faces.detach().cpu()[face.long().cpu()]]  # (n, 3)
+        return (corner * bary.float()).sum(-1)
+
     def to_dict(self) -> dict:
-        return {"h_min": self.h_min, "h_max": self.h_max, "source": self.source}
+        d = {"h_min": self.h_min, "h_max": self.h_max, "source": self.source}
+        if self.vertex_h_max is not None:
+            v = self.vertex_h_max
+            d["vertex_h_max"] = {"vertices": int(v.numel()), "min": float(v.min()),
+                                 "median": float(v.median()), "max": float(v.max())}
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "HeightRange":
         return cls(float(d["h_min"]), float(d["h_max"]), str(d.get("source", "given")))
 
 
+def dilate_vertex_values(values: torch.Tensor, faces: torch.Tensor, rings: int) -> torch.Tensor:
+    """(V,) ``values`` replaced by their maximum over the ``rings``-ring mesh neighbourhood."""
+    f = faces.detach().cpu().long()
+    src = torch.cat([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
+    dst = torch.cat([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
+    out = values.clone()
+    for _ in range(int(rings)):
+        out = out.scatter_reduce(0, dst, out[src], reduce="amax")
+    return out
+
+
 def measure_height_range(scene, body=None, betas=None, projector=None, sequences=None, max_frames: int = 24,
-                         margin_out: float = HEIGHT_MARGIN_OUT, margin_in: float = HEIGHT_MARGIN_IN) -> HeightRange:
+                         margin_out: float = HEIGHT_MARGIN_OUT, margin_in: float = HEIGHT_MARGIN_IN,
+                         per_vertex: bool = True, rings: int = VERTEX_BAND_RINGS) -> HeightRange:
     """The band ``[min(0, h_garment) - margin_in, max(h_garment) + margin_out]`` over the garment
     vertices of the scene's training sequences (up to ``max_frames`` frames spread over each),
     h measured to the posed skin exactly as the model measures its samples. The body itself
-    (h = 0) is always inside the band: the model renders it too."""
+    (h = 0) is always inside the band: the model renders it too.
+
+    ``per_vertex``: also the per-skin-vertex upper bound: every garment vertex raises the three
+    corners of the skin face it projects to to its h; the maxima are spread over ``rings`` mesh
+    rings (the garment moves between the sampled frames, and unseen motions swing it further),
+    and ``margin_out`` is added (so bare skin gets ``margin_out``: the body's own density)."""
     from garmentnerf.body.model import BodyModel
     from garmentnerf.data.scene import read_garment_arrays
     from garmentnerf.geometry.body_points import BodyPointProjector
@@ -126,6 +178,8 @@ def measure_height_range(scene, body=None, betas=None, projector=None, sequences
     names = list(sequences) if sequences is not None else (scene.sequence_names("train") or scene.sequence_names())
     if not names:
         raise ValueError(f"{scene.scene_file}: no sequence to measure the garment's height range from")
+    faces = projector.faces.detach().cpu().long()
+    vmax = None
     lo, hi = 0.0, 0.0
     for name in names:
         garment = read_garment_arrays(scene.garment_path(name))
@@ -136,20 +190,32 @@ def measure_height_range(scene, body=None, betas=None, projector=None, sequences
             for f in frames:
                 posed = motion.slice(int(f), int(f) + 1).pose(body, betas).vertices[0].detach().cpu().float()
                 pts = torch.from_numpy(np.ascontiguousarray(garment.vertices[f], dtype=np.float32))
-                h = projector.project(pts, posed).signed_distance
+                proj = projector.project(pts, posed)
+                h = proj.signed_distance.float()
                 lo, hi = min(lo, float(h.min())), max(hi, float(h.max()))
-    return HeightRange(lo - margin_in, hi + margin_out, source=f"measured on {', '.join(names)}")
+                if per_vertex:
+                    if vmax is None:
+                        vmax = torch.zeros(posed.shape[0])
+                    corners = faces[proj.face.long()].reshape(-1)
+                    vmax = vmax.scatter_reduce(0, corners, h.clamp_min(0).repeat_interleave(3), reduce="amax")
+    vertex_h_max = None
+    if vmax is not None:
+        vertex_h_max = (dilate_vertex_values(vmax, faces, rings) + margin_out).clamp(max=hi + margin_out)
+    return HeightRange(lo - margin_in, hi + margin_out, source=f"measured on {', '.join(names)}",
+                       vertex_h_max=vertex_h_max)
 
 
 # ---------------------------------------------------------------------------------------------
 # the GL pass
 # ---------------------------------------------------------------------------------------------
-def inflate_surface(vertices: torch.Tensor, faces: torch.Tensor, margin: float) -> torch.Tensor:
-    """(V, 3) float32 vertices pushed out along their unit (area-weighted) normals by ``margin``."""
+def inflate_surface(vertices: torch.Tensor, faces: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
+    """(V, 3) float32 vertices pushed out along their unit (area-weighted) normals by ``margin``
+    (metres: a scalar, or (V,) per vertex)."""
     from garmentnerf.body.surface import vertex_normals
 
     v = vertices.detach().to("cpu", torch.float32)
-    return v + float(margin) * vertex_normals(v, faces.detach().cpu().long())
+    m = torch.as_tensor(margin, dtype=torch.float32).reshape(-1, 1) if torch.is_tensor(margin) else float(margin)
+    return v + m * vertex_normals(v, faces.detach().cpu().long())
 
 
 def winding_number(point, vertices: torch.Tensor, faces: torch.Tensor) -> float:
@@ -356,7 +422,9 @@ class ShellSampler:
             :meth:`HeightRange.default`. Used by :func:`render_features_culled`.
         faces: (F, 3) the skin faces to inflate (the model's ``projector.faces``); needed before
             :meth:`bind`.
-        shell_margin: inflation in metres (default ``height_range.h_max + SHELL_EXTRA_MARGIN``).
+        shell_margin: inflation in metres, a scalar or (V,) per skin vertex (default
+            :meth:`HeightRange.shell_margins`: the band's per-vertex bound where it has one, else
+            ``h_max``, plus ``SHELL_EXTRA_MARGIN``).
         padding: the box padding of the reference sampler (paper code: 0.05).
         spacing: ``"box"`` or ``"shell"``.
         termination_eps: transmittance below which a ray stops (0: never).
@@ -367,7 +435,7 @@ class ShellSampler:
     """
 
     def __init__(self, num_samples: int = 64, height_range: HeightRange | None = None, *, faces=None,
-                 shell_margin: float | None = None, padding: float = 0.05, spacing: str = "box",
+                 shell_margin: float | torch.Tensor | None = None, padding: float = 0.05, spacing: str = "box",
                  termination_eps: float = TERMINATION_EPS, precision: str = "float32", gl_context=None):
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
@@ -381,9 +449,11 @@ class ShellSampler:
             raise ValueError(f"padding must be >= 0, got {padding}")
         self.num_samples = int(num_samples)
         self.height_range = height_range if height_range is not None else HeightRange.default()
-        self.shell_margin = float(shell_margin) if shell_margin is not None else self.height_range.h_max + SHELL_EXTRA_MARGIN
-        if self.shell_margin <= 0:
-            raise ValueError(f"shell_margin must be > 0, got {self.shell_margin}")
+        margin = shell_margin if shell_margin is not None else self.height_range.shell_margins()
+        margin = margin.detach().cpu().float() if torch.is_tensor(margin) else float(margin)
+        if float(torch.as_tensor(margin).min()) <= 0 or not bool(torch.isfinite(torch.as_tensor(margin)).all()):
+            raise ValueError("shell_margin must be finite and > 0")
+        self.shell_margin = margin
         self.padding = float(padding)
         self.spacing = spacing
         self.termination_eps = float(termination_eps)
@@ -425,7 +495,7 @@ class ShellSampler:
         """The shell raster (H, W) seen by ``camera`` (after :meth:`bind`)."""
         if self._shell is None:
             raise RuntimeError("ShellSampler.bind() first")
-        inside = point_in_shell(camera.center, self._shell[1], self.faces, self.shell_margin)
+        inside = point_in_shell(camera.center, self._shell[1], self.faces, float(torch.as_tensor(self.shell_margin).max()))
         return self.raster.render(self._shell[0], self.faces, camera, origin_inside=inside)
 
     # ---- per-ray bounds --------------------------------------------------------------------------
@@ -647,7 +717,7 @@ def render_features_culled(model, frame, camera: Camera, rays=None, *, feature_s
                 keep = torch.ones(c1 - c0, dtype=torch.bool)
                 if band is not None:
                     h = geo.distance.cpu()
-                    keep = (h >= band.h_min) & (h <= band.h_max)
+                    keep = (h >= band.h_min) & (h <= band.upper_bound(geo.face, geo.bary, model.projector.faces))
                 kidx = keep.nonzero().squeeze(1)
             projected += c1 - c0
             sigma_c = torch.zeros(c1 - c0, device=dev)
@@ -735,5 +805,5 @@ def uninstall_culled_renderer(model, sampler=None) -> None:
 
 __all__ = ["ShellSampler", "ShellRaster", "ShellBounds", "HeightRange", "measure_height_range", "inflate_surface",
            "winding_number", "point_in_shell",
-           "render_features_culled", "install_culled_renderer", "uninstall_culled_renderer", "TERMINATION_EPS",
+           "render_features_culled", "install_culled_renderer", "dilate_vertex_values", "uninstall_culled_renderer", "TERMINATION_EPS",
            "SHELL_EXTRA_MARGIN", "DEFAULT_HEIGHT_RANGE", "SPACINGS", "PRECISIONS"]

@@ -206,6 +206,33 @@ def save_weights(path, model: torch.nn.Module, metadata: dict | None = None) -> 
     return path
 
 
+def load_module_weights(path, model: torch.nn.Module, prefix: str) -> None:
+    """Load only the tensors under ``prefix.`` (e.g. ``image_generator``) from a weights file.
+
+    Raises:
+        FileNotFoundError / ValueError naming the file: missing or unreadable file, or tensors
+        under ``prefix`` that are absent or shaped differently from ``model``'s.
+    """
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing")
+    try:
+        state = load_file(str(path), device="cpu")
+    except Exception as exc:
+        raise ValueError(f"{path}: not a readable safetensors file ({type(exc).__name__}: {exc})") from exc
+    own = {k: v for k, v in model.state_dict().items() if k.startswith(prefix + ".")}
+    missing = sorted(k for k in own if k not in state)
+    shapes = sorted(k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape))
+    if not own or missing or shapes:
+        raise ValueError(f"{path}: no matching '{prefix}' weights (missing {len(missing)}, "
+                         f"differently shaped {len(shapes)} of {len(own)} tensors)")
+    with torch.no_grad():
+        for k, v in own.items():
+            v.copy_(state[k].to(v.dtype))
+
+
 def load_weights(path, model: torch.nn.Module) -> None:
     """Load a ``.safetensors`` written by :func:`save_weights` into ``model`` (strict).
 

@@ -72,7 +72,8 @@ import torch
 from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model, load_scene,
-                                   load_weights, read_run_info, save_run_model, save_weights)
+                                   load_module_weights, load_weights, read_run_info, save_run_model,
+                                   save_weights)
 
 __all__ = ["TrainConfig", "Trainer", "TrainResult", "PRESETS", "model_config_for", "tiny_config", "train",
            "latest_checkpoint"]
@@ -132,6 +133,9 @@ class TrainConfig:
         progress: show a tqdm progress bar (rank 0).
         threads: ``torch.set_num_threads`` (None: leave as is).
         cache_bytes: bound of the in-memory target cache.
+        init_generator: a weights file (a run's ``model.safetensors`` or a checkpoint) whose
+            pre-trained G_img (with its neural texture) a new run starts from, skipping stage 1;
+            the model configs must agree on G_img's shapes.
     """
 
     scene: str | Path | None
@@ -156,6 +160,7 @@ class TrainConfig:
     progress: bool = True
     threads: int | None = None
     cache_bytes: int = 2 << 30
+    init_generator: str | Path | None = None
 
     def validate(self) -> None:
         if self.preset not in PRESETS:
@@ -456,6 +461,11 @@ class Trainer:
         self.last_checkpoint = None
         if ckpt is not None:
             self._load_checkpoint(*ckpt)
+        elif tc.init_generator is not None and self.generator_iterations:
+            load_module_weights(tc.init_generator, self.model, "image_generator")
+            self.step = self.generator_iterations
+            self._enter_stage(self._stage_of(self.step))
+            self.log(f"G_img from {tc.init_generator}: pre-training skipped, starting at step {self.step}")
         else:
             self._enter_stage(self._stage_of(0))
         self.dist.barrier()
@@ -593,7 +603,7 @@ class Trainer:
         image, mask = image.to(self.device), mask.to(self.device)
         pal = self.model.palette
         terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colours, pal.initial,
-                               self.cfg, self.perceptual)
+                               self.cfg, self.perceptual, opacity=out.opacity[None])
         return terms, {"pred": out.image, "target": image}
 
     def _writer(self):
