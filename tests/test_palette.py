@@ -200,3 +200,11 @@ def test_density_scale_multiplies_the_activation():
     for kind, act in (("softplus", torch.nn.functional.softplus), ("trunc_exp", torch.exp)):
         got = density_activation(raw, kind, bias=-3.0, scale=10.0)
         assert torch.allclose(got, 10.0 * act(raw - 3.0), rtol=1e-6)
+
+
+def test_body_density_prior_shape():
+    from garmentnerf.model.nerf_mlp import body_density_prior
+
+    h = torch.tensor([-0.2, 0.0, 0.075, 0.15, 0.3, 5.0])
+    got = body_density_prior(h, 3.0, 0.15)
+    assert torch.allclose(got, torch.tensor([3.0, 3.0, 1.5, 0.0, -3.0, -3.0]), atol=1e-6)

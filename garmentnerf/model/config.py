@@ -62,6 +62,9 @@ class ModelConfig:
             Mip-NeRF). With softplus the untrained density is then about 0.3 per metre: rays
             through a 1-2 m box start half transparent, so every sample gets gradient.
         density_scale: multiplies the activated density (1/metre per unit; default 1).
+        body_prior_strength, body_prior_width: a fixed raw-density offset from h
+            (``nerf_mlp.body_density_prior``: +strength on and in the body, 0 at h = width,
+            -strength from 2 width out). 0 (default) is the paper's plain MLP.
         positional_encoding_freqs: NeRF frequencies applied to b_o (paper: 0, none).
 
     Sampling (``model/samplers.py``, ``model/volume_rendering.py``)
@@ -150,6 +153,8 @@ class ModelConfig:
     density_activation: str = "softplus"
     density_bias: float = -1.0
     density_scale: float = 1.0
+    body_prior_strength: float = 0.0
+    body_prior_width: float = 0.15
     positional_encoding_freqs: int = 0
     # sampling
     samples_per_ray: int = 64
@@ -305,6 +310,8 @@ class ModelConfig:
             density_activation="trunc_exp",
             density_scale=10.0,
             density_bias=-3.0,
+            body_prior_strength=3.0,
+            body_prior_width=0.15,
             lr=1e-3,
             lr_final=1e-4,
             iterations=3_000,

@@ -55,6 +55,19 @@ def density_activation(raw: torch.Tensor, kind: str = "softplus", bias: float = 
     raise ValueError(f"unknown density activation {kind!r} (known: 'softplus', 'trunc_exp')")
 
 
+def body_density_prior(distance: torch.Tensor, strength: float, width: float) -> torch.Tensor:
+    """(N,) raw-density offset from the body distance h (N,): ``strength`` inside the body and on
+    it, falling linearly to 0 at ``h = width`` and to ``-strength`` from ``h = 2 width`` on.
+
+    Why: the model renders the body as well as the garment, so the untrained density is made
+    the body's shape instead of a uniform box. Most training rays are background; from a uniform
+    box the cheapest first descent is to empty the whole box, after which the density's
+    activation is saturated and nothing comes back. The network's own output adds to the prior,
+    so it can still put density anywhere (the garment up to a hem 0.3 m out) or remove it.
+    """
+    return strength * (1.0 - distance.clamp_min(0.0) / width).clamp(-1.0, 1.0)
+
+
 def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
     """NeRF encoding ``[x, sin(2^l pi x), cos(2^l pi x)]_{l < L}``: (N, D) -> (N, D (1 + 2 L))."""
     if num_freqs == 0:
@@ -79,7 +92,8 @@ class GarmentNeRF(nn.Module):
 
     def __init__(self, detail_dim: int = 8, dynamic_dim: int = 8, appearance_dim: int = 128, depth: int = 6,
                  width: int = 256, density_activation: str = "softplus", density_bias: float = -1.0,
-                 positional_encoding_freqs: int = 0, density_scale: float = 1.0):
+                 positional_encoding_freqs: int = 0, density_scale: float = 1.0,
+                 body_prior_strength: float = 0.0, body_prior_width: float = 0.15):
         super().__init__()
         if density_activation not in ("softplus", "trunc_exp"):
             raise ValueError(f"unknown density activation {density_activation!r}")
@@ -89,6 +103,8 @@ class GarmentNeRF(nn.Module):
         self.density_kind = density_activation
         self.density_bias = density_bias
         self.density_scale = float(density_scale)
+        self.body_prior_strength = float(body_prior_strength)
+        self.body_prior_width = float(body_prior_width)
         self.num_freqs = positional_encoding_freqs
         self.input_dim = 3 * (1 + 2 * positional_encoding_freqs) + 1 + detail_dim + dynamic_dim
         layers: list[nn.Module] = []
@@ -103,7 +119,8 @@ class GarmentNeRF(nn.Module):
         return cls(cfg.detail_feature_dim if cfg.use_detail_feature else 0,
                    cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0,
                    cfg.appearance_dim, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
-                   cfg.positional_encoding_freqs, cfg.density_scale)
+                   cfg.positional_encoding_freqs, cfg.density_scale, cfg.body_prior_strength,
+                   cfg.body_prior_width)
 
     def _check(self, name: str, value: torch.Tensor | None, dim: int, n: int) -> None:
         if dim == 0:
@@ -136,6 +153,8 @@ class GarmentNeRF(nn.Module):
         parts = [positional_encoding(canonical, self.num_freqs), distance.unsqueeze(-1)]
         parts += [f for f in (detail, dynamic) if f is not None]
         hidden = self.trunk(torch.cat(parts, dim=-1))
-        sigma = density_activation(self.density_head(hidden).squeeze(-1), self.density_kind, self.density_bias,
-                                   self.density_scale)
+        raw = self.density_head(hidden).squeeze(-1)
+        if self.body_prior_strength:
+            raw = raw + body_density_prior(distance, self.body_prior_strength, self.body_prior_width)
+        sigma = density_activation(raw, self.density_kind, self.density_bias, self.density_scale)
         return sigma, self.appearance_head(hidden)
