@@ -23,9 +23,10 @@ def atomic_write_path(path: str | Path, overwrite: bool = True):
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
     try:
         yield Path(tmp)
+        # mkstemp makes 0600 (and some writers recreate the file): give it the usual permissions
+        os.chmod(tmp, 0o666 & ~umask)
         if not overwrite:
             # link() fails if the target appeared meanwhile: never clobber.
             os.link(tmp, path)
