@@ -343,6 +343,40 @@ def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, posed, projec
     assert torch.allclose(bound, torch.full_like(bound, reach))
 
 
+def test_occlusion_cuts_rays_behind_the_skin(gl_context, posed, projector):
+    import trimesh
+
+    clip, _ = posed
+    verts = clip.vertices[2].float()
+    cam = CAMERA.resized(32, 32)
+    origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
+    aabb = body_aabb(verts)
+    margin = 0.05
+    out = {}
+    for occ in (False, True):
+        s = ShellSampler(64, BAND, faces=projector.faces, gl_context=gl_context, occlusion=occ, occlusion_margin=margin)
+        s.bind(verts, cam)
+        out[occ] = s.sample(origins, dirs, aabb, pixel_index=torch.arange(origins.shape[0]))
+        s.release()
+    kept, full = _keys(out[True].ray_ids, out[True].t_starts), _keys(out[False].ray_ids, out[False].t_starts)
+    assert kept < full and len(kept) < 0.9 * len(full)
+    # Independent first skin hit per ray (trimesh ray casting): every sample of the uncut set that
+    # starts before hit + margin is kept; none starts beyond hit + margin + one bin.
+    mesh = trimesh.Trimesh(verts.double().numpy(), projector.faces.numpy(), process=False)
+    o, d = origins.double().numpy(), dirs.double().numpy()
+    locs, ray_idx, _ = mesh.ray.intersects_location(o, d, multiple_hits=True)
+    first = np.full(len(o), np.inf)
+    np.minimum.at(first, ray_idx, np.linalg.norm(locs - o[ray_idx], axis=1))
+    rid, ts = out[False].ray_ids.numpy(), out[False].t_starts.double().numpy()
+    te = out[False].t_ends.double().numpy()
+    key = np.round(ts * 1e4).astype(np.int64)
+    must = te <= first[rid] + margin - 1e-3  # the whole bin lies in front of the cut
+    assert must.sum() > 500
+    assert all((int(r), int(k)) in kept for r, k in zip(rid[must], key[must]))
+    rid2, ts2 = out[True].ray_ids.numpy(), out[True].t_starts.double().numpy()
+    assert (ts2 <= first[rid2] + margin + 1e-3).all()
+
+
 def test_presets_apply_and_render(gl_context, model_and_frame):
     from garmentnerf.perf.presets import PRESETS, apply_preset, get_preset
 

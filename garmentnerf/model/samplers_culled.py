@@ -21,7 +21,14 @@ fewer points. Three culls, each exact for a model with no density where it culls
    lies outside are dropped after the (cheap, ~0.4 us/point) projection and before the (~4
    us/point) MLP. Dropping a sample is giving its interval zero density: the render of a model
    whose density is zero outside the band is unchanged.
-3. **Early ray termination**: samples are evaluated front to back in segments (a few samples of
+3. **Occlusion by the body** (``occlusion``): the same raster pass, drawn with the posed skin
+   itself, gives per ray the distance of the first skin crossing; the ray's far bound becomes
+   that distance plus ``occlusion_margin`` (default ``-h_min``: the band's depth under the
+   skin). The model renders the body opaque (the ground truth's body is), so what lies behind
+   the skin adds nothing but the transmittance left after ``-h_min`` of skin, the same order of
+   approximation as the early termination, and this cull needs no projection. Cameras that may
+   be inside the body skip it.
+4. **Early ray termination**: samples are evaluated front to back in segments (a few samples of
    every live ray at a time, about ``chunk_points`` per segment); a ray stops once its
    transmittance falls below ``termination_eps``. The samples skipped then carry weights summing
    to at most eps, so the feature image changes by at most ``eps * max|zeta|`` and the opacity by
@@ -432,11 +439,14 @@ class ShellSampler:
             ``float16`` (autocast) or ``auto`` (float16 on CUDA, float32 on the CPU, where
             bfloat16 autocast is slower).
         gl_context: moderngl context of the shell raster (None: a headless one of its own).
+        occlusion: cut every ray ``occlusion_margin`` behind its first skin crossing.
+        occlusion_margin: metres (default ``max(0, -height_range.h_min)``).
     """
 
     def __init__(self, num_samples: int = 64, height_range: HeightRange | None = None, *, faces=None,
                  shell_margin: float | torch.Tensor | None = None, padding: float = 0.05, spacing: str = "box",
-                 termination_eps: float = TERMINATION_EPS, precision: str = "float32", gl_context=None):
+                 termination_eps: float = TERMINATION_EPS, precision: str = "float32", gl_context=None,
+                 occlusion: bool = False, occlusion_margin: float | None = None):
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
         if spacing not in SPACINGS:
@@ -455,6 +465,11 @@ class ShellSampler:
             raise ValueError("shell_margin must be finite and > 0")
         self.shell_margin = margin
         self.padding = float(padding)
+        self.occlusion = bool(occlusion)
+        self.occlusion_margin = (float(occlusion_margin) if occlusion_margin is not None
+                                 else max(0.0, -self.height_range.h_min))
+        if self.occlusion_margin < 0:
+            raise ValueError(f"occlusion_margin must be >= 0, got {occlusion_margin}")
         self.spacing = spacing
         self.termination_eps = float(termination_eps)
         self.precision = precision
@@ -496,7 +511,12 @@ class ShellSampler:
         if self._shell is None:
             raise RuntimeError("ShellSampler.bind() first")
         inside = point_in_shell(camera.center, self._shell[1], self.faces, float(torch.as_tensor(self.shell_margin).max()))
-        return self.raster.render(self._shell[0], self.faces, camera, origin_inside=inside)
+        bounds = self.raster.render(self._shell[0], self.faces, camera, origin_inside=inside)
+        if self.occlusion and not point_in_shell(camera.center, self._shell[1], self.faces, 0.0):
+            skin = self.raster.render(self._shell[1], self.faces, camera)
+            far = torch.where(skin.hit, torch.minimum(bounds.far, skin.near + self.occlusion_margin), bounds.far)
+            bounds = ShellBounds(bounds.near, far, bounds.hit)
+        return bounds
 
     # ---- per-ray bounds --------------------------------------------------------------------------
     def ray_bounds(self, origins: torch.Tensor, directions: torch.Tensor,

@@ -6,9 +6,9 @@ Each preset fixes (resolution scale, samples per ray, sampler, precision):
 preset           resolution  samples/ray  sampler                                      precision
 ===============  ==========  ===========  ===========================================  =========
 ``reference``    1           1 x S        paper: padded body box, stratified (dense)   float32
-``full``         1           1 x S        shell + height band + early stop (eps 1e-4)  float32
-``balanced``     0.75        0.5 x S      shell + band + early stop (eps 1e-3)         auto
-``interactive``  0.5         0.5 x S      shell + band + early stop (eps 1e-2)         auto
+``full``         1           1 x S        shell + band + skin occlusion + stop (1e-4)  float32
+``balanced``     0.75        0.5 x S      shell + band + occlusion + stop (1e-3)       auto
+``interactive``  0.5         0.5 x S      shell + band + occlusion + stop (1e-2)       auto
 ===============  ==========  ===========  ===========================================  =========
 
 S is the model's ``cfg.samples_per_ray`` (the sampling it was trained with; the paper: 64), at
@@ -42,6 +42,7 @@ class Preset:
     sampler: str
     precision: str = "float32"
     termination_eps: float = 0.0
+    occlusion: bool = False
     description: str = ""
 
     def __post_init__(self) -> None:
@@ -69,11 +70,14 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {p.name: p for p in (
     Preset("reference", 1.0, 1.0, "box", "float32", 0.0,
-           "the paper's sampling: S stratified samples in the padded body box, every ray that hits it"),
-    Preset("full", 1.0, 1.0, "shell", "float32", 1e-4,
-           "the reference's samples, minus those outside the shell/height band or behind opacity"),
-    Preset("balanced", 0.75, 0.5, "shell", "auto", 1e-3, "3/4 resolution, half the samples, culled"),
-    Preset("interactive", 0.5, 0.5, "shell", "auto", 1e-2, "half resolution, half the samples, culled"),
+           description="the paper's sampling: S stratified samples in the padded body box, every ray that hits it"),
+    Preset("full", 1.0, 1.0, "shell", "float32", 1e-4, occlusion=True,
+           description="the reference's samples, minus those outside the shell/height band, behind the skin "
+                       "or behind opacity"),
+    Preset("balanced", 0.75, 0.5, "shell", "auto", 1e-3, occlusion=True,
+           description="3/4 resolution, half the samples, culled"),
+    Preset("interactive", 0.5, 0.5, "shell", "auto", 1e-2, occlusion=True,
+           description="half resolution, half the samples, culled"),
 )}
 PRESET_NAMES = tuple(PRESETS)
 
@@ -137,7 +141,7 @@ def apply_preset(model, preset, *, height_range: HeightRange | None = None, gl_c
     old = model.sampler
     sampler = ShellSampler(n, band, faces=model.projector.faces, padding=cfg.bbox_padding,
                            termination_eps=preset.termination_eps, precision=preset.precision,
-                           gl_context=gl_context)
+                           gl_context=gl_context, occlusion=preset.occlusion)
     if isinstance(old, ShellSampler) and (gl_context is None or old.raster._ctx is gl_context):
         sampler.raster = old.raster  # keep the GL objects (and the context) of the previous preset
     elif isinstance(old, ShellSampler):
