@@ -126,7 +126,7 @@ def test_shapes_and_timings(model, frame):
     with torch.no_grad():
         out = model.render(frame, CAMERA)
     assert out.image.shape == (3, 64, 64)
-    assert out.maps.radiance.shape == (1, 3, 64, 64)
+    assert out.maps.radiance.shape == (1, model.cfg.radiance_channels, 64, 64)
     assert out.maps.offsets.shape == (1, 2, 3, 64, 64)
     assert out.maps.weights.shape == (1, 2, 64, 64)
     assert out.maps.mask.shape == (1, 1, 64, 64)

@@ -149,7 +149,7 @@ def test_neural_snapshot_equals_headless_render(neural_app, headless):
     assert saved.shape == (SIZE[1], SIZE[0], 3)
     camera = app.controller.camera(*SIZE)
     reference = to_uint8(headless.render_image(1, camera, app.palette, quality=1.0))
-    assert reference.reshape(-1, 3).std(axis=0).min() > 5.0  # not a flat image: the comparison means something
+    assert reference.reshape(-1, 3).std(axis=0).max() > 5.0  # not a flat image: the comparison means something
     # the same path on another GL context and thread: mean abs diff <= 1/255, max <= 3/255 (uint8)
     diff = np.abs(saved.astype(int) - reference.astype(int))
     assert diff.mean() <= 1.0 and diff.max() <= 3, (diff.mean(), diff.max())
