@@ -195,6 +195,40 @@ def closest_point_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.T
     return closest, bary
 
 
+def face_frame_distance2(px: torch.Tensor, py: torch.Tensor, pz: torch.Tensor, frame) -> torch.Tensor:
+    """Squared point-triangle distances in each face's own frame (any matching shapes).
+
+    Args:
+        px, py, pz: the query minus the face's corner a, in world axes.
+        frame: the 16 per-face constants after a in the pair table
+            (e1, e2, e3 axes; bx, 1/bx; cx, cy, 1/|c|^2; cx - bx, 1/|c - b|^2).
+    Returns:
+        the squared height over the plane plus the squared 2-D distance to the triangle: zero
+        inside it, else the least distance to its three edges (segments, so corners are
+        covered). Degenerate faces come out wrong here; callers redo them.
+    """
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, bx, ibx, cx, cy, iscc, cbx, isbc = frame
+    x = px * e1x + py * e1y + pz * e1z
+    y = px * e2x + py * e2y + pz * e2z
+    z = px * e3x + py * e3y + pz * e3z
+    # Edge ab (the x axis).
+    s = (x * ibx).clamp_(0.0, 1.0)
+    dx = x - s * bx
+    d2 = dx * dx + y * y
+    # Edge ac.
+    s = ((x * cx + y * cy) * iscc).clamp_(0.0, 1.0)
+    dx, dy = x - s * cx, y - s * cy
+    d2 = torch.minimum(d2, dx * dx + dy * dy)
+    # Edge bc.
+    xb = x - bx
+    s = ((xb * cbx + y * cy) * isbc).clamp_(0.0, 1.0)
+    dx, dy = xb - s * cbx, y - s * cy
+    d2 = torch.minimum(d2, dx * dx + dy * dy)
+    # Inside: left of every directed edge (counter-clockwise about e3).
+    inside = (y >= 0) & (cx * y <= cy * x) & (cbx * y >= cy * xb)
+    return torch.where(inside, 0.0, d2).add_(z * z)
+
+
 def interpolate(values: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
     """Barycentric interpolation of per-vertex values at points given as (face, bary).
 
@@ -651,28 +685,8 @@ class PosedSurface:
         Degenerate faces come out wrong here and are redone by the caller.
         """
         qx, qy, qz = (torch.index_select(q[:, i].contiguous(), 0, pid) for i in range(3))
-        t = torch.index_select(self._pair_table, 1, face)
-        ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, bx, ibx, cx, cy, iscc, cbx, isbc = t.unbind(0)
-        px, py, pz = qx - ax, qy - ay, qz - az
-        x = px * e1x + py * e1y + pz * e1z
-        y = px * e2x + py * e2y + pz * e2z
-        z = px * e3x + py * e3y + pz * e3z
-        # Edge ab (the x axis).
-        s = (x * ibx).clamp_(0.0, 1.0)
-        dx = x - s * bx
-        d2 = dx * dx + y * y
-        # Edge ac.
-        s = ((x * cx + y * cy) * iscc).clamp_(0.0, 1.0)
-        dx, dy = x - s * cx, y - s * cy
-        d2 = torch.minimum(d2, dx * dx + dy * dy)
-        # Edge bc.
-        xb = x - bx
-        s = ((xb * cbx + y * cy) * isbc).clamp_(0.0, 1.0)
-        dx, dy = xb - s * cbx, y - s * cy
-        d2 = torch.minimum(d2, dx * dx + dy * dy)
-        # Inside: left of every directed edge (counter-clockwise about e3).
-        inside = (y >= 0) & (cx * y <= cy * x) & (cbx * y >= cy * xb)
-        return torch.where(inside, 0.0, d2).add_(z * z)
+        ax, ay, az, *frame = torch.index_select(self._pair_table, 1, face).unbind(0)
+        return face_frame_distance2(qx - ax, qy - ay, qz - az, frame)
 
 
 def _spatial_order(points: torch.Tensor) -> torch.Tensor:

@@ -79,6 +79,7 @@ from garmentnerf.geometry.projection import (
     SurfaceProjector,
     _check_points,
     closest_point_on_triangles,
+    face_frame_distance2,
 )
 
 __all__ = [
@@ -444,30 +445,14 @@ class DensePosedSurface:
     def _pair_distance2(self, qc: torch.Tensor, cand: torch.Tensor) -> torch.Tensor:
         """(M, C) squared distance from qc[i] to face cand[i, j] (inf for -1 padding).
 
-        projection.py's kernel: in the face's frame the squared distance is the squared height
-        over the plane plus the squared 2-D distance to the triangle.
+        :func:`~garmentnerf.geometry.projection.face_frame_distance2` on the pair table.
         """
         M, C = cand.shape
         flat = cand.reshape(-1).clamp_min(0)
         t = torch.index_select(self._pair_table, 1, flat).view(19, M, C)
-        ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, bx, ibx, cx, cy, iscc, cbx, isbc = t.unbind(0)
-        px, py, pz = qc[:, 0:1] - ax, qc[:, 1:2] - ay, qc[:, 2:3] - az
-        x = px * e1x + py * e1y + pz * e1z
-        y = px * e2x + py * e2y + pz * e2z
-        z = px * e3x + py * e3y + pz * e3z
-        del px, py, pz, t
-        s = (x * ibx).clamp_(0.0, 1.0)
-        dx = x - s * bx
-        d2 = dx * dx + y * y
-        s = ((x * cx + y * cy) * iscc).clamp_(0.0, 1.0)
-        dx, dy = x - s * cx, y - s * cy
-        d2 = torch.minimum(d2, dx * dx + dy * dy)
-        xb = x - bx
-        s = ((xb * cbx + y * cy) * isbc).clamp_(0.0, 1.0)
-        dx, dy = xb - s * cbx, y - s * cy
-        d2 = torch.minimum(d2, dx * dx + dy * dy)
-        inside = (y >= 0) & (cx * y <= cy * x) & (cbx * y >= cy * xb)
-        d2 = torch.where(inside, 0.0, d2).add_(z * z)
+        ax, ay, az, *frame = t.unbind(0)
+        d2 = face_frame_distance2(qc[:, 0:1] - ax, qc[:, 1:2] - ay, qc[:, 2:3] - az, frame)
+        del t, frame
         if self._has_degenerate:
             bad = self._degenerate[flat].view(M, C).nonzero()
             if bad.numel():
