@@ -208,3 +208,44 @@ def test_body_density_prior_shape():
     h = torch.tensor([-0.2, 0.0, 0.075, 0.15, 0.3, 5.0])
     got = body_density_prior(h, 3.0, 0.15)
     assert torch.allclose(got, torch.tensor([3.0, 3.0, 1.5, 0.0, -3.0, -3.0]), atol=1e-6)
+
+
+def test_segmentation_loss_by_hand():
+    from garmentnerf.model.losses import segmentation_loss
+
+    # four pixels: garment, body, half garment half body, background (weights there do not count)
+    w_g = torch.tensor([0.9, 0.3, 0.5, 0.7]).view(1, 1, 2, 2)
+    weights = torch.cat([w_g, 1.0 - w_g], dim=1)
+    garment = torch.tensor([1.0, 0.0, 0.5, 0.0]).view(1, 1, 2, 2)
+    mask = torch.tensor([1.0, 1.0, 1.0, 0.0]).view(1, 1, 2, 2)
+    # |0.9 - 1| + |0.3 - 0| + |0.5 - 0.5| over 3 foreground pixels
+    assert float(segmentation_loss(weights, garment, mask)) == pytest.approx(0.4 / 3, abs=1e-7)
+    # a pixel a quarter covered, all of it garment, asks for w_G = 1 with a quarter of the weight
+    mask2 = torch.tensor([1.0, 1.0, 1.0, 0.25]).view(1, 1, 2, 2)
+    garment2 = torch.tensor([1.0, 0.0, 0.5, 0.25]).view(1, 1, 2, 2)
+    assert float(segmentation_loss(weights, garment2, mask2)) == pytest.approx((0.4 + 0.25 * 0.3) / 3.25, abs=1e-7)
+    # finite differences agree with autograd away from the kinks
+    x = torch.tensor([0.2, -0.4, 1.1, 0.3], dtype=torch.float64).view(1, 1, 2, 2).requires_grad_()
+    f = lambda t: segmentation_loss(torch.cat([torch.sigmoid(t), 1 - torch.sigmoid(t)], 1),  # noqa: E731
+                                    garment.double(), mask.double())
+    assert torch.autograd.gradcheck(f, (x,))
+
+
+def test_segmentation_term_only_when_asked():
+    from garmentnerf.model.config import ModelConfig
+    from garmentnerf.model.losses import garment_losses
+    from garmentnerf.model.palette import DecomposedMaps
+
+    H = W = 4
+    maps = DecomposedMaps(torch.ones(1, 1, H, W), torch.zeros(1, 2, 3, H, W),
+                          torch.full((1, 2, H, W), 0.5), torch.ones(1, 1, H, W))
+    p = torch.tensor([[0.2, 0.3, 0.8], [0.6, 0.5, 0.4]])
+    image = maps.compose(p)
+    mask, garment = torch.ones(1, 1, H, W), torch.ones(1, 1, H, W)
+    paper = garment_losses(image, image, maps, mask, p, p, ModelConfig.paper(), target_garment=garment)
+    assert "segmentation" not in paper  # the paper's objective has no such term
+    small = ModelConfig.cpu_small()
+    out = garment_losses(image, image, maps, mask, p, p, small, target_garment=garment)
+    assert float(out["segmentation"]) == pytest.approx(0.5)
+    expected = sum(getattr(small, f"w_{k}") * out[k] for k in out if k != "total")
+    torch.testing.assert_close(out["total"], expected)

@@ -214,3 +214,33 @@ def test_ddp_two_processes_gloo(tiny_scene, tmp_path):
     assert r0["picks"] != r1["picks"]  # each rank trains on its own share of the views
     assert torch.equal(r0["params"], r1["params"])  # averaged gradients keep the replicas identical
     assert load_run(out).step == 3  # rank 0 wrote the run
+
+
+def test_training_targets_carry_the_garment_share(tiny_scene, gl_context):
+    import cv2
+    import numpy as np
+
+    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.train.frames import SceneFrames
+
+    cfg = tiny_config()
+    with SceneFrames(tiny_scene, cfg, gl_context) as frames:
+        image, mask, garment = frames.target("train", "cam01", 1)
+    with SceneImages(tiny_scene) as images:
+        _, labels = images.image("train", "cam01", 1)
+    R = cfg.image_resolution
+    want_garment = cv2.resize((labels == 2).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
+    want_mask = cv2.resize((labels != 0).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
+    assert garment.shape == mask.shape == (1, R, R) and garment.max() > 0.5
+    np.testing.assert_allclose(garment[0].numpy(), want_garment, atol=1e-5)
+    np.testing.assert_allclose(mask[0].numpy(), want_mask, atol=1e-5)
+    assert bool((garment <= mask + 1e-6).all())  # the garment is part of the foreground
+
+
+def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_path):
+    tc = make_tc(tiny_scene, tmp_path / "run", iterations=20, generator_iterations=0, frames=(1,),
+                 cameras=("cam00",), model_config=tiny_config().replace(lr=2e-3, lr_final=1e-3, w_segmentation=1.0))
+    result, _ = run(tc, gl_context)
+    seg = [h["segmentation"] for h in result.history]
+    assert len(seg) == 20 and all(0.0 <= s <= 1.0 for s in seg)
+    assert sum(seg[-5:]) / 5 < 0.8 * sum(seg[:5]) / 5, seg

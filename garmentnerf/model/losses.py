@@ -10,6 +10,11 @@ Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixe
 (summed over palette colours and channels) averaged over pixels, as in PaletteNeRF whose weights
 the paper adopts; L_p is the sum over the palette's 3P values.
 
+Two optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
+them on, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
+opacity to the ground-truth mask, ``segmentation`` holds the garment blend weight to the label
+maps' garment share.
+
 The perceptual network is not defined here: pass any ``callable(pred, target) -> scalar`` (for
 example a VGG or shift-tolerant LPIPS module). Without one the ``perceptual`` term is absent
 from the result (not replaced by anything).
@@ -61,10 +66,28 @@ def opacity_loss(opacity: torch.Tensor, target_mask: torch.Tensor) -> torch.Tens
     return (opacity - target).abs().mean()
 
 
+def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, target_mask: torch.Tensor,
+                      eps: float = 1e-3) -> torch.Tensor:
+    """L1 between the garment blend weight and the garment share of each foreground pixel.
+
+    Args:
+        weights: (B, P, H, W) blend weights; colour 0 is the garment.
+        target_garment: (B, 1, H, W) ground-truth garment coverage in [0, 1].
+        target_mask: (B, 1, H, W) ground-truth foreground (body + garment) coverage in [0, 1].
+    Returns:
+        ``sum(m* |w_G - g*/m*|) / sum(m*)``: background pixels, whose weights compose to nothing,
+        carry no weight; a border pixel half garment, half body asks for w_G = 0.5.
+    """
+    share = target_garment / target_mask.clamp_min(eps)
+    per_pixel = (weights[:, :1] - share.clamp(0.0, 1.0)).abs() * target_mask
+    return per_pixel.sum() / target_mask.sum().clamp_min(eps)
+
+
 def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: DecomposedMaps,
                    target_mask: torch.Tensor, palette: torch.Tensor, palette_initial: torch.Tensor, cfg,
                    perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-                   opacity: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                   opacity: torch.Tensor | None = None,
+                   target_garment: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """All loss terms of one batch.
 
     Args:
@@ -79,9 +102,12 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         perceptual: optional ``(pred, target) -> scalar``; its term is left out when None.
         opacity: optional (B, h, w) accumulated opacity of the feature rays; with ``cfg.w_opacity``
             > 0 it is held to the target mask area-averaged to (h, w) (:func:`opacity_loss`).
+        target_garment: optional (B, 1, H, W) or (B, H, W) ground-truth garment coverage; with
+            ``cfg.w_segmentation`` > 0 the garment blend weight is held to it
+            (:func:`segmentation_loss`).
     Returns:
         dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette,
-        [opacity]`` and ``total``, the weighted sum.
+        [opacity,] [segmentation]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
@@ -97,7 +123,14 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     w_opacity = float(getattr(cfg, "w_opacity", 0.0))
     if opacity is not None and w_opacity > 0:
         terms["opacity"] = opacity_loss(opacity, target_mask)
+    w_segmentation = float(getattr(cfg, "w_segmentation", 0.0))
+    if target_garment is not None and w_segmentation > 0:
+        if target_garment.ndim == 3:
+            target_garment = target_garment.unsqueeze(1)
+        terms["segmentation"] = segmentation_loss(maps.weights, target_garment.to(maps.weights.dtype),
+                                                  target_mask.to(maps.weights.dtype))
     weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
-               "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity}
+               "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
+               "segmentation": w_segmentation}
     terms["total"] = sum(weights[name] * value for name, value in terms.items())
     return terms

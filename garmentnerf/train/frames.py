@@ -140,18 +140,21 @@ class SceneFrames:
             self._target_bytes -= sum(t.numel() * t.element_size() for t in old)
         return value
 
-    def _composite(self, sequence: str, camera: str, frame: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _composite(self, sequence: str, camera: str, frame: int, size: int
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         rgb, labels = self.images.image(sequence, camera, frame)
         image = area_resize(rgb, size)
         mask = area_resize((labels != 0).astype(np.float32), size)
+        garment = area_resize((labels == self.cfg.garment_label).astype(np.float32), size)
         bg = torch.tensor(self.cfg.background, dtype=torch.float32).view(3, 1, 1)
         if bool((bg != 0).any()):
             image = image + (1.0 - mask) * bg
-        return image.clamp(0.0, 1.0), mask
+        return image.clamp(0.0, 1.0), mask, garment
 
-    def target(self, sequence: str, camera: str, frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def target(self, sequence: str, camera: str, frame: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Ground truth of a view at the training size: image (3, R, R) in [0, 1] on
-        ``cfg.background`` and mask (1, R, R) foreground coverage in [0, 1] (CPU)."""
+        ``cfg.background``, mask (1, R, R) foreground coverage in [0, 1] and garment (1, R, R)
+        garment coverage in [0, 1] (CPU)."""
         frame = self.scene.check_frame(sequence, frame)
         R = self.cfg.image_resolution
         return self._cached(("view", sequence, camera, frame, R),

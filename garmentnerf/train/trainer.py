@@ -599,11 +599,10 @@ class Trainer:
         feats = self.model.prepare_frame(inputs)
         gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
         out = self.model.render(feats, self.data.frames.camera(cam), training=True, generator=gen)
-        image, mask = self.data.frames.target(seq, cam, frame)
-        image, mask = image.to(self.device), mask.to(self.device)
+        image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame))
         pal = self.model.palette
         terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colours, pal.initial,
-                               self.cfg, self.perceptual, opacity=out.opacity[None])
+                               self.cfg, self.perceptual, opacity=out.opacity[None], target_garment=garment[None])
         return terms, {"pred": out.image, "target": image}
 
     def _writer(self):
