@@ -19,6 +19,22 @@ def gl_context():
 
 
 @pytest.fixture(scope="session")
+def body():
+    """The bundled default body (float32); tests that need another one define their own."""
+    from garmentnerf.body.model import BodyModel
+
+    return BodyModel.default()
+
+
+@pytest.fixture(scope="session")
+def projector(body):
+    """The body-point projector of the default body (its KD-tree is built once per session)."""
+    from garmentnerf.geometry.body_points import BodyPointProjector
+
+    return BodyPointProjector(body)
+
+
+@pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory, gl_context):
     """A small unsimulated scene (garment rigidly skinned to the body, :mod:`garmentnerf.data.synthetic`):
     skirt on 3 walk frames, 3 training cameras + 1 held out + 2 references at 64 x 64."""

@@ -16,11 +16,6 @@ FPS = 30.0
 
 
 @pytest.fixture(scope="module")
-def body():
-    return BodyModel.default()
-
-
-@pytest.fixture(scope="module")
 def renderer(gl_context, body):
     r = InfoMapRenderer(gl_context, body, resolution=128, history=2)
     yield r

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.body.model import BodyModel
 from garmentnerf.data.garment_sequence import load_sequence
 from garmentnerf.data.make import MakeSpec, build_motion, remove_drift
 from garmentnerf.data.scene import Scene
@@ -21,11 +20,6 @@ from garmentnerf.data.scene import Scene
 TINY = ["--garment", "skirt", "--motion", "walk", "--frames", "6", "--views", "2", "--held-out-views", "0",
         "--size", "32", "--sim", "settle_hold_frames=1", "--sim", "settle_frames=2", "--sim", "chunk_frames=2",
         "--sim", "substeps=4", "--sim", "iterations=4", "--processes", "1"]
-
-
-@pytest.fixture(scope="module")
-def body():
-    return BodyModel.default()
 
 
 def test_training_motion_is_repeated_to_length_and_cut(body):

@@ -23,11 +23,6 @@ from garmentnerf.motion.procedural import PROCEDURAL_MOTIONS, procedural_motion
 
 
 @pytest.fixture(scope="module")
-def body() -> BodyModel:
-    return BodyModel.default()
-
-
-@pytest.fixture(scope="module")
 def walk(body) -> Motion:
     return load_deepmimic("walk", body)
 

@@ -6,11 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.body.model import BodyModel
 from garmentnerf.body.surface import vertex_normals
 from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera, project_points
 from garmentnerf.data.cameras import reference_cameras
-from garmentnerf.geometry.body_points import BodyPointProjector
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import sample_image_features
 from garmentnerf.model.frame_context import FrameInputBuilder, resolve_reference_cameras
@@ -19,27 +17,13 @@ from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnim
                                         palette_initial_colours, reference_visibility)
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.motion.library import load_motion
+from tiny_models import tiny_pipeline_config
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 
 
 def tiny_config(**changes) -> ModelConfig:
-    cfg = ModelConfig.cpu_small().replace(
-        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
-        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
-        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
-        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
-    return cfg.replace(**changes) if changes else cfg
-
-
-@pytest.fixture(scope="module")
-def body():
-    return BodyModel.default()
-
-
-@pytest.fixture(scope="module")
-def projector(body):
-    return BodyPointProjector(body)
+    return tiny_pipeline_config(**changes)
 
 
 @pytest.fixture(scope="module")

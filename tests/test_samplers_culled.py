@@ -9,10 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.body.model import BodyModel
 from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera
 from garmentnerf.data.cameras import reference_cameras
-from garmentnerf.geometry.body_points import BodyPointProjector
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.frame_context import FrameInputBuilder
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
@@ -21,6 +19,7 @@ from garmentnerf.model.samplers_culled import (HeightRange, ShellSampler, instal
                                                measure_height_range, point_in_shell, render_features_culled,
                                                uninstall_culled_renderer, winding_number)
 from garmentnerf.motion.library import load_motion
+from tiny_models import tiny_pipeline_config
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.10)
@@ -28,12 +27,7 @@ CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
 
 
 def tiny_config(**changes) -> ModelConfig:
-    cfg = ModelConfig.cpu_small().replace(
-        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
-        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
-        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=32,
-        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
-    return cfg.replace(**changes) if changes else cfg
+    return tiny_pipeline_config(**{"samples_per_ray": 32, **changes})
 
 
 class Banded(torch.nn.Module):
@@ -47,16 +41,6 @@ class Banded(torch.nn.Module):
         sigma, zeta = self.inner(canonical, distance, detail, dynamic)
         inside = (distance >= self.band.h_min) & (distance <= self.band.h_max)
         return sigma * inside.to(sigma.dtype) * self.scale, zeta
-
-
-@pytest.fixture(scope="module")
-def body():
-    return BodyModel.default()
-
-
-@pytest.fixture(scope="module")
-def projector(body):
-    return BodyPointProjector(body)
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from garmentnerf.body.model import BodyModel
 from garmentnerf.data.garment_sequence import (GarmentSequence, GarmentSequenceError, load_sequence,
                                                save_sequence)
 from garmentnerf.data.garments import (GARMENT_KINDS, MIN_CLEARANCE, GarmentError, body_collision_faces,
@@ -25,11 +24,6 @@ SKIN_TONE = np.array([0.80, 0.63, 0.53])
 #: Short settle and small chunks: a few frames exercise settling, chunking and resuming.
 FAST = SimSettings(settle_hold_frames=2, settle_frames=4, chunk_frames=3)
 FRAMES = 6
-
-
-@pytest.fixture(scope="module")
-def body():
-    return BodyModel.default()
 
 
 _GARMENTS = {}

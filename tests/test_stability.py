@@ -9,10 +9,8 @@ import resource
 import pytest
 import torch
 
-from garmentnerf.body.model import BodyModel
 from garmentnerf.conventions import Camera, intrinsics_from_fov, look_at, orbit_camera
 from garmentnerf.data.cameras import reference_cameras
-from garmentnerf.geometry.body_points import BodyPointProjector
 from garmentnerf.model import volume_rendering as vr
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.frame_context import FrameInputBuilder
@@ -22,18 +20,15 @@ from garmentnerf.model.samplers_culled import (HeightRange, ShellSampler, instal
                                                uninstall_culled_renderer)
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
+from tiny_models import tiny_pipeline_config
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.15)
 
 
 def tiny_config(**changes) -> ModelConfig:
-    cfg = ModelConfig.cpu_small().replace(
-        image_resolution=32, feature_image_resolution=8, reference_resolution=32, info_map_resolution=32,
-        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
-        generator_width_scale=0.25, appearance_dim=8, mlp_depth=2, mlp_width=16, samples_per_ray=8,
-        decoder_width=8, decoder_min_width=8, decoder_extra_layers=0)
-    return cfg.replace(**changes) if changes else cfg
+    return tiny_pipeline_config(**{"image_resolution": 32, "feature_image_resolution": 8, "appearance_dim": 8,
+                                   "mlp_width": 16, "decoder_width": 8, **changes})
 
 
 class ForcedDensity(torch.nn.Module):
@@ -46,16 +41,6 @@ class ForcedDensity(torch.nn.Module):
     def forward(self, canonical, distance, detail=None, dynamic=None):
         sigma, zeta = self.inner(canonical, distance, detail, dynamic)
         return sigma * 0.0 + self.value, zeta
-
-
-@pytest.fixture(scope="module")
-def body():
-    return BodyModel.default()
-
-
-@pytest.fixture(scope="module")
-def projector(body):
-    return BodyPointProjector(body)
 
 
 @pytest.fixture(scope="module")

@@ -230,13 +230,6 @@ def test_view_without_display_prints_one_line(monkeypatch, capsys):
 
 # ==== GL scene (headless) ==================================================================================
 @pytest.fixture(scope="module")
-def body():
-    from garmentnerf.body.model import BodyModel
-
-    return BodyModel.default()
-
-
-@pytest.fixture(scope="module")
 def walk(body):
     from garmentnerf.viewer.sequence import BodySequence
 
