@@ -244,3 +244,25 @@ def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_pat
     seg = [h["segmentation"] for h in result.history]
     assert len(seg) == 20 and all(0.0 <= s <= 1.0 for s in seg)
     assert sum(seg[-5:]) / 5 < 0.8 * sum(seg[:5]) / 5, seg
+
+
+def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
+    out = tmp_path / "run"
+    base = tiny_config().replace(w_segmentation=0.0)
+    first, _ = run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, stop_after=2, model_config=base),
+                   gl_context)
+    assert first.step == 2 and all("segmentation" not in h for h in first.history)
+    rest, _ = run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, resume=True,
+                          loss_weights={"w_segmentation": 0.25}), gl_context)
+    assert [h["step"] for h in rest.history] == [3, 4]
+    for h in rest.history:  # the new term is in the objective with its new weight
+        weighted = sum(getattr(tiny_config().replace(w_segmentation=0.25), f"w_{k}") * v
+                       for k, v in h.items() if k not in ("step", "stage", "total", "psnr"))
+        assert h["total"] == pytest.approx(weighted, rel=1e-5)
+    info = json.loads((out / "run.json").read_text())
+    assert info["model_config"]["w_segmentation"] == 0.25
+    assert info["loss_weight_changes"] == [{"step": 2, "w_segmentation": [0.0, 0.25]}]
+    with pytest.raises(ValueError, match="unknown loss weight 'w_bogus'"):
+        make_tc(tiny_scene, out, resume=True, loss_weights={"w_bogus": 1.0}).validate()
+    with pytest.raises(ValueError, match="must be a finite number >= 0"):
+        make_tc(tiny_scene, out, resume=True, loss_weights={"w_mask": -1.0}).validate()

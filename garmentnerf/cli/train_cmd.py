@@ -39,6 +39,9 @@ def register(sub) -> None:
     p.add_argument("--init-generator", default=None, metavar="SAFETENSORS",
                    help="start a new run from the pre-trained G_img in this weights file (a run's "
                         "model.safetensors or checkpoint) and skip G_img pre-training")
+    p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
+                   help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
+                        "--resume it applies from the resumed step on and is recorded in run.json")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -66,6 +69,19 @@ def _frames(text: str | None, scene_path) -> tuple[int, ...] | None:
     return out
 
 
+def _loss_weights(items: list[str]) -> dict[str, float] | None:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"--loss-weight must be NAME=VALUE (a number), got {item!r}") from None
+    return out or None
+
+
 def run(args: argparse.Namespace) -> int:
     from garmentnerf.train.trainer import TrainConfig, Trainer
 
@@ -74,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
                      stop_after=args.stop_after, log_every=args.log_every, image_every=args.image_every,
                      ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames, args.scene),
                      perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, threads=args.threads,
-                     progress=not args.no_progress, init_generator=args.init_generator)
+                     progress=not args.no_progress, init_generator=args.init_generator,
+                     loss_weights=_loss_weights(args.loss_weight))
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")
     # `kill` (SIGTERM, what schedulers and `timeout` send) saves a checkpoint like Ctrl-C does.

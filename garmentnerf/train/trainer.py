@@ -91,6 +91,11 @@ def tiny_config() -> ModelConfig:
         decoder_width=16, decoder_min_width=8, decoder_extra_layers=0, iterations=200, generator_iterations=50)
 
 
+def loss_weight_names() -> tuple[str, ...]:
+    """The :class:`ModelConfig` fields that weight a loss term (``w_image``, ``w_mask``, ...)."""
+    return tuple(f.name for f in dataclasses.fields(ModelConfig) if f.name.startswith("w_"))
+
+
 def model_config_for(preset: str) -> ModelConfig:
     """The :class:`ModelConfig` of a preset name (``paper``, ``cpu_small``, ``tiny``)."""
     if preset == "paper":
@@ -136,6 +141,10 @@ class TrainConfig:
         init_generator: a weights file (a run's ``model.safetensors`` or a checkpoint) whose
             pre-trained G_img (with its neural texture) a new run starts from, skipping stage 1;
             the model configs must agree on G_img's shapes.
+        loss_weights: overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a
+            resume they apply from the resumed step on (a curriculum: e.g. add a term once the
+            geometry is there); each change is logged and kept in ``run.json``'s
+            ``loss_weight_changes`` so the run's recipe stays on record.
     """
 
     scene: str | Path | None
@@ -161,10 +170,17 @@ class TrainConfig:
     threads: int | None = None
     cache_bytes: int = 2 << 30
     init_generator: str | Path | None = None
+    loss_weights: dict[str, float] | None = None
 
     def validate(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset '{self.preset}' (known: {', '.join(PRESETS)})")
+        known = loss_weight_names()
+        for name, value in (self.loss_weights or {}).items():
+            if name not in known:
+                raise ValueError(f"unknown loss weight '{name}' (known: {', '.join(known)})")
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"loss weight {name} must be a finite number >= 0, got {value}")
         for name in ("log_every", "ckpt_every", "keep_checkpoints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -407,8 +423,11 @@ class Trainer:
         if tc.generator_iterations:
             # 0 (skip pre-training) is allowed here although ModelConfig wants > 0: kept apart.
             changes["generator_iterations"] = int(tc.generator_iterations)
+        weight_changes = {k: float(v) for k, v in (tc.loss_weights or {}).items() if getattr(cfg, k) != float(v)}
+        changes.update(weight_changes)
         cfg = cfg.replace(**changes) if changes else cfg
         self.cfg = cfg
+        self.loss_weight_changes = list((resume_info or {}).get("loss_weight_changes", []))
         gen_iters = cfg.generator_iterations if tc.generator_iterations is None else int(tc.generator_iterations)
         if resume_info is not None and tc.generator_iterations is None:
             gen_iters = int(resume_info.get("generator_iterations", gen_iters))
@@ -461,6 +480,12 @@ class Trainer:
         self.last_checkpoint = None
         if ckpt is not None:
             self._load_checkpoint(*ckpt)
+            if weight_changes:
+                old = ModelConfig.from_dict(dict(resume_info["model_config"]))
+                record = {"step": self.step, **{k: [getattr(old, k), v] for k, v in weight_changes.items()}}
+                self.loss_weight_changes.append(record)
+                self.log("loss weights from step " + str(self.step) + ": " +
+                         ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_generator is not None and self.generator_iterations:
             load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations
@@ -506,7 +531,7 @@ class Trainer:
         return {"perceptual": self.perceptual_name, "body": body_info_from_scene(self.scene),
                 "generator_iterations": self.generator_iterations,
                 "nerf_step": max(0, self.step - self.generator_iterations), "seed": self.tc.seed,
-                "train": self.tc.to_json()}
+                "train": self.tc.to_json(), "loss_weight_changes": self.loss_weight_changes}
 
     def save_checkpoint(self, rng_state: dict | None = None) -> Path | None:
         """Write ``checkpoints/ckpt_<step>`` (weights, then state) and the run's model files; rank 0 only."""
