@@ -249,3 +249,22 @@ def test_segmentation_term_only_when_asked():
     assert float(out["segmentation"]) == pytest.approx(0.5)
     expected = sum(getattr(small, f"w_{k}") * out[k] for k in out if k != "total")
     torch.testing.assert_close(out["total"], expected)
+
+
+def test_head_only_weights_reach_only_the_weight_head():
+    from garmentnerf.model.palette import PaletteDecoder
+
+    torch.manual_seed(0)
+    dec = PaletteDecoder(in_channels=8, palette_size=2, width=8, min_width=8, radiance_channels=1).train()
+    maps = dec(torch.randn(1, 8, 4, 4))
+    torch.testing.assert_close(maps.weights_head_only, maps.weights)  # same values, other gradient path
+    (maps.weights_head_only[:, 0] * torch.randn(1, 16, 16)).sum().backward()
+    for name, p in dec.body.named_parameters():
+        assert p.grad is None, name  # the layers shared with the mask and radiance get nothing
+    rows = slice(1 + 3 * 2, 1 + 4 * 2)  # radiance (1), offsets (3 x 2), then the 2 weight logits
+    grad = dec.head.weight.grad
+    assert grad[rows].abs().sum() > 0
+    assert grad[: rows.start].abs().sum() == 0 and grad[rows.stop:].abs().sum() == 0
+    with torch.no_grad():
+        assert dec(torch.randn(1, 8, 4, 4)).weights_head_only is None  # rendering pays nothing for it
+    assert dec.eval()(torch.randn(1, 8, 4, 4)).weights_head_only is None

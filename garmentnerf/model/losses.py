@@ -127,7 +127,9 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     if target_garment is not None and w_segmentation > 0:
         if target_garment.ndim == 3:
             target_garment = target_garment.unsqueeze(1)
-        terms["segmentation"] = segmentation_loss(maps.weights, target_garment.to(maps.weights.dtype),
+        supervised = maps.weights if maps.weights_head_only is None or not getattr(cfg, "segmentation_head_only", True) \
+            else maps.weights_head_only
+        terms["segmentation"] = segmentation_loss(supervised, target_garment.to(maps.weights.dtype),
                                                   target_mask.to(maps.weights.dtype))
     weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
                "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,

@@ -150,12 +150,16 @@ class DecomposedMaps:
         offsets: (B, P, 3, H, W) o_i.
         weights: (B, P, H, W) w_i, summing to 1 over P.
         mask: (B, 1, H, W) m in (0, 1).
+        weights_head_only: (B, P, H, W) the same values as ``weights`` whose gradient reaches only
+            the decoder's weight head, not the layers shared with the mask and radiance (set by
+            :class:`PaletteDecoder` in training; what the label supervision of the weights uses).
     """
 
     radiance: torch.Tensor
     offsets: torch.Tensor
     weights: torch.Tensor
     mask: torch.Tensor
+    weights_head_only: torch.Tensor | None = None
 
     def compose(self, palette: torch.Tensor, background=(0.0, 0.0, 0.0)) -> torch.Tensor:
         """:func:`compose` with these maps."""
@@ -223,7 +227,8 @@ class PaletteDecoder(nn.Module):
 
     def forward(self, features: torch.Tensor) -> DecomposedMaps:
         """(B, C, h, w) -> maps at (B, ., 4h, 4w) for two upsampling steps."""
-        raw = self.head(self.body(features))
+        trunk = self.body(features)
+        raw = self.head(trunk)
         B, _, H, W = raw.shape
         P, Cr = self.palette_size, self.radiance_channels
         r_raw, o_raw, w_raw, m_raw = torch.split(raw, [Cr, 3 * P, P, 1], dim=1)
@@ -232,9 +237,16 @@ class PaletteDecoder(nn.Module):
         else:
             radiance = torch.sigmoid(r_raw)
         offsets = self.offset_scale * torch.tanh(o_raw).view(B, P, 3, H, W)
+        head_only = None
+        if torch.is_grad_enabled() and self.training:
+            rows = slice(Cr + 3 * P, Cr + 4 * P)
+            head_only = self._normalised_weights(F.conv2d(trunk.detach(), self.head.weight[rows],
+                                                          self.head.bias[rows], padding=1))
+        return DecomposedMaps(radiance, offsets, self._normalised_weights(w_raw), restoring_sigmoid(m_raw), head_only)
+
+    def _normalised_weights(self, w_raw: torch.Tensor) -> torch.Tensor:
         w = F.softplus(w_raw) + self.weight_floor
-        weights = w / w.sum(dim=1, keepdim=True)
-        return DecomposedMaps(radiance, offsets, weights, restoring_sigmoid(m_raw))
+        return w / w.sum(dim=1, keepdim=True)
 
 
 class Palette(nn.Module):
