@@ -104,7 +104,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
             > 0 it is held to the target mask area-averaged to (h, w) (:func:`opacity_loss`).
         target_garment: optional (B, 1, H, W) or (B, H, W) ground-truth garment coverage; with
             ``cfg.w_segmentation`` > 0 the garment blend weight is held to it
-            (:func:`segmentation_loss`).
+            (:func:`segmentation_loss`), through the weight head alone when
+            ``cfg.segmentation_head_only`` and the maps carry ``weights_head_only``.
     Returns:
         dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette,
         [opacity,] [segmentation]`` and ``total``, the weighted sum.
@@ -127,8 +128,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     if target_garment is not None and w_segmentation > 0:
         if target_garment.ndim == 3:
             target_garment = target_garment.unsqueeze(1)
-        supervised = maps.weights if maps.weights_head_only is None or not getattr(cfg, "segmentation_head_only", True) \
-            else maps.weights_head_only
+        head_only = getattr(cfg, "segmentation_head_only", True) and maps.weights_head_only is not None
+        supervised = maps.weights_head_only if head_only else maps.weights
         terms["segmentation"] = segmentation_loss(supervised, target_garment.to(maps.weights.dtype),
                                                   target_mask.to(maps.weights.dtype))
     weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
