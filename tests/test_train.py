@@ -239,17 +239,19 @@ def test_training_targets_carry_the_garment_share(tiny_scene, gl_context):
 
 def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_path):
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=20, generator_iterations=0, frames=(1,),
-                 cameras=("cam00",), model_config=tiny_config().replace(lr=1e-2, lr_final=5e-3, w_segmentation=1.0))
+                 cameras=("cam00",), model_config=tiny_config().replace(lr=1e-2, lr_final=5e-3, w_segmentation=1.0,
+                                                                        segmentation_start=3))
     result, _ = run(tc, gl_context)
-    seg = [h["segmentation"] for h in result.history]
-    assert len(seg) == 20 and all(0.0 <= s <= 1.0 for s in seg)
-    # trained through the weight head alone (measured: 0.50 at the start, 0.37-0.40 over steps 14-20)
+    assert all("segmentation" not in h for h in result.history[:3])  # not before segmentation_start
+    seg = [h["segmentation"] for h in result.history[3:]]
+    assert len(seg) == 17 and all(0.0 <= s <= 1.0 for s in seg)
+    # trained through the weight head alone (measured: 0.50 at the start, 0.37-0.40 after 14 steps)
     assert min(seg[10:]) < 0.85 * seg[0], seg
 
 
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "run"
-    base = tiny_config().replace(w_segmentation=0.0)
+    base = tiny_config().replace(w_segmentation=0.0, segmentation_start=0)
     first, _ = run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, stop_after=2, model_config=base),
                    gl_context)
     assert first.step == 2 and all("segmentation" not in h for h in first.history)
@@ -257,7 +259,7 @@ def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, 
                           loss_weights={"w_segmentation": 0.25}), gl_context)
     assert [h["step"] for h in rest.history] == [3, 4]
     for h in rest.history:  # the new term is in the objective with its new weight
-        weighted = sum(getattr(tiny_config().replace(w_segmentation=0.25), f"w_{k}") * v
+        weighted = sum(getattr(base.replace(w_segmentation=0.25), f"w_{k}") * v
                        for k, v in h.items() if k not in ("step", "stage", "total", "psnr"))
         assert h["total"] == pytest.approx(weighted, rel=1e-5)
     info = json.loads((out / "run.json").read_text())

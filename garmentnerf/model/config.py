@@ -124,6 +124,9 @@ class ModelConfig:
             model at 1,000 steps put w_G = 0.06 on garment pixels and made them blue with a body
             offset of 0.28), and recolouring the garment then barely changes it. The labels the
             palette is initialised from already say which pixels are garment.
+        segmentation_start: NeRF steps done before the segmentation term applies (a curriculum:
+            the garment is first carved and coloured by the image and mask losses, then assigned
+            to its palette entry; the bundled model switched it on after 551 steps).
         segmentation_head_only: the segmentation term trains only the decoder's weight head, not
             the layers it shares with the mask and radiance (nor the NeRF behind them). With the
             full gradient, switching the term on at step 1,151 of a run whose garment was already
@@ -197,6 +200,7 @@ class ModelConfig:
     w_palette: float = 1e-3
     w_opacity: float = 1.0
     w_segmentation: float = 0.0
+    segmentation_start: int = 0
     segmentation_head_only: bool = True
     # optimisation
     lr: float = 5e-4
@@ -250,6 +254,8 @@ class ModelConfig:
                  "generator_iterations")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
+        if self.segmentation_start < 0:
+            raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
         for name in ("positional_encoding_freqs", "decoder_upsample_steps", "decoder_extra_layers", "bbox_padding",
                      "blend_weight_floor", "w_image", "w_mask", "w_perceptual", "w_sparsity", "w_offset", "w_palette",
                      "w_opacity", "w_segmentation"):
@@ -310,7 +316,7 @@ class ModelConfig:
         (garment pixels blended 71% of the *body* colour, tinted blue by r), so recolouring the
         garment entry barely changed the garment. With a grey radiance the blend weights went wrong
         instead (see ``w_segmentation``), so they are supervised with the garment labels
-        (``w_segmentation`` 0.5).
+        (``w_segmentation`` 0.5 after 550 NeRF steps).
         """
         return cls(
             image_resolution=256,
@@ -333,6 +339,7 @@ class ModelConfig:
             body_prior_width=0.15,
             radiance_channels=1,
             w_segmentation=0.5,
+            segmentation_start=550,
             lr=1e-3,
             lr_final=1e-4,
             iterations=3_000,

@@ -626,8 +626,10 @@ class Trainer:
         out = self.model.render(feats, self.data.frames.camera(cam), training=True, generator=gen)
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame))
         pal = self.model.palette
+        segment = step - self.generator_iterations >= self.cfg.segmentation_start
         terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colours, pal.initial,
-                               self.cfg, self.perceptual, opacity=out.opacity[None], target_garment=garment[None])
+                               self.cfg, self.perceptual, opacity=out.opacity[None],
+                               target_garment=garment[None] if segment else None)
         return terms, {"pred": out.image, "target": image}
 
     def _writer(self):
