@@ -72,13 +72,13 @@ def test_recolour_leaves_everything_but_the_garment(rendered):
     assert change <= 2 / 255, change
 
 
-@pytest.mark.xfail(strict=True, reason="known defect of the shipped model (step 2417): its RGB radiance absorbs "
-                                       "the garment's hue (garment pixels blend only 29% of the garment colour), "
-                                       "so a red garment colour turns 5% of them red; retrain with "
-                                       "radiance_channels=1 (the cpu_small preset now uses it)")
 def test_recolour_turns_the_garment_to_the_new_hue(rendered):
     before, after, lab = _recolour(rendered)
     garment = after[lab == 2]
     hues = np.array([colorsys.rgb_to_hsv(*px)[0] for px in garment if px.max() > 0.05])
     red = (hues < 0.08) | (hues > 0.92)
     assert red.mean() > 0.9, red.mean()
+    # the folds stay: the garment's brightness pattern before and after is the same up to scale
+    # (measured on the shipped model: correlation 0.98)
+    lum_before, lum_after = before[lab == 2].sum(axis=1), garment.sum(axis=1)
+    assert np.corrcoef(lum_before, lum_after)[0, 1] > 0.9
