@@ -142,6 +142,35 @@ def test_run_folder_errors(tiny_scene, tmp_path):
         load_run(tmp_path / "nothing")
 
 
+def test_mismatched_weights_and_checkpoints_are_rejected(tiny_scene, gl_context, tmp_path, capsys):
+    from garmentnerf.cli.main import main
+
+    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, tiny_config(), seed=3)
+    wider = build_model(tiny_config().replace(mlp_width=48))
+    with pytest.raises(ValueError, match=r"model\.safetensors: .* has shape .*the model config expects"):
+        load_weights(run_dir / "model.safetensors", wider)
+    no_detail = build_model(tiny_config().replace(use_detail_feature=False))
+    with pytest.raises(ValueError, match=r"weights do not match the model config \((missing|unexpected)"):
+        load_weights(run_dir / "model.safetensors", no_detail)
+    # a run whose run.json was edited to another size: one line naming the file, exit 2
+    info = json.loads((run_dir / "run.json").read_text())
+    info["model_config"]["mlp_width"] = 48
+    (run_dir / "run.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="has shape"):
+        load_run(run_dir)
+    assert main(["render", "--run", str(run_dir), "--camera", "held00", "--frames", "0:1",
+                 "--out", str(tmp_path / "frames")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "model.safetensors" in err[0] and "Traceback" not in err[0], err
+    # a damaged checkpoint state: resume refuses with the file's name
+    out = tmp_path / "t"
+    run(make_tc(tiny_scene, out, generator_iterations=0, iterations=3, stop_after=1), gl_context)
+    step, _, state_file = latest_checkpoint(out)
+    state_file.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match=r"ckpt_1\.state\.pt: unreadable checkpoint state"):
+        run(make_tc(tiny_scene, out, generator_iterations=0, iterations=3, resume=True), gl_context)
+
+
 # ---------------------------------------------------------------------------------------- CLI
 def test_cli_train(tiny_scene, tmp_path, capsys):
     from garmentnerf.cli.main import main
