@@ -121,7 +121,7 @@ class ModelConfig:
             ground-truth garment share of each foreground pixel, from the label maps (not in the
             paper: 0 gives its objective). The paper leaves the garment/body split to the
             sparsity and offset losses alone; at CPU schedules that split comes out wrong (a
-            model at 1,000 steps put w_G = 0.06 on garment pixels and made them blue with a body
+            model at NeRF step 400 put w_G = 0.06 on garment pixels and made them blue with a body
             offset of 0.28), and recolouring the garment then barely changes it. The labels the
             palette is initialised from already say which pixels are garment.
         segmentation_start: NeRF steps done before the segmentation term applies (a curriculum:
@@ -129,7 +129,7 @@ class ModelConfig:
             to its palette entry; the bundled model switched it on after 551 steps).
         segmentation_head_only: the segmentation term trains only the decoder's weight head, not
             the layers it shares with the mask and radiance (nor the NeRF behind them). With the
-            full gradient, switching the term on at step 1,151 of a run whose garment was already
+            full gradient, switching the term on at NeRF step 551 of a run whose garment was already
             rendered collapsed the garment's mask from 0.96 to 0.03 within 65 steps; head-only, the
             mask stayed at 0.98 while w_G on the garment rose from 0.05 to 0.63 in 60 steps.
 

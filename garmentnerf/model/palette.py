@@ -241,7 +241,7 @@ class PaletteDecoder(nn.Module):
         if torch.is_grad_enabled() and self.training:
             rows = slice(Cr + 3 * P, Cr + 4 * P)
             head_only = self._normalised_weights(F.conv2d(trunk.detach(), self.head.weight[rows],
-                                                          self.head.bias[rows], padding=1))
+                                                          self.head.bias[rows], padding=self.head.padding))
         return DecomposedMaps(radiance, offsets, self._normalised_weights(w_raw), restoring_sigmoid(m_raw), head_only)
 
     def _normalised_weights(self, w_raw: torch.Tensor) -> torch.Tensor:
