@@ -255,7 +255,8 @@ def test_head_only_weights_reach_only_the_weight_head():
     from garmentnerf.model.palette import PaletteDecoder
 
     torch.manual_seed(0)
-    dec = PaletteDecoder(in_channels=8, palette_size=2, width=8, min_width=8, radiance_channels=1).train()
+    dec = PaletteDecoder(in_channels=8, palette_size=2, width=8, min_width=8, radiance_channels=1,
+                         head_only_weights=True).train()
     maps = dec(torch.randn(1, 8, 4, 4))
     torch.testing.assert_close(maps.weights_head_only, maps.weights)  # same values, other gradient path
     (maps.weights_head_only[:, 0] * torch.randn(1, 16, 16)).sum().backward()

@@ -17,13 +17,13 @@ from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnim
                                         palette_initial_colours, reference_visibility)
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.motion.library import load_motion
-from tiny_models import tiny_pipeline_config
+from garmentnerf.train.trainer import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 
 
 def tiny_config(**changes) -> ModelConfig:
-    return tiny_pipeline_config(**changes)
+    return tiny_preset().replace(**changes)
 
 
 @pytest.fixture(scope="module")

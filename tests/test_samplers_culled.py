@@ -19,7 +19,7 @@ from garmentnerf.model.samplers_culled import (HeightRange, ShellSampler, instal
                                                measure_height_range, point_in_shell, render_features_culled,
                                                uninstall_culled_renderer, winding_number)
 from garmentnerf.motion.library import load_motion
-from tiny_models import tiny_pipeline_config
+from garmentnerf.train.trainer import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.10)
@@ -27,7 +27,7 @@ CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
 
 
 def tiny_config(**changes) -> ModelConfig:
-    return tiny_pipeline_config(**{"samples_per_ray": 32, **changes})
+    return tiny_preset().replace(**{"samples_per_ray": 32, **changes})
 
 
 class Banded(torch.nn.Module):

@@ -20,14 +20,14 @@ from garmentnerf.model.samplers_culled import (HeightRange, ShellSampler, instal
                                                uninstall_culled_renderer)
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
-from tiny_models import tiny_pipeline_config
+from garmentnerf.train.trainer import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.15)
 
 
 def tiny_config(**changes) -> ModelConfig:
-    return tiny_pipeline_config(**{"image_resolution": 32, "feature_image_resolution": 8, "appearance_dim": 8,
+    return tiny_preset().replace(**{"image_resolution": 32, "feature_image_resolution": 8, "appearance_dim": 8,
                                    "mlp_width": 16, "decoder_width": 8, **changes})
 
 

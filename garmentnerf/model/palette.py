@@ -191,11 +191,14 @@ class PaletteDecoder(nn.Module):
         radiance_channels: 3 (paper) or 1.
         radiance_activation: ``"softplus"`` or ``"sigmoid"``.
         offset_scale, weight_floor: see the heads.
+        head_only_weights: in training, also return the weights through the weight head alone
+            (``DecomposedMaps.weights_head_only``, for the label supervision of the weights).
     """
 
     def __init__(self, in_channels: int = 128, palette_size: int = 2, width: int = 64, min_width: int = 32,
                  upsample_steps: int = 2, extra_layers: int = 2, radiance_channels: int = 3,
-                 radiance_activation: str = "softplus", offset_scale: float = 0.5, weight_floor: float = 0.05):
+                 radiance_activation: str = "softplus", offset_scale: float = 0.5, weight_floor: float = 0.05,
+                 head_only_weights: bool = False):
         super().__init__()
         if radiance_activation not in ("softplus", "sigmoid"):
             raise ValueError(f"unknown radiance activation {radiance_activation!r}")
@@ -206,6 +209,7 @@ class PaletteDecoder(nn.Module):
         self.radiance_activation = radiance_activation
         self.offset_scale = offset_scale
         self.weight_floor = weight_floor
+        self.head_only_weights = bool(head_only_weights)
         self.upsample_steps = upsample_steps
         layers: list[nn.Module] = []
         c = in_channels
@@ -223,7 +227,8 @@ class PaletteDecoder(nn.Module):
     def from_config(cls, cfg) -> "PaletteDecoder":
         return cls(cfg.appearance_dim, cfg.palette_size, cfg.decoder_width, cfg.decoder_min_width,
                    cfg.decoder_upsample_steps, cfg.decoder_extra_layers, cfg.radiance_channels,
-                   cfg.radiance_activation, cfg.offset_scale, cfg.blend_weight_floor)
+                   cfg.radiance_activation, cfg.offset_scale, cfg.blend_weight_floor,
+                   head_only_weights=cfg.w_segmentation > 0 and cfg.segmentation_head_only)
 
     def forward(self, features: torch.Tensor) -> DecomposedMaps:
         """(B, C, h, w) -> maps at (B, ., 4h, 4w) for two upsampling steps."""
@@ -238,7 +243,7 @@ class PaletteDecoder(nn.Module):
             radiance = torch.sigmoid(r_raw)
         offsets = self.offset_scale * torch.tanh(o_raw).view(B, P, 3, H, W)
         head_only = None
-        if torch.is_grad_enabled() and self.training:
+        if self.head_only_weights and self.training and torch.is_grad_enabled():
             rows = slice(Cr + 3 * P, Cr + 4 * P)
             head_only = self._normalised_weights(F.conv2d(trunk.detach(), self.head.weight[rows],
                                                           self.head.bias[rows], padding=self.head.padding))
