@@ -128,7 +128,7 @@ def test_evaluate_matches_render_path(loaded, scene, gl_context, unseen_view_res
     from garmentnerf.render.session import RenderSession
 
     with RenderSession(loaded, gl_context, "train") as s:
-        pred = s.render_image(3, scene.camera("held00").camera)
+        pred = s.render_image(3, scene.camera("held00").camera, preset="reference")  # eval's default
     images = SceneImages(scene)
     try:
         gt, _ = images.image("train", "held00", 3)

@@ -14,6 +14,7 @@ from garmentnerf.model import (BoxStratifiedSampler, DetailEncoder, DynamicFeatu
                                garment_losses, sample_image_features, select_detail_features)
 from garmentnerf.model import volume_rendering as vr
 from garmentnerf.model.nerf_mlp import density_activation, positional_encoding, trunc_exp
+from garmentnerf.model.samplers import ray_aabb_intersect, stratified_intervals
 
 
 # ---------------------------------------------------------------------------------------- U-Net
@@ -196,9 +197,11 @@ def test_gradients_reach_every_parameter_end_to_end():
     cam = orbit_camera(20.0, 10.0, 3.0, width=r, height=r)
     origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
     aabb = torch.tensor([[-0.5, -0.3, 0.0], [0.5, 0.3, 1.8]])
-    samples = sampler.sample(origins, dirs, aabb, training=True)
-    assert samples.hit.float().mean() > 0.3
-    x = samples.positions.reshape(-1, 3)
+    # Dense (R, S) samples: the box sampler's own formulas before it packs them.
+    t_near, t_far, hit = ray_aabb_intersect(origins, dirs, sampler.padded_box(aabb))
+    t, t_starts, t_ends = stratified_intervals(t_near, t_far, sampler.num_samples, training=True)
+    assert hit.float().mean() > 0.3
+    x = (origins.unsqueeze(1) + t.unsqueeze(-1) * dirs.unsqueeze(1)).reshape(-1, 3)
     N = x.shape[0]
 
     # Stand-ins for the geometry stage: b_o, h, the UV of b_t and its pixel in each reference view.
@@ -215,8 +218,8 @@ def test_gradients_reach_every_parameter_end_to_end():
     f_d = select_detail_features(f_front, f_back, cfg.detail_selection, front_visible=front_visible)
 
     sigma, zeta = mlp(b_o, h, f_d, f_s)
-    R, S = samples.t_starts.shape
-    weights = vr.render_weights_from_density(sigma.view(R, S), samples.deltas)
+    R, S = t_starts.shape
+    weights = vr.render_weights_from_density(sigma.view(R, S), t_ends - t_starts)
     feature_image = vr.composite(weights, zeta.view(R, S, -1)).T.reshape(1, -1, r, r)
     maps = M_D(feature_image)
     image = maps.compose(palette(), cfg.background)

@@ -231,18 +231,31 @@ def test_ray_subset(model, frame):
         model.render(frame, CAMERA, rays=torch.tensor([3, 3]))
 
 
-def test_render_full_image_any_resolution(model, frame):
+def test_any_resolution_by_padding_the_camera_and_cropping_the_maps(model, frame):
+    from garmentnerf.render.session import padded_render_camera
+
     cam = orbit_camera(-60.0, 5.0, 3.0, width=70, height=50)
+    padded, (fw, fh), (wr, hr) = padded_render_camera(cam, 1.0, 4)
+    assert (fw, fh) == (18, 13) and (wr, hr) == (70, 50) and (padded.width, padded.height) == (72, 52)
+    # Padding extends the image to the right and bottom: the pixel centres of the camera stay put.
+    _, d_cam = camera_rays(cam, torch.float64)
+    _, d_pad = camera_rays(padded, torch.float64)
+    torch.testing.assert_close(d_pad[:50, :70], d_cam, atol=1e-12, rtol=0)
+    half, (hw, hh), (w2, h2) = padded_render_camera(cam, 0.5, 4)
+    assert (w2, h2) == (35, 25) and (hw, hh) == (9, 7) and (half.width, half.height) == (36, 28)
     with torch.no_grad():
-        native = model.render_full_image(frame, cam, scale=1.0)
-        scaled = model.render_full_image(frame, cam)  # at the training pixel density, resampled
-        square = model.render_full_image(frame, CAMERA)
+        out = model.render(frame, padded, feature_size=(fw, fh))
+        square = model.render(frame, padded_render_camera(CAMERA, 1.0, 4)[0], feature_size=(16, 16))
         direct = model.render(frame, CAMERA)
-    for out in (native, scaled):
-        assert out.image.shape == (3, 50, 70) and out.maps.mask.shape == (1, 1, 50, 70)
-        torch.testing.assert_close(out.maps.compose(out.palette, out.background)[0], out.image)
-        torch.testing.assert_close(out.maps.weights.sum(1), torch.ones(1, 50, 70))
-    assert native.feature_image.shape[1:] == (13, 18)  # ceil(50 / 4), ceil(70 / 4)
+    maps = out.maps.cropped(wr, hr)
+    assert maps.size == (70, 50) and maps.mask.shape == (1, 1, 50, 70)
+    torch.testing.assert_close(maps.mask, out.maps.mask[..., :50, :70], atol=0, rtol=0)
+    small = maps.resized(35, 25)
+    assert small.size == (35, 25) and maps.resized(70, 50) is maps
+    torch.testing.assert_close(small.weights.sum(1), torch.ones(1, 25, 35))
+    assert float(small.mask.min()) >= 0 and float(small.mask.max()) <= 1 and float(small.radiance.min()) >= 0
+    # A 2x downsampling averages: the mean of every map is kept to within the filter's edge effects.
+    torch.testing.assert_close(small.mask.mean(), maps.mask.mean(), atol=0.02, rtol=0)
     # A camera at the model's resolution renders exactly as render() does.
     torch.testing.assert_close(square.image, direct.image, atol=1e-6, rtol=0)
 

@@ -190,6 +190,49 @@ def test_render_command_palette_and_scene_camera(run_dir, tmp_path, session):
     assert unclamped.mean() > 0.9 and err.max() <= 1 / 255 + 1e-6
 
 
+def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir, tmp_path, session, gl_context):
+    """``render --preset interactive``, the previewer's lowest quality level and the bench row
+    ``interactive`` render the same thing: same points, same size, same image."""
+    from PIL import Image
+
+    from garmentnerf.cli.bench_cmd import preset_benchmark
+    from garmentnerf.perf.presets import RENDER_PRESETS, VIEWER_LEVELS
+    from garmentnerf.viewer.quality import QualityController
+    from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
+    from garmentnerf.train.run import load_run
+
+    bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
+                             log=lambda *a: None)
+    row = next(r for r in bench["presets"] if r["preset"] == "interactive")
+    entry = row["views"][0]
+    frame, cam_name = entry["frame"], entry["camera"]
+    cam = session.scene.camera(cam_name).camera
+    assert row["settings"] == RENDER_PRESETS["interactive"].to_dict()
+    # The previewer's lowest level (dynamic resolution off) asks the worker for exactly that preset.
+    level = QualityController(preset=VIEWER_LEVELS[0], dynamic=False)
+    results = []
+    renderer = NeuralRenderer(load_run(run_dir), lambda result, request: results.append(result), motion=session.sequence)
+    try:
+        renderer.request(NeuralRequest(frame, cam, level.quality(0.0), session.sequence, None, level.preset))
+        assert renderer.worker.wait_idle(120.0)
+    finally:
+        renderer.stop()
+    assert len(results) == 1 and results[0].preset == "interactive"
+    assert results[0].counts["points_evaluated"] == entry["points"] > 0
+    assert results[0].counts["samples_placed"] == entry["samples_candidate"]
+    # The command line renders the same image.
+    out = tmp_path / "interactive"
+    assert main(["render", "--run", str(run_dir), "--motion", session.sequence, "--frames", str(frame), "--camera",
+                 cam_name, "--size", str(cam.width), "--preset", "interactive", "--no-progress", "--out", str(out)]) == 0
+    image = np.asarray(Image.open(out / f"frame_{frame:04d}.png")).astype(float) / 255
+    nf = session.render(frame, cam, preset="interactive")
+    assert nf.render_size == tuple(results[0].render_size) and nf.counts["points_evaluated"] == entry["points"]
+    assert np.abs(image - nf.composite()).max() <= 1 / 255 + 1e-6
+    reference = session.render(frame, cam, preset="reference")  # another preset is another render
+    assert reference.preset == "reference" and reference.render_size != nf.render_size
+    assert reference.counts["points_evaluated"] > 2 * nf.counts["points_evaluated"]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--palette", "#zz0000"], "not a hex colour"),
     (["--body-colour", "blue"], "not a hex colour"),

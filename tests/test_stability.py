@@ -16,8 +16,8 @@ from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.frame_context import FrameInputBuilder
 from garmentnerf.model.palette import check_palette
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
-from garmentnerf.model.samplers_culled import (HeightRange, ShellSampler, install_culled_renderer,
-                                               uninstall_culled_renderer)
+from garmentnerf.model.height_band import HeightRange
+from garmentnerf.model.shell_sampler import ShellSampler
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
 from garmentnerf.train.trainer import tiny_config as tiny_preset
@@ -71,15 +71,21 @@ def finite(*tensors) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
+def culled_sampling(model, gl_context, samples=None, **sampler_kw) -> dict:
+    """Render arguments of the culled sampling: the shell sampler and the height band filter."""
+    faces = model.projector.faces
+    sampler = ShellSampler(samples or model.cfg.samples_per_ray, faces, BAND, gl_context=gl_context, **sampler_kw)
+    return {"sampler": sampler, "sample_filter": BAND.sample_filter(faces)}
+
+
 def check_render(model, frame, camera, culled=False, gl_context=None, **kw):
-    if culled:
-        install_culled_renderer(model, ShellSampler(model.cfg.samples_per_ray, BAND, gl_context=gl_context))
+    sampling = culled_sampling(model, gl_context) if culled else {}
     try:
         with torch.no_grad():
-            out = model.render(frame, camera, **kw)
+            out = model.render(frame, camera, **sampling, **kw)
     finally:
         if culled:
-            uninstall_culled_renderer(model)
+            sampling["sampler"].release()
     assert finite(out.image, out.opacity, out.depth, out.feature_image), "non-finite render"
     assert 0 <= float(out.image.min()) and float(out.image.max()) <= 1
     return out
@@ -129,12 +135,11 @@ def test_forced_densities_outputs_and_gradients(gl_context, body, projector, bui
     torch.manual_seed(1)
     model = GarmentAnimationNeRF(tiny_config(), body, PALETTE, projector=projector).train()
     model.nerf = ForcedDensity(model.nerf, density)
-    if culled:
-        install_culled_renderer(model, ShellSampler(8, BAND, termination_eps=0.0, gl_context=gl_context))
+    sampling = culled_sampling(model, gl_context, 8) if culled else {}
     posed = walk.slice(0, 3).pose(body)
     frame = model.prepare_frame(builder.build(posed, 2, walk.fps))
     out = model.render(frame, orbit_camera(30.0, 10.0, 3.0, width=32, height=32),
-                       generator=torch.Generator().manual_seed(0))
+                       generator=torch.Generator().manual_seed(0), **sampling)
     loss = out.image.mean() + out.opacity.mean() + out.depth.mean() * 1e-3
     loss.backward()
     assert finite(out.image, out.opacity, out.depth)
@@ -240,18 +245,17 @@ def test_palette_edges(model, frame):
 def test_half_precision(gl_context, model, frame):
     cam = orbit_camera(30.0, 10.0, 3.0, width=32, height=32)
     for precision in ("bfloat16", "float16"):
-        sampler = ShellSampler(8, BAND, precision=precision, gl_context=gl_context)
-        install_culled_renderer(model, sampler)
+        sampling = culled_sampling(model, gl_context, 8)
         try:
             try:
                 with torch.no_grad():
-                    out = model.render(frame, cam)
+                    out = model.render(frame, cam, precision=precision, **sampling)
             except RuntimeError as exc:  # an op without a half kernel on this device
                 if precision == "float16":
                     pytest.skip(f"float16 autocast unavailable here: {exc}")
                 raise
         finally:
-            uninstall_culled_renderer(model)
+            sampling["sampler"].release()
         assert finite(out.image, out.feature_image) and out.points_evaluated > 0
     # Volume rendering itself in half precision.
     for dtype in (torch.float16, torch.bfloat16):

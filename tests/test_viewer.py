@@ -24,7 +24,7 @@ import_viewer("timeline")  # registers garmentnerf.viewer when running from a so
 
 from garmentnerf.conventions import Camera  # noqa: E402
 from garmentnerf.viewer import shortcuts as sc  # noqa: E402
-from garmentnerf.viewer.camera import PRESETS, OrbitController  # noqa: E402
+from garmentnerf.viewer.camera import VIEW_DIRECTIONS, OrbitController  # noqa: E402
 from garmentnerf.viewer.export import parse_size, snapshot_name, write_png  # noqa: E402
 from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED, Timeline  # noqa: E402
 from garmentnerf.viewer.worker import RenderWorker  # noqa: E402
@@ -103,7 +103,7 @@ def test_camera_orbit_keeps_distance_and_zoom_clamps():
 
 def test_camera_presets_reset_pan_and_follow():
     cam = OrbitController()
-    for name, az in PRESETS.items():
+    for name, az in VIEW_DIRECTIONS.items():
         cam.preset(name)
         assert cam.azimuth == az
     cam.preset("front")
@@ -604,9 +604,10 @@ def test_run_frame_limit_and_quit(xvfb, body, walk, monkeypatch, tmp_path):
 
 # ==== dynamic resolution (pure logic) =========================================================================
 def test_quality_controller_moving_still_floor_and_hysteresis():
-    from garmentnerf.viewer.quality import PRESETS, QualityController
+    from garmentnerf.perf.presets import RENDER_PRESETS
+    from garmentnerf.viewer.quality import QualityController
 
-    q = QualityController(preset="high", target_ms=100.0, floor=0.125, settle_seconds=0.3)
+    q = QualityController(preset="full", target_ms=100.0, floor=0.125, settle_seconds=0.3)
     assert q.quality(0.0) == 1.0  # nothing changed yet: still, full quality
     q.view_changed("a", 1.0)
     assert q.moving(1.1) and not q.moving(1.31)
@@ -622,12 +623,16 @@ def test_quality_controller_moving_still_floor_and_hysteresis():
     before = q.unit_ms
     q.observe(1.0, 1.0)  # one absurdly fast sample moves the estimate by at most max_jump
     assert q.unit_ms >= before / q.max_jump * (1 - q.smoothing)
-    q.set_preset("low")
-    assert q.full == PRESETS["low"] and q.quality(10.0) == PRESETS["low"]
-    assert q.quality(2.1) <= PRESETS["low"]
-    fixed = QualityController(preset="medium", dynamic=False)
+    q.set_preset("interactive")  # the levels are render presets: the still quality is the preset's resolution
+    low = RENDER_PRESETS["interactive"].resolution_scale
+    assert q.full == low and q.quality(10.0) == low
+    assert q.unit_ms is None  # another preset costs another amount per ray: measured anew
+    assert q.quality(2.1) <= low
+    fixed = QualityController(preset="balanced", dynamic=False)
     fixed.view_changed("x", 0.0)
-    assert fixed.quality(0.01) == PRESETS["medium"]
+    assert fixed.quality(0.01) == RENDER_PRESETS["balanced"].resolution_scale
+    with pytest.raises(ValueError):
+        q.set_preset("reference")  # a render preset, but not a viewer level
     with pytest.raises(ValueError):
         q.set_preset("ultra")
 
@@ -716,7 +721,7 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     import math
     import sys
 
-    from garmentnerf.viewer.quality import PRESETS
+    from garmentnerf.perf.presets import RENDER_PRESETS, VIEWER_LEVELS
 
     out = tmp_path / "view_bench.json"
     env = dict(os.environ)
@@ -739,11 +744,13 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     rc = data["recolour"]
     assert rc["available"] and finite(rc["latency_frames"]) and 1 <= rc["latency_frames"] <= 10, rc
     assert rc["worker_renders"] == 0 and rc["layer_uploads"] == 0, rc  # a uniform, not a re-render
-    assert set(data["presets"]) == set(PRESETS)
+    assert list(data["presets"]) == list(VIEWER_LEVELS)
     for name, p in data["presets"].items():
         assert finite(p["render_ms_median"]) and p["render_ms_median"] > 0, (name, p)
-        assert p["quality"] == PRESETS[name] and len(p["render_size"]) == 2
-    sizes = [data["presets"][n]["render_size"][0] for n in ("low", "medium", "high")]
+        # each level rendered its render preset: the bench row of that name
+        assert p["preset"] == [name] and p["quality"] == RENDER_PRESETS[name].resolution_scale, (name, p)
+        assert len(p["render_size"]) == 2
+    sizes = [data["presets"][n]["render_size"][0] for n in VIEWER_LEVELS]
     assert sizes[0] < sizes[1] < sizes[2]  # higher presets render more pixels
     assert data["worker"]["errors"] == 0
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from garmentnerf.model import volume_rendering as vr
-from garmentnerf.model.samplers import BoxStratifiedSampler, RaySamples, ray_aabb_intersect, stratified_intervals
+from garmentnerf.model.samplers import BoxStratifiedSampler, ray_aabb_intersect, stratified_intervals
 
 
 def slab_density(t: torch.Tensor, sigma: float, t0: float, t1: float) -> torch.Tensor:
@@ -199,40 +199,126 @@ def test_box_sampler_intervals_and_missing_rays():
     origins = torch.tensor([[0.0, -3.0, 0.9], [0.0, -3.0, 5.0], [3.0, 3.0, 0.9]])
     dirs = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]), dim=-1)
     for training in (False, True):
-        s = sampler.sample(origins, dirs, aabb, training=training, generator=torch.Generator().manual_seed(0))
-        assert s.positions.shape == (3, 16, 3) and s.t_starts.shape == (3, 16)
-        assert s.hit.tolist() == [True, False, False]
-        # Intervals tile [entry, exit] of the padded box.
-        assert s.t_starts[0, 0].item() == pytest.approx(3.0 - 0.55)
-        assert s.t_ends[0, -1].item() == pytest.approx(3.0 + 0.55)
-        torch.testing.assert_close(s.t_ends[0, :-1], s.t_starts[0, 1:])
-        assert (s.deltas >= 0).all()
-        assert (s.deltas[1:] == 0).all()
+        s = sampler.sample_rays(origins, dirs, aabb, training=training, generator=torch.Generator().manual_seed(0))
+        # Packed: only the ray that hits the padded box has samples, 16 of them, in order.
+        assert s.positions.shape == (16, 3) and s.t_starts.shape == (16,) and s.n_rays == 3
+        assert s.hit.tolist() == [True, False, False] and s.ray_ids.tolist() == [0] * 16
+        # Intervals tile [entry, exit] of the padded box, which are the ray's bounds.
+        assert s.t_starts[0].item() == pytest.approx(3.0 - 0.55) == s.near[0].item()
+        assert s.t_ends[-1].item() == pytest.approx(3.0 + 0.55) == s.far[0].item()
+        torch.testing.assert_close(s.t_ends[:-1], s.t_starts[1:])
+        assert (s.deltas > 0).all() and (s.t_starts[1:] > s.t_starts[:-1]).all()
         # Samples lie inside the padded box.
-        inside = s.positions[0]
-        assert (inside >= aabb[0] - 0.05 - 1e-5).all() and (inside <= aabb[1] + 0.05 + 1e-5).all()
-        # Any density: missing rays render nothing.
-        sigmas = torch.full((3, 16), 1e3)
-        w = vr.render_weights_from_density(sigmas, s.deltas)
-        assert (w[1:] == 0).all()
-        assert vr.accumulate_opacity(w)[0].item() == pytest.approx(1.0)
-    eval_s = sampler.sample(origins, dirs, aabb)
-    torch.testing.assert_close(eval_s.t_mids[0], (eval_s.t_starts[0] + eval_s.t_ends[0]) / 2)
-    torch.testing.assert_close(eval_s.deltas[0], torch.full((16,), 1.1 / 16))
+        assert (s.positions >= aabb[0] - 0.05 - 1e-5).all() and (s.positions <= aabb[1] + 0.05 + 1e-5).all()
+        # Any density: an opaque box, and the missing rays render nothing.
+        w = vr.render_weights_from_density_packed(torch.full((16,), 1e3), s.deltas, s.ray_ids, 3)
+        opacity = vr.accumulate_opacity_packed(w, s.ray_ids, 3)
+        assert opacity[0].item() == pytest.approx(1.0) and opacity[1:].tolist() == [0.0, 0.0]
+    eval_s = sampler.sample_rays(origins, dirs, aabb)
+    torch.testing.assert_close(eval_s.t_mids, (eval_s.t_starts + eval_s.t_ends) / 2)
+    torch.testing.assert_close(eval_s.deltas, torch.full((16,), 1.1 / 16))
 
 
-def test_box_sampler_packed_drops_missing_rays():
+def test_bound_box_sampler_is_the_box_sampler_on_the_camera_rays():
+    from garmentnerf.conventions import camera_rays, orbit_camera
+    from garmentnerf.model.samplers import pixel_rays
+
+    class Frame:  # what bind() reads of a frame
+        aabb = torch.tensor([[-0.3, -0.2, 0.0], [0.3, 0.2, 1.7]])
+
+    cam = orbit_camera(20.0, 10.0, 3.0, width=12, height=10)
     sampler = BoxStratifiedSampler(num_samples=8)
-    aabb = torch.tensor([[-0.5, -0.5, 0.0], [0.5, 0.5, 1.8]])
-    origins = torch.tensor([[0.0, -3.0, 5.0], [0.0, -3.0, 0.9]])
-    dirs = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
-    packed = sampler.sample(origins, dirs, aabb).to_packed()
-    assert isinstance(packed, RaySamples) and packed.is_packed
-    assert packed.ray_ids.tolist() == [1] * 8
-    assert packed.positions.shape == (8, 3)
+    pixels = torch.tensor([0, 5, 55, 61, 119])
+    bound = sampler.bind(Frame(), cam)
+    got = bound.sample(pixels)
+    o, d = camera_rays(cam)
+    want = sampler.sample_rays(o.reshape(-1, 3)[pixels], d.reshape(-1, 3)[pixels], Frame.aabb)
+    for k in ("positions", "t_starts", "t_ends", "ray_ids", "near", "far", "hit"):
+        torch.testing.assert_close(getattr(got, k), getattr(want, k), atol=0, rtol=0)
+    assert got.hit.any() and got.n_rays == 5
+    torch.testing.assert_close(pixel_rays(cam)[1].reshape(10, 12, 3), d, atol=0, rtol=0)
 
 
 def test_box_sampler_rejects_non_unit_directions():
     with pytest.raises(ValueError, match="unit"):
-        BoxStratifiedSampler(4).sample(torch.zeros(1, 3), torch.tensor([[0.0, 2.0, 0.0]]),
+        BoxStratifiedSampler(4).sample_rays(torch.zeros(1, 3), torch.tensor([[0.0, 2.0, 0.0]]),
                                        torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+
+
+# ---------------------------------------------------------------- segmented rendering, early termination
+def _random_packed_rays(seed: int, n_rays: int = 40, max_samples: int = 30):
+    g = torch.Generator().manual_seed(seed)
+    counts = torch.randint(0, max_samples + 1, (n_rays,), generator=g)
+    ray_ids = torch.repeat_interleave(torch.arange(n_rays), counts)
+    n = int(counts.sum())
+    deltas = torch.rand(n, generator=g, dtype=torch.float64) * 0.1
+    t_starts = torch.zeros(n, dtype=torch.float64)
+    for r in range(n_rays):  # intervals tile each ray from t = 1
+        sel = ray_ids == r
+        t_starts[sel] = 1.0 + torch.cumsum(deltas[sel], 0) - deltas[sel]
+    t_ends = t_starts + deltas
+    sigma = torch.rand(n, generator=g, dtype=torch.float64) * 80.0
+    values = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
+    return ray_ids, t_starts.float(), t_ends.float(), sigma.float(), values.float()
+
+
+def _exact(ray_ids, t_starts, t_ends, sigma, values, n_rays):
+    w = vr.render_weights_from_density_packed(sigma, t_ends - t_starts, ray_ids, n_rays)
+    return (vr.composite_packed(w, values, ray_ids, n_rays), vr.accumulate_opacity_packed(w, ray_ids, n_rays),
+            vr.expected_depth_packed(w, t_starts, t_ends, ray_ids, n_rays))
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 64, 100000])
+def test_segmented_rendering_without_termination_is_exact(chunk):
+    ray_ids, ts, te, sigma, values = _random_packed_rays(0)
+    calls = []
+
+    def field(index):
+        calls.append(index.clone())
+        return sigma[index], values[index]
+
+    out = vr.render_packed_segmented(field, ts, te, ray_ids, 40, 3, chunk_points=chunk)
+    want_v, want_o, want_d = _exact(ray_ids, ts, te, sigma, values, 40)
+    torch.testing.assert_close(out.values, want_v, atol=1e-6, rtol=0)
+    torch.testing.assert_close(out.opacity, want_o, atol=1e-6, rtol=0)
+    torch.testing.assert_close(out.depth, want_d, atol=1e-5, rtol=0)
+    # Every sample evaluated exactly once, whole rays per call (never split).
+    seen = torch.cat(calls)
+    assert sorted(seen.tolist()) == list(range(len(ray_ids))) and out.samples_evaluated == len(ray_ids)
+    for index in calls:
+        rays = torch.unique(ray_ids[index])
+        assert int(torch.isin(ray_ids, rays).sum()) == index.numel()
+    assert not out.terminated.any()
+
+
+def test_segmented_rendering_gradients_match_the_dense_reference():
+    ray_ids, ts, te, sigma, values = _random_packed_rays(1, n_rays=12, max_samples=10)
+    s1, v1 = sigma.clone().requires_grad_(), values.clone().requires_grad_()
+    out = vr.render_packed_segmented(lambda i: (s1[i], v1[i]), ts, te, ray_ids, 12, 3, chunk_points=5,
+                                     termination_eps=1e-9)  # segmented front to back, nothing skipped
+    (out.values.sum() + out.opacity.sum()).backward()
+    s2, v2 = sigma.clone().requires_grad_(), values.clone().requires_grad_()
+    want_v, want_o, _ = _exact(ray_ids, ts, te, s2, v2, 12)
+    (want_v.sum() + want_o.sum()).backward()
+    torch.testing.assert_close(s1.grad, s2.grad, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(v1.grad, v2.grad, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("eps", [1e-4, 1e-2, 0.2])
+def test_early_termination_error_is_bounded_by_eps(eps):
+    ray_ids, ts, te, sigma, values = _random_packed_rays(2, n_rays=60, max_samples=40)
+    out = vr.render_packed_segmented(lambda i: (sigma[i], values[i]), ts, te, ray_ids, 60, 3, chunk_points=60,
+                                     termination_eps=eps)
+    want_v, want_o, _ = _exact(ray_ids, ts, te, sigma, values, 60)
+    assert out.samples_evaluated < len(ray_ids) and out.terminated.any()
+    # Skipped samples carry weights summing to at most eps per ray: |dF| <= eps max|v|, dO <= eps.
+    assert float((want_o - out.opacity).max()) <= eps + 1e-6 and float((want_o - out.opacity).min()) >= -1e-6
+    assert float((want_v - out.values).abs().max()) <= eps * float(values.abs().max()) + 1e-6
+    # A terminated ray's transmittance did fall below eps; a live one's never did before its end.
+    assert bool((1.0 - out.opacity[out.terminated] < eps + 1e-6).all())
+
+
+def test_segmented_rendering_rejects_bad_settings():
+    with pytest.raises(ValueError, match="termination_eps"):
+        vr.render_packed_segmented(lambda i: None, torch.zeros(0), torch.zeros(0), torch.zeros(0, dtype=torch.long),
+                                   1, 3, termination_eps=1.0)

@@ -403,12 +403,12 @@ class App:
                self.neural_motion, self._neural_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
-        request_key = (key, q, gt)
+        request_key = (key, q, gt, self.quality.preset)
         if request_key != self._last_request_key:
             from garmentnerf.viewer.worker import NeuralRequest
 
             self._last_request_key = request_key
-            self.neural.request(NeuralRequest(frame, cam, q, self.neural_motion, gt))
+            self.neural.request(NeuralRequest(frame, cam, q, self.neural_motion, gt, self.quality.preset))
 
     def neural_error(self) -> str:
         return self.neural.stats.last_error if self.neural is not None else ""

@@ -21,7 +21,7 @@ import numpy as np
 from garmentnerf.conventions import DEFAULT_FAR, Camera, look_at, orbit_camera
 
 #: View presets: azimuth in degrees (orbit_camera's convention).
-PRESETS: dict[str, float] = {"front": 0.0, "left": 90.0, "back": 180.0, "right": -90.0}
+VIEW_DIRECTIONS: dict[str, float] = {"front": 0.0, "left": 90.0, "back": 180.0, "right": -90.0}
 
 
 def _wrap_degrees(angle: float) -> float:
@@ -102,10 +102,10 @@ class OrbitController:
             self.target[:2] = 0.0
 
     def preset(self, name: str) -> None:
-        """Look from a named side (:data:`PRESETS`) at the home elevation; distance and target stay."""
-        if name not in PRESETS:
-            raise ValueError(f"unknown camera preset '{name}' (known: {', '.join(PRESETS)})")
-        self.azimuth = PRESETS[name]
+        """Look from a named side (:data:`VIEW_DIRECTIONS`) at the home elevation; distance and target stay."""
+        if name not in VIEW_DIRECTIONS:
+            raise ValueError(f"unknown camera preset '{name}' (known: {', '.join(VIEW_DIRECTIONS)})")
+        self.azimuth = VIEW_DIRECTIONS[name]
         self.elevation = self._clamp_elevation(self.home.elevation)
 
     # ---- mouse gestures (pixels are window units) ---------------------------------------------

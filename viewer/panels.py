@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from garmentnerf.viewer.camera import PRESETS
+from garmentnerf.viewer.camera import VIEW_DIRECTIONS
 from garmentnerf.viewer.exporter import EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY, MIN_SNAPSHOT_QUALITY
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.shortcuts import MOUSE_HELP, help_rows
@@ -128,7 +128,7 @@ def _camera_section(app: "App", em: float) -> None:
     if not imgui.collapsing_header("Camera", imgui.TreeNodeFlags_.default_open):
         return
     cam = app.controller
-    for i, name in enumerate(PRESETS):
+    for i, name in enumerate(VIEW_DIRECTIONS):
         if i:
             imgui.same_line()
         if imgui.button(name.capitalize()):
@@ -174,8 +174,8 @@ def _display_section(app: "App") -> None:
 def _neural_section(app: "App", em: float) -> None:
     if app.run_data is None or not imgui.collapsing_header("Neural render", imgui.TreeNodeFlags_.default_open):
         return
+    from garmentnerf.perf.presets import VIEWER_LEVELS
     from garmentnerf.viewer.app import VIEW_MODES
-    from garmentnerf.viewer.quality import PRESETS
     from garmentnerf.viewer.scene_gl import MAP_VIEWS
 
     keys = list(VIEW_MODES)
@@ -203,7 +203,7 @@ def _neural_section(app: "App", em: float) -> None:
             app.gt_camera = names[index]
         if not app.ground_truth_available():
             imgui.text_disabled("no ground truth: pick a scene sequence")
-    presets = list(PRESETS)
+    presets = list(VIEWER_LEVELS)
     q = app.quality
     imgui.set_next_item_width(-6 * em)
     changed, index = imgui.combo("Quality", presets.index(q.preset), presets)

@@ -1,6 +1,6 @@
 """Dynamic resolution of the neural render: coarse while the view changes, full when it is still.
 
-Pure logic (no GL, no torch), driven by the app once per UI frame:
+Pure logic (no GL), driven by the app once per UI frame:
 
 * :meth:`QualityController.observe` records what a finished render cost. The cost of a render
   is modelled as ``unit_ms * quality**2`` (rays scale with the pixel count); ``unit_ms`` is an
@@ -15,9 +15,11 @@ Pure logic (no GL, no torch), driven by the app once per UI frame:
   by more than :attr:`hysteresis` (relative, +-20 % by default), and it is quantised to steps of
   1/16, so the resolution does not flicker between two neighbours.
 
-Presets (:data:`PRESETS`) set the still quality (and the cap of the moving one): ``low`` 0.25,
-``medium`` 0.5, ``high`` 1.0 (the training pixel density); ``fixed`` modes keep one quality
-whatever happens (``low``/``medium``/``high`` with ``dynamic=False``).
+Quality levels are the render presets of :data:`garmentnerf.perf.presets.VIEWER_LEVELS`
+(``interactive``, ``balanced``, ``full``: rows of the table ``garmentnerf bench`` measures and
+``garmentnerf render --preset`` runs). The level's preset sets where samples go and the still
+quality (its ``resolution_scale``, also the cap of the moving one); with ``dynamic=False`` the
+level's preset is rendered exactly as the bench row of that name, whatever happens.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-#: Still quality per preset (fraction of the training pixel density).
-PRESETS = {"low": 0.25, "medium": 0.5, "high": 1.0}
+from garmentnerf.perf.presets import VIEWER_LEVELS, get_render_preset
+
 #: Quantisation step of the moving quality.
 STEP = 1.0 / 16.0
 
@@ -36,7 +38,7 @@ class QualityController:
     """See the module docstring.
 
     Attributes:
-        preset: key of :data:`PRESETS`.
+        preset: the quality level, a render preset name of :data:`VIEWER_LEVELS`.
         dynamic: lower the quality while moving (False: always the preset's).
         target_ms: render time aimed at while moving.
         floor: lowest quality ever requested.
@@ -46,7 +48,7 @@ class QualityController:
         max_jump: a single measurement changes the unit cost by at most this factor.
     """
 
-    preset: str = "high"
+    preset: str = "full"
     dynamic: bool = True
     target_ms: float = 120.0
     floor: float = 0.125
@@ -67,13 +69,17 @@ class QualityController:
     # ---- settings ----------------------------------------------------------------------------------
     @property
     def full(self) -> float:
-        """The still quality of the preset."""
-        return PRESETS[self.preset]
+        """The still quality of the level: its render preset's resolution scale."""
+        return get_render_preset(self.preset).resolution_scale
 
     def set_preset(self, preset: str) -> None:
-        if preset not in PRESETS:
-            raise ValueError(f"unknown quality preset '{preset}' (known: {', '.join(PRESETS)})")
+        """Switch to another quality level (the cost model starts over: presets differ per ray)."""
+        if preset not in VIEWER_LEVELS:
+            raise ValueError(f"unknown quality level '{preset}' (known: {', '.join(VIEWER_LEVELS)})")
+        changed = preset != self.preset
         self.preset = preset
+        if changed:
+            self.unit_ms = None
         if self._moving_quality is not None:
             self._moving_quality = min(self._moving_quality, self.full)
 
@@ -125,4 +131,4 @@ class QualityController:
         return self.moving_quality() if self.moving(now) else self.full
 
 
-__all__ = ["QualityController", "PRESETS", "STEP"]
+__all__ = ["QualityController", "STEP"]

@@ -25,6 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from garmentnerf.perf.presets import VIEWER_LEVELS
+
 
 @dataclass
 class WorkerStats:
@@ -138,13 +140,15 @@ class RenderWorker:
 @dataclass(frozen=True)
 class NeuralRequest:
     """What to render: body ``frame`` of ``motion`` (a scene sequence or motion name) seen by ``camera``
-    at ``quality``; ``gt_camera`` names the scene camera whose ground truth to load (or None)."""
+    with render ``preset`` at ``quality`` (None: the preset's own resolution); ``gt_camera`` names the
+    scene camera whose ground truth to load (or None)."""
 
     frame: int
     camera: Any
-    quality: float
+    quality: float | None
     motion: Any = None
     gt_camera: str | None = None
+    preset: str = VIEWER_LEVELS[-1]
 
 
 @dataclass
@@ -162,6 +166,8 @@ class NeuralResult:
     learned_palette: Any
     ground_truth: Any = None
     gt_key: Any = None
+    preset: str = ""
+    counts: dict | None = None
 
 
 class NeuralRenderer:
@@ -239,7 +245,7 @@ class NeuralRenderer:
         session = self._ensure_session(request.motion)
         frame = min(max(0, int(request.frame)), session.num_frames - 1)
         try:
-            nf = session.render(frame, request.camera, request.quality,
+            nf = session.render(frame, request.camera, request.quality, preset=request.preset,
                                 should_cancel=lambda: self.worker.should_cancel(generation))
         except RenderCancelled:
             return None
@@ -247,7 +253,7 @@ class NeuralRenderer:
         layers = pack_maps(m.radiance[0].numpy(), m.offsets[0].numpy(), m.weights[0].numpy(), m.mask[0].numpy())
         gt, gt_key = self._ground_truth(session, request)
         return NeuralResult(layers, nf.depth, nf.output_size, nf.render_size, nf.quality, frame, nf.timings,
-                            nf.cached_frame, nf.palette.numpy(), gt, gt_key)
+                            nf.cached_frame, nf.palette.numpy(), gt, gt_key, nf.preset, dict(nf.counts))
 
     def _deliver(self, result: NeuralResult, request: NeuralRequest, generation: int) -> None:
         self.last = result

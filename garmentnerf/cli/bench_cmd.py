@@ -2,7 +2,9 @@
 
 Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.benchmarks.foundation_benchmark`).
 
-With ``--run DIR``: every render preset (:mod:`garmentnerf.perf.presets`) on the run's model, in
+With ``--run DIR``: every render preset (:data:`garmentnerf.perf.presets.RENDER_PRESETS`, the table
+``render --preset``, ``eval --preset`` and the previewer's quality levels use) on the run's model,
+rendered through :class:`~garmentnerf.render.session.RenderSession` like every other command, in
 one process so the ratios to ``reference`` compare like with like: ms per frame (one view of one
 body frame: the frame stages plus the view's render) with a stage breakdown like the paper's,
 points evaluated by the MLP per frame, and PSNR/SSIM against the ground truth of the run's
@@ -38,7 +40,7 @@ PAPER_STAGES = {
     "projection": ("surface", "rays", "projection", "features"),
     "mlp": ("mlp",),
     "compositing": ("compositing",),
-    "decoder": ("decoder", "compose"),
+    "decoder": ("decoder",),
 }
 
 
@@ -77,41 +79,37 @@ def _pick(items, count):
 
 def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, repeats: int = 2,
                      sequence: str | None = None, gl_context=None, log=print) -> dict:
-    """Measure every preset on a run (see the module docstring). Returns a JSON-ready dict."""
-    import numpy as np
-    import torch
-
+    """Measure every preset on a run (see the module docstring) through
+    :class:`~garmentnerf.render.session.RenderSession`, the path every command renders with.
+    Returns a JSON-ready dict."""
     import os
     import platform
 
+    import torch
+
     from garmentnerf.eval.metrics import psnr, ssim
     from garmentnerf.gl.context import context_info, create_context
-    from garmentnerf.model.frame_context import FrameInputBuilder
     from garmentnerf.model.pipeline import FRAME_STAGES, RENDER_STAGES
-    from garmentnerf.perf.presets import PRESET_NAMES, apply_preset, get_preset, height_range_for_run
-    from garmentnerf.render.session import resolve_motion
+    from garmentnerf.perf.presets import RENDER_PRESET_NAMES, get_render_preset
+    from garmentnerf.render.session import RenderSession
     from garmentnerf.train.run import load_run
 
     for name, value in (("frames", frames), ("views", views), ("repeats", repeats)):
         if value < 1:
             raise ValueError(f"--{name} must be at least 1, got {value}")
-    names = list(presets) if presets else list(PRESET_NAMES)
-    chosen = [get_preset(n) for n in names]
+    names = list(presets) if presets else list(RENDER_PRESET_NAMES)
+    chosen = [get_render_preset(n) for n in names]
     if "reference" not in [p.name for p in chosen]:
-        chosen.insert(0, get_preset("reference"))  # ratios are to a reference measured in the same run
+        chosen.insert(0, get_render_preset("reference"))  # ratios are to a reference measured in the same run
     own_ctx = gl_context is None
     ctx = create_context(headless=True) if own_ctx else gl_context
     run = load_run(run_dir)
-    model, cfg, scene = run.model.eval(), run.config, run.scene
-    images = None
+    cfg, scene = run.config, run.scene
+    images = session = None
     try:
-        body = model.body
-        betas = run.betas if run.betas is not None else body.betas("average")
-        motion, seq = resolve_motion(sequence, body, betas, scene)
-        with torch.no_grad():
-            posed = motion.pose(body, betas)
-        T = int(posed.vertices.shape[0])
-        frame_ids = _pick(list(range(T)), frames)
+        session = RenderSession(run, ctx, sequence, cache_frames=max(frames, 1) + 1)
+        motion, seq = session.motion, session.sequence
+        frame_ids = _pick(list(range(session.num_frames)), frames)
         if scene is not None:
             split = "unseen_view" if scene.camera_names("unseen_view") else "train"
             cams = _pick(scene.cameras(split), views)
@@ -119,65 +117,55 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
                 from garmentnerf.data.render_gt import GroundTruthRenderer
                 from garmentnerf.data.scene import SceneImages
 
-                images = SceneImages(scene, renderer=GroundTruthRenderer(ctx), body_model=body)
+                images = SceneImages(scene, renderer=GroundTruthRenderer(ctx), body_model=session.body)
         else:
             from garmentnerf.data.cameras import default_rig
 
             split = "orbit"
             rig = default_rig(width=cfg.image_resolution, height_px=cfg.image_resolution, references=False)
             cams = _pick(rig, views)
-        band = height_range_for_run(run)
+        band = session.height_range
         log(f"run {run_dir}: step {run.step}, {cfg.feature_image_resolution}^2 rays x {cfg.samples_per_ray} samples, "
             f"MLP {cfg.mlp_depth}x{cfg.mlp_width}; motion {motion.name} frames {frame_ids}; "
             f"{len(cams)} '{split}' views; height band [{band.h_min:.3f}, {band.h_max:.3f}] m ({band.source})")
-        refs = scene if scene is not None else None
-        if refs is None:
-            from garmentnerf.data.cameras import reference_cameras
-
-            refs = reference_cameras()
-        # Frame stages do not depend on the preset: measured once per frame (after a warm-up).
-        feats, frame_timings, gts = {}, {}, {}
-        with FrameInputBuilder(ctx, body, refs, cfg) as builder, torch.no_grad():
-            model.prepare_frame(builder.build(posed, frame_ids[0], motion.fps))
-            for f in frame_ids:
-                fr = model.prepare_frame(builder.build(posed, f, motion.fps)).detach()
-                feats[f] = fr
-                frame_timings[f] = {k: fr.timings.get(k, 0.0) for k in FRAME_STAGES}
+        # Frame stages do not depend on the preset: measured once per frame (after a warm-up), then
+        # every render finds the frame in the session's cache.
+        session.frame_features(frame_ids[0])
+        session.clear_cache()
+        frame_timings = {f: {k: session.frame_features(f)[0].timings.get(k, 0.0) for k in FRAME_STAGES}
+                         for f in frame_ids}
+        gts = {}
         if images is not None:
             for f in frame_ids:
                 for c in cams:
                     gts[(f, c.name)] = images.image(seq, c.name, f)[0]
         results = []
         for preset in chosen:
-            applied = apply_preset(model, preset, height_range=band, gl_context=ctx)
-            with torch.no_grad():  # warm-up (GL objects, allocator)
-                model.render_full_image(feats[frame_ids[0]], cams[0].camera,
-                                        scale=applied.render_scale(cfg, cams[0].camera))
+            session.render(frame_ids[0], cams[0].camera, preset=preset)  # warm-up (GL objects, allocator)
             per_view = []
             for f in frame_ids:
                 for c in cams:
                     best = None
                     for _ in range(repeats):
-                        with torch.no_grad():
-                            out = model.render_full_image(feats[f], c.camera, scale=applied.render_scale(cfg, c.camera))
-                        if best is None or out.timings["render_total"] < best.timings["render_total"]:
-                            best = out
-                    stats = dict(getattr(applied.sampler, "last_stats", {}) or {})
+                        nf = session.render(f, c.camera, preset=preset)
+                        if best is None or nf.timings["render_total"] < best.timings["render_total"]:
+                            best = nf
                     timings = dict(frame_timings[f])
                     timings.update({k: best.timings.get(k, 0.0) for k in RENDER_STAGES})
                     frame_ms = sum(frame_timings[f].values())
+                    counts = best.counts
                     entry = {"frame": f, "camera": c.name, "render_ms": best.timings["render_total"],
                              "frame_ms": frame_ms, "ms_per_frame": frame_ms + best.timings["render_total"],
-                             "points": best.points_evaluated, "rays": best.rays_evaluated,
-                             "rays_total": best.rays_total, "timings": timings,
-                             "samples_candidate": stats.get("samples_candidate", best.points_evaluated),
-                             "points_projected": stats.get("points_projected", best.points_evaluated)}
+                             "points": counts["points_evaluated"], "rays": counts["rays_evaluated"],
+                             "rays_total": counts["rays_total"], "timings": timings,
+                             "samples_candidate": counts["samples_placed"],
+                             "points_projected": counts["points_projected"]}
                     gt = gts.get((f, c.name))
                     if gt is not None:
-                        img = best.image.detach().cpu().permute(1, 2, 0).numpy().astype(np.float32)
+                        img = best.composite()
                         entry["psnr"], entry["ssim"] = psnr(img, gt), ssim(img, gt)
                     per_view.append(entry)
-            row = {"preset": preset.name, "settings": preset.to_dict(), "samples_per_ray": applied.samples_per_ray,
+            row = {"preset": preset.name, "settings": preset.to_dict(), "samples_per_ray": preset.samples_per_ray(cfg),
                    "ms_per_frame": _median([e["ms_per_frame"] for e in per_view]),
                    "render_ms": _median([e["render_ms"] for e in per_view]),
                    "frame_ms": _median([e["frame_ms"] for e in per_view]),
@@ -197,7 +185,6 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             log(f"  {preset.name:12s} {row['ms_per_frame']:9.1f} ms/frame (render {row['render_ms']:8.1f} ms)  "
                 f"{row['points_per_frame']:>10,.0f} points" + (f"  PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f}"
                                                               if row["psnr"] is not None else ""))
-        apply_preset(model, "reference")
         ref = next(r for r in results if r["preset"] == "reference")
         for r in results:
             r["speedup_vs_reference"] = ref["ms_per_frame"] / r["ms_per_frame"]
@@ -215,9 +202,8 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
     finally:
         if images is not None:
             images.close()
-        sampler = getattr(model, "sampler", None)
-        if hasattr(sampler, "release"):
-            sampler.release()
+        if session is not None:
+            session.close()
         if own_ctx:
             ctx.release()
 

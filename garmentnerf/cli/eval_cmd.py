@@ -30,6 +30,9 @@ def register(sub) -> None:
     p.add_argument("--baseline", action="store_true",
                    help="also score the nearest-training-view baseline (split unseen_view only)")
     p.add_argument("--json", default=None, metavar="FILE", help="write the full result (per frame) as JSON")
+    p.add_argument("--preset", default="reference", metavar="NAME",
+                   help="render preset: reference (the paper's sampling, default), full, balanced or interactive "
+                        "(the rows of 'garmentnerf bench --run')")
     p.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_eval)
@@ -73,11 +76,16 @@ def register(sub) -> None:
 def run_eval(args: argparse.Namespace) -> int:
     from garmentnerf.eval.evaluate import SPLITS, evaluate_run, format_result_table, parse_frame_range
     from garmentnerf.io_utils import atomic_write_path
+    from garmentnerf.perf.presets import get_render_preset
     from garmentnerf.train.run import load_run
 
     # everything that can be wrong with the arguments fails before the model loads
     if args.split not in SPLITS:
         raise ValueError(f"unknown split '{args.split}' (known: {', '.join(SPLITS)})")
+    try:
+        get_render_preset(args.preset)
+    except ValueError as e:
+        raise ValueError(f"--preset: {e}") from None
     if args.baseline and args.split != "unseen_view":
         raise ValueError(f"--baseline (nearest training view) is defined for --split unseen_view only, "
                          f"not '{args.split}'")
@@ -95,7 +103,7 @@ def run_eval(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.run}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
                          f"pass --scene DIR")
     result = evaluate_run(run, args.split, frames=frames, cameras=args.cameras, progress=not args.no_progress,
-                          baseline=args.baseline)
+                          baseline=args.baseline, preset=args.preset)
     print(format_result_table(result))
     if args.json is not None:
         text = json.dumps(result, indent=1, allow_nan=False)
@@ -118,10 +126,10 @@ def _int_list(text: str, option: str) -> tuple[int, ...]:
 def run_report(args: argparse.Namespace) -> int:
     from garmentnerf.eval.evaluate import SPLITS, parse_frame_range
     from garmentnerf.eval.report import build_report
-    from garmentnerf.train.trainer import PRESETS
+    from garmentnerf.train.trainer import MODEL_PRESETS
 
-    if args.preset not in PRESETS:
-        raise ValueError(f"unknown preset '{args.preset}' (known: {', '.join(PRESETS)})")
+    if args.preset not in MODEL_PRESETS:
+        raise ValueError(f"unknown preset '{args.preset}' (known: {', '.join(MODEL_PRESETS)})")
     if args.perceptual not in ("auto", "stlpips", "vgg19", "none"):
         raise ValueError(f"unknown perceptual loss '{args.perceptual}' (known: auto, stlpips, vgg19, none)")
     splits = None

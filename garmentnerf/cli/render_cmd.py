@@ -28,8 +28,12 @@ def register(sub) -> None:
                    help="frames A..B-1 of the motion (A:B, A:, :B or N; default: all)")
     p.add_argument("--size", default="256",
                    help="output size: N (longer side; orbit views are square) or WxH (default: 256)")
-    p.add_argument("--quality", type=float, default=1.0,
-                   help="rays per output pixel as a fraction of the training density (default: 1)")
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="render preset: reference (the paper's sampling), full (default: the reference's image, "
+                        "culled), balanced or interactive (the rows of 'garmentnerf bench --run')")
+    p.add_argument("--quality", type=float, default=None,
+                   help="neural render quality: fraction of the training pixel density, (0, 4] "
+                        "(default: the preset's resolution)")
     p.add_argument("--palette", default=None,
                    help="palette colours '#garment[,#body,...]' as hex (default: the learned palette)")
     p.add_argument("--body-colour", "--body-color", dest="body_colour", default=None, metavar="HEX",
@@ -89,13 +93,15 @@ def run_render(args: argparse.Namespace) -> int:
     from garmentnerf.gl.context import create_context
     from garmentnerf.render.cameras import cameras_for, parse_camera_spec
     from garmentnerf.render.colors import build_palette, parse_hex_color
-    from garmentnerf.render.session import RenderSession
+    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.session import DEFAULT_PRESET, RenderSession
     from garmentnerf.render.video import FrameWriter, VideoWriter
     from garmentnerf.train.run import load_run
 
     # -- everything that can be wrong with the arguments fails before the model loads -----------------
     size = parse_output_size(args.size)
-    if not (args.quality > 0 and args.quality <= 4):
+    preset = get_render_preset(args.preset if args.preset is not None else DEFAULT_PRESET)
+    if args.quality is not None and not (args.quality > 0 and args.quality <= 4):
         raise ValueError(f"--quality must be in (0, 4], got {args.quality}")
     if args.palette is not None:
         for i, item in enumerate(c.strip() for c in args.palette.split(",")):
@@ -140,7 +146,7 @@ def run_render(args: argparse.Namespace) -> int:
             progress = tqdm(total=len(frames), unit="frame", desc="render", file=sys.stderr)
         try:
             for f, cam in zip(frames, cameras):
-                nf = session.render(f, cam, args.quality)
+                nf = session.render(f, cam, args.quality, preset=preset)
                 image = nf.composite(palette, background)
                 writer.write(f, image)
                 if video is not None:

@@ -14,7 +14,8 @@ what the machine can do rather than the display's refresh:
   frame; the latency is the number of frames until the garment's pixels change (1 = the next frame).
   The worker must not render again for it (palette edits are a shader uniform): ``worker_renders``
   counts the renders that happened during the recolour test (expected 0).
-* **Neural frame time per quality preset** (:data:`garmentnerf.viewer.quality.PRESETS`): with the
+* **Neural frame time per quality level** (:data:`garmentnerf.perf.presets.VIEWER_LEVELS`, render
+  presets): with the
   dynamic resolution off, the camera steps a little and the full-quality render of the preset is
   awaited; median (and each) of ``RenderSession.render``'s total time, the render size, and the
   worker's wall time per render.
@@ -150,16 +151,17 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
     """Neural frame time at each quality preset (full quality, dynamic resolution off)."""
     if app.neural is None:
         return {}
-    from garmentnerf.viewer.quality import PRESETS
+    from garmentnerf.perf.presets import VIEWER_LEVELS, get_render_preset
 
     q = app.quality
     saved = (q.preset, q.dynamic)
     out = {}
     try:
         q.dynamic = False
-        for name, quality in PRESETS.items():
+        for name in VIEWER_LEVELS:
+            quality = get_render_preset(name).resolution_scale
             q.set_preset(name)
-            totals, walls, sizes, cached = [], [], [], []
+            totals, walls, sizes, cached, rendered = [], [], [], [], []
             for _ in range(max(1, repeats)):
                 renders = app.neural.stats.renders
                 app.controller.orbit(2.0, 0.0)  # a new view: one new request at the preset's quality
@@ -180,7 +182,8 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
                 walls.append(float(app.neural.stats.last_ms))
                 sizes.append(list(last.render_size))
                 cached.append(bool(last.cached_frame))
-            out[name] = {"quality": quality, "render_ms_median": statistics.median(totals) if totals else None,
+                rendered.append(last.preset)
+            out[name] = {"quality": quality, "preset": sorted(set(rendered)), "render_ms_median": statistics.median(totals) if totals else None,
                          "render_ms": totals, "worker_ms": walls, "render_size": sizes[-1] if sizes else None,
                          "cached_frame": cached}
     finally:

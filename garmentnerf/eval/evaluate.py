@@ -21,8 +21,9 @@ Splits (what is compared with what)
 How an image is made (identical to training, the viewer and ``garmentnerf render``)
     Prediction: :class:`~garmentnerf.render.session.RenderSession` (the one render path) renders
     the scene camera resized to the model's image resolution (longer side
-    ``cfg.image_resolution``, the other side proportional) at ``scale=1`` -- exactly the rays
-    the model was trained with -- and :meth:`NeuralFrame.composite` composes the decomposed maps
+    ``cfg.image_resolution``, the other side proportional) with a render preset (default
+    ``reference``: the paper's sampling at ``scale=1``, exactly the rays the model was trained
+    with; another preset renders at its resolution scale and is resampled to that size) -- and :meth:`NeuralFrame.composite` composes the decomposed maps
     with the run's learned palette over ``cfg.background``.
     Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene.SceneImages`)
     area-downsampled to the same size and composited over ``cfg.background`` with the
@@ -437,7 +438,7 @@ def _consecutive(frames: list[int]) -> bool:
 
 def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = True, *, baseline: bool = False,
                  model: bool = True, gl_context=None, scene=None, device: str = "cpu",
-                 lpips_backbone: str | None = None, tof: bool = True) -> dict:
+                 lpips_backbone: str | None = None, tof: bool = True, preset: str = "reference") -> dict:
     """Render and score a run on one split (see the module docstring for every convention).
 
     Args:
@@ -455,12 +456,18 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         device: torch device when a run folder is given.
         lpips_backbone: AlexNet weights for LPIPS (default ``$GARMENTNERF_LPIPS_ALEXNET``).
         tof: compute tOF.
+        preset: the render preset (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`; default
+            ``reference``, the paper's sampling); the image is rendered at the preset's
+            resolution scale of the evaluation size.
     Returns:
         A strict-JSON-serialisable dict (layout in the module docstring).
     Raises:
         ValueError: unknown split, run without a scene, baseline on another split, bad selection.
     """
+    from garmentnerf.perf.presets import get_render_preset
+
     t_start = time.perf_counter()
+    render_preset = get_render_preset(preset)
     if split not in SPLITS:
         raise ValueError(f"unknown split '{split}' (known: {', '.join(SPLITS)})")
     if baseline and split != "unseen_view":
@@ -518,7 +525,8 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
                     size = eval_size(cfg, camera)
                     target = gt.image(seq, cam, frame, size)
                     if scores is not None:
-                        nf = session.render(frame, camera.resized(*size), scale=1.0)
+                        nf = session.render(frame, camera.resized(*size), preset=render_preset,
+                                            scale=render_preset.resolution_scale)
                         pred = nf.composite(None, background)
                         scores.add(seq, cam, frame, pred, target)
                     if base_scores is not None:
@@ -544,7 +552,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
     first_cam = scene_obj.camera(sel["cameras"][0]).camera
     common = {
         "format": EVAL_FORMAT, "version": EVAL_VERSION,
-        "run": str(run.root), "step": int(run.step), "scene": str(scene_obj.root), "split": split,
+        "run": str(run.root), "step": int(run.step), "scene": str(scene_obj.root), "split": split, "preset": render_preset.name,
         "sequences": {s: list(f) for s, f in sel["sequences"].items()}, "cameras": list(sel["cameras"]),
         "train_cameras": list(sel["train_cameras"]), "subsampled": bool(sel["subsampled"]),
         "selection": sel["selection"], "resolution_wh": list(eval_size(cfg, first_cam)),

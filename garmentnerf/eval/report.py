@@ -445,12 +445,12 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     """
     from garmentnerf.gl.context import create_context
     from garmentnerf.train.run import load_run, load_scene
-    from garmentnerf.train.trainer import PRESETS, model_config_for
+    from garmentnerf.train.trainer import MODEL_PRESETS, model_config_for
 
     t0 = time.perf_counter()
     say = log or (lambda m: print(f"garmentnerf report: {m}", file=sys.stderr))
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset '{preset}' (known: {', '.join(PRESETS)})")
+    if preset not in MODEL_PRESETS:
+        raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
     if iterations is not None and iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
     if generator_iterations is not None and generator_iterations < 0:

@@ -8,10 +8,18 @@ One concept per module:
   pre-training).
 - :mod:`~garmentnerf.model.detail_features`: reading f^d from the front/back detail maps.
 - :mod:`~garmentnerf.model.nerf_mlp`: M_NeRF, sample features -> (sigma, zeta).
-- :mod:`~garmentnerf.model.samplers`: where along each ray to evaluate M_NeRF.
-- :mod:`~garmentnerf.model.volume_rendering`: weights and compositing, dense and packed.
+- :mod:`~garmentnerf.model.samplers`: the sampler interface (where along each ray to evaluate
+  M_NeRF) and the paper's box sampler.
+- :mod:`~garmentnerf.model.shell_sampler`: the sampler that keeps only the inflated-body shell.
+- :mod:`~garmentnerf.model.height_band`: the garment's height band and the sample filter made of it.
+- :mod:`~garmentnerf.model.volume_rendering`: weights and compositing, dense and packed, and the
+  segmented renderer with early ray termination.
 - :mod:`~garmentnerf.model.palette`: M_D, the palette and the one composition formula.
 - :mod:`~garmentnerf.model.losses`: the training losses.
+- :mod:`~garmentnerf.model.frame_context`: a body frame's inputs (GL passes) and features.
+- :mod:`~garmentnerf.model.pipeline`: the model, wiring the paper's equations together
+  (per frame: :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame`; per view:
+  :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.render`, given a sampler and a filter).
 """
 
 from garmentnerf.model.config import ModelConfig
@@ -21,13 +29,14 @@ from garmentnerf.model.losses import garment_losses, offset_loss, palette_loss, 
 from garmentnerf.model.nerf_mlp import GarmentNeRF, density_activation, positional_encoding, trunc_exp
 from garmentnerf.model.palette import (DecomposedMaps, Palette, PaletteDecoder, check_palette, compose,
                                        palette_from_labels)
-from garmentnerf.model.samplers import BoxStratifiedSampler, RaySamples, Sampler, body_aabb, ray_aabb_intersect
+from garmentnerf.model.samplers import (BoxStratifiedSampler, BoundSampler, RaySamples, SampleFilter, Sampler,
+                                        body_aabb, ray_aabb_intersect)
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder, UNet
 
 __all__ = [
     "ModelConfig", "UNet", "DynamicFeatureEncoder", "DetailEncoder", "ImageGenerator", "NeuralTexture", "freeze",
     "sample_image_features", "select_detail_features", "GarmentNeRF", "density_activation", "positional_encoding",
-    "trunc_exp", "Sampler", "RaySamples", "BoxStratifiedSampler", "body_aabb", "ray_aabb_intersect",
+    "trunc_exp", "Sampler", "BoundSampler", "SampleFilter", "RaySamples", "BoxStratifiedSampler", "body_aabb", "ray_aabb_intersect",
     "PaletteDecoder", "DecomposedMaps", "Palette", "compose", "check_palette", "palette_from_labels",
     "garment_losses", "sparsity_loss", "offset_loss", "palette_loss",
 ]

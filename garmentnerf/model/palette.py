@@ -169,6 +169,33 @@ class DecomposedMaps:
         return DecomposedMaps(self.radiance.detach(), self.offsets.detach(), self.weights.detach(),
                               self.mask.detach())
 
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the maps."""
+        return int(self.mask.shape[-1]), int(self.mask.shape[-2])
+
+    def cropped(self, width: int, height: int) -> "DecomposedMaps":
+        """The top-left ``width x height`` of every map (undoes padding on the right and bottom)."""
+        return DecomposedMaps(*(x[..., :height, :width] for x in (self.radiance, self.offsets, self.weights, self.mask)))
+
+    def resized(self, width: int, height: int) -> "DecomposedMaps":
+        """Every map resampled to ``width x height`` (bilinear, antialiased; a convex combination,
+        so the weights still sum to 1 after renormalising, the mask stays in [0, 1] and the
+        radiance >= 0). The maps themselves when the size is already that."""
+        if (int(width), int(height)) == self.size:
+            return self
+
+        def rs(x):
+            shape = x.shape
+            flat = x.reshape(shape[0], -1, shape[-2], shape[-1])
+            out = F.interpolate(flat, size=(int(height), int(width)), mode="bilinear", align_corners=False,
+                                antialias=True)
+            return out.reshape(*shape[:-2], int(height), int(width))
+
+        weights = rs(self.weights)
+        weights = weights / weights.sum(dim=1, keepdim=True)  # antialias filters are not exactly convex
+        return DecomposedMaps(rs(self.radiance).clamp_min(0.0), rs(self.offsets), weights, rs(self.mask).clamp(0.0, 1.0))
+
 
 class PaletteDecoder(nn.Module):
     """M_D: feature image ``(B, C, h, w)`` -> :class:`DecomposedMaps` at ``(h, w) * 2**upsample_steps``.

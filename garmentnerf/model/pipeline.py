@@ -5,21 +5,26 @@ Two levels, so that a viewer can cache what the camera does not change:
 1. :meth:`GarmentAnimationNeRF.prepare_frame` ``(FrameInputs) -> FrameFeatures`` -- per body frame:
    the dynamic feature map F^s_t = E([N_t, V_t]); the reference images I^_t(c^fr), I^_t(c^ba) =
    G_img(body UVs at the reference cameras) (or images supplied in the inputs); the detail maps
-   F^d_t = G_en(reference images); the frame's skin surface bound for closest-point queries, its
-   vertex normals and its box. The GL passes that make :class:`FrameInputs` live in
+   F^d_t = G_en(reference images); the frame's body bound for closest-point queries
+   (:meth:`~garmentnerf.geometry.body_points.BodyPointProjector.bind`), its vertex normals and its
+   box. The GL passes that make :class:`FrameInputs` live in
    :class:`~garmentnerf.model.frame_context.FrameInputBuilder`, outside this ``nn.Module``.
 2. :meth:`GarmentAnimationNeRF.render` ``(FrameFeatures, camera) -> RenderOutput`` -- per view:
    rays through the pixel centres of the *feature image* (the camera
    :meth:`~garmentnerf.conventions.Camera.resized` to ``cfg.feature_image_resolution``); the
-   injected sampler (default :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) places
-   samples; rays that miss the padded body box get no sample at all (packed samples: the network
-   is never evaluated where the garment cannot be). Per sample: the closest skin point b_t, its
-   signed distance h, the canonical point b_o and its atlas UV; f^s = F^s_t read bilinearly at
+   sampler passed in (:class:`~garmentnerf.model.samplers.Sampler`, bound to the frame and the
+   feature camera; default the paper's
+   :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) places packed samples: rays it
+   gives no segment get no sample at all. Per sample: the closest skin point b_t, its signed
+   distance h, the canonical point b_o and its atlas UV; a sample filter passed in (e.g. the
+   garment's height band) may drop the sample here; f^s = F^s_t read bilinearly at
    the UV; f^d = F^d_t read bilinearly where b_t projects into each reference camera, front or
-   back chosen per ``cfg.detail_selection``; M_NeRF -> (sigma, zeta); packed volume rendering ->
-   F^zeta (C_zeta, h, w); M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at
-   ``2**decoder_upsample_steps`` times the feature size; :func:`~garmentnerf.model.palette.compose`
-   with the palette -> the image.
+   back chosen per ``cfg.detail_selection``; M_NeRF -> (sigma, zeta); packed volume rendering,
+   segment by segment with optional early ray termination
+   (:func:`~garmentnerf.model.volume_rendering.render_packed_segmented`) -> F^zeta (C_zeta, h, w);
+   M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at ``2**decoder_upsample_steps``
+   times the feature size. :attr:`RenderOutput.image` composes them with the palette when asked
+   for (training); a viewer composes them itself, once, at its output size.
 
 Detail-feature selection (``cfg.detail_selection``)
     ``"visibility"`` (paper, the default): front map where b_t is visible from the front
@@ -48,9 +53,9 @@ Gradients
 
 Chunking and cancellation
     Samples are processed in chunks of about ``chunk_points`` (default 16384; the 2-core CPU runs
-    the MLP fastest on 4k-16k points per call) cut at ray boundaries, so each chunk is volume
-    rendered on its own and, without autograd, only one chunk's per-sample tensors are alive.
-    ``should_cancel()`` is called before every chunk; when it returns True the render raises
+    the MLP fastest on 4k-16k points per call): whole rays per chunk without early termination,
+    a few samples of every live ray per segment with it; without autograd only one chunk's
+    per-sample tensors are alive. ``should_cancel()`` is called before every chunk; when it returns True the render raises
     :class:`RenderCancelled` (nothing is left half-written: the model holds no per-render state).
 
 Timings
@@ -59,17 +64,16 @@ Timings
     ``surface``, ``reference_images``, ``encoders`` from :meth:`prepare_frame`; a cached frame
     shows what it cost when it was made) and this render's stages ``rays`` (rays + sampler),
     ``projection``, ``features`` (map reads + detail selection), ``mlp``, ``compositing``
-    (volume rendering), ``decoder`` (M_D), ``compose``; plus ``frame_total`` and
-    ``render_total``.
+    (volume rendering), ``decoder`` (M_D); plus ``frame_total`` and ``render_total``.
 """
 
 from __future__ import annotations
 
-import bisect
 import time
 from collections.abc import Callable
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -77,18 +81,17 @@ import torch.nn.functional as F
 from torch import nn
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.conventions import Camera, camera_rays, project_points
-from garmentnerf.geometry.body_points import BodyPointProjector
+from garmentnerf.conventions import Camera, project_points
+from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 from garmentnerf.geometry.projection import interpolate
 from garmentnerf.gl.uv_raster import sample_uv_map
-from garmentnerf.model import volume_rendering as vr
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import sample_image_features, select_detail_features
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
-from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette, compose
-from garmentnerf.model.samplers import BoxStratifiedSampler, RaySamples, Sampler, body_aabb
+from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
+from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
 
 #: Default samples per chunk (per-sample work: projection, feature reads, MLP, compositing).
@@ -99,7 +102,10 @@ DEFAULT_VISIBILITY_TOLERANCE = 0.02
 #: Stages of :meth:`GarmentAnimationNeRF.prepare_frame` / the GL builder, in pipeline order.
 FRAME_STAGES = ("info_maps", "reference_passes", "surface", "reference_images", "encoders")
 #: Stages of :meth:`GarmentAnimationNeRF.render`, in pipeline order.
-RENDER_STAGES = ("rays", "projection", "features", "mlp", "compositing", "decoder", "compose")
+RENDER_STAGES = ("rays", "projection", "features", "mlp", "compositing", "decoder")
+#: MLP precisions of :meth:`GarmentAnimationNeRF.render_features` (``auto``: float16 autocast on
+#: CUDA, float32 elsewhere: bfloat16 autocast is slower than float32 on the development CPU).
+PRECISIONS = ("float32", "bfloat16", "float16", "auto")
 
 
 class RenderCancelled(RuntimeError):
@@ -115,20 +121,22 @@ class RenderOutput:
     """One rendered view.
 
     Attributes:
-        image: (3, H, W) composed image in [0, 1] (``H, W`` = feature size x 2^upsample_steps).
-        maps: the decoder's :class:`DecomposedMaps` (batch of 1) at the image resolution; with
-            :func:`compose` and any palette they give the recoloured image without re-rendering.
+        maps: the decoder's :class:`DecomposedMaps` (batch of 1) at the feature size times
+            ``2**decoder_upsample_steps``; with :func:`compose` and any palette they give the
+            image (:attr:`image`, :meth:`recolour`) without re-rendering.
         opacity: (h, w) accumulated opacity per feature-image ray (0 for rays not rendered).
         depth: (h, w) opacity-normalised expected depth along each ray (metres; 0 where opacity 0).
         feature_image: (C_zeta, h, w) F^zeta, the decoder's input.
-        palette: (P, 3) the palette the image was composed with; background: its RGB.
+        palette: (P, 3) the palette :attr:`image` is composed with; background: its RGB.
         points_evaluated: samples the NeRF MLP was evaluated at.
-        rays_evaluated: rays with at least one sample (that hit the padded body box).
+        rays_evaluated: rays with at least one sample.
         rays_total: rays asked for (the whole feature image, or the subset).
         timings: milliseconds per stage (see the module docstring).
+        samples_placed: samples the sampler placed.
+        points_projected: samples projected on the body (those early termination did not skip).
+        rays_terminated: rays stopped by early termination with samples left.
     """
 
-    image: torch.Tensor
     maps: DecomposedMaps
     opacity: torch.Tensor
     depth: torch.Tensor
@@ -139,22 +147,20 @@ class RenderOutput:
     rays_evaluated: int
     rays_total: int
     timings: dict[str, float]
+    samples_placed: int = 0
+    points_projected: int = 0
+    rays_terminated: int = 0
+
+    @cached_property
+    def image(self) -> torch.Tensor:
+        """(3, H, W) the maps composed with :attr:`palette` over :attr:`background` (computed on
+        first use, with autograd as the grad mode then says)."""
+        return self.maps.compose(self.palette.to(self.maps.mask.device), self.background)[0]
 
     def recolour(self, palette: torch.Tensor, background=None) -> torch.Tensor:
         """(3, H, W) the image with another palette (no network runs)."""
         bg = self.background if background is None else background
-        return self.maps.compose(palette.to(self.image.device), bg)[0]
-
-
-@dataclass
-class _SampleGeometry:
-    canonical: torch.Tensor  # (n, 3) b_o
-    distance: torch.Tensor  # (n,) h
-    uv: torch.Tensor  # (n, 2)
-    closest: torch.Tensor  # (n, 3) b_t
-    normal: torch.Tensor | None  # (n, 3) unit normal at b_t (soft_normal mode only)
-    face: torch.Tensor | None = None  # (n,) skin face of b_t
-    bary: torch.Tensor | None = None  # (n, 3) barycentric coordinates of b_t in that face
+        return self.maps.compose(palette.to(self.maps.mask.device), bg)[0]
 
 
 class _Stopwatch:
@@ -230,39 +236,13 @@ def reference_visibility(points: torch.Tensor, camera: Camera, depth: torch.Tens
     return (inside & (z <= surface + tolerance + footprint)).to(points.device)
 
 
-def _ray_aligned_chunks(counts: torch.Tensor, chunk_points: int) -> list[tuple[int, int, int, int]]:
-    """(ray_start, ray_stop, sample_start, sample_stop) chunks of about ``chunk_points`` samples,
-    never splitting a ray (a ray with more samples than that is a chunk of its own)."""
-    ends = torch.cumsum(counts, 0).tolist()
-    n_rays = len(ends)
-    chunks = []
-    r0 = s0 = 0
-    while r0 < n_rays:
-        r1 = bisect.bisect_right(ends, s0 + chunk_points, lo=r0)
-        r1 = max(r1, r0 + 1)
-        s1 = ends[r1 - 1]
-        chunks.append((r0, r1, s0, s1))
-        r0, s0 = r1, s1
-    return chunks
-
-
-def _crop_maps(maps: DecomposedMaps, height: int, width: int) -> DecomposedMaps:
-    return DecomposedMaps(maps.radiance[..., :height, :width], maps.offsets[..., :height, :width],
-                          maps.weights[..., :height, :width], maps.mask[..., :height, :width])
-
-
-def _resize_maps(maps: DecomposedMaps, height: int, width: int) -> DecomposedMaps:
-    """Bilinear resampling of every map (a convex combination: weights still sum to 1, the mask
-    stays in [0, 1], radiance >= 0)."""
-    def rs(x):
-        shape = x.shape
-        flat = x.reshape(shape[0], -1, shape[-2], shape[-1])
-        out = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False, antialias=True)
-        return out.reshape(*shape[:-2], height, width)
-
-    weights = rs(maps.weights)
-    weights = weights / weights.sum(dim=1, keepdim=True)  # antialias filters are not exactly convex
-    return DecomposedMaps(rs(maps.radiance).clamp_min(0.0), rs(maps.offsets), weights, rs(maps.mask).clamp(0.0, 1.0))
+def _autocast(precision: str, device: torch.device):
+    """The autocast context of an MLP ``precision`` (one of :data:`PRECISIONS`)."""
+    if precision == "auto":
+        precision = "float16" if device.type == "cuda" else "float32"
+    if precision == "float32":
+        return nullcontext()
+    return torch.autocast(device_type=device.type, dtype=getattr(torch, precision))
 
 
 class GarmentAnimationNeRF(nn.Module):
@@ -272,8 +252,6 @@ class GarmentAnimationNeRF(nn.Module):
         cfg: sizes, switches (ablations, detail selection) and the sampler settings.
         body: the body model (its topology and template; the skin shell is used for projection).
         palette_init: see :func:`palette_initial_colours` (a scene's ``palette_init``).
-        sampler: where to sample along rays (any :class:`~garmentnerf.model.samplers.Sampler`);
-            default ``BoxStratifiedSampler.from_config(cfg)``. Kept as a plain attribute, swappable.
         freeze_image_generator: start with G_img frozen (its pre-training is a separate stage).
         visibility_tolerance: metres, see :func:`reference_visibility`.
         chunk_points: samples per chunk (see the module docstring).
@@ -284,7 +262,7 @@ class GarmentAnimationNeRF(nn.Module):
     ``detail_encoder`` (G_en), ``nerf`` (M_NeRF), ``decoder`` (M_D), ``palette``.
     """
 
-    def __init__(self, cfg: ModelConfig, body, palette_init=None, *, sampler: Sampler | None = None,
+    def __init__(self, cfg: ModelConfig, body, palette_init=None, *,
                  freeze_image_generator: bool = True, visibility_tolerance: float = DEFAULT_VISIBILITY_TOLERANCE,
                  chunk_points: int = DEFAULT_CHUNK_POINTS, projector: BodyPointProjector | None = None):
         super().__init__()
@@ -303,7 +281,6 @@ class GarmentAnimationNeRF(nn.Module):
         self.nerf = GarmentNeRF.from_config(cfg)
         self.decoder = PaletteDecoder.from_config(cfg)
         self.palette = Palette(palette_initial_colours(palette_init, cfg.palette_size))
-        self.sampler: Sampler = sampler if sampler is not None else BoxStratifiedSampler.from_config(cfg)
         self.visibility_tolerance = float(visibility_tolerance)
         self.chunk_points = int(chunk_points)
         self.projector = projector if projector is not None else BodyPointProjector(body)
@@ -366,7 +343,7 @@ class GarmentAnimationNeRF(nn.Module):
         with sw("surface"), torch.no_grad():
             verts = inputs.posed_vertices.detach().to("cpu", torch.float32).contiguous()
             normals = vertex_normals(verts, self._faces)
-            surface = self.projector.projector.bind(verts, torch.float32)
+            surface = self.projector.bind(verts, torch.float32)
             aabb = body_aabb(verts)
         dynamic = reference_images = detail = None
         if cfg.use_dynamic_feature:
@@ -388,23 +365,20 @@ class GarmentAnimationNeRF(nn.Module):
                              timings)
 
     # ------------------------------------------------------------------ per sample
-    def sample_geometry(self, frame: FrameFeatures, positions: torch.Tensor) -> _SampleGeometry:
-        """Body-aware coordinates of ``positions (n, 3)`` (no gradient): b_o, h, UV, b_t and, in
-        ``soft_normal`` mode, the unit posed normal at b_t. Uses the frame's bound surface (the
-        same as :meth:`BodyPointProjector.project`, without re-binding the frame)."""
-        P = self.projector
+    def sample_geometry(self, frame: FrameFeatures, positions: torch.Tensor) -> BodyPoints:
+        """Body-aware coordinates of ``positions (n, 3)`` (no gradient, CPU float32): b_t, h, b_o,
+        UV and the skin face (:meth:`BodyPointProjector.bind`'s convention), from the frame's
+        bound body."""
         with torch.no_grad():
-            proj = frame.surface.project(positions.detach().to("cpu", torch.float32))
-            canonical = interpolate(P.canonical_vertices.cpu(), P.faces, proj.face, proj.bary).float()
-            if P.uv is not None:
-                uv = interpolate(P.uv.cpu(), P.uv_faces, proj.face, proj.bary).float()
-            else:
-                uv = proj.bary.new_zeros(proj.bary.shape[0], 2)
-            normal = None
-            if self.cfg.use_detail_feature and self.cfg.detail_selection == "soft_normal":
-                normal = F.normalize(interpolate(frame.vertex_normals, P.faces, proj.face, proj.bary), dim=-1)
-        return _SampleGeometry(canonical, proj.signed_distance.float(), uv, proj.closest.float(), normal,
-                               proj.face, proj.bary)
+            points = frame.surface.project(positions.detach().to("cpu", torch.float32))
+        return BodyPoints(points.face, points.bary, points.closest.float(), points.signed_distance.float(),
+                          points.canonical.float(), points.uv.float())
+
+    def surface_normals(self, frame: FrameFeatures, points: BodyPoints) -> torch.Tensor:
+        """(n, 3) unit posed normals at the surface points b_t of ``points``, interpolated from the
+        frame's vertex normals (the ``soft_normal`` detail selection)."""
+        normal = interpolate(frame.vertex_normals, self.projector.faces, points.face, points.bary)
+        return F.normalize(normal, dim=-1)
 
     def detail_features(self, frame: FrameFeatures, closest: torch.Tensor,
                         normal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -452,21 +426,28 @@ class GarmentAnimationNeRF(nn.Module):
             raise ValueError("ray indices must be unique")
         return rays
 
-    def render_features(self, frame: FrameFeatures, camera: Camera, rays=None, *,
-                        feature_size: tuple[int, int] | None = None, training: bool | None = None,
-                        generator: torch.Generator | None = None,
+    def render_features(self, frame: FrameFeatures, camera: Camera, rays=None, *, sampler: Sampler | None = None,
+                        sample_filter: SampleFilter | None = None, termination_eps: float = 0.0,
+                        precision: str = "float32", feature_size: tuple[int, int] | None = None,
+                        training: bool | None = None, generator: torch.Generator | None = None,
                         should_cancel: Callable[[], bool] | None = None,
                         chunk_points: int | None = None, timings: dict | None = None) -> dict:
         """The volume-rendering half of :meth:`render`: F^zeta, opacity, depth (no decoding).
 
-        Returns a dict with ``feature_image (C, h, w)``, ``opacity (h, w)``, ``depth (h, w)``,
-        ``points_evaluated``, ``rays_evaluated``, ``rays_total``; stage times are added to
-        ``timings`` when given.
+        Returns a dict with ``feature_image (C, h, w)``, ``opacity (h, w)``, ``depth (h, w)`` and
+        the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
+        ``points_projected``, ``rays_terminated``; stage times are added to ``timings`` when
+        given. See :meth:`render` for the arguments.
         """
+        from garmentnerf.model.volume_rendering import render_packed_segmented
+
         cfg = self.cfg
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
         fw, fh = feature_size if feature_size is not None else (cfg.feature_image_resolution,) * 2
         training = self.training if training is None else training
         chunk = self.chunk_points if chunk_points is None else int(chunk_points)
+        sampler = BoxStratifiedSampler.from_config(cfg) if sampler is None else sampler
         dev = self.device
         timings = {} if timings is None else timings
         sw = _Stopwatch(timings, dev)
@@ -474,93 +455,108 @@ class GarmentAnimationNeRF(nn.Module):
         n_pixels = fw * fh
 
         with sw("rays"):
-            fcam = camera.resized(fw, fh)
-            origins, dirs = camera_rays(fcam)
-            origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
             subset = self._ray_subset(rays, n_pixels, (fh, fw))
-            if subset is not None:
-                origins, dirs = origins[subset], dirs[subset]
-            samples: RaySamples = self.sampler.sample(origins, dirs, frame.aabb.to(origins.dtype), training=training,
-                                                      generator=generator)
-            if not samples.is_packed:
-                samples = samples.to_packed(drop_missed=True)
+            pixels = torch.arange(n_pixels) if subset is None else subset.cpu()
+            samples = sampler.bind(frame, camera.resized(fw, fh)).sample(pixels, training=training,
+                                                                         generator=generator)
             n_rays = samples.n_rays
             counts = torch.bincount(samples.ray_ids.cpu(), minlength=n_rays)
-            chunks = _ray_aligned_chunks(counts, chunk)
+        evaluated = [0]
 
-        feats, opacities, depths = [], [], []
-        points = 0
-        for r0, r1, s0, s1 in chunks:
-            if should_cancel is not None and should_cancel():
-                raise RenderCancelled(points)
-            n = r1 - r0
-            if s1 == s0:
-                feats.append(torch.zeros(n, C, device=dev))
-                opacities.append(torch.zeros(n, device=dev))
-                depths.append(torch.zeros(n, device=dev))
-                continue
-            with sw("projection"):
-                geo = self.sample_geometry(frame, samples.positions[s0:s1])
-            with sw("features"):
-                dynamic = detail = None
-                if cfg.use_dynamic_feature:
-                    fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
-                    dynamic = sample_uv_map(fmap, geo.uv.to(dev))
-                if cfg.use_detail_feature:
-                    detail, _ = self.detail_features(frame, geo.closest, geo.normal)
-            with sw("mlp"):
-                sigma, zeta = self.nerf(geo.canonical.to(dev), geo.distance.to(dev), detail, dynamic)
-            with sw("compositing"):
-                ids = (samples.ray_ids[s0:s1] - r0).to(dev)
-                deltas = samples.deltas[s0:s1].to(dev, sigma.dtype)
-                w = vr.render_weights_from_density_packed(sigma, deltas, ids, n)
-                feats.append(vr.composite_packed(w, zeta, ids, n))
-                opacities.append(vr.accumulate_opacity_packed(w, ids, n))
-                depths.append(vr.expected_depth_packed(w, samples.t_starts[s0:s1].to(dev, w.dtype),
-                                                       samples.t_ends[s0:s1].to(dev, w.dtype), ids, n))
-            points += s1 - s0
+        def field(index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            """sigma (n,), zeta (n, C) of the packed samples ``index``; zero where filtered out."""
+            n = index.shape[0]
+            sigma = torch.zeros(n, device=dev)
+            zeta = torch.zeros(n, C, device=dev)
+            for c0 in range(0, n, chunk):
+                if should_cancel is not None and should_cancel():
+                    raise RenderCancelled(evaluated[0])
+                part = index[c0:c0 + chunk]
+                with sw("projection"):
+                    points = self.sample_geometry(frame, samples.positions[part.to(samples.positions.device)])
+                    if sample_filter is not None:
+                        kept = sample_filter.keep(points).nonzero().squeeze(1)
+                        points = points.select(kept)
+                    else:
+                        kept = None
+                if len(points) == 0:
+                    continue
+                with sw("features"):
+                    dynamic = detail = None
+                    if cfg.use_dynamic_feature:
+                        fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
+                        dynamic = sample_uv_map(fmap, points.uv.to(dev))
+                    if cfg.use_detail_feature:
+                        normal = (self.surface_normals(frame, points) if cfg.detail_selection == "soft_normal"
+                                  else None)
+                        detail, _ = self.detail_features(frame, points.closest, normal)
+                with sw("mlp"), _autocast(precision, dev):
+                    s, z = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic)
+                s, z = s.float(), z.float()
+                rows = torch.arange(c0, c0 + part.shape[0], device=dev)
+                rows = rows if kept is None else rows[kept.to(dev)]
+                if kept is None and part.shape[0] == n:
+                    sigma, zeta = s, z
+                else:
+                    sigma = sigma.index_copy(0, rows, s)
+                    zeta = zeta.index_copy(0, rows, z)
+                evaluated[0] += len(points)
+            return sigma, zeta
 
+        field_keys = ("projection", "features", "mlp")
+        field_before = sum(timings.get(k, 0.0) for k in field_keys)
+        t0 = time.perf_counter()
+        march = render_packed_segmented(field, samples.t_starts, samples.t_ends, samples.ray_ids, n_rays, C,
+                                        chunk_points=chunk, termination_eps=float(termination_eps), device=dev)
+        march_ms = (time.perf_counter() - t0) * 1e3
+        field_ms = sum(timings.get(k, 0.0) for k in field_keys) - field_before
+        timings["compositing"] = timings.get("compositing", 0.0) + max(0.0, march_ms - field_ms)
         with sw("compositing"):
-            feat = torch.cat(feats) if feats else torch.zeros(0, C, device=dev)
-            opacity = torch.cat(opacities) if opacities else torch.zeros(0, device=dev)
-            depth = torch.cat(depths) if depths else torch.zeros(0, device=dev)
-            depth = torch.where(opacity > 0, depth / opacity.clamp_min(1e-10), torch.zeros_like(depth))
+            opacity = march.opacity
+            depth = torch.where(opacity > 0, march.depth / opacity.clamp_min(1e-10), torch.zeros_like(march.depth))
+            feat = march.values
             if subset is not None:
                 idx = subset.to(dev)
                 feat = feat.new_zeros(n_pixels, C).index_copy(0, idx, feat)
                 opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
             feature_image = feat.T.reshape(C, fh, fw)
+        hit = counts > 0
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
-                "points_evaluated": points, "rays_evaluated": int((counts > 0).sum()), "rays_total": n_rays}
+                "points_evaluated": evaluated[0], "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
+                "samples_placed": int(samples.ray_ids.shape[0]), "points_projected": march.samples_evaluated,
+                "rays_terminated": int((march.terminated & hit).sum())}
 
-    def decode(self, feature_image: torch.Tensor, palette: torch.Tensor | None = None, background=None,
-               timings: dict | None = None) -> tuple[torch.Tensor, DecomposedMaps]:
-        """M_D and the composition: F^zeta ``(C, h, w)`` -> image (3, H, W) and the maps."""
+    def decode(self, feature_image: torch.Tensor, timings: dict | None = None) -> DecomposedMaps:
+        """M_D: F^zeta ``(C, h, w)`` -> the decomposed maps (batch of 1) at ``2**decoder_upsample_steps``
+        times the size. Composition with a palette is the caller's (:meth:`DecomposedMaps.compose`)."""
         timings = {} if timings is None else timings
-        sw = _Stopwatch(timings, self.device)
-        with sw("decoder"):
-            maps = self.decoder(feature_image.unsqueeze(0))
-        with sw("compose"):
-            pal = self.palette() if palette is None else palette.to(self.device)
-            bg = self.cfg.background if background is None else background
-            image = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, pal, bg)[0]
-        return image, maps
+        with _Stopwatch(timings, self.device)("decoder"):
+            return self.decoder(feature_image.unsqueeze(0))
 
-    def render(self, frame: FrameFeatures, camera: Camera, rays=None, *, palette: torch.Tensor | None = None,
-               background=None, feature_size: tuple[int, int] | None = None, training: bool | None = None,
-               generator: torch.Generator | None = None, should_cancel: Callable[[], bool] | None = None,
-               chunk_points: int | None = None) -> RenderOutput:
+    def render(self, frame: FrameFeatures, camera: Camera, rays=None, *, sampler: Sampler | None = None,
+               sample_filter: SampleFilter | None = None, termination_eps: float = 0.0, precision: str = "float32",
+               palette: torch.Tensor | None = None, background=None, feature_size: tuple[int, int] | None = None,
+               training: bool | None = None, generator: torch.Generator | None = None,
+               should_cancel: Callable[[], bool] | None = None, chunk_points: int | None = None) -> RenderOutput:
         """Render ``frame`` seen by ``camera`` (see the module docstring).
 
         Args:
             frame: from :meth:`prepare_frame`.
             camera: the target view, any resolution: rays go through the pixel centres of the
                 camera resized to ``feature_size`` (default ``cfg.feature_image_resolution``
-                squared), so the image is ``2**decoder_upsample_steps`` times that.
+                squared), so the maps are ``2**decoder_upsample_steps`` times that.
             rays: None (all), or a subset of the feature-image rays: (M,) unique row-major pixel
                 indices or an (h, w) bool mask; the others get zero features and opacity.
-            palette: (P, 3) in [0, 1] to compose with (default: the learned palette).
+            sampler: where samples go (:class:`~garmentnerf.model.samplers.Sampler`); default the
+                paper's :class:`~garmentnerf.model.samplers.BoxStratifiedSampler` of the config,
+                the sampling the model is trained with.
+            sample_filter: drops projected samples before the MLP (e.g. the garment's height
+                band, :class:`~garmentnerf.model.height_band.HeightBandFilter`); None keeps all.
+            termination_eps: a ray stops once its transmittance falls below this (0: never; see
+                :func:`~garmentnerf.model.volume_rendering.render_packed_segmented`).
+            precision: MLP precision, one of :data:`PRECISIONS`.
+            palette: (P, 3) in [0, 1] for :attr:`RenderOutput.image` (default: the learned palette).
             background: RGB in [0, 1] (default ``cfg.background``).
             feature_size: (w, h) rays per side.
             training: jittered (training-mode) samples; default ``self.training``.
@@ -570,54 +566,21 @@ class GarmentAnimationNeRF(nn.Module):
         """
         t0 = time.perf_counter()
         timings: dict[str, float] = {}
-        out = self.render_features(frame, camera, rays, feature_size=feature_size, training=training,
-                                   generator=generator, should_cancel=should_cancel, chunk_points=chunk_points,
-                                   timings=timings)
-        image, maps = self.decode(out["feature_image"], palette, background, timings)
+        out = self.render_features(frame, camera, rays, sampler=sampler, sample_filter=sample_filter,
+                                   termination_eps=termination_eps, precision=precision, feature_size=feature_size,
+                                   training=training, generator=generator, should_cancel=should_cancel,
+                                   chunk_points=chunk_points, timings=timings)
+        maps = self.decode(out["feature_image"], timings)
         render_total = (time.perf_counter() - t0) * 1e3
         all_timings = {k: frame.timings[k] for k in FRAME_STAGES if k in frame.timings}
         all_timings["frame_total"] = sum(all_timings.values())
         all_timings.update({k: timings.get(k, 0.0) for k in RENDER_STAGES})
         all_timings["render_total"] = render_total
-        pal = (self.palette() if palette is None else palette.to(self.device)).detach()
+        pal = self.palette() if palette is None else palette.to(self.device)
         bg = tuple(float(c) for c in (self.cfg.background if background is None else background))
-        return RenderOutput(image, maps, out["opacity"], out["depth"], out["feature_image"], pal, bg,
-                            out["points_evaluated"], out["rays_evaluated"], out["rays_total"], all_timings)
-
-    def render_full_image(self, frame: FrameFeatures, camera: Camera, *, scale: float | None = None,
-                          **kwargs) -> RenderOutput:
-        """Render at ``camera``'s own resolution (W x H, any size), e.g. for evaluation.
-
-        The view is rendered at ``scale`` times the camera's resolution -- default
-        ``cfg.image_resolution / max(W, H)``, the pixel density the model was trained at when the
-        scene's cameras are square, which keeps the decoder's input at its training scale; 1.0
-        renders natively -- padded up to a multiple of ``2**decoder_upsample_steps`` (the padding
-        extends the image to the right and bottom, so pixel centres stay put) and cropped back.
-        When ``scale != 1`` the decomposed maps are resampled (bilinear, antialiased) to W x H and
-        composed there, so ``image`` and ``maps`` stay consistent for recolouring. ``opacity``,
-        ``depth`` and ``feature_image`` stay at the rendered feature resolution.
-        Other keyword arguments go to :meth:`render` (``rays``/``feature_size`` are not allowed).
-        """
-        if "rays" in kwargs or "feature_size" in kwargs:
-            raise TypeError("render_full_image renders every ray; use render() for subsets")
-        W, H = camera.width, camera.height
-        s = self.cfg.image_resolution / max(W, H) if scale is None else float(scale)
-        if not s > 0:
-            raise ValueError(f"scale must be > 0, got {scale}")
-        up = 2 ** self.cfg.decoder_upsample_steps
-        wr, hr = max(1, round(W * s)), max(1, round(H * s))
-        fw, fh = -(-wr // up), -(-hr // up)
-        cam_r = camera if (wr, hr) == (W, H) else camera.resized(wr, hr)
-        padded = Camera(cam_r.K, cam_r.R, cam_r.t, fw * up, fh * up, cam_r.near, cam_r.far)
-        out = self.render(frame, padded, feature_size=(fw, fh), **kwargs)
-        t0 = time.perf_counter()
-        maps = _crop_maps(out.maps, hr, wr)
-        if (wr, hr) != (W, H):
-            maps = _resize_maps(maps, H, W)
-        image = maps.compose(out.palette, out.background)[0]
-        out.timings["compose"] += (time.perf_counter() - t0) * 1e3
-        out.image, out.maps = image, maps
-        return out
+        return RenderOutput(maps, out["opacity"], out["depth"], out["feature_image"], pal, bg,
+                            out["points_evaluated"], out["rays_evaluated"], out["rays_total"], all_timings,
+                            out["samples_placed"], out["points_projected"], out["rays_terminated"])
 
     def forward(self, frame: FrameInputs | FrameFeatures, camera: Camera, **kwargs) -> RenderOutput:
         """:meth:`render`, preparing the frame first when given :class:`FrameInputs`."""
@@ -627,5 +590,5 @@ class GarmentAnimationNeRF(nn.Module):
 
 
 __all__ = ["GarmentAnimationNeRF", "RenderOutput", "RenderCancelled", "reference_visibility",
-           "palette_initial_colours", "FRAME_STAGES", "RENDER_STAGES", "DEFAULT_CHUNK_POINTS",
+           "palette_initial_colours", "FRAME_STAGES", "RENDER_STAGES", "PRECISIONS", "DEFAULT_CHUNK_POINTS",
            "DEFAULT_VISIBILITY_TOLERANCE"]

@@ -1,9 +1,21 @@
-"""Where along each ray the NeRF is evaluated.
+"""Where along each ray the NeRF is evaluated: the sampler interface and the paper's box sampler.
 
-:class:`Sampler` is the interface every sampler implements; :class:`BoxStratifiedSampler` is the
-paper's: S stratified samples between the ray's entry into and exit from the axis-aligned box
-around the posed body, padded by 0.05 m (authors' code). An empty-space-skipping sampler can
-return packed samples (a different count per ray) through the same :class:`RaySamples`.
+The interface (modelled on nerfacc's estimators)
+    A :class:`Sampler` is bound to one body frame and one camera (:meth:`Sampler.bind`): the
+    camera is the *feature* camera, whose pixel centres the rays go through. The
+    :class:`BoundSampler` it returns places samples for any subset of those rays
+    (:meth:`BoundSampler.sample`, rays named by their row-major pixel index) and returns
+    :class:`RaySamples`: packed samples (a different count per ray, zero included) with the
+    per-ray bounds the sampler used. Binding is where a sampler does its per-frame or per-camera
+    work (the shell sampler rasterises its shell there). Samplers are passed to
+    :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.render` as arguments, in training and
+    in rendering alike; nothing is installed on a model.
+
+Samplers
+    :class:`BoxStratifiedSampler` is the paper's: S stratified samples between the ray's entry
+    into and exit from the axis-aligned box around the posed body, padded by 0.05 m (authors'
+    code). :class:`~garmentnerf.model.shell_sampler.ShellSampler` keeps only the part of each ray
+    inside an inflated-body shell.
 
 Intervals tile the ray's segment inside the box: sample i stands for
 ``[t_starts_i, t_ends_i]`` with ``t_starts_1 = t_near``, ``t_ends_S = t_far`` and consecutive
@@ -15,73 +27,113 @@ no "last delta = 1e10" of the original NeRF (that would make the box's back face
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
+
+from garmentnerf.conventions import Camera, camera_rays
+
+if TYPE_CHECKING:  # pragma: no cover
+    from garmentnerf.geometry.body_points import BodyPoints
+    from garmentnerf.model.frame_context import FrameFeatures
 
 
 @dataclass
 class RaySamples:
-    """Samples along R rays, dense (S per ray) or packed (N in all).
+    """Packed samples along R rays (N in all), with the bounds each ray was sampled within.
 
     Attributes:
-        positions: (R, S, 3) dense or (N, 3) packed world positions (interval midpoints for
-            eval-mode stratified samples, the drawn points in training).
-        t_starts, t_ends: (R, S) or (N,) interval bounds along the ray, in metres for unit
-            directions; equal for rays that miss (zero-length intervals -> zero weights).
-        ray_ids: None (dense) or (N,) sorted ray index of each packed sample.
+        positions: (N, 3) world positions (interval midpoints for eval-mode stratified samples,
+            the drawn points in training).
+        t_starts, t_ends: (N,) interval bounds along the ray, in metres (unit directions).
+        ray_ids: (N,) ray index of each sample, non-decreasing (a ray's samples contiguous and
+            in order along it).
         n_rays: R.
+        near, far: (R,) the segment of each ray the sampler placed samples in (0 where missed).
         hit: (R,) bool, rays with a non-empty segment.
     """
 
     positions: torch.Tensor
     t_starts: torch.Tensor
     t_ends: torch.Tensor
-    ray_ids: torch.Tensor | None
+    ray_ids: torch.Tensor
     n_rays: int
+    near: torch.Tensor
+    far: torch.Tensor
     hit: torch.Tensor
 
-    @property
-    def is_packed(self) -> bool:
-        return self.ray_ids is not None
+    def __len__(self) -> int:
+        return int(self.ray_ids.shape[0])
 
     @property
     def deltas(self) -> torch.Tensor:
-        """Interval lengths, shape of ``t_starts``."""
+        """(N,) interval lengths."""
         return self.t_ends - self.t_starts
 
     @property
     def t_mids(self) -> torch.Tensor:
-        """Interval midpoints, shape of ``t_starts``."""
+        """(N,) interval midpoints."""
         return (self.t_starts + self.t_ends) * 0.5
 
-    def to_packed(self, drop_missed: bool = True) -> "RaySamples":
-        """Flatten dense samples to packed form; ``drop_missed`` leaves out rays that miss."""
-        if self.is_packed:
-            return self
-        R, S = self.t_starts.shape
-        ray_ids = torch.arange(R, device=self.t_starts.device).repeat_interleave(S)
-        keep = self.hit.repeat_interleave(S) if drop_missed else torch.ones_like(ray_ids, dtype=torch.bool)
-        return RaySamples(self.positions.reshape(-1, 3)[keep], self.t_starts.reshape(-1)[keep],
-                          self.t_ends.reshape(-1)[keep], ray_ids[keep], R, self.hit)
+    @classmethod
+    def from_dense(cls, positions: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                   near: torch.Tensor, far: torch.Tensor, hit: torch.Tensor) -> "RaySamples":
+        """Pack dense samples ``positions (R, S, 3)``, ``t_starts/t_ends (R, S)``, leaving out
+        the rays that miss (``hit (R,)`` False)."""
+        R, S = t_starts.shape
+        ray_ids = torch.arange(R, device=t_starts.device).repeat_interleave(S)
+        keep = hit.repeat_interleave(S)
+        return cls(positions.reshape(-1, 3)[keep], t_starts.reshape(-1)[keep], t_ends.reshape(-1)[keep],
+                   ray_ids[keep], R, near, far, hit)
 
 
 @runtime_checkable
-class Sampler(Protocol):
-    """Places samples along rays."""
+class BoundSampler(Protocol):
+    """A sampler bound to one frame and one feature camera (:meth:`Sampler.bind`)."""
 
-    def sample(self, origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, *,
-               training: bool = False, generator: torch.Generator | None = None) -> RaySamples:
-        """Samples for R rays.
+    camera: Camera
+
+    def sample(self, pixels: torch.Tensor, *, training: bool = False,
+               generator: torch.Generator | None = None) -> RaySamples:
+        """Packed samples of the rays through the pixel centres ``pixels (R,)`` (row-major
+        indices into the bound camera's image).
 
         Args:
-            origins: (R, 3) ray origins.
-            directions: (R, 3) unit directions (deltas are then metres, as densities expect).
-            aabb: (2, 3) [min, max] corners of the tight box around the posed body.
             training: draw random (jittered) samples; False: deterministic.
             generator: random source for training-mode jitter.
         """
         ...
+
+
+@runtime_checkable
+class Sampler(Protocol):
+    """Places samples along rays; see the module docstring."""
+
+    def bind(self, frame: "FrameFeatures", camera: Camera) -> BoundSampler:
+        """Bind to the posed body of ``frame`` and to ``camera`` (the feature-resolution camera
+        whose pixel centres the rays go through)."""
+        ...
+
+
+@runtime_checkable
+class SampleFilter(Protocol):
+    """Drops samples after the body projection and before the MLP (dropping a sample is giving
+    its interval zero density), e.g. :class:`~garmentnerf.model.height_band.HeightBandFilter`."""
+
+    def keep(self, points: "BodyPoints") -> torch.Tensor:
+        """(n,) bool on the CPU: which of the projected samples ``points`` to evaluate."""
+        ...
+
+
+def pixel_rays(camera: Camera, pixels: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, 3) origins and unit directions of the rays through the pixel centres ``pixels (R,)``
+    (row-major; None: every pixel) of ``camera``, float32."""
+    origins, dirs = camera_rays(camera)
+    origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    if pixels is None:
+        return origins, dirs
+    pixels = pixels.to("cpu").long()
+    return origins[pixels], dirs[pixels]
 
 
 def body_aabb(vertices: torch.Tensor) -> torch.Tensor:
@@ -148,7 +200,7 @@ def stratified_intervals(t_near: torch.Tensor, t_far: torch.Tensor, num_samples:
 
 
 class BoxStratifiedSampler:
-    """The paper's sampler: S stratified samples inside the padded body box (dense output).
+    """The paper's sampler: S stratified samples inside the padded body box.
 
     Args:
         num_samples: S (paper: 64).
@@ -169,10 +221,18 @@ class BoxStratifiedSampler:
     def from_config(cls, cfg) -> "BoxStratifiedSampler":
         return cls(cfg.samples_per_ray, cfg.bbox_padding)
 
-    def sample(self, origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, *,
-               training: bool = False, generator: torch.Generator | None = None) -> RaySamples:
-        """Dense samples ``(R, S)``; see :class:`Sampler`. Rays that miss the padded box get S
-        zero-length intervals at the ray origin."""
+    def padded_box(self, aabb: torch.Tensor) -> torch.Tensor:
+        """(2, 3) the body box ``aabb`` grown by :attr:`padding` on every side."""
+        pad = torch.tensor([[-self.padding], [self.padding]], dtype=aabb.dtype, device=aabb.device)
+        return aabb + pad
+
+    def bind(self, frame: "FrameFeatures", camera: Camera) -> "BoundBoxSampler":
+        return BoundBoxSampler(self, frame.aabb, camera)
+
+    def sample_rays(self, origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Tensor, *,
+                    training: bool = False, generator: torch.Generator | None = None) -> RaySamples:
+        """Packed samples of arbitrary rays ``origins, directions (R, 3)`` (unit directions) in
+        the body box ``aabb (2, 3)`` [min, max]; rays that miss the padded box get none."""
         if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
             raise ValueError(f"origins and directions must both be (R, 3), got {tuple(origins.shape)} "
                              f"and {tuple(directions.shape)}")
@@ -180,8 +240,26 @@ class BoxStratifiedSampler:
             raise ValueError(f"aabb must be (2, 3) [min, max], got {tuple(aabb.shape)}")
         if directions.numel() and float((directions.norm(dim=-1) - 1.0).abs().max()) > 1e-3:
             raise ValueError("directions must be unit vectors (interval lengths are metres)")
-        pad = torch.tensor([[-self.padding], [self.padding]], dtype=aabb.dtype, device=aabb.device)
-        t_near, t_far, hit = ray_aabb_intersect(origins, directions, aabb + pad, self.near)
+        t_near, t_far, hit = ray_aabb_intersect(origins, directions, self.padded_box(aabb.to(origins.dtype)),
+                                                self.near)
         t, t_starts, t_ends = stratified_intervals(t_near, t_far, self.num_samples, training, generator)
         positions = origins.unsqueeze(1) + t.unsqueeze(-1) * directions.unsqueeze(1)
-        return RaySamples(positions, t_starts, t_ends, None, origins.shape[0], hit)
+        return RaySamples.from_dense(positions, t_starts, t_ends, t_near, t_far, hit)
+
+
+class BoundBoxSampler:
+    """A :class:`BoxStratifiedSampler` bound to a body box and a feature camera."""
+
+    def __init__(self, sampler: BoxStratifiedSampler, aabb: torch.Tensor, camera: Camera):
+        self.sampler = sampler
+        self.aabb = aabb
+        self.camera = camera
+
+    def sample(self, pixels: torch.Tensor, *, training: bool = False,
+               generator: torch.Generator | None = None) -> RaySamples:
+        origins, dirs = pixel_rays(self.camera, pixels)
+        return self.sampler.sample_rays(origins, dirs, self.aabb, training=training, generator=generator)
+
+
+__all__ = ["RaySamples", "Sampler", "BoundSampler", "SampleFilter", "BoxStratifiedSampler", "BoundBoxSampler", "pixel_rays",
+           "body_aabb", "ray_aabb_intersect", "stratified_intervals"]

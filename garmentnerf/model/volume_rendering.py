@@ -25,6 +25,10 @@ value and only zeroes gradients that are 0 anyway; transmittance from densities 
 
 from __future__ import annotations
 
+import bisect
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import torch
 
 #: exp(-1e4) underflows to 0 even in float64; clamping tau here keeps sums of many saturated
@@ -143,7 +147,7 @@ def packed_layout(ray_ids: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, tor
     return index, counts
 
 
-def _packed_exclusive_cumsum(x: torch.Tensor, ray_ids: torch.Tensor, n_rays: int) -> torch.Tensor:
+def packed_exclusive_cumsum(x: torch.Tensor, ray_ids: torch.Tensor, n_rays: int) -> torch.Tensor:
     # Scatter into a zero-padded (R, S_max) block and scan rows: exact per ray. A global cumsum
     # minus each ray's start would lose the small terms of a ray that follows a ray with a huge
     # optical thickness.
@@ -156,13 +160,13 @@ def _packed_exclusive_cumsum(x: torch.Tensor, ray_ids: torch.Tensor, n_rays: int
 def transmittance_from_density_packed(sigmas: torch.Tensor, deltas: torch.Tensor, ray_ids: torch.Tensor,
                                       n_rays: int) -> torch.Tensor:
     """Packed :func:`transmittance_from_density`: sigmas, deltas, ray_ids (N,) -> (N,)."""
-    return torch.exp(-_packed_exclusive_cumsum(optical_thickness(sigmas, deltas), ray_ids, n_rays))
+    return torch.exp(-packed_exclusive_cumsum(optical_thickness(sigmas, deltas), ray_ids, n_rays))
 
 
 def transmittance_from_alpha_packed(alphas: torch.Tensor, ray_ids: torch.Tensor, n_rays: int) -> torch.Tensor:
     """Packed :func:`transmittance_from_alpha`: alphas, ray_ids (N,) -> (N,)."""
     log_1m = torch.log1p(-alphas.clamp(0.0, _alpha_ceiling(alphas.dtype)))
-    return torch.exp(_packed_exclusive_cumsum(log_1m, ray_ids, n_rays))
+    return torch.exp(packed_exclusive_cumsum(log_1m, ray_ids, n_rays))
 
 
 def render_weights_packed(alphas: torch.Tensor, ray_ids: torch.Tensor, n_rays: int) -> torch.Tensor:
@@ -175,7 +179,7 @@ def render_weights_from_density_packed(sigmas: torch.Tensor, deltas: torch.Tenso
                                        n_rays: int) -> torch.Tensor:
     """Packed :func:`render_weights_from_density`: sigmas, deltas, ray_ids (N,) -> weights (N,)."""
     tau = optical_thickness(sigmas, deltas)
-    return torch.exp(-_packed_exclusive_cumsum(tau, ray_ids, n_rays)) * -torch.expm1(-tau)
+    return torch.exp(-packed_exclusive_cumsum(tau, ray_ids, n_rays)) * -torch.expm1(-tau)
 
 
 def accumulate_opacity_packed(weights: torch.Tensor, ray_ids: torch.Tensor, n_rays: int) -> torch.Tensor:
@@ -196,3 +200,128 @@ def expected_depth_packed(weights: torch.Tensor, t_starts: torch.Tensor, t_ends:
         opacity = accumulate_opacity_packed(weights, ray_ids, n_rays)
         depth = depth / opacity.clamp_min(1e-10)
     return depth
+
+
+# ------------------------------------------------------------------------ segmented (field in the loop)
+@dataclass
+class MarchResult:
+    """What :func:`render_packed_segmented` composited, per ray.
+
+    Attributes:
+        values: (R, C) sum_i w_i v_i.
+        opacity: (R,) sum_i w_i.
+        depth: (R,) sum_i w_i t_i (unnormalised; divide by the opacity for the surface depth).
+        samples_evaluated: samples the field was asked for (the others were skipped by early
+            termination).
+        terminated: (R,) bool, rays stopped early with samples left (on the CPU).
+    """
+
+    values: torch.Tensor
+    opacity: torch.Tensor
+    depth: torch.Tensor
+    samples_evaluated: int
+    terminated: torch.Tensor
+
+
+def _ray_aligned_chunks(counts: torch.Tensor, chunk_points: int) -> list[tuple[int, int, int, int]]:
+    """(ray_start, ray_stop, sample_start, sample_stop) chunks of about ``chunk_points`` samples,
+    never splitting a ray (a ray with more samples than that is a chunk of its own)."""
+    ends = torch.cumsum(counts, 0).tolist()
+    n_rays = len(ends)
+    chunks = []
+    r0 = s0 = 0
+    while r0 < n_rays:
+        r1 = bisect.bisect_right(ends, s0 + chunk_points, lo=r0)
+        r1 = max(r1, r0 + 1)
+        s1 = ends[r1 - 1]
+        chunks.append((r0, r1, s0, s1))
+        r0, s0 = r1, s1
+    return chunks
+
+
+def _front_segment(starts: torch.Tensor, counts: torch.Tensor, cursor: torch.Tensor, live: torch.Tensor,
+                   per_ray: int) -> torch.Tensor:
+    """Sample indices of the next ``per_ray`` samples of every live ray, in packed order."""
+    rays = live.nonzero().squeeze(1)
+    take = torch.minimum(counts[rays] - cursor[rays], torch.full_like(rays, per_ray))
+    first = starts[rays] + cursor[rays]
+    offsets = torch.arange(int(take.sum())) - torch.repeat_interleave(torch.cumsum(take, 0) - take, take)
+    return torch.repeat_interleave(first, take) + offsets
+
+
+def render_packed_segmented(field: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+                            t_starts: torch.Tensor, t_ends: torch.Tensor, ray_ids: torch.Tensor, n_rays: int,
+                            num_channels: int, *, chunk_points: int = 16384, termination_eps: float = 0.0,
+                            device: torch.device | str | None = None) -> MarchResult:
+    """Packed volume rendering that evaluates the field itself, segment by segment.
+
+    ``field(index)`` gets ``index (n,)``, positions into the packed samples, and returns their
+    ``sigma (n,)`` and ``values (n, C)``; it is called with about ``chunk_points`` samples at a
+    time. The weights are those of :func:`render_weights_from_density_packed` (the transmittance
+    of a segment continues from the optical thickness the ray accumulated before it).
+
+    Early ray termination (``termination_eps > 0``): samples are visited front to back, a few of
+    every live ray per segment (about ``chunk_points`` in all), and a ray stops once its
+    transmittance falls below ``termination_eps``. The samples never evaluated then carry weights
+    summing to at most eps, so each composited value changes by at most ``eps * max|v|`` and the
+    opacity by at most eps. With ``termination_eps = 0`` whole rays are rendered in chunks of
+    about ``chunk_points`` samples (a ray is never split) and the result equals
+    :func:`render_weights_from_density_packed` followed by :func:`composite_packed`.
+
+    Args:
+        t_starts, t_ends, ray_ids: (N,) packed intervals (``ray_ids`` sorted; any device, the
+            bookkeeping runs on the CPU).
+        n_rays: R; num_channels: C.
+        device: where the field's outputs live and the results are made (default: the device of
+            ``t_starts``).
+    """
+    if not 0.0 <= termination_eps < 1.0:
+        raise ValueError(f"termination_eps must be in [0, 1), got {termination_eps}")
+    if chunk_points < 1:
+        raise ValueError(f"chunk_points must be >= 1, got {chunk_points}")
+    dev = torch.device(device) if device is not None else t_starts.device
+    ids_cpu = ray_ids.detach().to("cpu").long()
+    _, counts = packed_layout(ids_cpu, n_rays)
+    starts = torch.cumsum(counts, 0) - counts
+    values = torch.zeros(n_rays, num_channels, device=dev)
+    opacity = torch.zeros(n_rays, device=dev)
+    depth = torch.zeros(n_rays, device=dev)
+    tau_before = torch.zeros(n_rays, device=dev)  # differentiable: what later segments start from
+    tau_seen = torch.zeros(n_rays)  # CPU, detached: which rays are still live
+    cursor = torch.zeros(n_rays, dtype=torch.long)
+    evaluated = 0
+
+    def segments():
+        if termination_eps == 0.0:
+            for r0, r1, s0, s1 in _ray_aligned_chunks(counts, chunk_points):
+                if s1 > s0:
+                    yield torch.arange(s0, s1)
+            return
+        while True:
+            live = (cursor < counts) & (torch.exp(-tau_seen) >= termination_eps)
+            n_live = int(live.sum())
+            if n_live == 0:
+                return
+            yield _front_segment(starts, counts, cursor, live, max(1, chunk_points // n_live))
+
+    for index in segments():
+        sigma, vals = field(index)
+        rid_cpu = ids_cpu[index]
+        rid = rid_cpu.to(dev)
+        dev_index = index.to(t_starts.device)
+        ts = t_starts[dev_index].to(dev, torch.float32)
+        te = t_ends[dev_index].to(dev, torch.float32)
+        tau = optical_thickness(sigma.float(), te - ts)
+        _, local = torch.unique_consecutive(rid_cpu, return_inverse=True)  # the segment's rays, numbered 0..
+        local = local.to(dev)
+        n_local = int(local[-1]) + 1 if local.numel() else 0
+        w = torch.exp(-(packed_exclusive_cumsum(tau, local, n_local) + tau_before[rid])) * -torch.expm1(-tau)
+        values = values.index_add(0, rid, w.unsqueeze(-1) * vals.float())
+        opacity = opacity.index_add(0, rid, w)
+        depth = depth.index_add(0, rid, w * (ts + te) * 0.5)
+        tau_before = tau_before.index_add(0, rid, tau)
+        tau_seen = tau_seen.index_add(0, rid_cpu, tau.detach().cpu())
+        cursor = cursor.index_add(0, rid_cpu, torch.ones_like(rid_cpu))
+        evaluated += int(index.shape[0])
+    terminated = cursor < counts
+    return MarchResult(values, opacity, depth, evaluated, terminated)

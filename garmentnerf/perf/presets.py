@@ -1,4 +1,11 @@
-"""Named render presets spanning the speed/accuracy trade, applied to a loaded model (no retraining).
+"""Named render presets spanning the speed/accuracy trade (no retraining): the one table.
+
+:data:`RENDER_PRESETS` is used by everything that renders a trained model: ``garmentnerf bench
+--run`` measures each row, ``garmentnerf render --preset`` and ``garmentnerf eval --preset`` run
+one, and the previewer's quality levels are its rows (:data:`VIEWER_LEVELS`), so what the bench
+measures is what the user runs. A preset becomes render arguments through
+:meth:`RenderPreset.sampling` (:class:`SamplingPlan`: sampler, sample filter, early termination,
+precision); :class:`~garmentnerf.render.session.RenderSession` does that once per preset.
 
 Each preset fixes (resolution scale, samples per ray, sampler, precision):
 
@@ -19,31 +26,42 @@ bins of the same S) and only skips those the culls prove empty, so it differs fr
 ``reference`` only by density the model put outside the garment's band (and by at most 1e-4 of
 transmittance). ``auto`` precision is float16 autocast on CUDA and float32 on the CPU (bfloat16
 autocast is slower than float32 on the development CPU). See
-:mod:`garmentnerf.model.samplers_culled` for the culls.
+:mod:`garmentnerf.model.shell_sampler` for the culls.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from garmentnerf.model.samplers_culled import (PRECISIONS, HeightRange, ShellSampler, install_culled_renderer,
-                                               measure_height_range, uninstall_culled_renderer)
+from garmentnerf.model.height_band import HeightRange, measure_height_range
+from garmentnerf.model.pipeline import PRECISIONS
 
 SAMPLERS = ("box", "shell")
 
 
 @dataclass(frozen=True)
-class Preset:
+class RenderPreset:
     """One point of the speed/accuracy trade (see the module docstring)."""
 
     name: str
+    """Key in :data:`RENDER_PRESETS`."""
     resolution_scale: float
+    """Rendered pixels per pixel of the training density (``cfg.image_resolution`` across the
+    larger image side); the rays go with its square."""
     samples_scale: float
+    """Samples per ray as a fraction of the model's ``cfg.samples_per_ray`` (at least 4)."""
     sampler: str
+    """``box`` (the paper's :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) or
+    ``shell`` (:class:`~garmentnerf.model.shell_sampler.ShellSampler` with the garment's height
+    band as sample filter)."""
     precision: str = "float32"
+    """MLP precision (:data:`~garmentnerf.model.pipeline.PRECISIONS`)."""
     termination_eps: float = 0.0
+    """Early ray termination: transmittance below which a ray stops (0: never)."""
     occlusion: bool = False
+    """Shell sampler only: cut rays just behind their first skin crossing."""
     description: str = ""
+    """One line for listings."""
 
     def __post_init__(self) -> None:
         if not self.resolution_scale > 0:
@@ -60,95 +78,92 @@ class Preset:
     def samples_per_ray(self, cfg) -> int:
         return max(4, int(round(cfg.samples_per_ray * self.samples_scale)))
 
-    def render_scale(self, cfg, camera) -> float:
-        """Rendered pixels per output pixel of ``camera`` (``render_full_image(scale=...)``)."""
-        return self.resolution_scale * cfg.image_resolution / max(camera.width, camera.height)
+    def sampling(self, model, height_range: HeightRange | None = None, gl_context=None) -> "SamplingPlan":
+        """The render arguments of this preset for ``model`` (a loaded
+        :class:`~garmentnerf.model.pipeline.GarmentAnimationNeRF`; its weights are untouched).
+
+        Args:
+            height_range: the garment's band (shell presets; default :meth:`HeightRange.default`).
+            gl_context: moderngl context of the shell raster (None: a headless one of its own).
+        """
+        from garmentnerf.model.samplers import BoxStratifiedSampler
+        from garmentnerf.model.shell_sampler import ShellSampler
+
+        cfg = model.cfg
+        n = self.samples_per_ray(cfg)
+        if self.sampler == "box":
+            return SamplingPlan(self, BoxStratifiedSampler(n, cfg.bbox_padding), None, self.termination_eps,
+                                self.precision)
+        band = height_range if height_range is not None else HeightRange.default()
+        faces = model.projector.faces
+        sampler = ShellSampler(n, faces, band, padding=cfg.bbox_padding, gl_context=gl_context,
+                               occlusion=self.occlusion)
+        return SamplingPlan(self, sampler, band.sample_filter(faces), self.termination_eps, self.precision)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-PRESETS: dict[str, Preset] = {p.name: p for p in (
-    Preset("reference", 1.0, 1.0, "box", "float32", 0.0,
-           description="the paper's sampling: S stratified samples in the padded body box, every ray that hits it"),
-    Preset("full", 1.0, 1.0, "shell", "float32", 1e-4, occlusion=True,
-           description="the reference's samples, minus those outside the shell/height band, behind the skin "
-                       "or behind opacity"),
-    Preset("balanced", 0.75, 0.5, "shell", "auto", 1e-3, occlusion=True,
-           description="3/4 resolution, half the samples, culled"),
-    Preset("interactive", 0.5, 0.5, "shell", "auto", 1e-2, occlusion=True,
-           description="half resolution, half the samples, culled"),
+@dataclass
+class SamplingPlan:
+    """Where one preset's samples go: the sampling arguments of
+    :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.render` (:meth:`render_kwargs`)."""
+
+    preset: RenderPreset
+    sampler: object
+    """The :class:`~garmentnerf.model.samplers.Sampler`."""
+    sample_filter: object | None
+    """The :class:`~garmentnerf.model.samplers.SampleFilter`, or None."""
+    termination_eps: float
+    precision: str
+
+    def render_kwargs(self) -> dict:
+        return {"sampler": self.sampler, "sample_filter": self.sample_filter,
+                "termination_eps": self.termination_eps, "precision": self.precision}
+
+    def release(self) -> None:
+        """Free the sampler's GL objects, if it has any."""
+        release = getattr(self.sampler, "release", None)
+        if release is not None:
+            release()
+
+
+RENDER_PRESETS: dict[str, RenderPreset] = {p.name: p for p in (
+    RenderPreset("reference", 1.0, 1.0, "box", "float32", 0.0,
+                 description="the paper's sampling: S stratified samples in the padded body box, every ray that hits it"),
+    RenderPreset("full", 1.0, 1.0, "shell", "float32", 1e-4, occlusion=True,
+                 description="the reference's samples, minus those outside the shell/height band, behind the skin "
+                             "or behind opacity"),
+    RenderPreset("balanced", 0.75, 0.5, "shell", "auto", 1e-3, occlusion=True,
+                 description="3/4 resolution, half the samples, culled"),
+    RenderPreset("interactive", 0.5, 0.5, "shell", "auto", 1e-2, occlusion=True,
+                 description="half resolution, half the samples, culled"),
 )}
-PRESET_NAMES = tuple(PRESETS)
+RENDER_PRESET_NAMES = tuple(RENDER_PRESETS)
+#: The previewer's quality levels, lowest first: rows of :data:`RENDER_PRESETS`.
+VIEWER_LEVELS = ("interactive", "balanced", "full")
 
 
-def get_preset(name) -> Preset:
-    if isinstance(name, Preset):
+def get_render_preset(name) -> RenderPreset:
+    """The preset called ``name`` (a :class:`RenderPreset` is returned as it is)."""
+    if isinstance(name, RenderPreset):
         return name
     try:
-        return PRESETS[name]
+        return RENDER_PRESETS[name]
     except KeyError:
-        raise ValueError(f"unknown preset {name!r} (known: {', '.join(PRESETS)})") from None
+        raise ValueError(f"unknown render preset {name!r} (known: {', '.join(RENDER_PRESETS)})") from None
 
 
 def height_range_for_run(run, projector=None) -> HeightRange:
     """The garment's height band of a loaded run: measured on its scene's training garments, or
-    :meth:`HeightRange.default` when the run has no scene (cached on the run object)."""
-    cached = getattr(run, "_garment_height_range", None)
-    if cached is not None:
-        return cached
+    :meth:`HeightRange.default` when the run has no scene (about a second: callers keep it)."""
     scene = getattr(run, "scene", None)
     if scene is None:
-        band = HeightRange.default()
-    else:
-        model = run.model
-        band = measure_height_range(scene, model.body, getattr(run, "betas", None),
-                                    projector if projector is not None else model.projector)
-    try:
-        run._garment_height_range = band
-    except AttributeError:
-        pass
-    return band
+        return HeightRange.default()
+    model = run.model
+    return measure_height_range(scene, model.body, getattr(run, "betas", None),
+                                projector if projector is not None else model.projector)
 
 
-@dataclass
-class AppliedPreset:
-    """What :func:`apply_preset` set up: the preset, its samples per ray, the sampler installed."""
-
-    preset: Preset
-    samples_per_ray: int
-    sampler: object
-    height_range: HeightRange | None
-
-    def render_scale(self, cfg, camera) -> float:
-        return self.preset.render_scale(cfg, camera)
-
-
-def apply_preset(model, preset, *, height_range: HeightRange | None = None, gl_context=None) -> AppliedPreset:
-    """Configure ``model`` (a loaded :class:`GarmentAnimationNeRF`) for ``preset``; the weights are
-    untouched. The resolution part is the caller's (``AppliedPreset.render_scale``,
-    ``RenderSession.render(quality=preset.resolution_scale)``)."""
-    from garmentnerf.model.samplers import BoxStratifiedSampler
-
-    preset = get_preset(preset)
-    cfg = model.cfg
-    n = preset.samples_per_ray(cfg)
-    if preset.sampler == "box":
-        sampler = BoxStratifiedSampler(n, cfg.bbox_padding)
-        uninstall_culled_renderer(model, sampler)
-        return AppliedPreset(preset, n, sampler, None)
-    band = height_range if height_range is not None else HeightRange.default()
-    old = model.sampler
-    sampler = ShellSampler(n, band, faces=model.projector.faces, padding=cfg.bbox_padding,
-                           termination_eps=preset.termination_eps, precision=preset.precision,
-                           gl_context=gl_context, occlusion=preset.occlusion)
-    if isinstance(old, ShellSampler) and (gl_context is None or old.raster._ctx is gl_context):
-        sampler.raster = old.raster  # keep the GL objects (and the context) of the previous preset
-    elif isinstance(old, ShellSampler):
-        old.release()
-    install_culled_renderer(model, sampler)
-    return AppliedPreset(preset, n, sampler, band)
-
-
-__all__ = ["Preset", "PRESETS", "PRESET_NAMES", "AppliedPreset", "apply_preset", "get_preset",
-           "height_range_for_run"]
+__all__ = ["RenderPreset", "SamplingPlan", "RENDER_PRESETS", "RENDER_PRESET_NAMES", "VIEWER_LEVELS",
+           "get_render_preset", "height_range_for_run"]

@@ -9,16 +9,30 @@ What the network outputs (and why there is no body-only fallback)
     ``compose(maps, palette, background)`` and nothing else. (The viewer's "body only" mode draws
     the rasterised body instead of the network; the two are never mixed per pixel.)
 
+The camera-to-maps entry point
+    :meth:`RenderSession.render` is the only place a camera becomes decomposed maps: the viewer,
+    snapshots and exports, ``garmentnerf render``, ``garmentnerf eval`` and ``garmentnerf bench``
+    all call it.
+
+Presets
+    Where samples go is a render preset (:data:`garmentnerf.perf.presets.RENDER_PRESETS`: sampler,
+    sample filter, early termination, precision, resolution); the session turns each preset it is
+    asked for into a :class:`~garmentnerf.perf.presets.SamplingPlan` once (measuring the
+    garment's height band on the run's scene the first time a culled preset is used) and passes
+    it to the model. Default: :data:`DEFAULT_PRESET`.
+
 Resolution
-    :meth:`RenderSession.render` renders a camera ``W x H`` at ``scale`` times its pixels, as
-    :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.render_full_image` does: default
-    ``scale = quality * cfg.image_resolution / max(W, H)``, i.e. ``quality = 1`` is the pixel
-    density the model was trained at and lower qualities are proportionally coarser (fewer rays:
-    the cost is about ``quality**2``). The rendered size is padded to a multiple of the decoder's
-    upsampling factor and cropped back. The :class:`NeuralFrame` keeps the maps at the *rendered*
-    size; :meth:`NeuralFrame.maps_at` resamples them (bilinear, antialiased, weights renormalised:
-    :func:`garmentnerf.model.pipeline._resize_maps`) to any output size, and the composition
-    happens there. The viewer uploads the rendered-size maps and lets the GPU upsample them
+    :meth:`RenderSession.render` renders a camera ``W x H`` at ``scale`` times its pixels:
+    default ``scale = quality * cfg.image_resolution / max(W, H)``, i.e. ``quality = 1`` is the
+    pixel density the model was trained at and lower qualities are proportionally coarser (fewer
+    rays: the cost is about ``quality**2``); ``quality`` defaults to the preset's
+    ``resolution_scale``. The rendered size is padded to a multiple of the decoder's upsampling
+    factor (:func:`padded_render_camera`) and the maps cropped back
+    (:meth:`~garmentnerf.model.palette.DecomposedMaps.cropped`). The :class:`NeuralFrame` keeps
+    the maps at the *rendered* size; :meth:`NeuralFrame.maps_at` resamples them
+    (:meth:`~garmentnerf.model.palette.DecomposedMaps.resized`: bilinear, antialiased, weights
+    renormalised) to any output size, and the composition happens there, once, with the palette
+    the caller chose. The viewer uploads the rendered-size maps and lets the GPU upsample them
     bilinearly before the same formula (``shaders/viewer_palette.frag``), which equals the CPU
     path wherever the resampling is plain bilinear (upsampling).
 
@@ -49,6 +63,10 @@ from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
 
 #: Default number of per-frame feature sets kept.
 DEFAULT_CACHE_FRAMES = 8
+#: The render preset used when none is named (``garmentnerf render``, snapshots, exports): ``full``,
+#: the reference's samples minus those the culls prove empty (the same PSNR to 0.01 dB on the
+#: bundled model, in a fraction of the time). ``garmentnerf eval`` names ``reference``.
+DEFAULT_PRESET = "full"
 
 
 @dataclass
@@ -67,6 +85,9 @@ class NeuralFrame:
         quality: the quality it was rendered at; scale: rendered pixels per output pixel.
         timings: milliseconds per stage (model stages, plus ``cache`` hit/miss info and ``total``).
         cached_frame: whether the frame's features came from the cache.
+        preset: the render preset's name.
+        counts: ``points_evaluated``, ``points_projected``, ``samples_placed``, ``rays_evaluated``,
+            ``rays_total``, ``rays_terminated`` of the render.
     """
 
     maps: DecomposedMaps
@@ -80,6 +101,8 @@ class NeuralFrame:
     scale: float
     timings: dict[str, float] = field(default_factory=dict)
     cached_frame: bool = False
+    preset: str = DEFAULT_PRESET
+    counts: dict[str, int] = field(default_factory=dict)
 
     @property
     def output_size(self) -> tuple[int, int]:
@@ -87,13 +110,9 @@ class NeuralFrame:
 
     def maps_at(self, width: int | None = None, height: int | None = None) -> DecomposedMaps:
         """The maps resampled to ``width x height`` (default: the camera's size)."""
-        from garmentnerf.model.pipeline import _resize_maps
-
         w = self.camera.width if width is None else int(width)
         h = self.camera.height if height is None else int(height)
-        if (w, h) == self.render_size:
-            return self.maps
-        return _resize_maps(self.maps, h, w)
+        return self.maps.resized(w, h)
 
     def composite(self, palette: torch.Tensor | np.ndarray | None = None, background=None,
                   size: tuple[int, int] | None = None) -> np.ndarray:
@@ -174,6 +193,8 @@ class RenderSession:
         self.builder = FrameInputBuilder(gl_ctx, self.body, refs, self.config)
         self.cache_frames = max(1, int(cache_frames))
         self._cache: OrderedDict[int, object] = OrderedDict()
+        self._plans: dict[str, object] = {}  # preset name -> SamplingPlan
+        self._height_range = None  # the garment's band, measured on first use
         self.cache_hits = 0
         self.cache_misses = 0
         self.motion = None
@@ -235,6 +256,31 @@ class RenderSession:
     def clear_cache(self) -> None:
         self._cache.clear()
 
+    # ---- presets -----------------------------------------------------------------------------------
+    @property
+    def height_range(self):
+        """The garment's height band of the run (measured on its scene once, on first use)."""
+        from garmentnerf.perf.presets import height_range_for_run
+
+        if self._height_range is None:
+            self._height_range = height_range_for_run(self.run)
+        return self._height_range
+
+    def sampling(self, preset=DEFAULT_PRESET):
+        """The :class:`~garmentnerf.perf.presets.SamplingPlan` of ``preset`` (a name or a
+        :class:`~garmentnerf.perf.presets.RenderPreset`), made once per preset."""
+        from garmentnerf.perf.presets import get_render_preset
+
+        preset = get_render_preset(preset)
+        plan = self._plans.get(preset.name)
+        if plan is None or plan.preset != preset:
+            if plan is not None:
+                plan.release()
+            band = self.height_range if preset.sampler == "shell" else None
+            plan = preset.sampling(self.model, band, self.gl_ctx)
+            self._plans[preset.name] = plan
+        return plan
+
     # ---- views --------------------------------------------------------------------------------------
     def render_scale(self, camera: Camera, quality: float = 1.0) -> float:
         """Rendered pixels per output pixel for ``camera`` at ``quality`` (see the module docstring)."""
@@ -242,42 +288,43 @@ class RenderSession:
             raise ValueError(f"quality must be a number > 0, got {quality!r}")
         return float(quality) * self.config.image_resolution / max(camera.width, camera.height)
 
-    def render(self, frame: int, camera: Camera, quality: float = 1.0, *, scale: float | None = None,
-               should_cancel: Callable[[], bool] | None = None) -> NeuralFrame:
+    def render(self, frame: int, camera: Camera, quality: float | None = None, *, preset=DEFAULT_PRESET,
+               scale: float | None = None, should_cancel: Callable[[], bool] | None = None) -> NeuralFrame:
         """Render body frame ``frame`` seen by ``camera``.
 
         Args:
-            quality: fraction of the training pixel density (ignored when ``scale`` is given).
+            quality: fraction of the training pixel density (default: the preset's
+                ``resolution_scale``; ignored when ``scale`` is given).
+            preset: render preset name (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`).
             scale: rendered pixels per output pixel (overrides ``quality``).
             should_cancel: polled between chunks; True raises RenderCancelled.
         """
-        from garmentnerf.model.pipeline import _crop_maps
-
         t0 = time.perf_counter()
+        plan = self.sampling(preset)
+        quality = plan.preset.resolution_scale if quality is None else quality
         feats, cached = self.frame_features(frame)
-        W, H = camera.width, camera.height
         s = self.render_scale(camera, quality) if scale is None else float(scale)
         if not s > 0:
             raise ValueError(f"scale must be > 0, got {scale!r}")
         up = 2 ** self.config.decoder_upsample_steps
-        wr, hr = max(1, round(W * s)), max(1, round(H * s))
-        fw, fh = -(-wr // up), -(-hr // up)
-        cam_r = camera if (wr, hr) == (W, H) else camera.resized(wr, hr)
-        padded = Camera(cam_r.K, cam_r.R, cam_r.t, fw * up, fh * up, cam_r.near, cam_r.far)
+        padded, (fw, fh), (wr, hr) = padded_render_camera(camera, s, up)
         with torch.no_grad():
-            out = self.model.render(feats, padded, feature_size=(fw, fh), should_cancel=should_cancel)
-        maps = _crop_maps(out.maps, hr, wr)
+            out = self.model.render(feats, padded, feature_size=(fw, fh), should_cancel=should_cancel,
+                                    **plan.render_kwargs())
+        cropped = out.maps.cropped(wr, hr)
         maps = DecomposedMaps(*(x.detach().to("cpu", torch.float32).contiguous()
-                                for x in (maps.radiance, maps.offsets, maps.weights, maps.mask)))
+                                for x in (cropped.radiance, cropped.offsets, cropped.weights, cropped.mask)))
         depth = _camera_depth(out.depth.detach().cpu(), out.opacity.detach().cpu(), padded.resized(fw, fh))
         depth = np.repeat(np.repeat(depth, up, axis=0), up, axis=1)[:hr, :wr]
         timings = dict(out.timings)
         timings["total"] = (time.perf_counter() - t0) * 1e3
+        counts = {k: int(getattr(out, k)) for k in ("points_evaluated", "points_projected", "samples_placed",
+                                                      "rays_evaluated", "rays_total", "rays_terminated")}
         return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
-                           timings, cached)
+                           timings, cached, plan.preset.name, counts)
 
-    def render_image(self, frame: int, camera: Camera, palette=None, background=None, quality: float = 1.0,
+    def render_image(self, frame: int, camera: Camera, palette=None, background=None, quality: float | None = None,
                      **kwargs) -> np.ndarray:
         """(H, W, 3) float32: :meth:`render` then :meth:`NeuralFrame.composite` at the camera's size."""
         return self.render(frame, camera, quality, **kwargs).composite(palette, background)
@@ -285,6 +332,9 @@ class RenderSession:
     # ---- lifetime -------------------------------------------------------------------------------------
     def close(self) -> None:
         self._cache.clear()
+        for plan in self._plans.values():
+            plan.release()
+        self._plans.clear()
         if self.builder is not None:
             self.builder.release()
             self.builder = None
@@ -294,6 +344,22 @@ class RenderSession:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def padded_render_camera(camera: Camera, scale: float, upsample: int) -> tuple[Camera, tuple[int, int], tuple[int, int]]:
+    """The camera the model renders to show ``camera`` at ``scale`` times its pixels.
+
+    Returns:
+        the camera resized to ``(wr, hr) = round((W, H) * scale)`` and padded on the right and
+        bottom to multiples of ``upsample`` (pixel centres stay put); the feature size
+        ``(fw, fh)`` (the padded size over ``upsample``); and ``(wr, hr)``, to crop the maps back to.
+    """
+    W, H = camera.width, camera.height
+    wr, hr = max(1, round(W * scale)), max(1, round(H * scale))
+    fw, fh = -(-wr // upsample), -(-hr // upsample)
+    cam_r = camera if (wr, hr) == (W, H) else camera.resized(wr, hr)
+    padded = Camera(cam_r.K, cam_r.R, cam_r.t, fw * upsample, fh * upsample, cam_r.near, cam_r.far)
+    return padded, (fw, fh), (wr, hr)
 
 
 def _camera_depth(distance: torch.Tensor, opacity: torch.Tensor, camera: Camera,
@@ -308,4 +374,5 @@ def _camera_depth(distance: torch.Tensor, opacity: torch.Tensor, camera: Camera,
     return z.float().numpy()
 
 
-__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "DEFAULT_CACHE_FRAMES"]
+__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "padded_render_camera", "DEFAULT_CACHE_FRAMES",
+           "DEFAULT_PRESET"]

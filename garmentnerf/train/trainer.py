@@ -75,10 +75,10 @@ from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_f
                                    load_module_weights, load_weights, read_run_info, save_run_model,
                                    save_weights)
 
-__all__ = ["TrainConfig", "Trainer", "TrainResult", "PRESETS", "model_config_for", "tiny_config", "train",
+__all__ = ["TrainConfig", "Trainer", "TrainResult", "MODEL_PRESETS", "model_config_for", "tiny_config", "train",
            "latest_checkpoint"]
 
-PRESETS = ("paper", "cpu_small", "tiny")
+MODEL_PRESETS = ("paper", "cpu_small", "tiny")
 _CKPT = re.compile(r"^ckpt_(\d+)\.state\.pt$")
 
 
@@ -104,7 +104,7 @@ def model_config_for(preset: str) -> ModelConfig:
         return ModelConfig.cpu_small()
     if preset == "tiny":
         return tiny_config()
-    raise ValueError(f"unknown preset '{preset}' (known: {', '.join(PRESETS)})")
+    raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
 
 
 @dataclass
@@ -173,8 +173,8 @@ class TrainConfig:
     loss_weights: dict[str, float] | None = None
 
     def validate(self) -> None:
-        if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset '{self.preset}' (known: {', '.join(PRESETS)})")
+        if self.preset not in MODEL_PRESETS:
+            raise ValueError(f"unknown preset '{self.preset}' (known: {', '.join(MODEL_PRESETS)})")
         known = loss_weight_names()
         for name, value in (self.loss_weights or {}).items():
             if name not in known:
