@@ -138,8 +138,12 @@ def test_forced_densities_outputs_and_gradients(gl_context, body, projector, bui
     sampling = culled_sampling(model, gl_context, 8) if culled else {}
     posed = walk.slice(0, 3).pose(body)
     frame = model.prepare_frame(builder.build(posed, 2, walk.fps))
-    out = model.render(frame, orbit_camera(30.0, 10.0, 3.0, width=32, height=32),
-                       generator=torch.Generator().manual_seed(0), **sampling)
+    try:
+        out = model.render(frame, orbit_camera(30.0, 10.0, 3.0, width=32, height=32),
+                           generator=torch.Generator().manual_seed(0), **sampling)
+    finally:
+        if culled:
+            sampling["sampler"].release()
     loss = out.image.mean() + out.opacity.mean() + out.depth.mean() * 1e-3
     loss.backward()
     assert finite(out.image, out.opacity, out.depth)

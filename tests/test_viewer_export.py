@@ -134,7 +134,7 @@ def test_neural_snapshot_equals_headless_render(neural_app, headless):
 
     app = neural_app
     app.set_view_mode("neural")
-    app.quality.set_preset("low")  # the preview renders at quality 0.25; the snapshot must not
+    app.quality.set_preset("interactive")  # the preview renders that preset (half resolution); the snapshot must not
     app.set_frame(1)
     app.controller.preset("left")
     app.set_palette_colour(0, (0.9, 0.2, 0.1))
@@ -153,9 +153,10 @@ def test_neural_snapshot_equals_headless_render(neural_app, headless):
     # the same path on another GL context and thread: mean abs diff <= 1/255, max <= 3/255 (uint8)
     diff = np.abs(saved.astype(int) - reference.astype(int))
     assert diff.mean() <= 1.0 and diff.max() <= 3, (diff.mean(), diff.max())
-    preview = to_uint8(headless.render_image(1, camera, app.palette, quality=0.25))
-    assert np.abs(saved.astype(int) - preview.astype(int)).mean() > 5.0  # not the preview's quality
-    app.quality.set_preset("high")
+    preview = to_uint8(headless.render_image(1, camera, app.palette, preset="interactive"))
+    # not the preview's quality: far further from the preview than from the headless full-quality render
+    assert np.abs(saved.astype(int) - preview.astype(int)).mean() > max(2.0, 4 * diff.mean())
+    app.quality.set_preset("full")
     app.reset_palette()
 
 

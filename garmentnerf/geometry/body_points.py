@@ -54,7 +54,8 @@ class BodyPoints:
         return int(self.face.shape[0])
 
     def select(self, index: torch.Tensor) -> "BodyPoints":
-        """The points at ``index`` (a bool mask or indices)."""
+        """The points at ``index`` (a bool mask or indices, on any device)."""
+        index = index.to(self.face.device)
         return BodyPoints(*(getattr(self, k)[index] for k in
                             ("face", "bary", "closest", "signed_distance", "canonical", "uv")))
 

@@ -41,7 +41,7 @@ if TYPE_CHECKING:  # pragma: no cover
     import moderngl
 
     from garmentnerf.body.model import BodyModel, PosedBody
-    from garmentnerf.geometry.projection import PosedSurface
+    from garmentnerf.geometry.body_points import BoundBody
     from garmentnerf.model.config import ModelConfig
 
 #: Names of the reference cameras in a scene rig, in the order the model uses them.
@@ -115,7 +115,9 @@ class FrameFeatures:
     Attributes:
         posed_vertices: (V, 3) float32 posed body (CPU).
         vertex_normals: (V, 3) unit vertex normals of the posed body (CPU).
-        surface: the skin surface bound to this frame for closest-point queries (CPU).
+        surface: the body bound to this frame for closest-point queries
+            (:meth:`~garmentnerf.geometry.body_points.BodyPointProjector.bind`: the exact KD-tree
+            search on a CPU model, its dense twin on the model's device otherwise).
         aabb: (2, 3) tight box [min, max] of the posed body (CPU; the sampler pads it).
         dynamic_features: (C_s, R, R) F^s_t, or None when the dynamic feature is ablated.
         reference_images: (2, 3, S, S) front/back reference images, or None (detail ablated).
@@ -131,7 +133,7 @@ class FrameFeatures:
 
     posed_vertices: torch.Tensor
     vertex_normals: torch.Tensor
-    surface: "PosedSurface"
+    surface: "BoundBody"
     aabb: torch.Tensor
     dynamic_features: torch.Tensor | None
     reference_images: torch.Tensor | None

@@ -343,7 +343,7 @@ class GarmentAnimationNeRF(nn.Module):
         with sw("surface"), torch.no_grad():
             verts = inputs.posed_vertices.detach().to("cpu", torch.float32).contiguous()
             normals = vertex_normals(verts, self._faces)
-            surface = self.projector.bind(verts, torch.float32)
+            surface = self.projector.bind(verts if dev.type == "cpu" else verts.to(dev), torch.float32)
             aabb = body_aabb(verts)
         dynamic = reference_images = detail = None
         if cfg.use_dynamic_feature:
@@ -366,11 +366,11 @@ class GarmentAnimationNeRF(nn.Module):
 
     # ------------------------------------------------------------------ per sample
     def sample_geometry(self, frame: FrameFeatures, positions: torch.Tensor) -> BodyPoints:
-        """Body-aware coordinates of ``positions (n, 3)`` (no gradient, CPU float32): b_t, h, b_o,
-        UV and the skin face (:meth:`BodyPointProjector.bind`'s convention), from the frame's
-        bound body."""
+        """Body-aware coordinates of ``positions (n, 3)`` (no gradient, float32, on the device the
+        frame's body is bound on): b_t, h, b_o, UV and the skin face
+        (:meth:`BodyPointProjector.bind`'s convention), from the frame's bound body."""
         with torch.no_grad():
-            points = frame.surface.project(positions.detach().to("cpu", torch.float32))
+            points = frame.surface.project(positions.detach().to(frame.surface.vertices.device, torch.float32))
         return BodyPoints(points.face, points.bary, points.closest.float(), points.signed_distance.float(),
                           points.canonical.float(), points.uv.float())
 
