@@ -410,6 +410,44 @@ class GarmentAnimationNeRF(nn.Module):
         w = F.normalize(torch.stack(cos, -1).add(1.0).mul(0.5), p=2, dim=-1)[:, 0]
         return feats, w
 
+    def evaluate_samples(self, frame: FrameFeatures, positions: torch.Tensor, *,
+                         sample_filter: SampleFilter | None = None, precision: str = "float32",
+                         timings: dict | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """M_NeRF at world ``positions (n, 3)`` of ``frame``: body projection, the sample filter,
+        f^s and f^d, the MLP.
+
+        Returns:
+            sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops),
+            and how many samples the MLP evaluated.
+        """
+        cfg, dev = self.cfg, self.device
+        sw = _Stopwatch({} if timings is None else timings, dev)
+        n = positions.shape[0]
+        with sw("projection"):
+            points = self.sample_geometry(frame, positions)
+            kept = None
+            if sample_filter is not None:
+                kept = sample_filter.keep(points).nonzero().squeeze(1)
+                points = points.select(kept)
+        if len(points) == 0:
+            return torch.zeros(n, device=dev), torch.zeros(n, cfg.appearance_dim, device=dev), 0
+        with sw("features"):
+            dynamic = detail = None
+            if cfg.use_dynamic_feature:
+                fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
+                dynamic = sample_uv_map(fmap, points.uv.to(dev))
+            if cfg.use_detail_feature:
+                normal = self.surface_normals(frame, points) if cfg.detail_selection == "soft_normal" else None
+                detail, _ = self.detail_features(frame, points.closest, normal)
+        with sw("mlp"), _autocast(precision, dev):
+            sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic)
+        sigma, zeta = sigma.float(), zeta.float()
+        if kept is not None and kept.shape[0] < n:
+            rows = kept.to(dev)
+            sigma = torch.zeros(n, device=dev).index_copy(0, rows, sigma)
+            zeta = torch.zeros(n, zeta.shape[-1], device=dev).index_copy(0, rows, zeta)
+        return sigma, zeta, len(points)
+
     # ------------------------------------------------------------------ per view
     def _ray_subset(self, rays, n_pixels: int, shape: tuple[int, int]) -> torch.Tensor | None:
         if rays is None:
@@ -461,47 +499,24 @@ class GarmentAnimationNeRF(nn.Module):
                                                                          generator=generator)
             n_rays = samples.n_rays
             counts = torch.bincount(samples.ray_ids.cpu(), minlength=n_rays)
-        evaluated = [0]
+        evaluated = 0
 
         def field(index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            """sigma (n,), zeta (n, C) of the packed samples ``index``; zero where filtered out."""
-            n = index.shape[0]
-            sigma = torch.zeros(n, device=dev)
-            zeta = torch.zeros(n, C, device=dev)
-            for c0 in range(0, n, chunk):
+            """sigma (n,), zeta (n, C) of the packed samples ``index``, ``chunk`` at a time."""
+            nonlocal evaluated
+            sigmas, zetas = [], []
+            for c0 in range(0, index.shape[0], chunk):
                 if should_cancel is not None and should_cancel():
-                    raise RenderCancelled(evaluated[0])
-                part = index[c0:c0 + chunk]
-                with sw("projection"):
-                    points = self.sample_geometry(frame, samples.positions[part.to(samples.positions.device)])
-                    if sample_filter is not None:
-                        kept = sample_filter.keep(points).nonzero().squeeze(1)
-                        points = points.select(kept)
-                    else:
-                        kept = None
-                if len(points) == 0:
-                    continue
-                with sw("features"):
-                    dynamic = detail = None
-                    if cfg.use_dynamic_feature:
-                        fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
-                        dynamic = sample_uv_map(fmap, points.uv.to(dev))
-                    if cfg.use_detail_feature:
-                        normal = (self.surface_normals(frame, points) if cfg.detail_selection == "soft_normal"
-                                  else None)
-                        detail, _ = self.detail_features(frame, points.closest, normal)
-                with sw("mlp"), _autocast(precision, dev):
-                    s, z = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic)
-                s, z = s.float(), z.float()
-                rows = torch.arange(c0, c0 + part.shape[0], device=dev)
-                rows = rows if kept is None else rows[kept.to(dev)]
-                if kept is None and part.shape[0] == n:
-                    sigma, zeta = s, z
-                else:
-                    sigma = sigma.index_copy(0, rows, s)
-                    zeta = zeta.index_copy(0, rows, z)
-                evaluated[0] += len(points)
-            return sigma, zeta
+                    raise RenderCancelled(evaluated)
+                part = index[c0:c0 + chunk].to(samples.positions.device)
+                sigma, zeta, n = self.evaluate_samples(frame, samples.positions[part], sample_filter=sample_filter,
+                                                       precision=precision, timings=timings)
+                sigmas.append(sigma)
+                zetas.append(zeta)
+                evaluated += n
+            if len(sigmas) == 1:
+                return sigmas[0], zetas[0]
+            return torch.cat(sigmas), torch.cat(zetas)
 
         field_keys = ("projection", "features", "mlp")
         field_before = sum(timings.get(k, 0.0) for k in field_keys)
@@ -523,7 +538,7 @@ class GarmentAnimationNeRF(nn.Module):
             feature_image = feat.T.reshape(C, fh, fw)
         hit = counts > 0
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
-                "points_evaluated": evaluated[0], "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
+                "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
                 "samples_placed": int(samples.ray_ids.shape[0]), "points_projected": march.samples_evaluated,
                 "rays_terminated": int((march.terminated & hit).sum())}
 
