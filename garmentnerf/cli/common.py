@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 
 def add_body_args(parser: argparse.ArgumentParser) -> None:
@@ -53,3 +55,66 @@ def check_frame(motion, frame: int) -> None:
     from garmentnerf.motion.library import check_frame as _check
 
     _check(motion, frame)
+
+
+# ---- validation shared by every command (one error path: ValueError & co. -> one line, exit 2) -------
+def parse_device(text: str, flag: str = "--device"):
+    """``torch.device`` of ``text``; ValueError naming ``flag`` for a name torch does not know or a
+    device this torch build or machine does not have."""
+    import torch
+
+    try:
+        device = torch.device(str(text))
+    except (RuntimeError, ValueError):
+        raise ValueError(f"{flag} {text!r}: not a torch device (cpu, cuda or cuda:N)") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch build has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise ValueError(f"{flag} {text}: {why}; use --device cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"{flag} {text}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif device.type != "cpu":
+        raise ValueError(f"{flag} {text}: unsupported device type '{device.type}' (cpu, cuda or cuda:N)")
+    return device
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_output_dir(path, flag: str = "--out") -> Path:
+    """Fail before any work when folder ``path`` cannot be made or written: it is a file, a path
+    under a file, or its nearest existing folder is not writable."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {path}: is a file, not a folder")
+    base = _nearest_existing(path)
+    if not base.is_dir():
+        raise ValueError(f"{flag} {path}: {base} is a file, not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise PermissionError(f"{flag} {path}: {base} is not writable")
+    return path
+
+
+def check_output_file(path, flag: str, overwrite: bool = False) -> Path:
+    """Fail before any work when file ``path`` cannot be written: it is a folder, it exists and
+    ``overwrite`` is off, its folder does not exist, is a file or is not writable."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{flag} {path}: is a folder")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{flag} {path}: already exists (pass --overwrite to replace it)")
+    parent = path.parent
+    if not parent.exists():
+        base = _nearest_existing(parent)
+        if not base.is_dir():
+            raise ValueError(f"{flag} {path}: {base} is a file, not a folder")
+        raise FileNotFoundError(f"{flag} {path}: folder {parent} does not exist")
+    if not parent.is_dir():
+        raise ValueError(f"{flag} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"{flag} {path}: folder {parent} is not writable")
+    return path

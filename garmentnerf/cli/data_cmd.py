@@ -80,6 +80,9 @@ def run_make(args: argparse.Namespace) -> int:
     if unknown:
         raise ValueError(f"unknown simulation setting(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     settings = SimSettings(**changes)
+    from garmentnerf.cli.common import check_output_dir
+
+    check_output_dir(args.out)
     scene = make_scene(args.out, spec, settings=settings, keep_chunks=not args.drop_chunks)
     for name in scene.sequence_names():
         sim = scene.simulation.get(name, {})

@@ -30,6 +30,7 @@ def register(sub) -> None:
     p.add_argument("--baseline", action="store_true",
                    help="also score the nearest-training-view baseline (split unseen_view only)")
     p.add_argument("--json", default=None, metavar="FILE", help="write the full result (per frame) as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace --json if it exists")
     p.add_argument("--preset", default="reference", metavar="NAME",
                    help="render preset: reference (the paper's sampling, default), full, balanced or interactive "
                         "(the rows of 'garmentnerf bench --run')")
@@ -46,6 +47,7 @@ def register(sub) -> None:
                     "unfinished runs resume from their checkpoint.")
     r.add_argument("--scene", required=True, metavar="DIR", help="scene folder")
     r.add_argument("--out", required=True, metavar="FILE", help="report file (markdown), written atomically")
+    r.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     r.add_argument("--iterations", type=int, default=None, metavar="N",
                    help="NeRF training steps per variant (default: the preset's)")
     r.add_argument("--generator-iterations", type=int, default=None, metavar="N",
@@ -76,6 +78,7 @@ def register(sub) -> None:
 def run_eval(args: argparse.Namespace) -> int:
     from garmentnerf.eval.evaluate import SPLITS, evaluate_run, format_result_table, parse_frame_range
     from garmentnerf.io_utils import atomic_write_path
+    from garmentnerf.cli.common import check_output_file, parse_device
     from garmentnerf.perf.presets import get_render_preset
     from garmentnerf.train.run import load_run
 
@@ -90,12 +93,9 @@ def run_eval(args: argparse.Namespace) -> int:
         raise ValueError(f"--baseline (nearest training view) is defined for --split unseen_view only, "
                          f"not '{args.split}'")
     frames = parse_frame_range(args.frames)
+    parse_device(args.device)
     if args.json is not None:
-        out = Path(args.json)
-        if out.is_dir():
-            raise IsADirectoryError(f"--json {out}: is a folder")
-        if not out.parent.exists():
-            raise FileNotFoundError(f"--json {out}: folder {out.parent} does not exist")
+        check_output_file(args.json, "--json", args.overwrite)
     if args.scene is not None and not (Path(args.scene) / "scene.json").is_file():
         raise FileNotFoundError(f"--scene {args.scene}: no scene.json")
     run = load_run(args.run, device=args.device, scene=args.scene)
@@ -107,7 +107,7 @@ def run_eval(args: argparse.Namespace) -> int:
     print(format_result_table(result))
     if args.json is not None:
         text = json.dumps(result, indent=1, allow_nan=False)
-        with atomic_write_path(args.json) as tmp:
+        with atomic_write_path(args.json, overwrite=args.overwrite) as tmp:
             tmp.write_text(text + "\n", encoding="utf-8")
         print(f"eval: wrote {args.json}")
     return 0
@@ -128,8 +128,12 @@ def run_report(args: argparse.Namespace) -> int:
     from garmentnerf.eval.report import build_report
     from garmentnerf.train.trainer import MODEL_PRESETS
 
+    from garmentnerf.cli.common import check_output_file, parse_device
+
     if args.preset not in MODEL_PRESETS:
         raise ValueError(f"unknown preset '{args.preset}' (known: {', '.join(MODEL_PRESETS)})")
+    parse_device(args.device)
+    check_output_file(args.out, "--out", args.overwrite)
     if args.perceptual not in ("auto", "stlpips", "vgg19", "none"):
         raise ValueError(f"unknown perceptual loss '{args.perceptual}' (known: auto, stlpips, vgg19, none)")
     splits = None
@@ -146,6 +150,6 @@ def run_report(args: argparse.Namespace) -> int:
                        variants=variants, views=_int_list(args.views, "--views"),
                        histories=_int_list(args.history, "--history"), splits=splits, frames=frames,
                        perceptual=args.perceptual, device=args.device, seed=args.seed,
-                       progress=not args.no_progress)
+                       progress=not args.no_progress, overwrite=args.overwrite)
     print(f"report: wrote {out}")
     return 0

@@ -99,7 +99,11 @@ def run_render(args: argparse.Namespace) -> int:
     from garmentnerf.train.run import load_run
 
     # -- everything that can be wrong with the arguments fails before the model loads -----------------
+    from garmentnerf.cli.common import check_output_dir, parse_device
+
     size = parse_output_size(args.size)
+    parse_device(args.device)
+    check_output_dir(args.out)
     preset = get_render_preset(args.preset if args.preset is not None else DEFAULT_PRESET)
     if args.quality is not None and not (args.quality > 0 and args.quality <= 4):
         raise ValueError(f"--quality must be in (0, 4], got {args.quality}")

@@ -83,7 +83,13 @@ def _loss_weights(items: list[str]) -> dict[str, float] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from garmentnerf.cli.common import check_output_dir, parse_device
     from garmentnerf.train.trainer import TrainConfig, Trainer
+
+    parse_device(args.device)
+    check_output_dir(args.out)
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads must be at least 1, got {args.threads}")
 
     tc = TrainConfig(scene=args.scene, out=args.out, preset=args.preset, device=args.device, seed=args.seed,
                      iterations=args.iterations, generator_iterations=args.generator_iterations,

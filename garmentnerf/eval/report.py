@@ -424,8 +424,10 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
                  preset: str = "cpu_small", runs_dir=None, variants: list[str] | None = None,
                  views: tuple[int, ...] = (4, 8, 16), histories: tuple[int, ...] = (0, 1, 2),
                  splits: list[str] | None = None, frames=None, perceptual: str = "auto", device: str = "cpu",
-                 seed: int = 0, progress: bool = True, log: Callable[[str], None] | None = None) -> Path:
-    """Train (or reuse) every variant, evaluate it on every split, write the markdown report.
+                 seed: int = 0, progress: bool = True, log: Callable[[str], None] | None = None,
+                 overwrite: bool = False) -> Path:
+    """Train (or reuse) every variant, evaluate it on every split, write the markdown report
+    (an existing ``out`` is refused unless ``overwrite``, before any work).
 
     Args:
         scene: the scene folder.
@@ -462,6 +464,8 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     out = Path(out)
     if out.is_dir():
         raise IsADirectoryError(f"{out}: is a folder (the report is a markdown file)")
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
     runs_dir = Path(runs_dir) if runs_dir is not None else out.with_name(out.stem + "_runs")
     base_cfg = model_config_for(preset)
     have = _available_splits(scene_obj)
@@ -530,7 +534,7 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
             "seed": seed, "history": base_cfg.history, "train_cameras": len(scene_obj.camera_names("train")),
             "runs_dir": str(runs_dir), "seconds": time.perf_counter() - t0, "status": status}
     text = render_markdown(meta, variant_list, results, baseline, list(splits))
-    with atomic_write_path(out) as tmp:
+    with atomic_write_path(out, overwrite=overwrite) as tmp:
         tmp.write_text(text, encoding="utf-8")
     say(f"wrote {out}")
     return out
