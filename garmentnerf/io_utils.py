@@ -33,10 +33,46 @@ def atomic_write_path(path: str | Path, overwrite: bool = True):
             os.unlink(tmp)
         else:
             os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        if exc.filename is not None and Path(exc.filename) == Path(tmp):
+            # name the file the user asked for, not our temporary
+            raise type(exc)(exc.errno, f"{path}: cannot write ({exc.strerror})") from None
+        raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+#: A temporary file of :func:`atomic_write_path` untouched for this long is a leftover of a killed
+#: write (a live write touches its file continuously; a PNG takes milliseconds).
+STALE_TEMPORARY_SECONDS = 60.0
+
+
+def temporary_pattern(name: str) -> str:
+    """The glob of the temporaries :func:`atomic_write_path` makes for a file called ``name``
+    (``name`` may itself be a glob, e.g. ``frame_*.png``)."""
+    return f".{name}.*.tmp"
+
+
+def remove_stale_temporaries(folder: str | Path, name: str, min_age: float = STALE_TEMPORARY_SECONDS) -> list[Path]:
+    """Delete the temporaries of writes of ``name`` into ``folder`` (see :func:`temporary_pattern`)
+    that were killed: those not modified for ``min_age`` seconds. Returns what was deleted."""
+    import time
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    now = time.time()
+    removed = []
+    for tmp in folder.glob(temporary_pattern(name)):
+        with contextlib.suppress(FileNotFoundError):
+            if tmp.is_file() and now - tmp.stat().st_mtime >= min_age:
+                tmp.unlink()
+                removed.append(tmp)
+    return removed
 
 
 def next_free_path(path: str | Path) -> Path:

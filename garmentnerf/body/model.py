@@ -17,6 +17,11 @@ from garmentnerf.body.skinning import (apply_transforms, blend_transforms, forwa
                                        skinning_transforms)
 
 
+#: Largest magnitude of a shape coefficient accepted (the named presets stay within 1.31; at 10 the
+#: bundled body is 4 m tall).
+MAX_SHAPE_COEFF = 5.0
+
+
 class BodyShapeError(ValueError):
     """An unknown shape name or a shape vector of the wrong size."""
 
@@ -116,6 +121,11 @@ class BodyModel:
             raise BodyShapeError(f"body shape has {vec.shape[0]} coefficients, this body model takes at most {S}")
         if not torch.isfinite(vec).all():
             raise BodyShapeError("body shape coefficients contain NaN or Inf")
+        outside = (vec.abs() > MAX_SHAPE_COEFF).nonzero().squeeze(1)
+        if outside.numel():
+            i = int(outside[0])
+            raise BodyShapeError(f"body shape coefficient {i} is {float(vec[i]):g}, outside "
+                                 f"[-{MAX_SHAPE_COEFF:g}, {MAX_SHAPE_COEFF:g}] (the presets stay within 1.4)")
         return torch.cat([vec, vec.new_zeros(S - vec.shape[0])])
 
     def rest(self, betas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

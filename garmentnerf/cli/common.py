@@ -31,8 +31,13 @@ def load_body(args):
     """(BodyModel, betas) from --body and --shape."""
     from garmentnerf.body.model import BodyModel
 
+    from garmentnerf.body.model import BodyShapeError
+
     body = BodyModel.from_file(args.body, args.body_uv) if args.body else BodyModel.default()
-    return body, body.betas(parse_shape(args.shape, body))
+    try:
+        return body, body.betas(parse_shape(args.shape, body))
+    except BodyShapeError as exc:
+        raise ValueError(f"--shape {args.shape}: {exc}") from None
 
 
 def parse_shape(text: str | None, body) -> str | list[float] | None:

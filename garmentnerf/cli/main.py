@@ -7,14 +7,11 @@ and exit code 2; ``--debug`` shows the traceback instead.
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 
 from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd, train_cmd,
                              view_cmd)
-
-
-class UserError(Exception):
-    """A problem with the user's input: printed as one line, no traceback."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,8 +57,16 @@ def _is_user_error(exc: BaseException) -> bool:
     """Errors that describe bad input rather than a bug in garmentnerf."""
     from garmentnerf.gl.context import GLUnavailableError
 
-    return isinstance(exc, (UserError, ValueError, FileNotFoundError, FileExistsError, IsADirectoryError,
+    if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS:
+        return True
+    return isinstance(exc, (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
                             PermissionError, GLUnavailableError))
+
+
+#: Operating-system errors that are the machine's state, not a bug: a full disk or quota, a
+#: read-only file system, no permission, a name that is too long or runs through a file.
+_USER_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                          errno.ENAMETOOLONG, errno.ENOTDIR, errno.EISDIR})
 
 
 if __name__ == "__main__":

@@ -64,6 +64,8 @@ def parse_frames(text: str | None, num_frames: int, motion: str = "motion") -> l
     else:
         a = int(m.group(1)) if m.group(1) else 0
         b = int(m.group(2)) if m.group(2) else num_frames
+    if a >= b:
+        raise ValueError(f"--frames {text.strip()} selects no frame (A:B renders frames A..B-1)")
     if not (0 <= a < b <= num_frames):
         raise ValueError(f"--frames {text.strip()} is out of range for {motion} ({num_frames} frames: 0..{last})")
     return list(range(a, b))
@@ -125,6 +127,9 @@ def run_render(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"{DEMO_RUN}: the bundled demo run is not installed; pass --run DIR")
         run_dir = DEMO_RUN
     run = load_run(run_dir, device=args.device, scene=args.scene)
+    if run.scene is None and run.info.get("scene") and args.motion is None:
+        raise FileNotFoundError(f"{run_dir}: the run's scene {run.info['scene']} is missing; pass --scene DIR, or "
+                                f"--motion NAME to render a motion without it")
     spec = parse_camera_spec(args.camera, run.scene)
     palette = build_palette(run.palette(), args.palette, args.body_colour)
     ctx = create_context(headless=True)
@@ -173,11 +178,11 @@ def run_render(args: argparse.Namespace) -> int:
             else:
                 written_video = None
         n = len(writer.written)
-        mean = sum(times) / len(times) if times else float("nan")
+        speed = f"{sum(times) / len(times):.0f} ms/frame" if times else "no frame finished"
         where = f"{out}" + (f" and {written_video}" if written_video else "")
         w, h = (cameras[0].width, cameras[0].height) if cameras else (0, 0)
         print(f"render: {n} frame(s) {w}x{h} of {motion_name} ({cam_label}) into {where}; "
-              f"{mean:.0f} ms/frame; palette {', '.join(_hex(c) for c in palette.tolist())}")
+              f"{speed}; palette {', '.join(_hex(c) for c in palette.tolist())}")
         if interrupted:
             print(f"garmentnerf: interrupted after {n} of {len(frames)} frames", file=sys.stderr)
             return 130

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
@@ -13,9 +14,17 @@ from garmentnerf.cli.common import add_body_args
 #: The bundled demo run, opened by a plain ``garmentnerf view`` when it is installed.
 DEMO_RUN = Path(__file__).resolve().parent.parent / "assets" / "demo" / "run"
 
-#: Printed (as the one line on stderr) when no window can be opened; exit code 2.
-NO_DISPLAY_MESSAGE = ("garmentnerf: no display available (DISPLAY/WAYLAND_DISPLAY unset); render headless "
-                      "instead: garmentnerf render --camera orbit --frames 0:30 --out frames/")
+#: Printed (as the one line on stderr) when no display is named; exit code 2.
+HEADLESS_HINT = "render headless instead: garmentnerf render --camera orbit --frames 0:30 --out frames/"
+NO_DISPLAY_MESSAGE = f"garmentnerf: no display available (DISPLAY/WAYLAND_DISPLAY unset); {HEADLESS_HINT}"
+
+
+def cannot_open_window_message() -> str:
+    """The one line when a display is named but no window opens there (no server answers)."""
+    named = ", ".join(f"{k}={os.environ[k]}" for k in ("DISPLAY", "WAYLAND_DISPLAY") if os.environ.get(k))
+    if not named:
+        return NO_DISPLAY_MESSAGE
+    return f"garmentnerf: cannot open a window on {named} (no display server answers there); {HEADLESS_HINT}"
 
 
 def register(sub) -> None:
@@ -127,7 +136,7 @@ def run_view(args: argparse.Namespace) -> int:
                              snapshot_dir=args.snapshot_dir, snapshot_size=snapshot_size,
                              playing=not args.paused and not bench)
     except app_module.NoDisplayError:
-        print(NO_DISPLAY_MESSAGE, file=sys.stderr)
+        print(cannot_open_window_message(), file=sys.stderr)
         return 2
     if run is None:
         app.shape_label = args.shape

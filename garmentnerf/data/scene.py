@@ -153,8 +153,10 @@ class _Checker:
         return value
 
     def number(self, value, path: str, positive: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.fail(path, f"must be a finite number, got {_kind(value)}")
+        if not math.isfinite(value):
+            raise self.fail(path, f"must be a finite number, got {value!r}")
         if positive and value <= 0:
             raise self.fail(path, f"must be > 0, got {value!r}")
         return float(value)
@@ -606,15 +608,17 @@ def _check_sequence_files(v: _Checker, root: Path, info: SequenceInfo, fps: floa
     for file in (motion_file, garment_file):
         if not file.is_file():
             raise v.fail(p, f"is missing its file {file}")
+    reading = motion_file
     try:
         rot_shape = _npz_member_shape(motion_file, "rotations")
         with np.load(motion_file, allow_pickle=False) as npz:
             motion_fps = float(npz["fps"]) if "fps" in npz.files else None
+        reading = garment_file
         vert_shape = _npz_member_shape(garment_file, GARMENT_VERTICES_KEY)
         if vert_shape is None:  # the simulation's compressed format (garment_sequence.py)
             vert_shape = _npz_member_shape(garment_file, GARMENT_QUANTISED_KEY)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
-        raise v.fail(p, f"has an unreadable file ({exc})") from exc
+        raise v.fail(p, f"has an unreadable file {reading} ({exc})") from exc
     if rot_shape is None or motion_fps is None:
         raise v.fail(p, f"has a malformed {motion_file} (no 'rotations' or 'fps'; not a motion file)")
     if rot_shape[0] != info.frames:

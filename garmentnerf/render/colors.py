@@ -45,6 +45,8 @@ def build_palette(learned: torch.Tensor, colors: str | None = None, body: str | 
     P = pal.shape[0]
     if colors is not None and str(colors).strip():
         items = [c.strip() for c in str(colors).split(",")]
+        if all(item in ("", "-") for item in items):
+            raise ValueError(f"--palette {colors!r} names no colour (give '#rrggbb' items; '-' keeps one)")
         if len(items) > P:
             raise ValueError(f"--palette has {len(items)} colours but the model's palette has {P}")
         for i, item in enumerate(items):

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.io_utils import atomic_write_path, remove_stale_temporaries
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -57,7 +57,8 @@ class FrameWriter:
     def check(self, frames) -> None:
         """FileExistsError naming the first taken file among ``frames``'s names."""
         if self.directory.exists() and not self.directory.is_dir():
-            raise NotADirectoryError(f"{self.directory}: exists and is not a folder")
+            raise ValueError(f"{self.directory}: exists and is not a folder")
+        remove_stale_temporaries(self.directory, f"{self.prefix}_*.png")
         for f in frames:
             p = self.path(f)
             if p.exists():
@@ -85,6 +86,7 @@ class VideoWriter:
         self._gen = None
         self._size: tuple[int, int] | None = None
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(self.path.parent, self.path.name)
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         os.close(fd)
         umask = os.umask(0)
