@@ -39,3 +39,37 @@ def test_atomic_write_never_clobbers_and_cleans_up_on_error(tmp_path):
             raise RuntimeError("interrupted")
     assert target.read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
     assert next_free_path(target).name == "a_001.txt"
+
+
+def test_a_failed_write_names_the_target_not_the_temporary(tmp_path):
+    import errno
+
+    target = tmp_path / "out.json"
+    with pytest.raises(OSError) as info:
+        with atomic_write_path(target) as tmp:
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+    message = str(info.value)
+    assert info.value.errno == errno.ENOSPC and str(target) in message and ".tmp" not in message
+    assert list(tmp_path.iterdir()) == []  # neither the target nor the temporary
+
+
+def test_stale_temporaries_of_killed_writes_are_removed(tmp_path):
+    import time
+
+    from garmentnerf.io_utils import STALE_TEMPORARY_SECONDS, remove_stale_temporaries
+    from garmentnerf.render.video import FrameWriter, VideoWriter
+
+    old = time.time() - STALE_TEMPORARY_SECONDS - 5
+    stale = [tmp_path / ".frame_0003.png.abc123.tmp", tmp_path / ".walk_orbit.mp4.x9y8.tmp"]
+    fresh = tmp_path / ".frame_0004.png.live01.tmp"  # a write in flight right now
+    other = [tmp_path / "frame_0001.png", tmp_path / ".notes.txt.old.tmp", tmp_path / "keep.tmp"]
+    for p in (*stale, fresh, *other):
+        p.write_bytes(b"x")
+    for p in (*stale, *other):
+        os.utime(p, (old, old))
+    FrameWriter(tmp_path).check([5])
+    assert not stale[0].exists() and stale[1].exists() and fresh.exists()
+    video = VideoWriter(tmp_path / "walk_orbit.mp4", 30.0)
+    video.abort()
+    assert not stale[1].exists() and fresh.exists() and all(p.exists() for p in other)
+    assert remove_stale_temporaries(tmp_path / "missing", "x") == []

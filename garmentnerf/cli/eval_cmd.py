@@ -92,7 +92,10 @@ def run_eval(args: argparse.Namespace) -> int:
     if args.baseline and args.split != "unseen_view":
         raise ValueError(f"--baseline (nearest training view) is defined for --split unseen_view only, "
                          f"not '{args.split}'")
-    frames = parse_frame_range(args.frames)
+    try:
+        frames = parse_frame_range(args.frames)
+    except ValueError as exc:
+        raise ValueError(f"--{exc}") from None
     parse_device(args.device)
     if args.json is not None:
         check_output_file(args.json, "--json", args.overwrite)
@@ -144,7 +147,10 @@ def run_report(args: argparse.Namespace) -> int:
                 raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
     variants = [v.strip() for v in args.variants.split(",") if v.strip()] if args.variants else None
     frames = args.frames
-    parse_frame_range(frames)  # fails early on a malformed range
+    try:
+        parse_frame_range(frames)  # fails early on a malformed range
+    except ValueError as exc:
+        raise ValueError(f"--{exc}") from None
     out = build_report(args.scene, args.out, iterations=args.iterations,
                        generator_iterations=args.generator_iterations, preset=args.preset, runs_dir=args.runs_dir,
                        variants=variants, views=_int_list(args.views, "--views"),

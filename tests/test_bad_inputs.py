@@ -1,0 +1,201 @@
+"""Every command against a table of bad inputs, as a hostile tester would: each must end with exit
+code 2, exactly one line on stderr that names the file or flag at fault, no traceback, and every
+file that existed before byte-identical afterwards (nothing a user made is lost or overwritten).
+
+Placeholders in the table are filled from a small world made once per module: ``{run}`` an
+untrained run of the tiny scene, ``{scene}`` the scene, ``{file}`` / ``{json}`` / ``{md}`` /
+``{png}`` / ``{ply}`` / ``{npz}`` existing files, ``{dir}`` an existing folder, ``{new}`` a path
+that does not exist yet, ``{orphan}`` a run whose scene folder is gone, ``{nan_scene}`` a scene
+whose camera K holds a NaN, ``{taken}`` a render folder that already holds frame 0.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from garmentnerf.cli.main import main
+from garmentnerf.train.trainer import tiny_config
+
+CASES = [
+    # --- render -------------------------------------------------------------------------------------
+    (["render", "--run", "{run}", "--out", "{file}"], "--out"),
+    (["render", "--run", "{run}", "--out", "{file}/sub"], "is a file, not a folder"),
+    (["render", "--run", "{run}", "--device", "potato", "--out", "{new}"], "--device 'potato'"),
+    (["render", "--run", "{run}", "--device", "cuda:7", "--out", "{new}"], "--device cuda:7"),
+    (["render", "--run", "{run}", "--palette", ",", "--out", "{new}"], "--palette"),
+    (["render", "--run", "{run}", "--palette", "#zz0000", "--out", "{new}"], "not a hex colour"),
+    (["render", "--run", "{run}", "--body-colour", "blue", "--out", "{new}"], "--body-colour"),
+    (["render", "--run", "{run}", "--frames", "2:2", "--out", "{new}"], "--frames 2:2 selects no frame"),
+    (["render", "--run", "{run}", "--frames", "1:999", "--out", "{new}"], "--frames 1:999 is out of range"),
+    (["render", "--run", "{run}", "--frames", "x", "--out", "{new}"], "--frames"),
+    (["render", "--run", "{run}", "--size", "3", "--out", "{new}"], "--size"),
+    (["render", "--run", "{run}", "--quality", "0", "--out", "{new}"], "--quality"),
+    (["render", "--run", "{run}", "--fps", "0", "--out", "{new}"], "--fps"),
+    (["render", "--run", "{run}", "--preset", "warp", "--out", "{new}"], "unknown render preset 'warp'"),
+    (["render", "--run", "{run}", "--camera", "nope", "--out", "{new}"], "unknown camera 'nope'"),
+    (["render", "--run", "{run}", "--motion", "moonwalk", "--out", "{new}"], "moonwalk"),
+    (["render", "--run", "{new}", "--out", "{new}"], "{new}"),
+    (["render", "--run", "{orphan}", "--out", "{new}"], "scene"),
+    (["render", "--run", "{run}", "--frames", "0", "--out", "{taken}"], "frame_0000.png: already exists"),
+    # --- train --------------------------------------------------------------------------------------
+    (["train", "--scene", "{scene}", "--out", "{file}"], "--out"),
+    (["train", "--scene", "{scene}", "--out", "{file}/run"], "is a file, not a folder"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--device", "potato"], "--device 'potato'"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--threads", "0"], "--threads"),
+    (["train", "--out", "{new}"], "--scene"),
+    (["train", "--scene", "{new}", "--out", "{new}/run"], "{new}"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--frames", "x"], "--frames"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--frames", "5:5"], "--frames"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--loss-weight", "w_mask"], "--loss-weight"),
+    # --- eval and report ----------------------------------------------------------------------------
+    (["eval", "--run", "{run}", "--split", "nope"], "unknown split 'nope'"),
+    (["eval", "--run", "{run}", "--split", "seen", "--json", "{json}"], "--json"),
+    (["eval", "--run", "{run}", "--split", "seen", "--json", "{dir}"], "is a folder"),
+    (["eval", "--run", "{run}", "--split", "seen", "--json", "{new}/e.json"], "does not exist"),
+    (["eval", "--run", "{run}", "--split", "seen", "--baseline"], "--baseline"),
+    (["eval", "--run", "{run}", "--split", "seen", "--device", "potato"], "--device 'potato'"),
+    (["eval", "--run", "{run}", "--split", "seen", "--preset", "warp"], "--preset"),
+    (["eval", "--run", "{run}", "--split", "seen", "--frames", "x"], "--frames"),
+    (["eval", "--run", "{new}", "--split", "seen"], "{new}"),
+    (["report", "--scene", "{scene}", "--out", "{md}"], "--out"),
+    (["report", "--scene", "{scene}", "--out", "{new}.md", "--preset", "huge"], "unknown preset 'huge'"),
+    (["report", "--scene", "{scene}", "--out", "{new}.md", "--device", "potato"], "--device 'potato'"),
+    # --- data ---------------------------------------------------------------------------------------
+    (["data", "make", "--garment", "skirt", "--out", "{file}"], "--out"),
+    (["data", "make", "--garment", "skirt", "--out", "{file}/scene"], "is a file, not a folder"),
+    (["data", "preview", "{scene}", "--out", "{png}"], "already exists"),
+    (["data", "preview", "{new}", "--out", "{new}.png"], "{new}"),
+    (["data", "preview", "{nan_scene}", "--out", "{new}.png"], "must be a finite number, got nan"),
+    # --- body, maps, bench, view --------------------------------------------------------------------
+    (["body", "export", "--shape", "1e30", "--out", "{new}.ply"], "--shape 1e30"),
+    (["body", "export", "--shape", "nan", "--out", "{new}.ply"], "--shape nan"),
+    (["body", "export", "--shape", "giant", "--out", "{new}.ply"], "giant"),
+    (["body", "export", "--out", "{ply}"], "already exists"),
+    (["body", "export", "--out", "{new}.xyz"], "unsupported mesh format"),
+    (["maps", "--motion", "walk", "--frame", "99999", "--out", "{new}.npz"], "out of range"),
+    (["maps", "--out", "{npz}"], "already exists"),
+    (["bench", "--runs", "0"], "--runs"),
+    (["bench", "--plot", "{new}.png"], "--plot needs --run"),
+    (["bench", "--run", "{run}", "--frames", "0"], "--frames"),
+    (["view", "--json", "{new}.json"], "--json needs --bench"),
+]
+
+
+def _tree_digest(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory, tiny_scene):
+    from garmentnerf.train.run import create_untrained_run
+
+    root = tmp_path_factory.mktemp("world")
+    scene = root / "scene"
+    shutil.copytree(tiny_scene.root, scene)
+    cfg = tiny_config().replace(samples_per_ray=4)
+    run = create_untrained_run(root / "run", scene, cfg, seed=0)
+    # a run whose scene folder has gone away
+    orphan = root / "orphan"
+    shutil.copytree(run, orphan)
+    info = json.loads((orphan / "run.json").read_text())
+    info["scene"] = str(root / "deleted_scene")
+    (orphan / "run.json").write_text(json.dumps(info))
+    # a scene whose first camera's K holds a NaN (JSON has no NaN: Python writes one anyway)
+    nan_scene = root / "nan_scene"
+    shutil.copytree(scene, nan_scene)
+    meta = json.loads((nan_scene / "scene.json").read_text())
+    meta["cameras"][0]["K"][0][0] = float("nan")
+    (nan_scene / "scene.json").write_text(json.dumps(meta))
+    files = {"file": "existing.bin", "json": "existing.json", "md": "existing.md", "png": "existing.png",
+             "ply": "existing.ply", "npz": "existing.npz"}
+    for key, name in files.items():
+        (root / name).write_bytes(f"user data {key}\n".encode())
+    (root / "folder").mkdir()
+    taken = root / "taken"
+    taken.mkdir()
+    (taken / "frame_0000.png").write_bytes(b"a frame the user keeps\n")
+    places = {key: str(root / name) for key, name in files.items()}
+    places.update(run=str(run), scene=str(scene), dir=str(root / "folder"), orphan=str(orphan),
+                  nan_scene=str(nan_scene), taken=str(taken), new=str(root / "new"))
+    return root, places
+
+
+@pytest.mark.parametrize("argv, message", CASES, ids=[" ".join(a[:3]) + f" #{i}" for i, (a, _) in enumerate(CASES)])
+def test_bad_input_is_one_line_exit_2_and_nothing_changes(world, argv, message, capfd, monkeypatch):
+    root, places = world
+    if argv[:1] == ["view"]:
+        monkeypatch.setenv("DISPLAY", ":987")  # the argument check comes before any window
+    if "cuda" in " ".join(argv) and torch.cuda.is_available() and torch.cuda.device_count() > 7:
+        pytest.skip("this machine has a cuda:7")
+    argv = [a.format(**places) for a in argv]
+    message = message.format(**places)
+    monkeypatch.chdir(root / "folder")
+    before = _tree_digest(root)
+    code = main(argv)
+    out, err = capfd.readouterr()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2, (argv, code, err[-2000:])
+    assert len(lines) == 1, (argv, err[-2000:])
+    assert "Traceback" not in err and lines[0].startswith("garmentnerf: error:"), lines
+    assert message in lines[0], (message, lines[0])
+    assert not (root / "new").exists(), "a failed command created its output"
+    after = _tree_digest(root)
+    assert after == before, sorted(set(after.items()) ^ set(before.items()))[:5]
+
+
+def test_table_covers_every_command_and_enough_kinds():
+    commands = {tuple(a[:2]) if a[0] == "data" else (a[0],) for a, _ in CASES}
+    assert {("render",), ("train",), ("eval",), ("report",), ("data", "make"), ("data", "preview"), ("body",),
+            ("maps",), ("bench",), ("view",)} <= commands
+    assert len(CASES) >= 40
+
+
+def test_console_script_exits_2_without_traceback(world, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    root, places = world
+    proc = subprocess.run([sys.executable, "-m", "garmentnerf.cli.main", "render", "--run", places["run"],
+                           "--device", "potato", "--out", str(tmp_path / "r")], capture_output=True, text=True,
+                          env=dict(os.environ), timeout=300)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "--device 'potato'" in proc.stderr
+
+
+def test_view_names_the_display_it_cannot_open(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "WAYLAND_DISPLAY"}
+    env["DISPLAY"] = ":987"  # named, but no X server answers there
+    proc = subprocess.run([sys.executable, "-m", "garmentnerf.cli.main", "view", "--body-only",
+                           "--snapshot-dir", str(tmp_path / "s")], capture_output=True, text=True, env=env,
+                          timeout=300, cwd=tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr
+    assert "DISPLAY=:987" in lines[0] and "unset" not in lines[0] and "garmentnerf render" in lines[0]
+    assert not (tmp_path / "s").exists()
+
+
+def test_render_interrupted_before_its_first_frame_reports_no_speed(world, tmp_path, capfd, monkeypatch):
+    from garmentnerf.render.session import RenderSession
+
+    root, places = world
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(RenderSession, "render", interrupted)
+    code = main(["render", "--run", places["run"], "--frames", "0:2", "--out", str(tmp_path / "r"), "--no-progress"])
+    out, err = capfd.readouterr()
+    assert code == 130 and "0 frame(s)" in out and "no frame finished" in out and "nan" not in out
+    assert err.strip() == "garmentnerf: interrupted after 0 of 2 frames"
