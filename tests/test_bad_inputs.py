@@ -83,7 +83,11 @@ CASES = [
     (["bench", "--runs", "0"], "--runs"),
     (["bench", "--plot", "{new}.png"], "--plot needs --run"),
     (["bench", "--run", "{run}", "--frames", "0"], "--frames"),
+    (["bench", "--json", "{json}"], "--json"),
+    (["bench", "--run", "{run}", "--plot", "{png}"], "--plot"),
     (["view", "--json", "{new}.json"], "--json needs --bench"),
+    (["view", "--bench", "--json", "{json}"], "--json"),
+    (["view", "--run", "{orphan}"], "scene"),
 ]
 
 

@@ -51,6 +51,7 @@ def register(sub) -> None:
     p.add_argument("--runs", type=int, default=20, help="timed repetitions per stage (median is reported)")
     p.add_argument("--run", default=None, metavar="DIR", help="benchmark the render presets of this run folder")
     p.add_argument("--plot", default=None, metavar="PNG", help="with --run: speed/accuracy plot")
+    p.add_argument("--overwrite", action="store_true", help="replace --json / --plot if they exist")
     p.add_argument("--presets", default=None, help="with --run: comma-separated presets (default: all)")
     p.add_argument("--frames", type=int, default=2, help="with --run: body frames measured")
     p.add_argument("--views", type=int, default=2, help="with --run: cameras measured per frame")
@@ -208,7 +209,7 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             ctx.release()
 
 
-def write_plot(results: dict, path) -> Path:
+def write_plot(results: dict, path, overwrite: bool = True) -> Path:
     """ms/frame (log x) against PSNR (or points per frame without ground truth), one labelled
     point per preset, as a PNG drawn with PIL."""
     import math
@@ -254,9 +255,11 @@ def write_plot(results: dict, path) -> Path:
         d.text((cx + 8, cy - 16), f"{r['preset']} {r['ms_per_frame']:.0f} ms, x{r['speedup_vs_reference']:.1f}",
                fill="black")
         d.text((cx + 8, cy - 4), f"{r['points_per_frame']:,.0f} pts", fill=(90, 90, 90))
+    from garmentnerf.io_utils import atomic_write_path
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    img.save(path)
+    with atomic_write_path(path, overwrite=overwrite) as tmp:
+        img.save(tmp, format="PNG")
     return path
 
 
@@ -273,25 +276,29 @@ def _print_presets(results: dict) -> None:
 
 # ---------------------------------------------------------------------------------------------
 def run_bench(args: argparse.Namespace) -> int:
+    from garmentnerf.cli.common import check_output_file
     from garmentnerf.io_utils import atomic_write_path
 
     if args.runs < 1:
         raise ValueError(f"--runs must be at least 1, got {args.runs}")
+    if getattr(args, "plot", None) and not getattr(args, "run", None):
+        raise ValueError("--plot needs --run")
+    for flag, path in (("--json", args.json), ("--plot", getattr(args, "plot", None))):
+        if path:
+            check_output_file(path, flag, args.overwrite)
     if getattr(args, "run", None):
         presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
         results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
                                    sequence=args.sequence)
         _print_presets(results)
         if args.json:
-            with atomic_write_path(Path(args.json)) as tmp:
+            with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
                 tmp.write_text(json.dumps(results, indent=1))
             print(f"wrote {args.json}")
         if args.plot:
-            write_plot(results, args.plot)
+            write_plot(results, args.plot, overwrite=args.overwrite)
             print(f"wrote {args.plot}")
         return 0
-    if getattr(args, "plot", None):
-        raise ValueError("--plot needs --run")
     from garmentnerf.benchmarks import foundation_benchmark
 
     results = foundation_benchmark(runs=args.runs)
@@ -303,7 +310,7 @@ def run_bench(args: argparse.Namespace) -> int:
         text = f"{value:,.0f}" if unit == "points/s" else f"{value:8.2f}"
         print(f"  {label:48s} {text:>12s} {unit}")
     if args.json:
-        with atomic_write_path(Path(args.json)) as tmp:
+        with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(results, indent=2))
         print(f"wrote {args.json}")
     return 0

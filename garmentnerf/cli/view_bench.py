@@ -242,10 +242,10 @@ def print_figures(result: dict, file=sys.stdout) -> None:
               f"{f'{med:.0f} ms' if med is not None else 'not measured'} at {size}", file=file)
 
 
-def write_json(result: dict, path) -> None:
+def write_json(result: dict, path, overwrite: bool = False) -> None:
     from garmentnerf.io_utils import atomic_write_path
 
-    with atomic_write_path(path) as tmp:
+    with atomic_write_path(path, overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(_finite(result), indent=1, default=str), encoding="utf-8")
 
 

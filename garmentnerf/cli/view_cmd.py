@@ -61,6 +61,7 @@ def register(sub) -> None:
                             "renders, recolour latency in frames, neural frame time per quality preset; prints "
                             "the figures (vsync off; still needs a display, e.g. Xvfb)")
     bench.add_argument("--json", default=None, metavar="PATH", help="with --bench: also write the figures as JSON")
+    bench.add_argument("--overwrite", action="store_true", help="with --bench: replace --json if it exists")
     bench.add_argument("--bench-seconds", type=float, default=5.0,
                        help="with --bench: how long to measure the busy UI frame rate (default: 5)")
     bench.add_argument("--bench-repeats", type=int, default=3,
@@ -112,6 +113,10 @@ def run_view(args: argparse.Namespace) -> int:
         raise ValueError("--bench-seconds must be > 0 and --bench-repeats >= 1")
     if not bench and getattr(args, "json", None):
         raise ValueError("--json needs --bench")
+    if args.json:
+        from garmentnerf.cli.common import check_output_file
+
+        check_output_file(args.json, "--json", args.overwrite)
     app_module = import_viewer("app")
     if not app_module.display_available():
         print(NO_DISPLAY_MESSAGE, file=sys.stderr)
@@ -126,6 +131,9 @@ def run_view(args: argparse.Namespace) -> int:
         from garmentnerf.train.run import load_run
 
         run = load_run(run_dir, scene=args.scene)
+        if run.scene is None and run.info.get("scene") and args.motion is None:
+            raise FileNotFoundError(f"{run_dir}: the run's scene {run.info['scene']} is missing; pass --scene DIR, "
+                                    f"or --motion NAME to play a motion without it")
         body = betas = None
     else:
         body, betas = load_body(args)
@@ -147,7 +155,7 @@ def run_view(args: argparse.Namespace) -> int:
             result = view_bench.run_bench(app, seconds=args.bench_seconds, repeats=args.bench_repeats)
         view_bench.print_figures(result)
         if args.json:
-            view_bench.write_json(result, args.json)
+            view_bench.write_json(result, args.json, overwrite=args.overwrite)
             print(f"wrote {args.json}")
         return 0
     with app:
