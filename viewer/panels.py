@@ -83,7 +83,35 @@ def draw_timeline(app: "App") -> None:
     app.scrubbing = imgui.is_item_active()
     if changed:
         app.set_frame(frame)
+    _render_bar(app)
     imgui.end()
+
+
+def ready_runs(ready: list[int]) -> list[tuple[int, int]]:
+    """Sorted frames -> runs ``(first, last)`` of consecutive frames."""
+    runs: list[tuple[int, int]] = []
+    for f in ready:
+        if runs and f == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], f)
+        else:
+            runs.append((f, f))
+    return runs
+
+
+def _render_bar(app: "App") -> None:
+    """A video editor's render bar under the frame slider: which frames are precomputed."""
+    status = app.neural.cache_status() if app.neural is not None else None
+    if not status or status["frames"] < 1:
+        return
+    lo, hi = imgui.get_item_rect_min(), imgui.get_item_rect_max()
+    width, n = hi.x - lo.x, status["frames"]
+    top = hi.y + 1.0
+    draw = imgui.get_window_draw_list()
+    colour = imgui.get_color_u32(imgui.ImVec4(0.35, 0.75, 0.4, 1.0))
+    for first, last in ready_runs(status["ready"]):
+        draw.add_rect_filled(imgui.ImVec2(lo.x + width * first / n, top),
+                             imgui.ImVec2(lo.x + width * (last + 1) / n, top + 3.0), colour)
+    imgui.dummy(imgui.ImVec2(0.0, 4.0))
 
 
 # ---- controls (left) ---------------------------------------------------------------------------------
@@ -210,6 +238,15 @@ def _neural_section(app: "App", em: float) -> None:
     if changed:
         q.set_preset(presets[index])
     _, q.dynamic = imgui.checkbox("Coarser while moving", q.dynamic)
+    status = app.neural.cache_status() if app.neural is not None else None
+    if status is not None:
+        imgui.set_next_item_width(-6 * em)
+        changed, mb = imgui.slider_float("Frame cache", status["budget_bytes"] / 2**20, 0.0, 4096.0, "%.0f MiB",
+                                         imgui.SliderFlags_.logarithmic)
+        if changed:
+            app.neural.set_cache_mb(mb)
+        imgui.text_disabled(f"{len(status['ready'])} / {status['frames']} frames ready, "
+                            f"{status['bytes'] / 2**20:.0f} MiB (half precision)")
     error = app.neural_error()
     if error:
         imgui.text_colored(imgui.ImVec4(1.0, 0.45, 0.4, 1.0), "render failed:")

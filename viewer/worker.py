@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from garmentnerf.perf.presets import VIEWER_LEVELS
+from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB
 
 
 @dataclass
@@ -42,12 +43,18 @@ class RenderWorker:
         render: ``render(request, generation) -> result or None``; runs on the worker thread.
         sink: ``sink(result, request, generation)``; runs on the worker thread after a render
             (must be thread-safe, e.g. ``NeuralLayer.submit``).
+        idle_work: ``idle_work() -> bool``, one short step of background work (e.g. precomputing
+            one frame) run on the worker thread whenever no request waits; True: there is more.
+            A new request waits for at most one step.
     """
 
     def __init__(self, render: Callable[[Any, int], Any], sink: Callable[[Any, Any, int], None],
-                 name: str = "garmentnerf-render", max_stale_s: float = 0.5) -> None:
+                 name: str = "garmentnerf-render", max_stale_s: float = 0.5,
+                 idle_work: Callable[[], bool] | None = None) -> None:
         self._render = render
         self._sink = sink
+        self._idle_work = idle_work
+        self._idle_pending = idle_work is not None  # cleared when idle_work has nothing left to do
         self._cond = threading.Condition()
         self._request: Any = None
         self._has_request = False
@@ -91,8 +98,15 @@ class RenderWorker:
             return time.monotonic() - self._last_delivery < self.max_stale_s
 
     def idle(self) -> bool:
+        """No render running or waiting (background idle work does not count)."""
         with self._cond:
             return not self._busy and not self._has_request
+
+    def wake_idle(self) -> None:
+        """Run the idle work again (its situation changed, e.g. a larger budget)."""
+        with self._cond:
+            self._idle_pending = self._idle_work is not None
+            self._cond.notify()
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
         deadline = time.monotonic() + timeout
@@ -111,8 +125,15 @@ class RenderWorker:
     def _loop(self) -> None:
         while True:
             with self._cond:
-                while not self._has_request and not self._stop:
+                while not self._has_request and not self._stop and not self._idle_pending:
                     self._cond.wait()
+                if self._stop:
+                    return
+                run_idle = not self._has_request
+            if run_idle:
+                self._run_idle_step()
+                continue
+            with self._cond:
                 if self._stop:
                     return
                 request, generation = self._request, self._generation
@@ -134,6 +155,17 @@ class RenderWorker:
             finally:
                 with self._cond:
                     self._busy = False
+                    self._idle_pending = self._idle_work is not None  # a new request may give it work
+
+    def _run_idle_step(self) -> None:
+        try:
+            more = bool(self._idle_work())
+        except Exception as exc:  # noqa: BLE001 - background work must not kill the worker either
+            self.stats.errors += 1
+            self.stats.last_error = f"{type(exc).__name__}: {exc}"
+            more = False
+        with self._cond:
+            self._idle_pending = more and self._idle_pending
 
 
 # ---- the neural render worker -------------------------------------------------------------------------
@@ -195,7 +227,8 @@ class NeuralRenderer:
         self._images = None
         self._gt_cache: dict = {}
         self.last: NeuralResult | None = None
-        self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural")
+        self._cache_mb = DEFAULT_CACHE_MB
+        self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural", idle_work=self._precompute)
 
     @property
     def stats(self) -> WorkerStats:
@@ -210,7 +243,7 @@ class NeuralRenderer:
             from garmentnerf.render.session import RenderSession
 
             self._ctx = create_context(headless=True)
-            self._session = RenderSession(self.run, self._ctx, motion)
+            self._session = RenderSession(self.run, self._ctx, motion, cache_mb=self._cache_mb, cache_half=True)
             self._motion = motion
         elif motion != self._motion:
             self._session.set_motion(motion)
@@ -244,6 +277,7 @@ class NeuralRenderer:
 
         session = self._ensure_session(request.motion)
         frame = min(max(0, int(request.frame)), session.num_frames - 1)
+        session.frames.set_playhead(frame)
         try:
             nf = session.render(frame, request.camera, request.quality, preset=request.preset,
                                 should_cancel=lambda: self.worker.should_cancel(generation))
@@ -254,6 +288,32 @@ class NeuralRenderer:
         gt, gt_key = self._ground_truth(session, request)
         return NeuralResult(layers, nf.depth, nf.output_size, nf.render_size, nf.quality, frame, nf.timings,
                             nf.cached_frame, nf.palette.numpy(), gt, gt_key, nf.preset, dict(nf.counts))
+
+    def _precompute(self) -> bool:
+        """Idle work: the next frame of the clip nearest to the playhead (see
+        :meth:`RenderSession.precompute_next`); False when there is nothing (left) to do."""
+        session = self._session
+        return session is not None and session.precompute_next() is not None
+
+    def cache_status(self) -> dict | None:
+        """The frame cache as the UI shows it (thread-safe): ``ready`` (sorted frames),
+        ``frames`` (in the clip), ``bytes``, ``budget_bytes``; None before the first render."""
+        session = self._session
+        if session is None:
+            return None
+        cache = session.frames
+        return {"ready": cache.ready_frames(), "frames": session.num_frames, "bytes": cache.nbytes,
+                "budget_bytes": cache.budget_bytes}
+
+    def set_cache_mb(self, megabytes: float) -> None:
+        """Change the frame cache's memory bound (frames farthest from the playhead leave first)."""
+        if not megabytes >= 0:
+            raise ValueError(f"frame cache budget must be >= 0 MiB, got {megabytes!r}")
+        self._cache_mb = float(megabytes)
+        session = self._session
+        if session is not None:
+            session.frames.set_budget_mb(self._cache_mb)
+        self.worker.wake_idle()
 
     def _deliver(self, result: NeuralResult, request: NeuralRequest, generation: int) -> None:
         self.last = result

@@ -108,7 +108,7 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
     cfg, scene = run.config, run.scene
     images = session = None
     try:
-        session = RenderSession(run, ctx, sequence, cache_frames=max(frames, 1) + 1)
+        session = RenderSession(run, ctx, sequence)
         motion, seq = session.motion, session.sequence
         frame_ids = _pick(list(range(session.num_frames)), frames)
         if scene is not None:

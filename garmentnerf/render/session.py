@@ -36,10 +36,14 @@ Resolution
     bilinearly before the same formula (``shaders/viewer_palette.frag``), which equals the CPU
     path wherever the resampling is plain bilinear (upsampling).
 
-Caching
+Caching and precomputation
     The per-frame work (GL passes for the info maps and reference G-buffers, E, G_img, G_en, the
-    bound surface) does not depend on the camera: :class:`FrameFeatures` are kept in a small LRU
-    keyed by frame, so orbiting a still frame only re-runs the per-ray work.
+    bound surface) does not depend on the camera: :class:`FrameFeatures` are kept in a
+    memory-bounded :class:`~garmentnerf.render.frame_cache.FrameCache` (:attr:`RenderSession.frames`),
+    so orbiting a still frame or returning to a ready one only re-runs the per-ray work.
+    :meth:`RenderSession.precompute_next` fills it one frame at a time, nearest to the playhead
+    first (the previewer's worker calls it whenever it has no view to render); a new motion
+    clears it.
 
 Threads
     A session is used from one thread at a time (the viewer's worker thread owns one, created on
@@ -51,7 +55,6 @@ Threads
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -60,9 +63,8 @@ import torch
 
 from garmentnerf.conventions import Camera
 from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
+from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
 
-#: Default number of per-frame feature sets kept.
-DEFAULT_CACHE_FRAMES = 8
 #: The render preset used when none is named (``garmentnerf render``, snapshots, exports): ``full``,
 #: the reference's samples minus those the culls prove empty (the same PSNR to 0.01 dB on the
 #: bundled model, in a fraction of the time). ``garmentnerf eval`` names ``reference``.
@@ -171,10 +173,12 @@ class RenderSession:
         gl_ctx: a moderngl context for the input passes (headless is fine); must be usable on the
             thread that calls :meth:`render`.
         motion: None, a scene sequence name, a motion name, or a Motion (see :func:`resolve_motion`).
-        cache_frames: frames whose features are kept.
+        cache_mb: memory bound of the frame cache (:class:`~garmentnerf.render.frame_cache.FrameCache`).
+        cache_half: keep cached feature maps in float16 (the previewer; default: as computed).
     """
 
-    def __init__(self, run, gl_ctx, motion=None, *, cache_frames: int = DEFAULT_CACHE_FRAMES) -> None:
+    def __init__(self, run, gl_ctx, motion=None, *, cache_mb: float = DEFAULT_CACHE_MB,
+                 cache_half: bool = False) -> None:
         from garmentnerf.data.cameras import reference_cameras
         from garmentnerf.model.frame_context import FrameInputBuilder
 
@@ -191,8 +195,8 @@ class RenderSession:
         refs = self.scene if self.scene is not None else reference_cameras()
         self.gl_ctx = gl_ctx
         self.builder = FrameInputBuilder(gl_ctx, self.body, refs, self.config)
-        self.cache_frames = max(1, int(cache_frames))
-        self._cache: OrderedDict[int, object] = OrderedDict()
+        self.frames = FrameCache(lambda verts: self.model.projector.bind(verts, torch.float32), cache_mb,
+                                 half=cache_half)
         self._plans: dict[str, object] = {}  # preset name -> SamplingPlan
         self._height_range = None  # the garment's band, measured on first use
         self.cache_hits = 0
@@ -209,7 +213,7 @@ class RenderSession:
         with torch.no_grad():
             posed = clip.pose(self.body, self.betas)
         self.motion, self.sequence, self.posed = clip, sequence, posed
-        self._cache.clear()
+        self.frames.clear()
 
     @property
     def num_frames(self) -> int:
@@ -237,24 +241,36 @@ class RenderSession:
 
     # ---- frames -------------------------------------------------------------------------------------
     def frame_features(self, frame: int):
-        """(FrameFeatures, was_cached) of ``frame``."""
+        """(FrameFeatures, was_cached) of ``frame``; computed and cached when missing."""
         frame = self.check_frame(frame)
-        feats = self._cache.get(frame)
+        feats = self.frames.get(frame)
         if feats is not None:
-            self._cache.move_to_end(frame)
             self.cache_hits += 1
             return feats, True
         self.cache_misses += 1
-        inputs = self.builder.build(self.posed, frame, self.fps)
-        with torch.no_grad():
-            feats = self.model.prepare_frame(inputs).detach()
-        self._cache[frame] = feats
-        while len(self._cache) > self.cache_frames:
-            self._cache.popitem(last=False)
+        feats = self._compute_frame(frame)
+        self.frames.put(frame, feats)
         return feats, False
 
+    def _compute_frame(self, frame: int):
+        inputs = self.builder.build(self.posed, frame, self.fps)
+        with torch.no_grad():
+            return self.model.prepare_frame(inputs).detach()
+
+    def precompute_next(self, playhead: int | None = None) -> int | None:
+        """Compute and cache the missing frame nearest to ``playhead`` (default: the last one
+        set); returns it, or None when the clip is ready or the cache's bound is spent (see
+        :class:`~garmentnerf.render.frame_cache.FrameCache`). One frame's work: call it again
+        while it returns a frame, between renders."""
+        if playhead is not None:
+            self.frames.set_playhead(playhead)
+        frame = self.frames.next_to_compute(self.num_frames)
+        if frame is not None:
+            self.frames.put(frame, self._compute_frame(frame))
+        return frame
+
     def clear_cache(self) -> None:
-        self._cache.clear()
+        self.frames.clear()
 
     # ---- presets -----------------------------------------------------------------------------------
     @property
@@ -331,7 +347,7 @@ class RenderSession:
 
     # ---- lifetime -------------------------------------------------------------------------------------
     def close(self) -> None:
-        self._cache.clear()
+        self.frames.clear()
         for plan in self._plans.values():
             plan.release()
         self._plans.clear()
@@ -374,5 +390,4 @@ def _camera_depth(distance: torch.Tensor, opacity: torch.Tensor, camera: Camera,
     return z.float().numpy()
 
 
-__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "padded_render_camera", "DEFAULT_CACHE_FRAMES",
-           "DEFAULT_PRESET"]
+__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "padded_render_camera", "DEFAULT_PRESET"]
