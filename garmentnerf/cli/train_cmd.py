@@ -10,35 +10,53 @@ def register(sub) -> None:
     p = sub.add_parser("train", help="train the Garment Animation NeRF on a scene",
                        description="Two-stage training (G_img pre-training, then the NeRF) into a run folder: "
                                    "run.json + model.safetensors, checkpoints/, tb/ (TensorBoard). Ctrl-C saves "
-                                   "a checkpoint; --resume continues exactly. Under torchrun every process "
-                                   "trains on its share of the views (gradients averaged).")
+                                   "a checkpoint (so does kill); --resume continues exactly, with the run's own "
+                                   "settings from run.json. Under torchrun every process trains on its share "
+                                   "of the views (gradients averaged).")
     p.add_argument("--scene", default=None, metavar="DIR",
                    help="scene folder (required for a new run; on --resume default: the run's scene)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder, e.g. runs/skirt (must be empty "
                                                                "unless --resume)")
-    p.add_argument("--preset", default="cpu_small", choices=("paper", "cpu_small", "tiny"),
-                   help="model size (default: cpu_small; ignored on --resume: the run's config is used)")
+    # Options that define the run default to None: a new run fills in the default, --resume the
+    # run's value (one given explicitly is checked against the run's; see Trainer).
+    p.add_argument("--preset", default=None, choices=("paper", "cpu_small", "tiny"),
+                   help="model size (default: cpu_small; on --resume: the run's, another one is refused)")
     p.add_argument("--iterations", type=int, default=None, metavar="N",
-                   help="NeRF training steps (default: the preset's; the lr decays over them)")
+                   help="NeRF training steps (default: the preset's; the lr decays over them; on --resume: the "
+                        "run's, another number is refused)")
     p.add_argument("--generator-iterations", type=int, default=None, metavar="N",
-                   help="G_img pre-training steps (default: the preset's; 0 skips pre-training)")
+                   help="G_img pre-training steps (default: the preset's; 0 skips pre-training; on --resume: the "
+                        "run's, another number is refused)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its newest readable checkpoint with the run's settings "
+                        "(run.json); --preset, --seed, --frames, --iterations, --generator-iterations or "
+                        "--init-generator that differ from the run's are refused; --stop-after, --ckpt-every, "
+                        "--log-every, --image-every, --perceptual, --vgg19-weights, --loss-weight and --scene "
+                        "apply from the resumed step on and are recorded in run.json's overrides")
+    p.add_argument("--seed", type=int, default=None,
+                   help="random seed (default: 0; on --resume: the run's, another one is refused)")
     p.add_argument("--stop-after", type=int, default=None, metavar="STEP",
-                   help="stop with a checkpoint at this global step (resume later)")
-    p.add_argument("--log-every", type=int, default=10, metavar="N", help="steps between logged scalars")
-    p.add_argument("--image-every", type=int, default=500, metavar="N", help="steps between logged images (0: never)")
-    p.add_argument("--ckpt-every", type=int, default=1000, metavar="N", help="steps between checkpoints")
+                   help="stop with a checkpoint at this global step (resume later; a resume without it trains "
+                        "to the end)")
+    p.add_argument("--log-every", type=int, default=None, metavar="N",
+                   help="steps between logged scalars (default: 10; on --resume: the run's)")
+    p.add_argument("--image-every", type=int, default=None, metavar="N",
+                   help="steps between logged images, 0: never (default: 500; on --resume: the run's)")
+    p.add_argument("--ckpt-every", type=int, default=None, metavar="N",
+                   help="steps between checkpoints (default: 1000; on --resume: the run's)")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="frame range used in each training sequence, Python slice syntax (default: all)")
-    p.add_argument("--perceptual", default="auto", choices=("auto", "vgg19", "stlpips", "none"),
-                   help="perceptual loss (auto: VGG19 with --vgg19-weights, else shift-tolerant LPIPS)")
+                   help="frame range used in each training sequence, Python slice syntax (default: all; on "
+                        "--resume: the run's, another range is refused)")
+    p.add_argument("--perceptual", default=None, choices=("auto", "vgg19", "stlpips", "none"),
+                   help="perceptual loss (default: auto: VGG19 with --vgg19-weights, else shift-tolerant LPIPS; "
+                        "on --resume: the run's)")
     p.add_argument("--vgg19-weights", default=None, metavar="PTH",
-                   help="torchvision ImageNet VGG19 weights (vgg19-dcbb9e9d.pth); default $GARMENTNERF_VGG19")
+                   help="torchvision ImageNet VGG19 weights (vgg19-dcbb9e9d.pth); default $GARMENTNERF_VGG19 "
+                        "(on --resume: the run's)")
     p.add_argument("--init-generator", default=None, metavar="SAFETENSORS",
                    help="start a new run from the pre-trained G_img in this weights file (a run's "
-                        "model.safetensors or checkpoint) and skip G_img pre-training")
+                        "model.safetensors or checkpoint) and skip G_img pre-training (a new run only)")
     p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
                    help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
                         "--resume it applies from the resumed step on and is recorded in run.json")
@@ -91,6 +109,14 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None and args.threads < 1:
         raise ValueError(f"--threads must be at least 1, got {args.threads}")
 
+    bounds = (("--log-every", args.log_every, 1), ("--ckpt-every", args.ckpt_every, 1),
+              ("--image-every", args.image_every, 0), ("--stop-after", args.stop_after, 0),
+              ("--iterations", args.iterations, 1), ("--generator-iterations", args.generator_iterations, 0))
+    for flag, value, least in bounds:
+        if value is not None and value < least:
+            raise ValueError(f"{flag} must be at least {least}, got {value}")
+    # Options not given are None: a new run takes the defaults, --resume the run's own settings
+    # (given ones are checked against the run's or recorded as overrides: Trainer).
     tc = TrainConfig(scene=args.scene, out=args.out, preset=args.preset, device=args.device, seed=args.seed,
                      iterations=args.iterations, generator_iterations=args.generator_iterations,
                      stop_after=args.stop_after, log_every=args.log_every, image_every=args.image_every,

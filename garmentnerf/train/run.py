@@ -8,6 +8,10 @@ Layout::
     <run>/checkpoints/ckpt_<step>.state.pt          optimiser, step, RNG states (exact resume)
     <run>/tb/                                       TensorBoard logs
 
+Every file is written atomically (a ``.<name>.<random>.tmp`` temporary beside it, synced, then
+renamed; :func:`~garmentnerf.io_utils.atomic_write_path`); a killed write leaves only such a
+temporary, which :func:`remove_run_temporaries` deletes when the run is resumed.
+
 ``run.json``::
 
     {"format": "garmentnerf-run", "version": 1,
@@ -19,6 +23,11 @@ Layout::
      "step": 1234                     (global step of model.safetensors, see below),
      "created_with": "garmentnerf 0.1.0",
      ... other keys written by the trainer (``extra``), kept as they are}
+
+The trainer's keys include ``train`` (the run's :class:`~garmentnerf.train.trainer.TrainConfig`
+settings: preset, seed, frames, checkpoint interval, ...; ``--resume`` continues with them),
+``overrides`` (``[{"step": s, "<setting>": [old, new], ...}]``: settings changed on a resume, from
+step ``s`` on) and ``loss_weight_changes`` (the same for loss weights).
 
 ``step`` counts every optimiser step of the run: steps ``[0, generator_iterations)`` pre-train
 G_img, the following ones train the NeRF (the trainer records ``generator_iterations`` and
@@ -41,7 +50,7 @@ from pathlib import Path
 
 import torch
 
-from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.io_utils import atomic_write_path, remove_stale_temporaries
 from garmentnerf.model.config import ModelConfig
 
 RUN_FORMAT = "garmentnerf-run"
@@ -53,7 +62,7 @@ TB_DIR = "tb"
 
 __all__ = ["LoadedRun", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
            "save_weights", "load_weights", "load_scene", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
-           "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR"]
+           "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "write_file_atomic", "remove_run_temporaries"]
 
 
 def _package_version() -> str:
@@ -195,15 +204,56 @@ def _state_for_file(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     return out
 
 
-def save_weights(path, model: torch.nn.Module, metadata: dict | None = None) -> Path:
-    """Model weights to a ``.safetensors`` file, atomically (temporary file + rename)."""
-    from safetensors.torch import save_file
+def _write_synced(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` and sync it to the disk (a full disk raises :class:`OSError`
+    with its errno here, not later)."""
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
 
+
+def write_file_atomic(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically: a synced temporary beside it, renamed over ``path``.
+
+    Readers see the old file or the complete new one; a failed write (OSError naming ``path``)
+    leaves the old file and no temporary.
+    """
     path = Path(path)
-    meta = {k: str(v) for k, v in (metadata or {}).items()}
-    with atomic_write_path(path) as tmp:
-        save_file(_state_for_file(model), str(tmp), metadata=meta)
+    try:
+        with atomic_write_path(path) as tmp:
+            _write_synced(tmp, data)
+    except OSError as exc:
+        if exc.filename is None and str(path) not in str(exc):  # write() errors name no file
+            raise type(exc)(exc.errno, f"{path}: cannot write ({exc.strerror or exc})") from exc
+        raise
     return path
+
+
+def remove_run_temporaries(run_dir) -> list[Path]:
+    """Delete the temporaries of killed writes of a run's own files (``run.json``,
+    ``model.safetensors`` and the checkpoints; nothing else). Returns what was deleted.
+
+    Only for a run folder that no process is writing (the trainer calls it before it resumes).
+    """
+    run_dir = Path(run_dir)
+    removed = []
+    for name in (RUN_FILE, MODEL_FILE):
+        removed += remove_stale_temporaries(run_dir, name, min_age=0)
+    for name in ("ckpt_*.safetensors", "ckpt_*.state.pt"):
+        removed += remove_stale_temporaries(run_dir / CHECKPOINT_DIR, name, min_age=0)
+    return removed
+
+
+def save_weights(path, model: torch.nn.Module, metadata: dict | None = None) -> Path:
+    """Model weights to a ``.safetensors`` file, atomically (:func:`write_file_atomic`).
+
+    Serialised in memory first, so that a full disk is an :class:`OSError` naming ``path``.
+    """
+    from safetensors.torch import save
+
+    meta = {k: str(v) for k, v in (metadata or {}).items()}
+    return write_file_atomic(path, save(_state_for_file(model), metadata=meta))
 
 
 def load_module_weights(path, model: torch.nn.Module, prefix: str) -> None:
@@ -312,8 +362,7 @@ def save_run_model(run_dir, model, config: ModelConfig, scene_path, step: int, e
     info.update(extra)
     save_weights(run_dir / MODEL_FILE, model, {"format": RUN_FORMAT, "step": int(step)})
     text = json.dumps(info, indent=1, allow_nan=False)
-    with atomic_write_path(run_dir / RUN_FILE) as tmp:
-        tmp.write_text(text + "\n", encoding="utf-8")
+    write_file_atomic(run_dir / RUN_FILE, (text + "\n").encode("utf-8"))
     return run_dir
 
 
