@@ -15,7 +15,8 @@ def register(sub) -> None:
         "make", help="simulate a garment on body motions and write a training scene (resumable)",
         description="Create a training scene: cameras, motions, the cloth simulation of the garment on every "
                     "sequence (newton VBD, one process per sequence). Images are rendered on demand later. "
-                    "Interrupted runs continue where they stopped when re-run with the same arguments.")
+                    "Interrupted runs (Ctrl-C, SIGTERM, killed) continue where they stopped when re-run with the "
+                    "same arguments (--processes and --drop-chunks may differ).")
     make.add_argument("--garment", default="skirt", help="garment kind: skirt, tshirt, dress (default: skirt)")
     make.add_argument("--motion", default="walk,dance_a",
                       help="training motion: clip names joined by ',' (default: walk,dance_a)")
@@ -32,7 +33,9 @@ def register(sub) -> None:
     make.add_argument("--fps", type=float, default=30.0, help="frame rate (default: 30)")
     make.add_argument("--no-in-place", action="store_true",
                       help="keep the root's horizontal travel (default: removed, treadmill-style)")
-    make.add_argument("--processes", type=int, default=0, help="parallel simulations (default: one per core)")
+    make.add_argument("--processes", type=int, default=0,
+                      help="parallel simulations (default: one per core); does not change the scene, so it may "
+                           "differ when resuming")
     make.add_argument("--substeps", type=int, default=None, help="solver substeps per frame (default: 10)")
     make.add_argument("--iterations", type=int, default=None, help="VBD iterations per substep (default: 10)")
     make.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",

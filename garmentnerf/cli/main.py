@@ -59,6 +59,9 @@ def _is_user_error(exc: BaseException) -> bool:
 
     if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS:
         return True
+    simulate = sys.modules.get("garmentnerf.data.simulate")  # loaded whenever one can have been raised
+    if simulate is not None and isinstance(exc, simulate.SimulationError):
+        return True  # the cloth diverged with the given settings: say so, with the settings to change
     return isinstance(exc, (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
                             PermissionError, GLUnavailableError))
 
