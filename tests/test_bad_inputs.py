@@ -6,7 +6,8 @@ Placeholders in the table are filled from a small world made once per module: ``
 untrained run of the tiny scene, ``{scene}`` the scene, ``{file}`` / ``{json}`` / ``{md}`` /
 ``{png}`` / ``{ply}`` / ``{npz}`` existing files, ``{dir}`` an existing folder, ``{new}`` a path
 that does not exist yet, ``{orphan}`` a run whose scene folder is gone, ``{nan_scene}`` a scene
-whose camera K holds a NaN, ``{taken}`` a render folder that already holds frame 0.
+whose camera K holds a NaN, ``{broken_scene}`` a scene with a sequence file that is not an npz,
+``{taken}`` a render folder that already holds frame 0.
 """
 
 from __future__ import annotations
@@ -72,6 +73,7 @@ CASES = [
     (["data", "preview", "{scene}", "--out", "{png}"], "already exists"),
     (["data", "preview", "{new}", "--out", "{new}.png"], "{new}"),
     (["data", "preview", "{nan_scene}", "--out", "{new}.png"], "must be a finite number, got nan"),
+    (["data", "preview", "{broken_scene}", "--out", "{new}.png"], "unreadable file {broken_scene}/sequences/"),
     # --- body, maps, bench, view --------------------------------------------------------------------
     (["body", "export", "--shape", "1e30", "--out", "{new}.ply"], "--shape 1e30"),
     (["body", "export", "--shape", "nan", "--out", "{new}.ply"], "--shape nan"),
@@ -117,6 +119,10 @@ def world(tmp_path_factory, tiny_scene):
     meta = json.loads((nan_scene / "scene.json").read_text())
     meta["cameras"][0]["K"][0][0] = float("nan")
     (nan_scene / "scene.json").write_text(json.dumps(meta))
+    # a scene one of whose sequence files is not an npz any more
+    broken_scene = root / "broken_scene"
+    shutil.copytree(scene, broken_scene)
+    next(iter(sorted((broken_scene / "sequences").glob("*/garment.npz")))).write_bytes(b"not a zip file")
     files = {"file": "existing.bin", "json": "existing.json", "md": "existing.md", "png": "existing.png",
              "ply": "existing.ply", "npz": "existing.npz"}
     for key, name in files.items():
@@ -127,7 +133,7 @@ def world(tmp_path_factory, tiny_scene):
     (taken / "frame_0000.png").write_bytes(b"a frame the user keeps\n")
     places = {key: str(root / name) for key, name in files.items()}
     places.update(run=str(run), scene=str(scene), dir=str(root / "folder"), orphan=str(orphan),
-                  nan_scene=str(nan_scene), taken=str(taken), new=str(root / "new"))
+                  nan_scene=str(nan_scene), broken_scene=str(broken_scene), taken=str(taken), new=str(root / "new"))
     return root, places
 
 
