@@ -42,3 +42,14 @@ def tiny_scene(tmp_path_factory, gl_context):
 
     return make_rigged_scene(tmp_path_factory.mktemp("tiny_scene") / "scene", garment="skirt", motion="walk",
                              frames=3, views=3, size=64, held_out_views=1, gl_context=gl_context)
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Run the test with one torch thread (training compares runs bit for bit)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

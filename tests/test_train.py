@@ -13,12 +13,7 @@ from garmentnerf.train.run import build_model, create_untrained_run, load_run, l
 from garmentnerf.train.trainer import TrainConfig, Trainer, latest_checkpoint, tiny_config
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # bit-equal resumes need one thread
 
 
 def make_tc(scene, out, **kw) -> TrainConfig:

@@ -33,12 +33,7 @@ FAST = ["--preset", "tiny", "--perceptual", "none", "--no-progress", "--threads"
 RESUME = ["--resume", "--no-progress", "--threads", "1"]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # bit-equal resumes need one thread
 
 
 def new_run(scene, out, *extra) -> list[str]:
