@@ -408,4 +408,9 @@ def test_bench_cli_with_run(tmp_path, tiny_scene):
         assert set(p["stages_ms"]) == {"info_maps", "reference_images", "encoders", "projection", "mlp",
                                        "compositing", "decoder"}
     assert data["presets"][0]["speedup_vs_reference"] == 1.0
+    pb = data["playback"]
+    assert pb["precomputed"] == len(pb["frames"]) == 3 and pb["precompute_ms_per_frame"] > 0  # the tiny clip
+    assert set(pb["presets"]) == set(names) and all(r["fps"] > 0 for r in pb["presets"].values())
+    assert pb["scrub_ready_ms"] > 0 and pb["scrub_cold_ms"] is None  # every frame of the clip was ready
+    assert all(0 <= p["rays_missing_share"] < 1 for p in data["presets"])
     assert out_png.stat().st_size > 1000

@@ -11,6 +11,9 @@ points evaluated by the MLP per frame, and PSNR/SSIM against the ground truth of
 scene (images composited on the model's background over the full frame, data range 1). Times are
 the fastest of ``--repeats`` renders of each view (the development machine's 2 cores are shared,
 so the minimum is the least noisy), then the median over the views and frames measured.
+Each row also gives the share of rays that hit nothing (no sample placed). Then the playback
+figures (:func:`playback_benchmark`): neural frames per second per preset over a precomputed clip
+window, the precompute cost per frame, and the scrub latency to a ready and to a cold frame.
 ``--plot`` draws ms/frame (log) against PSNR per preset (PIL; matplotlib is not needed).
 """
 
@@ -57,6 +60,8 @@ def register(sub) -> None:
     p.add_argument("--views", type=int, default=2, help="with --run: cameras measured per frame")
     p.add_argument("--repeats", type=int, default=2, help="with --run: renders per view (fastest counts)")
     p.add_argument("--sequence", default=None, help="with --run: scene sequence (default: the first training one)")
+    p.add_argument("--playback-frames", type=int, default=24, metavar="N",
+                   help="with --run: precomputed frames played per preset for the playback figure (default: 24)")
     p.set_defaults(func=run_bench)
 
 
@@ -79,7 +84,7 @@ def _pick(items, count):
 
 
 def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, repeats: int = 2,
-                     sequence: str | None = None, gl_context=None, log=print) -> dict:
+                     sequence: str | None = None, gl_context=None, log=print, playback_frames: int = 24) -> dict:
     """Measure every preset on a run (see the module docstring) through
     :class:`~garmentnerf.render.session.RenderSession`, the path every command renders with.
     Returns a JSON-ready dict."""
@@ -95,7 +100,8 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
     from garmentnerf.render.session import RenderSession
     from garmentnerf.train.run import load_run
 
-    for name, value in (("frames", frames), ("views", views), ("repeats", repeats)):
+    for name, value in (("frames", frames), ("views", views), ("repeats", repeats),
+                        ("playback-frames", playback_frames)):
         if value < 1:
             raise ValueError(f"--{name} must be at least 1, got {value}")
     names = list(presets) if presets else list(RENDER_PRESET_NAMES)
@@ -193,13 +199,16 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             r["points_ratio_vs_reference"] = (r["points_per_frame"] / ref["points_per_frame"]
                                               if ref["points_per_frame"] else None)
             r["psnr_vs_reference_db"] = (r["psnr"] - ref["psnr"]) if r["psnr"] is not None and ref["psnr"] is not None else None
+            r["rays_missing_share"] = (1.0 - r["rays_per_frame"] / r["feature_rays_total"]
+                                       if r["feature_rays_total"] else None)
+        playback = playback_benchmark(session, cams[0].camera, chosen, playback_frames, log=log)
         return {"kind": "preset_benchmark", "run": str(run_dir), "step": run.step, "created": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)}, "torch_threads": torch.get_num_threads(),
                 "model": {k: getattr(cfg, k) for k in ("image_resolution", "feature_image_resolution", "samples_per_ray",
                                                           "mlp_depth", "mlp_width", "appearance_dim")},
                 "motion": motion.name, "sequence": seq, "frames": frame_ids, "cameras": [c.name for c in cams],
                 "camera_split": split, "ground_truth": images is not None, "height_range": band.to_dict(),
-                "presets": results}
+                "presets": results, "playback": playback}
     finally:
         if images is not None:
             images.close()
@@ -207,6 +216,56 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             session.close()
         if own_ctx:
             ctx.release()
+
+
+def playback_benchmark(session, camera, presets, frames: int = 24, log=print) -> dict:
+    """Neural frames per second while a precomputed clip plays, per preset, and scrub latency.
+
+    ``frames`` consecutive body frames from the session's playhead window are precomputed first
+    (:meth:`RenderSession.precompute_next`, timed as ``precompute_ms_per_frame``); then each preset
+    renders them in order with one camera (``fps``: frames over the wall time, everything a
+    playing previewer's worker does per neural frame). Scrub latency (``full`` preset): the
+    time from a jump to the image, to a ready frame whose closest-point search is not bound
+    (``scrub_ready_ms``) and to a frame not precomputed (``scrub_cold_ms``).
+    """
+    from garmentnerf.perf.presets import get_render_preset
+
+    n = min(max(1, int(frames)), session.num_frames)
+    start = max(0, (session.num_frames - n) // 2)
+    window = list(range(start, start + n))
+    session.clear_cache()
+    session.frames.set_playhead(start)
+    t0 = time.perf_counter()
+    done = 0
+    while done < n and session.precompute_next() is not None:
+        done += 1
+    precompute_ms = (time.perf_counter() - t0) * 1e3 / max(done, 1)
+    ready = set(session.frames.ready_frames())
+    rows = {}
+    for preset in presets:
+        session.render(window[0], camera, preset=preset)  # warm-up (GL objects of the preset)
+        t0 = time.perf_counter()
+        for f in window:
+            session.render(f, camera, preset=preset)
+        seconds = time.perf_counter() - t0
+        rows[preset.name] = {"fps": len(window) / seconds, "ms_per_frame": seconds * 1e3 / len(window)}
+        log(f"  playback {preset.name:12s} {rows[preset.name]['fps']:6.2f} neural frames/s over {len(window)} "
+            f"precomputed frames")
+    full = get_render_preset("full")
+    far_ready = window[len(window) // 2]  # not among the last frames used: its search is rebuilt
+    t0 = time.perf_counter()
+    session.render(far_ready, camera, preset=full)
+    scrub_ready = (time.perf_counter() - t0) * 1e3
+    cold = next((f for f in range(session.num_frames) if f not in ready), None)
+    scrub_cold = None
+    if cold is not None:
+        t0 = time.perf_counter()
+        session.render(cold, camera, preset=full)
+        scrub_cold = (time.perf_counter() - t0) * 1e3
+    log(f"  precompute {precompute_ms:.0f} ms/frame; scrub to a ready frame {scrub_ready:.0f} ms, to a cold one "
+        + (f"{scrub_cold:.0f} ms" if scrub_cold is not None else "n/a") + " (full preset)")
+    return {"frames": window, "precomputed": done, "precompute_ms_per_frame": precompute_ms, "presets": rows,
+            "scrub_ready_ms": scrub_ready, "scrub_cold_ms": scrub_cold}
 
 
 def write_plot(results: dict, path, overwrite: bool = True) -> Path:
@@ -289,7 +348,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if getattr(args, "run", None):
         presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
         results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
-                                   sequence=args.sequence)
+                                   sequence=args.sequence, playback_frames=args.playback_frames)
         _print_presets(results)
         if args.json:
             with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
