@@ -787,3 +787,38 @@ def test_neural_viewer_survives_random_input_and_zero_size(xvfb, untrained_run, 
 
     for path in tmp_path.iterdir():  # snapshots the random S presses took: whole PNGs, no temporary files left
         assert path.suffix == ".png" and Image.open(path).format == "PNG", path
+
+
+def test_the_scene_is_redrawn_only_when_something_it_shows_changes(app):
+    """A still view reuses the last image (panels keep the display rate while the worker computes);
+    the camera, the body frame and a display setting each trigger exactly one redraw."""
+    import numpy as np
+
+    stats = app.scene.stats
+    for _ in range(3):
+        app.step()
+    draws, skipped = stats.draws, stats.skipped
+    def scene_image():  # the 3D scene the window shows (the panels on top change every frame)
+        return app.scene.read(app._target_for(*app.render_size))
+
+    still = scene_image()
+    for _ in range(5):
+        app.step()
+    assert stats.draws == draws and stats.skipped >= skipped + 5
+    np.testing.assert_array_equal(scene_image(), still)
+    app.controller.orbit(5.0, 0.0)
+    app.step()
+    app.step()
+    assert stats.draws == draws + 1
+    app.set_frame((app.timeline.frame + 7) % app.timeline.num_frames)
+    app.step()
+    app.step()
+    assert stats.draws == draws + 2
+    before = scene_image()
+    app.scene.floor.show_lines = not app.scene.floor.show_lines
+    app.step()
+    changed = scene_image()
+    app.scene.floor.show_lines = not app.scene.floor.show_lines
+    app.step()
+    assert stats.draws == draws + 4 and np.abs(changed.astype(int) - before.astype(int)).max() > 0
+    np.testing.assert_array_equal(scene_image(), before)

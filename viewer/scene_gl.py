@@ -583,6 +583,7 @@ class RenderTarget:
             raise ValueError(f"render size {width}x{height} exceeds this GPU's limit of {limit} pixels per side")
         self.ctx = ctx
         self.size = (int(width), int(height))
+        self.drawn_state = None  # the scene state of the image it holds (SceneRenderer.render)
         self.samples = max(0, min(int(samples), int(ctx.max_samples))) if samples > 1 else 0
         self.color_ms = ctx.renderbuffer(self.size, 4, samples=self.samples)
         self.depth_ms = ctx.depth_renderbuffer(self.size, samples=self.samples)
@@ -602,9 +603,38 @@ def read_image(fbo: moderngl.Framebuffer, width: int, height: int) -> np.ndarray
     return np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3)[::-1].copy()
 
 
+def state_token(value, depth: int = 0):
+    """A hashable token that changes whenever ``value`` does (as far as drawing is concerned):
+    plain values themselves, arrays their bytes, containers their items, any other object (GL
+    objects, pending uploads) its identity."""
+    if value is None or isinstance(value, (bool, int, float, str, bytes)):
+        return value
+    if isinstance(value, np.ndarray):
+        return (value.shape, value.dtype.str, value.tobytes())
+    if depth < 4 and isinstance(value, (tuple, list)):
+        return tuple(state_token(v, depth + 1) for v in value)
+    if depth < 4 and isinstance(value, dict):
+        return tuple((k, state_token(v, depth + 1)) for k, v in value.items())
+    return ("id", id(value))
+
+
+def scene_state(objects) -> tuple:
+    """The drawing state of ``objects``: every attribute of each (and of its ``lighting``), as
+    :func:`state_token` sees it. Two equal states draw the same image."""
+    out = []
+    for obj in objects:
+        items = sorted(vars(obj).items())
+        out.append(tuple((k, state_token(v)) for k, v in items if k != "lighting"))
+        lighting = getattr(obj, "lighting", None)
+        if lighting is not None:
+            out.append(tuple((k, state_token(v)) for k, v in sorted(vars(lighting).items())))
+    return tuple(out)
+
+
 @dataclass
 class SceneStats:
     draws: int = 0
+    skipped: int = 0  # render() calls that found the target already showing the same state
     last_ms: float = 0.0
     extra: dict = field(default_factory=dict)
 
@@ -655,14 +685,23 @@ class SceneRenderer:
         with current(self.ctx):
             return RenderTarget(self.ctx, width, height, self.samples if samples is None else samples)
 
-    def render(self, target: RenderTarget, camera: Camera) -> None:
-        """Draw the scene as seen by ``camera`` into ``target`` (sizes must agree) and resolve it."""
+    def render(self, target: RenderTarget, camera: Camera, force: bool = False) -> bool:
+        """Draw the scene as seen by ``camera`` into ``target`` (sizes must agree) and resolve it.
+
+        Redraws only what changed: when ``target`` already holds an image of the same camera and
+        the same scene state (:func:`scene_state`: every renderable's attributes, pending uploads
+        included) nothing is drawn and False is returned (``force`` draws anyway)."""
         if (camera.width, camera.height) != target.size:
             raise ValueError(f"camera is {camera.width}x{camera.height} but the target is "
                              f"{target.size[0]}x{target.size[1]}")
+        self.floor.center = self.floor.shadow_center  # the floor fades out around the body
+        key = (state_token((camera.K, camera.R, camera.t, camera.width, camera.height)), self.background,
+               scene_state(self.renderables))
+        if not force and target.drawn_state == key:
+            self.stats.skipped += 1
+            return False
         ctx = self.ctx
         view = ViewParams.of(camera)
-        self.floor.center = self.floor.shadow_center  # the floor fades out around the body
         with current(ctx):
             for r in self.renderables:
                 r.prepare()
@@ -690,6 +729,9 @@ class SceneRenderer:
             ctx.enable_only(moderngl.NOTHING)
             ctx.copy_framebuffer(target.resolve_fbo, target.fbo)
         self.stats.draws += 1
+        # prepare() consumed pending uploads: the state after drawing is what the image shows
+        target.drawn_state = (key[0], key[1], scene_state(self.renderables))
+        return True
 
     def present(self, target: RenderTarget, screen: moderngl.Framebuffer, width: int, height: int) -> None:
         """Show ``target``'s resolved image on ``screen`` (the window), stretched to width x height."""
