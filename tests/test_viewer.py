@@ -791,34 +791,59 @@ def test_neural_viewer_survives_random_input_and_zero_size(xvfb, untrained_run, 
 
 def test_the_scene_is_redrawn_only_when_something_it_shows_changes(app):
     """A still view reuses the last image (panels keep the display rate while the worker computes);
-    the camera, the body frame and a display setting each trigger exactly one redraw."""
+    the camera, the body frame and a display setting each trigger a redraw (two when an upload
+    was pending: the draw that consumes it, then one of the consumed state), then none."""
     import numpy as np
 
     stats = app.scene.stats
-    for _ in range(3):
-        app.step()
-    draws, skipped = stats.draws, stats.skipped
+
     def scene_image():  # the 3D scene the window shows (the panels on top change every frame)
         return app.scene.read(app._target_for(*app.render_size))
 
+    def redraws_after(change) -> int:
+        change()
+        before = stats.draws
+        for _ in range(3):
+            app.step()
+        settled = stats.draws
+        for _ in range(4):
+            app.step()
+        assert stats.draws == settled, "the scene kept redrawing a still view"
+        return settled - before
+
+    for _ in range(3):
+        app.step()
+    draws, skipped = stats.draws, stats.skipped
     still = scene_image()
     for _ in range(5):
         app.step()
     assert stats.draws == draws and stats.skipped >= skipped + 5
     np.testing.assert_array_equal(scene_image(), still)
-    app.controller.orbit(5.0, 0.0)
-    app.step()
-    app.step()
-    assert stats.draws == draws + 1
-    app.set_frame((app.timeline.frame + 7) % app.timeline.num_frames)
-    app.step()
-    app.step()
-    assert stats.draws == draws + 2
+    assert redraws_after(lambda: app.controller.orbit(5.0, 0.0)) == 1
+    assert 1 <= redraws_after(lambda: app.set_frame((app.timeline.frame + 7) % app.timeline.num_frames)) <= 2
     before = scene_image()
-    app.scene.floor.show_lines = not app.scene.floor.show_lines
-    app.step()
+    floor = app.scene.floor
+    assert redraws_after(lambda: setattr(floor, "show_lines", not floor.show_lines)) == 1
     changed = scene_image()
-    app.scene.floor.show_lines = not app.scene.floor.show_lines
-    app.step()
-    assert stats.draws == draws + 4 and np.abs(changed.astype(int) - before.astype(int)).max() > 0
+    assert redraws_after(lambda: setattr(floor, "show_lines", not floor.show_lines)) == 1
+    assert np.abs(changed.astype(int) - before.astype(int)).max() > 0
     np.testing.assert_array_equal(scene_image(), before)
+
+
+def test_playback_meter_counts_shown_and_neural_frames_per_second():
+    from garmentnerf.viewer.timeline import PlaybackMeter
+
+    meter = PlaybackMeter(window=1.0)
+    for i in range(60):  # a UI at 60 fps playing a 30 fps motion: each frame shown twice
+        now = i / 60.0
+        meter.frame_shown(i // 2, now)
+        if i % 6 == 0:  # the worker delivers a neural frame every 100 ms
+            meter.neural_received(i // 2, now)
+    motion, neural = meter.rates(59 / 60.0)
+    assert motion == pytest.approx(30.0, abs=1.0) and neural == pytest.approx(10.0, abs=1.0)
+    meter.neural_received(29, 1.0)  # the same frame again counts once
+    assert meter.rates(1.0)[1] == pytest.approx(neural, abs=1.0)
+    assert meter.rates(5.0) == (0.0, 0.0)  # older than the window
+    meter.frame_shown(3, 5.0)
+    meter.reset()
+    assert meter.rates(5.0) == (0.0, 0.0)

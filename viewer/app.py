@@ -60,7 +60,7 @@ from garmentnerf.viewer.gui_libs import glfw, imgui
 from garmentnerf.viewer.scene_gl import RenderTarget, SceneRenderer, read_image
 from garmentnerf.viewer.sequence import BodySequence, SequenceLoader
 from garmentnerf.viewer.shortcuts import SHORTCUTS, action_for_key, pressed_actions, resolve
-from garmentnerf.viewer.timeline import Timeline
+from garmentnerf.viewer.timeline import PlaybackMeter, Timeline
 
 #: Environment variable: run this many frames, then return from run() (tests, frame-rate checks).
 ENV_FRAMES = "GARMENTNERF_VIEWER_FRAMES"
@@ -216,6 +216,7 @@ class App:
 
         # -- state --------------------------------------------------------------------------------------
         self.timeline = Timeline(self.sequence.num_frames, self.sequence.fps, playing=playing)
+        self.playback_meter = PlaybackMeter()  # motion vs neural frames per second while playing (overlay)
         self.controller = OrbitController()
         self._aim_home(self.sequence)
         self.controller.reset()
@@ -389,6 +390,8 @@ class App:
             return
         while self._neural_done:
             result = self._neural_done.popleft()
+            if self.timeline.playing:
+                self.playback_meter.neural_received(result.frame, self.clock())
             self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
             self.neural_stats = {"renders": self.neural.stats.renders, "quality": result.quality,
                                  "render_size": list(result.render_size), "frame": result.frame,
@@ -652,6 +655,10 @@ class App:
         self._handle_input()
         if advance and not self.scrubbing:
             self.timeline.advance(dt)
+        if self.timeline.playing:
+            self.playback_meter.frame_shown(self.timeline.frame, start)
+        else:
+            self.playback_meter.reset()
         panels.draw_all(self)
         imgui.render()
 

@@ -401,6 +401,15 @@ def draw_stats(app: "App") -> None:
         else:
             imgui.text_disabled("neural: waiting for the first frame ...")
         imgui.text_disabled(f"renders {st.renders}, superseded {st.dropped}, errors {st.errors}")
+        if app.timeline.playing:
+            motion_fps, neural_fps = app.playback_meter.rates(app.clock())
+            dropping = neural_fps < 0.9 * motion_fps
+            line = f"playing: {neural_fps:.0f} of {motion_fps:.0f} frames/s rendered" + (
+                " (dropping neural frames to keep time)" if dropping else "")
+            if dropping:
+                imgui.text_colored(imgui.ImVec4(1.0, 0.8, 0.35, 1.0), line)
+            else:
+                imgui.text_disabled(line)
         if st.last_error:
             imgui.text_colored(imgui.ImVec4(1.0, 0.45, 0.4, 1.0), st.last_error[:120])
     imgui.end()

@@ -41,7 +41,8 @@ class QualityController:
         preset: the quality level, a render preset name of :data:`VIEWER_LEVELS`.
         dynamic: lower the quality while moving (False: always the preset's).
         target_ms: render time aimed at while moving.
-        floor: lowest quality ever requested.
+        floor: lowest quality ever requested (0.25: below it a full-body view renders so few rays that
+            the character all but vanishes while the view moves).
         hysteresis: relative change needed before the moving quality changes.
         settle_seconds: how long the view must be unchanged to count as still.
         smoothing: weight of a new measurement in the moving average of the unit cost.
@@ -51,7 +52,7 @@ class QualityController:
     preset: str = "full"
     dynamic: bool = True
     target_ms: float = 120.0
-    floor: float = 0.125
+    floor: float = 0.25
     hysteresis: float = 0.2
     settle_seconds: float = 0.3
     smoothing: float = 0.35

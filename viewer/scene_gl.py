@@ -729,8 +729,10 @@ class SceneRenderer:
             ctx.enable_only(moderngl.NOTHING)
             ctx.copy_framebuffer(target.resolve_fbo, target.fbo)
         self.stats.draws += 1
-        # prepare() consumed pending uploads: the state after drawing is what the image shows
-        target.drawn_state = (key[0], key[1], scene_state(self.renderables))
+        # The state before drawing: prepare() consumed the pending uploads, so the next call sees
+        # another state and draws once more; a result submitted by the worker during this draw is
+        # never mistaken for one already drawn.
+        target.drawn_state = key
         return True
 
     def present(self, target: RenderTarget, screen: moderngl.Framebuffer, width: int, height: int) -> None:

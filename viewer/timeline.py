@@ -9,7 +9,8 @@ own rate whatever the UI frame rate is; a slow UI skips motion frames rather tha
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 #: Playback speed range (factor of the motion's own frame rate).
 MIN_SPEED = 1.0 / 16.0
@@ -125,3 +126,43 @@ class Timeline:
 
     def slower(self) -> None:
         self.set_speed(self.speed / 2.0)
+
+
+@dataclass
+class PlaybackMeter:
+    """How many motion frames per second playback shows, and how many of them got a neural frame.
+
+    Playback keeps the motion's clock (a slow machine skips frames, see :class:`Timeline`); the
+    neural worker renders only the newest frame asked for, so on a slow machine it drops frames
+    too. This counts both over the last ``window`` seconds so the overlay can say so.
+    """
+
+    window: float = 1.0
+    _shown: deque = field(default_factory=deque, repr=False)     # (time, frame) of each new frame shown
+    _rendered: deque = field(default_factory=deque, repr=False)  # (time, frame) of each neural frame received
+
+    def _trim(self, now: float) -> None:
+        for events in (self._shown, self._rendered):
+            while events and now - events[0][0] > self.window:
+                events.popleft()
+
+    def frame_shown(self, frame: int, now: float) -> None:
+        """The timeline shows ``frame`` (counted once per new frame)."""
+        if not self._shown or self._shown[-1][1] != frame:
+            self._shown.append((now, frame))
+        self._trim(now)
+
+    def neural_received(self, frame: int, now: float) -> None:
+        """A neural render of ``frame`` arrived (counted once per new frame)."""
+        if not self._rendered or self._rendered[-1][1] != frame:
+            self._rendered.append((now, frame))
+        self._trim(now)
+
+    def rates(self, now: float) -> tuple[float, float]:
+        """(motion frames shown, neural frames received) per second over the window."""
+        self._trim(now)
+        return len(self._shown) / self.window, len(self._rendered) / self.window
+
+    def reset(self) -> None:
+        self._shown.clear()
+        self._rendered.clear()

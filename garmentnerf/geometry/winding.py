@@ -23,10 +23,15 @@ def winding_number(point, vertices: torch.Tensor, faces: torch.Tensor) -> float:
 
 def point_in_shell(point, vertices: torch.Tensor, faces: torch.Tensor, margin: float) -> bool:
     """Whether ``point`` may lie inside the body inflated by ``margin`` (conservative: inside the
-    body by winding number, or within ``margin`` + the longest edge of a vertex)."""
+    body by winding number, or within ``margin`` + the longest edge of a vertex). A point outside
+    the box of the faces' vertices grown by ``margin`` is outside at once (the common case: a
+    camera looking at the body from a distance)."""
     v = vertices.detach().to("cpu", torch.float64)
     f = faces.detach().cpu().long()
     p = torch.as_tensor(np.asarray(point, dtype=np.float64))
+    corners = v[f.reshape(-1)] if len(f) else v[:0]
+    if not len(corners) or bool((p < corners.amin(0) - margin).any() or (p > corners.amax(0) + margin).any()):
+        return False
     edge = float((v[f[:, 0]] - v[f[:, 1]]).norm(dim=-1).max()) if len(f) else 0.0
     used = torch.unique(f.reshape(-1))
     if float((v[used] - p).norm(dim=-1).min()) <= margin + edge:

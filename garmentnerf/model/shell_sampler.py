@@ -100,16 +100,16 @@ class ShellSampler:
         self.spacing = spacing
         self.raster = ShellRaster(gl_context)
         self._shell: tuple[torch.Tensor, torch.Tensor] | None = None  # (inflated, skin) of the last frame
-        self._shell_key = None
+        self._shell_source: torch.Tensor | None = None  # the posed vertices it was made from (held: ids stay unique)
+        self._shell_version = -1
 
     def shell(self, posed_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(inflated shell, skin) vertices (V, 3) of the body posed as ``posed_vertices``; the
-        last frame's are reused while the same tensor comes back."""
-        key = (id(posed_vertices), posed_vertices.data_ptr(), tuple(posed_vertices.shape), posed_vertices._version)
-        if key != self._shell_key:
+        last frame's are reused while the same, unmodified tensor comes back."""
+        if posed_vertices is not self._shell_source or posed_vertices._version != self._shell_version:
             skin = posed_vertices.detach().to("cpu", torch.float32).clone()
             self._shell = (inflate_surface(skin, self.faces, self.shell_margin), skin)
-            self._shell_key = key
+            self._shell_source, self._shell_version = posed_vertices, posed_vertices._version
         return self._shell
 
     def camera_bounds(self, posed_vertices: torch.Tensor, camera: Camera) -> ShellBounds:
