@@ -343,7 +343,7 @@ class GarmentAnimationNeRF(nn.Module):
         with sw("surface"), torch.no_grad():
             verts = inputs.posed_vertices.detach().to("cpu", torch.float32).contiguous()
             normals = vertex_normals(verts, self._faces)
-            surface = self.projector.bind(verts if dev.type == "cpu" else verts.to(dev), torch.float32)
+            surface = self.bind_body(verts)
             aabb = body_aabb(verts)
         dynamic = reference_images = detail = None
         if cfg.use_dynamic_feature:
@@ -363,6 +363,13 @@ class GarmentAnimationNeRF(nn.Module):
         return FrameFeatures(verts, normals, surface, aabb, dynamic, reference_images, detail,
                              tuple(inputs.reference_cameras), inputs.reference_depth.detach().cpu(), inputs.frame,
                              timings)
+
+    def bind_body(self, posed_vertices: torch.Tensor):
+        """The body posed as ``posed_vertices (V, 3)`` bound for closest-point queries on the
+        model's device (the exact KD-tree search on the CPU, its dense twin elsewhere): what
+        :meth:`prepare_frame` puts in ``FrameFeatures.surface``."""
+        verts = posed_vertices.detach().to("cpu" if self.device.type == "cpu" else self.device, torch.float32)
+        return self.projector.bind(verts, torch.float32)
 
     # ------------------------------------------------------------------ per sample
     def sample_geometry(self, frame: FrameFeatures, positions: torch.Tensor) -> BodyPoints:
@@ -498,7 +505,6 @@ class GarmentAnimationNeRF(nn.Module):
             samples = sampler.bind(frame, camera.resized(fw, fh)).sample(pixels, training=training,
                                                                          generator=generator)
             n_rays = samples.n_rays
-            counts = torch.bincount(samples.ray_ids.cpu(), minlength=n_rays)
         evaluated = 0
 
         def field(index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -536,7 +542,7 @@ class GarmentAnimationNeRF(nn.Module):
                 opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
             feature_image = feat.T.reshape(C, fh, fw)
-        hit = counts > 0
+        hit = samples.hit.cpu()  # rays given a segment: exactly those with samples
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
                 "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
                 "samples_placed": int(samples.ray_ids.shape[0]), "points_projected": march.samples_evaluated,

@@ -195,7 +195,7 @@ class RenderSession:
         refs = self.scene if self.scene is not None else reference_cameras()
         self.gl_ctx = gl_ctx
         self.builder = FrameInputBuilder(gl_ctx, self.body, refs, self.config)
-        self.frames = FrameCache(lambda verts: self.model.projector.bind(verts, torch.float32), cache_mb,
+        self.frames = FrameCache(self.model.bind_body, cache_mb,
                                  half=cache_half)
         self._plans: dict[str, object] = {}  # preset name -> SamplingPlan
         self._height_range = None  # the garment's band, measured on first use
