@@ -177,6 +177,54 @@ def test_baseline_only_on_unseen_view(loaded, gl_context):
         evaluate_run(loaded, "bogus", progress=False, gl_context=gl_context)
 
 
+def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context, unseen_view_result):
+    """fg / body / garment PSNR (scikit-image on the region's pixels), IoU and sharpness of one view,
+    recomputed here from the render path's image and mask and the scene's labels; the margin."""
+    from scipy import ndimage
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.render.session import RenderSession
+
+    with RenderSession(loaded, gl_context, "train") as s:
+        nf = s.render(2, scene.camera("held00").camera, preset="reference")
+        pred, pred_sil = nf.composite().astype(np.float64), nf.mask() > 0.5
+    images = SceneImages(scene)
+    try:
+        gt, labels = images.image("train", "held00", 2)
+        near = unseen_view_result["baseline"]["nearest_camera"]["held00"]
+        near_img, near_labels = images.image("train", near, 2)
+    finally:
+        images.close()
+    gt = gt.astype(np.float64)
+    row = next(f for f in unseen_view_result["per_frame"] if f["frame"] == 2)
+    truth = labels != 0
+    for key, region in (("fg_psnr", truth | pred_sil), ("body_psnr", labels == 1), ("garment_psnr", labels == 2)):
+        assert region.any(), key
+        ref = peak_signal_noise_ratio(gt[region], pred[region], data_range=1.0)
+        assert row[key] == pytest.approx(ref, abs=1e-4), key
+    assert row["silhouette_iou"] == pytest.approx((truth & pred_sil).sum() / (truth | pred_sil).sum(), abs=1e-12)
+    inside = ndimage.binary_erosion(labels == 2, structure=np.ones((3, 3), bool), border_value=0)  # 1 px at 64
+
+    def energy(img):
+        luma = img @ np.array([0.299, 0.587, 0.114])
+        return float(np.sum((ndimage.sobel(luma, axis=1) ** 2 + ndimage.sobel(luma, axis=0) ** 2)[inside]))
+
+    if inside.any() and energy(gt) > 0:  # away from the image border, where the two Sobels agree
+        assert row["sharpness"] == pytest.approx(energy(pred) / energy(gt), rel=1e-3)
+    # the baseline's silhouette is its own ground-truth labels
+    base_row = next(f for f in unseen_view_result["baseline"]["per_frame"] if f["frame"] == 2)
+    near_sil = near_labels != 0
+    ref = peak_signal_noise_ratio(gt[truth | near_sil], near_img.astype(np.float64)[truth | near_sil], data_range=1.0)
+    assert base_row["fg_psnr"] == pytest.approx(ref, abs=1e-6)
+    r = unseen_view_result
+    assert r["resolution"] == "native"
+    assert r["margin_db"]["psnr"] == pytest.approx(r["means"]["psnr"] - r["baseline"]["means"]["psnr"])
+    assert r["margin_db"]["fg_psnr"] == pytest.approx(r["means"]["fg_psnr"] - r["baseline"]["means"]["fg_psnr"])
+    table = format_result_table(r)
+    assert "fg PSNR" in table and "margin over the nearest view" in table
+
+
 # ---- CLI ------------------------------------------------------------------------------------------
 def _one_line_error(capsys, argv, match):
     rc = main(argv)
@@ -203,6 +251,37 @@ def test_cli_errors(run_dir, tmp_path, capsys, scene):
                     "scene.json")
     _one_line_error(capsys, ["report", "--scene", str(scene.root), "--out", str(tmp_path / "r.md"),
                              "--variants", "bogus"], "unknown variant")
+
+
+def test_cli_eval_gallery(run_dir, scene, tmp_path, capsys):
+    """--gallery: one strip per kept view, ground truth | render | error | nearest view | error, the
+    ground-truth tile the scene's image."""
+    import imageio.v3 as iio
+
+    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.eval.gallery import CAPTION_PX
+
+    out = tmp_path / "gallery.png"
+    argv = ["eval", "--run", str(run_dir), "--split", "unseen_view", "--frames", "1:4", "--baseline",
+            "--gallery", str(out), "--gallery-views", "2", "--no-progress"]
+    assert main(argv) == 0
+    assert "wrote" in capsys.readouterr().out
+    sheet = iio.imread(out)
+    assert sheet.shape == (2 * (CAPTION_PX + 64), 5 * 64, 3)
+    images = SceneImages(scene)
+    try:
+        gt, _ = images.image("train", "held00", 1)  # the first view is always kept
+    finally:
+        images.close()
+    tile = sheet[CAPTION_PX:CAPTION_PX + 64, :64]
+    assert np.array_equal(tile, np.round(gt * 255).astype(np.uint8))
+    # asking again without --overwrite refuses, the file untouched
+    before = out.read_bytes()
+    _one_line_error(capsys, argv, "already exists")
+    assert out.read_bytes() == before
+    _one_line_error(capsys, argv[:-3] + ["--gallery-views", "0"], "--gallery-views")
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--resolution", "huge"],
+                    "--resolution")
 
 
 def test_cli_eval_json(run_dir, tmp_path, capsys):

@@ -360,3 +360,73 @@ def test_evaluate_sequence(st_alex):
     json.loads(s.to_json())
     short = M.evaluate_sequence(pred[:3], gt[:3])
     assert "tof" in short.unavailable and "tof" not in short.means()
+
+
+# ---- foreground figures ----------------------------------------------------------------------------
+def test_masked_psnr_matches_skimage_on_the_region():
+    from skimage.metrics import peak_signal_noise_ratio
+
+    rng = np.random.default_rng(3)
+    gt = rng.random((40, 50, 3))
+    pred = np.clip(gt + rng.normal(0, 0.05, gt.shape), 0, 1)
+    pred[:, :20] = gt[:, :20]  # exact outside the region: full-frame PSNR would be higher
+    region = np.zeros((40, 50), bool)
+    region[5:35, 18:45] = True
+    ref = peak_signal_noise_ratio(gt[region], pred[region], data_range=1.0)
+    assert M.masked_psnr(pred, gt, region) == pytest.approx(ref, abs=1e-9)
+    assert M.masked_psnr(pred, gt, region) < M.psnr(pred, gt)
+    assert M.masked_psnr(pred, gt, np.zeros((40, 50), bool)) is None
+    assert M.masked_psnr(gt, gt, region) == math.inf
+    with pytest.raises(ValueError, match="region"):
+        M.masked_psnr(pred, gt, region[:10])
+
+
+def test_silhouette_iou_of_overlapping_rectangles():
+    a = np.zeros((20, 20), bool)
+    b = np.zeros((20, 20), bool)
+    a[0:10, 0:10] = True
+    b[5:15, 0:10] = True  # 50 px shared, 150 px in the union
+    assert M.silhouette_iou(a, b) == pytest.approx(1 / 3)
+    assert M.silhouette_iou(a, a) == 1.0
+    assert M.silhouette_iou(np.zeros_like(a), np.zeros_like(a)) == 1.0
+    assert M.silhouette_iou(a, ~a) == 0.0
+
+
+def test_gradient_energy_against_scipy_sobel_and_a_ramp():
+    from scipy import ndimage
+
+    img = _structured_image(48, 64, seed=2)
+    luma = img @ np.array([0.299, 0.587, 0.114])
+    gx, gy = ndimage.sobel(luma, axis=1), ndimage.sobel(luma, axis=0)
+    inner = np.zeros(luma.shape, bool)
+    inner[1:-1, 1:-1] = True  # the two libraries pad the border differently
+    assert M.gradient_energy(img, inner) == pytest.approx(float(np.sum((gx ** 2 + gy ** 2)[inner])), rel=1e-9)
+    # a ramp of slope s per pixel: the 3x3 Sobel gives 8 s everywhere inside
+    ramp = np.repeat((0.2 + 0.01 * np.arange(30))[None, :, None], 20, axis=0).repeat(3, axis=2)
+    inner = np.zeros((20, 30), bool)
+    inner[1:-1, 1:-1] = True
+    assert M.gradient_energy(ramp, inner) == pytest.approx(inner.sum() * (8 * 0.01) ** 2, rel=1e-9)
+
+
+def test_sharpness_ratio_of_contrast_and_blur():
+    gt = 0.5 + 0.2 * (_structured_image(64, 64, seed=5) - 0.5)  # within [0.4, 0.6]: room for 2x contrast
+    region = np.ones((64, 64), bool)
+    assert M.sharpness_ratio(gt, gt, region) == pytest.approx(1.0)
+    doubled = 0.5 + 2.0 * (gt - 0.5)
+    assert M.sharpness_ratio(doubled, gt, region) == pytest.approx(4.0, rel=1e-9)  # energy is quadratic
+    blurred = cv2.GaussianBlur(gt, (0, 0), 2.0)
+    assert 0.0 < M.sharpness_ratio(blurred, gt, region) < 0.5
+    flat = np.full_like(gt, 0.3)
+    assert M.sharpness_ratio(gt, flat, region) is None  # nothing to keep
+
+
+def test_interior_matches_scipy_erosion():
+    from scipy import ndimage
+
+    region = np.zeros((30, 30), bool)
+    region[2:20, 5:28] = True
+    region[10:25, 0:8] = True  # touches the image border: outside counts as outside
+    got = M.interior(region, 2)
+    ref = ndimage.binary_erosion(region, structure=np.ones((5, 5), bool), border_value=0)
+    assert np.array_equal(got, ref)
+    assert M.interior(region, 0) is not None and np.array_equal(M.interior(region, 0), region)

@@ -17,7 +17,10 @@ def register(sub) -> None:
                     "the ground truth: PSNR, SSIM, LPIPS (needs $GARMENTNERF_LPIPS_ALEXNET, else reported "
                     "unavailable), shift-tolerant LPIPS and tOF. Splits: seen (training motion and cameras; "
                     "subsampled by default to 4 cameras x 30 frames), unseen_view (training motion, held-out "
-                    "cameras), unseen_motion (held-out motions, training cameras; 4 cameras by default).")
+                    "cameras), unseen_motion (held-out motions, training cameras; 4 cameras by default). Beside "
+                    "the full-frame figures: PSNR over the character (ground-truth or rendered pixels), per label "
+                    "(body, garment), silhouette IoU and a sharpness ratio (gradient energy of the render over the "
+                    "ground truth's inside the garment), and with --baseline the margin over the nearest view.")
     p.add_argument("--run", required=True, metavar="DIR", help="run folder (run.json + model.safetensors)")
     # not argparse choices: an unknown split is a one-line error like every other bad input
     p.add_argument("--split", required=True, metavar="SPLIT", help="seen, unseen_view or unseen_motion")
@@ -29,8 +32,15 @@ def register(sub) -> None:
                    help="comma-separated camera names of the split (default: the split's default)")
     p.add_argument("--baseline", action="store_true",
                    help="also score the nearest-training-view baseline (split unseen_view only)")
+    p.add_argument("--resolution", default="native", metavar="RES",
+                   help="native (the scene's image size: a model's blur shows; default) or model (the model's "
+                        "internal resolution, the trainer's targets)")
     p.add_argument("--json", default=None, metavar="FILE", help="write the full result (per frame) as JSON")
-    p.add_argument("--overwrite", action="store_true", help="replace --json if it exists")
+    p.add_argument("--gallery", default=None, metavar="FILE",
+                   help="write a PNG of ground truth | render | error strips for a few views")
+    p.add_argument("--gallery-views", type=int, default=4, metavar="N",
+                   help="views in the gallery, evenly spread over the evaluation (default: 4)")
+    p.add_argument("--overwrite", action="store_true", help="replace --json / --gallery if they exist")
     p.add_argument("--preset", default="reference", metavar="NAME",
                    help="render preset: reference (the paper's sampling, default), full, balanced or interactive "
                         "(the rows of 'garmentnerf bench --run')")
@@ -76,7 +86,8 @@ def register(sub) -> None:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from garmentnerf.eval.evaluate import SPLITS, evaluate_run, format_result_table, parse_frame_range
+    from garmentnerf.eval.evaluate import RESOLUTIONS, SPLITS, evaluate_run, format_result_table, parse_frame_range
+    from garmentnerf.eval.gallery import Gallery
     from garmentnerf.io_utils import atomic_write_path
     from garmentnerf.cli.common import check_output_file, parse_device
     from garmentnerf.perf.presets import get_render_preset
@@ -89,6 +100,10 @@ def run_eval(args: argparse.Namespace) -> int:
         get_render_preset(args.preset)
     except ValueError as e:
         raise ValueError(f"--preset: {e}") from None
+    if args.resolution not in RESOLUTIONS:
+        raise ValueError(f"--resolution: unknown resolution '{args.resolution}' (known: {', '.join(RESOLUTIONS)})")
+    if args.gallery_views < 1:
+        raise ValueError(f"--gallery-views must be at least 1, got {args.gallery_views}")
     if args.baseline and args.split != "unseen_view":
         raise ValueError(f"--baseline (nearest training view) is defined for --split unseen_view only, "
                          f"not '{args.split}'")
@@ -99,15 +114,21 @@ def run_eval(args: argparse.Namespace) -> int:
     parse_device(args.device)
     if args.json is not None:
         check_output_file(args.json, "--json", args.overwrite)
+    if args.gallery is not None:
+        check_output_file(args.gallery, "--gallery", args.overwrite)
     if args.scene is not None and not (Path(args.scene) / "scene.json").is_file():
         raise FileNotFoundError(f"--scene {args.scene}: no scene.json")
     run = load_run(args.run, device=args.device, scene=args.scene)
     if run.scene is None:
         raise ValueError(f"{args.run}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
                          f"pass --scene DIR")
+    gallery = Gallery(args.gallery_views) if args.gallery is not None else None
     result = evaluate_run(run, args.split, frames=frames, cameras=args.cameras, progress=not args.no_progress,
-                          baseline=args.baseline, preset=args.preset)
+                          baseline=args.baseline, preset=args.preset, resolution=args.resolution, gallery=gallery)
     print(format_result_table(result))
+    if gallery is not None:
+        gallery.write(args.gallery, overwrite=args.overwrite)
+        print(f"eval: wrote {args.gallery} ({len(gallery)} views)")
     if args.json is not None:
         text = json.dumps(result, indent=1, allow_nan=False)
         with atomic_write_path(args.json, overwrite=args.overwrite) as tmp:

@@ -18,17 +18,24 @@ Splits (what is compared with what)
 
     Explicit ``frames`` / ``cameras`` replace these defaults (no subsampling then).
 
+Resolution (``resolution``)
+    ``native`` (default): the scene camera's own image size (512 x 512 for the bundled demo), so
+    that a model's blur shows: the model renders at its trained pixel density and its maps are
+    resampled (bilinear) to that size, as the previewer shows them. ``model``: the camera resized
+    to the model's image resolution (longer side ``cfg.image_resolution``, the other side
+    proportional), the size of the trainer's targets.
+
 How an image is made (identical to training, the viewer and ``garmentnerf render``)
     Prediction: :class:`~garmentnerf.render.session.RenderSession` (the one render path) renders
-    the scene camera resized to the model's image resolution (longer side
-    ``cfg.image_resolution``, the other side proportional) with a render preset (default
-    ``reference``: the paper's sampling at ``scale=1``, exactly the rays the model was trained
-    with; another preset renders at its resolution scale and is resampled to that size) -- and :meth:`NeuralFrame.composite` composes the decomposed maps
-    with the run's learned palette over ``cfg.background``.
+    the evaluation camera with a render preset (default ``reference``: the paper's sampling at
+    quality 1, the pixel density the model was trained with; another preset renders at its own
+    quality) and :meth:`NeuralFrame.composite` composes the decomposed maps with the run's
+    learned palette over ``cfg.background`` at the evaluation size.
     Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene.SceneImages`)
-    area-downsampled to the same size and composited over ``cfg.background`` with the
-    area-downsampled foreground coverage -- the trainer's targets
-    (:class:`~garmentnerf.train.frames.SceneFrames`), byte for byte.
+    area-downsampled to the evaluation size when it is smaller and composited over
+    ``cfg.background`` with the area-downsampled foreground coverage -- at the model's
+    resolution, the trainer's targets (:class:`~garmentnerf.train.frames.SceneFrames`), byte for
+    byte. Its labels (0 background, 1 body, 2 garment) are nearest-resampled.
 
 Metrics (conventions in :mod:`garmentnerf.eval.metrics`)
     Per frame: ``psnr``, ``ssim``, ``stlpips_alex`` (shift-tolerant LPIPS, its own metric) and
@@ -37,8 +44,21 @@ Metrics (conventions in :mod:`garmentnerf.eval.metrics`)
     (sequence, camera): tOF over the consecutive evaluated frames (TecoGAN: at least 6 frames,
     2 skipped at each end; listed in ``unavailable`` with the reason when no camera has enough,
     or when the chosen frames are not consecutive). Means: PSNR, SSIM and the perceptual
-    distances over every evaluated image (PSNR capped per frame at 100 dB), tOF over every
+    distances over every evaluated image (every PSNR capped per frame at 100 dB), tOF over every
     evaluated frame pair of every camera.
+
+Foreground (what a user looks at; full-frame PSNR over a black background is mostly background)
+    The character's silhouette is the ground truth's labelled pixels; the prediction's is where
+    its mask ``m > 0.5`` (the nearest-view baseline's: its ground-truth labels).
+    ``fg_psnr``: PSNR over the union of both silhouettes (a missing or an extra limb counts).
+    ``body_psnr`` / ``garment_psnr``: PSNR over the ground truth's body / garment pixels.
+    ``silhouette_iou``: intersection over union of the two silhouettes.
+    ``sharpness``: gradient energy (squared Sobel magnitude of the luma) of the prediction over
+    the ground truth's, inside the garment at least :data:`SHARPNESS_MARGIN` pixels (at 512 px)
+    from its outline: 1 keeps the folds, 0.5 has lost half their contrast energy.
+    A figure whose region is empty in a view (e.g. no body pixel) is left out of that view's row
+    and of the mean. With a baseline, ``margin_db`` is the model's mean PSNR and ``fg_psnr``
+    minus the nearest view's: the paper's yardstick, independent of the framing.
 
 Nearest-view baseline (the paper's "nearest view" row)
     For each evaluated view (camera ``c``, frame ``t``) the prediction is simply the ground-truth
@@ -54,18 +74,20 @@ Nearest-view baseline (the paper's "nearest view" row)
 Result (:func:`evaluate_run`): a strict-JSON-serialisable dict (non-finite floats as the strings
 ``"inf"``/``"nan"``, see :class:`~garmentnerf.eval.metrics.MetricSummary`)::
 
-    {"format": "garmentnerf-eval", "version": 1, "method": "model",
+    {"format": "garmentnerf-eval", "version": 2, "method": "model",
      "run": "...", "step": N, "scene": "...", "split": "unseen_view",
      "sequences": {"train": [frames...]}, "cameras": [...], "subsampled": false,
-     "selection": "how frames/cameras were chosen", "resolution_wh": [W, H],
+     "selection": "how frames/cameras were chosen", "resolution": "native", "resolution_wh": [W, H],
      "background": [r, g, b], "psnr_cap_db": 100.0, "palette": [[r, g, b], ...],
-     "means": {"psnr": .., "ssim": .., "stlpips_alex": .., "tof": ..},
+     "means": {"psnr": .., "ssim": .., "stlpips_alex": .., "tof": .., "fg_psnr": .., "body_psnr": ..,
+               "garment_psnr": .., "silhouette_iou": .., "sharpness": ..},
      "counts": {"images": .., "tof_pairs": ..},
      "unavailable": {"lpips_alex": "reason", ...},
      "per_frame": [{"sequence", "camera", "frame", "psnr", "ssim", "stlpips_alex"}, ...],
      "per_camera": [{"sequence", "camera", "means", "tof": {...}}, ...],
      "seconds": ..,
-     "baseline": {... the same keys, "method": "nearest_view", "nearest_camera": {cam: train cam}}}
+     "baseline": {... the same keys, "method": "nearest_view", "nearest_camera": {cam: train cam}},
+     "margin_db": {"psnr": .., "fg_psnr": ..}}
 """
 
 from __future__ import annotations
@@ -75,19 +97,32 @@ import math
 import sys
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, mean_psnr, psnr, ssim,
+from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, interior, is_psnr_metric,
+                                      masked_psnr, mean_psnr, psnr, sharpness_ratio, silhouette_iou, ssim,
                                       temporal_flow_error, to_grey_uint8)
 
-__all__ = ["SPLITS", "DEFAULT_LIMITS", "EVAL_FORMAT", "evaluate_run", "nearest_camera", "select_views",
-           "eval_size", "parse_frame_range", "perceptual_metrics", "format_result_table", "BaselineNotDefined"]
+if TYPE_CHECKING:
+    from garmentnerf.eval.gallery import Gallery
+
+__all__ = ["SPLITS", "RESOLUTIONS", "DEFAULT_LIMITS", "EVAL_FORMAT", "evaluate_run", "nearest_camera",
+           "select_views", "eval_size", "parse_frame_range", "perceptual_metrics", "foreground_metrics",
+           "GroundTruthView", "format_result_table", "BaselineNotDefined"]
 
 EVAL_FORMAT = "garmentnerf-eval"
-EVAL_VERSION = 1
+EVAL_VERSION = 2
+
+#: Evaluation resolutions: the scene's image size, or the model's internal resolution.
+RESOLUTIONS = ("native", "model")
+
+#: Pixels (at 512 x 512, proportionally at other sizes) between the garment's silhouette and the
+#: region its sharpness is measured in: folds inside the garment, not its outline.
+SHARPNESS_MARGIN = 3
 
 #: Evaluation splits.
 SPLITS = ("seen", "unseen_view", "unseen_motion")
@@ -275,8 +310,11 @@ def nearest_camera(scene, camera: str, candidates: Sequence[str]) -> tuple[str, 
     return best, best_angle
 
 
-def eval_size(config, camera) -> tuple[int, int]:
-    """(w, h) of the evaluation images: longer side ``config.image_resolution``, aspect kept."""
+def eval_size(config, camera, resolution: str = "model") -> tuple[int, int]:
+    """(w, h) of the evaluation images: the camera's own size for ``native``; for ``model`` the
+    longer side ``config.image_resolution``, aspect kept."""
+    if resolution == "native":
+        return int(camera.width), int(camera.height)
     R = int(config.image_resolution)
     W, H = int(camera.width), int(camera.height)
     s = R / max(W, H)
@@ -317,8 +355,23 @@ def perceptual_metrics(lpips_backbone: str | None = None) -> tuple[list, dict[st
 # Ground truth
 # ---------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class GroundTruthView:
+    """One ground-truth view at the evaluation size.
+
+    Attributes:
+        image: (h, w, 3) float32 in [0, 1], composited over the run's background as the trainer's
+            targets are (area-downsampled colour and coverage when the size is below the scene's).
+        labels: (h, w) uint8 pixel labels (0 background, 1 body, 2 garment;
+            :mod:`garmentnerf.data.render_gt`), nearest-resampled when the size differs.
+    """
+
+    image: np.ndarray
+    labels: np.ndarray
+
+
 class _GroundTruth:
-    """Ground-truth images at the evaluation size, composited as the trainer's targets."""
+    """Ground-truth views at the evaluation size, composited as the trainer's targets."""
 
     def __init__(self, scene, ctx, body, background, cache_images: int = 64):
         from garmentnerf.data.render_gt import GroundTruthRenderer
@@ -327,27 +380,30 @@ class _GroundTruth:
         self.renderer = GroundTruthRenderer(ctx)
         self.images = SceneImages(scene, renderer=self.renderer, body_model=body)
         self.background = tuple(float(c) for c in background)
-        self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._cache: OrderedDict[tuple, GroundTruthView] = OrderedDict()
         self.cache_images = cache_images
 
-    def image(self, sequence: str, camera: str, frame: int, size: tuple[int, int]) -> np.ndarray:
-        """(h, w, 3) float32 in [0, 1] over the background (see the module docstring)."""
+    def view(self, sequence: str, camera: str, frame: int, size: tuple[int, int]) -> GroundTruthView:
+        """The view of ``camera`` at ``frame`` at ``size`` = (w, h) (see :class:`GroundTruthView`)."""
         key = (sequence, camera, int(frame), tuple(size))
         hit = self._cache.get(key)
         if hit is not None:
             self._cache.move_to_end(key)
             return hit
+        import cv2
         import torch
 
         from garmentnerf.train.frames import area_resize
 
         rgb, labels = self.images.image(sequence, camera, frame)
         image = area_resize(rgb, size)
-        mask = area_resize((labels != 0).astype(np.float32), size)
+        coverage = area_resize((labels != 0).astype(np.float32), size)
         bg = torch.tensor(self.background, dtype=torch.float32).view(3, 1, 1)
         if bool((bg != 0).any()):
-            image = image + (1.0 - mask) * bg
-        out = image.clamp(0.0, 1.0).permute(1, 2, 0).contiguous().numpy()
+            image = image + (1.0 - coverage) * bg
+        if labels.shape[::-1] != tuple(size):
+            labels = cv2.resize(labels, tuple(size), interpolation=cv2.INTER_NEAREST)
+        out = GroundTruthView(image.clamp(0.0, 1.0).permute(1, 2, 0).contiguous().numpy(), labels)
         self._cache[key] = out
         while len(self._cache) > self.cache_images:
             self._cache.popitem(last=False)
@@ -356,6 +412,32 @@ class _GroundTruth:
     def close(self) -> None:
         self.images.close()
         self.renderer.release()
+
+
+def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouette: np.ndarray) -> dict[str, float]:
+    """The figures over the character (see the module docstring, "Foreground").
+
+    Args:
+        pred: (h, w, 3) prediction in [0, 1] over the same background as ``target.image``.
+        target: the ground-truth view (image and labels).
+        pred_silhouette: (h, w) bool, where the prediction shows the character.
+    Returns:
+        ``fg_psnr``, ``body_psnr``, ``garment_psnr``, ``silhouette_iou``, ``sharpness``; a
+        figure whose region is empty in this view is left out.
+    """
+    from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT
+
+    truth = target.labels != 0
+    garment = target.labels == LABEL_GARMENT
+    margin = max(1, round(SHARPNESS_MARGIN * max(truth.shape) / 512))
+    values = {
+        "fg_psnr": masked_psnr(pred, target.image, truth | pred_silhouette),
+        "body_psnr": masked_psnr(pred, target.image, target.labels == LABEL_BODY),
+        "garment_psnr": masked_psnr(pred, target.image, garment),
+        "silhouette_iou": silhouette_iou(pred_silhouette, truth),
+        "sharpness": sharpness_ratio(pred, target.image, interior(garment, margin)),
+    }
+    return {k: v for k, v in values.items() if v is not None}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -371,10 +453,16 @@ class _Scores:
         self.summaries: "OrderedDict[tuple[str, str], MetricSummary]" = OrderedDict()
         self._greys: dict[tuple[str, str], tuple[list, list]] = {}
 
-    def add(self, sequence: str, camera: str, frame: int, pred: np.ndarray, gt: np.ndarray) -> dict:
-        values = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
+    def add(self, sequence: str, camera: str, frame: int, pred: np.ndarray, gt, *,
+            pred_silhouette: np.ndarray | None = None) -> dict:
+        """Score one view. ``gt`` is an (h, w, 3) image, or a :class:`GroundTruthView`, which with
+        ``pred_silhouette`` ((h, w) bool) adds the foreground figures."""
+        target = gt.image if isinstance(gt, GroundTruthView) else gt
+        values = {"psnr": psnr(pred, target), "ssim": ssim(pred, target)}
         for m in self.perceptual:
-            values[m.metric_name] = m.distance(pred, gt)
+            values[m.metric_name] = m.distance(pred, target)
+        if isinstance(gt, GroundTruthView) and pred_silhouette is not None:
+            values.update(foreground_metrics(pred, gt, pred_silhouette))
         key = (sequence, camera)
         summary = self.summaries.get(key)
         if summary is None:
@@ -383,7 +471,7 @@ class _Scores:
         summary.add_frame(frame, **values)
         preds, gts = self._greys[key]
         preds.append(to_grey_uint8(pred))
-        gts.append(to_grey_uint8(gt))
+        gts.append(to_grey_uint8(target))
         row = {"sequence": sequence, "camera": camera, "frame": int(frame), **values}
         self.per_frame.append(row)
         return row
@@ -419,7 +507,7 @@ class _Scores:
             names.extend(k for k in row if k not in ("sequence", "camera", "frame") and k not in names)
         for name in names:
             v = [row[name] for row in self.per_frame if name in row]
-            means[name] = mean_psnr(v, PSNR_CAP_DB) if name == "psnr" else float(np.mean(v))
+            means[name] = mean_psnr(v, PSNR_CAP_DB) if is_psnr_metric(name) else float(np.mean(v))
         if pairs:
             means["tof"] = float(np.mean(pairs))
         else:
@@ -438,7 +526,8 @@ def _consecutive(frames: list[int]) -> bool:
 
 def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = True, *, baseline: bool = False,
                  model: bool = True, gl_context=None, scene=None, device: str = "cpu",
-                 lpips_backbone: str | None = None, tof: bool = True, preset: str = "reference") -> dict:
+                 lpips_backbone: str | None = None, tof: bool = True, preset: str = "reference",
+                 resolution: str = "native", gallery: "Gallery | None" = None) -> dict:
     """Render and score a run on one split (see the module docstring for every convention).
 
     Args:
@@ -457,25 +546,99 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         lpips_backbone: AlexNet weights for LPIPS (default ``$GARMENTNERF_LPIPS_ALEXNET``).
         tof: compute tOF.
         preset: the render preset (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`; default
-            ``reference``, the paper's sampling); the image is rendered at the preset's
-            resolution scale of the evaluation size.
+            ``reference``, the paper's sampling), rendered at its quality (resolution scale).
+        resolution: ``native`` (the scene's image size, default) or ``model`` (the model's
+            image resolution), see :data:`RESOLUTIONS`.
+        gallery: a :class:`~garmentnerf.eval.gallery.Gallery` that keeps a few views' images.
     Returns:
         A strict-JSON-serialisable dict (layout in the module docstring).
     Raises:
-        ValueError: unknown split, run without a scene, baseline on another split, bad selection.
+        ValueError: unknown split or resolution, run without a scene, baseline on another split,
+            bad selection.
     """
     from garmentnerf.perf.presets import get_render_preset
 
     t_start = time.perf_counter()
     render_preset = get_render_preset(preset)
+    _check_request(split, baseline, model, resolution)
+    run = _loaded(run, device, scene)
+    scene_obj, cfg = run.scene, run.config
+    sel = select_views(run, scene_obj, split, frames, cameras)
+    background = tuple(float(c) for c in cfg.background)
+    perceptual, unavailable = perceptual_metrics(lpips_backbone)
+    nearest = {c: dict(zip(("camera", "angle_deg"), nearest_camera(scene_obj, c, sel["train_cameras"])))
+               for c in sel["cameras"]} if baseline else {}
+    scores = _Scores(perceptual) if model else None
+    base_scores = _Scores(perceptual) if baseline else None
+    views = _ViewPlan(scene_obj, cfg, sel, resolution)
+
+    own_ctx = None
+    if gl_context is None:
+        from garmentnerf.gl.context import create_context
+
+        gl_context = own_ctx = create_context(headless=True)
+    session = gt = bar = None
+    try:
+        gt = _GroundTruth(scene_obj, gl_context, run.model.body, background)
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=views.total, desc=f"eval {split}", unit="view", file=sys.stderr, dynamic_ncols=True)
+        if model:
+            from garmentnerf.render.session import RenderSession
+
+            session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])))
+        if gallery is not None:
+            gallery.plan(views.total)
+        for index, (seq, frame, cam) in enumerate(views):
+            size = views.size(cam)
+            target = gt.view(seq, cam, frame, size)
+            shown: dict[str, np.ndarray] = {}
+            if scores is not None:
+                if session.sequence != seq:
+                    session.set_motion(seq)
+                nf = session.render(frame, views.camera(cam), quality=render_preset.resolution_scale,
+                                    preset=render_preset)
+                shown["render"] = nf.composite(None, background)
+                row = scores.add(seq, cam, frame, shown["render"], target, pred_silhouette=nf.mask() > 0.5)
+            if base_scores is not None:
+                near = nearest[cam]["camera"]
+                if views.size(near) != size:
+                    raise ValueError(f"nearest-view baseline: camera '{near}' has another image size than '{cam}'")
+                near_view = gt.view(seq, near, frame, size)
+                shown["nearest view"] = near_view.image
+                base_row = base_scores.add(seq, cam, frame, near_view.image, target,
+                                           pred_silhouette=near_view.labels != 0)
+                row = row if scores is not None else base_row
+            if gallery is not None and gallery.wants(index):
+                gallery.add(f"{seq} {cam} frame {frame}", target.image, shown, row)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        for closable in (bar, session, gt):
+            if closable is not None:
+                closable.close()
+        if own_ctx is not None:
+            own_ctx.release()
+    return _encode_float(_result(run, split, sel, views, render_preset, background, unavailable, scores,
+                                 base_scores, nearest, tof, time.perf_counter() - t_start))
+
+
+def _check_request(split: str, baseline: bool, model: bool, resolution: str) -> None:
     if split not in SPLITS:
         raise ValueError(f"unknown split '{split}' (known: {', '.join(SPLITS)})")
+    if resolution not in RESOLUTIONS:
+        raise ValueError(f"unknown resolution '{resolution}' (known: {', '.join(RESOLUTIONS)})")
     if baseline and split != "unseen_view":
         raise BaselineNotDefined(f"the nearest-view baseline is defined for split 'unseen_view' only (for 'seen' the "
                                  f"nearest training view is the view itself; for 'unseen_motion' no training "
                                  f"image of the frame exists), not '{split}'")
     if not model and not baseline:
         raise ValueError("nothing to evaluate: model=False and baseline=False")
+
+
+def _loaded(run, device: str, scene):
+    """The loaded run (a folder is loaded), with its scene present."""
     if isinstance(run, (str, Path)):
         from garmentnerf.train.run import load_run
 
@@ -484,92 +647,63 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         where = (run.info or {}).get("scene")
         raise ValueError(f"{run.root}: the run's scene folder ({where or 'not recorded'}) is missing; "
                          f"pass the scene explicitly (--scene DIR)")
-    scene_obj = run.scene
-    cfg = run.config
-    sel = select_views(run, scene_obj, split, frames, cameras)
-    background = tuple(float(c) for c in cfg.background)
-    perceptual, unavailable = perceptual_metrics(lpips_backbone)
-    nearest = {}
-    if baseline:
-        for c in sel["cameras"]:
-            name, angle = nearest_camera(scene_obj, c, sel["train_cameras"])
-            nearest[c] = {"camera": name, "angle_deg": angle}
+    return run
 
-    own_ctx = None
-    if gl_context is None:
-        from garmentnerf.gl.context import create_context
 
-        gl_context = own_ctx = create_context(headless=True)
-    session = None
-    gt = None
-    bar = None
-    scores = _Scores(perceptual) if model else None
-    base_scores = _Scores(perceptual) if baseline else None
-    try:
-        gt = _GroundTruth(scene_obj, gl_context, run.model.body, background)
-        total = sum(len(f) for f in sel["sequences"].values()) * len(sel["cameras"])
-        if progress:
-            from tqdm import tqdm
+class _ViewPlan:
+    """The evaluated views in order (sequences, then frames, then cameras: a frame's features are
+    computed once) and each camera at the evaluation resolution."""
 
-            bar = tqdm(total=total, desc=f"eval {split}", unit="view", file=sys.stderr, dynamic_ncols=True)
-        if model:
-            from garmentnerf.render.session import RenderSession
+    def __init__(self, scene, cfg, selection: dict, resolution: str):
+        self.selection = selection
+        self.resolution = resolution
+        self._cameras = {}
+        for cam in set(selection["cameras"]) | set(selection["train_cameras"]):
+            camera = scene.camera(cam).camera
+            self._cameras[cam] = camera.resized(*eval_size(cfg, camera, resolution))
 
-            session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])))
-        for seq, frame_list in sel["sequences"].items():
-            if session is not None and session.sequence != seq:
-                session.set_motion(seq)
-            for frame in frame_list:  # frames outer: the per-frame features are computed once
-                for cam in sel["cameras"]:
-                    camera = scene_obj.camera(cam).camera
-                    size = eval_size(cfg, camera)
-                    target = gt.image(seq, cam, frame, size)
-                    if scores is not None:
-                        nf = session.render(frame, camera.resized(*size), preset=render_preset,
-                                            scale=render_preset.resolution_scale)
-                        pred = nf.composite(None, background)
-                        scores.add(seq, cam, frame, pred, target)
-                    if base_scores is not None:
-                        near = nearest[cam]["camera"]
-                        near_size = eval_size(cfg, scene_obj.camera(near).camera)
-                        if near_size != size:
-                            raise ValueError(f"nearest-view baseline: camera '{near}' has another image size "
-                                             f"than '{cam}'")
-                        base_scores.add(seq, cam, frame, gt.image(seq, near, frame, size), target)
-                    if bar is not None:
-                        bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-        if session is not None:
-            session.close()
-        if gt is not None:
-            gt.close()
-        if own_ctx is not None:
-            own_ctx.release()
+    @property
+    def total(self) -> int:
+        return sum(len(f) for f in self.selection["sequences"].values()) * len(self.selection["cameras"])
 
+    def __iter__(self):
+        for seq, frame_list in self.selection["sequences"].items():
+            for frame in frame_list:
+                for cam in self.selection["cameras"]:
+                    yield seq, frame, cam
+
+    def camera(self, name: str):
+        """The scene camera ``name`` resized to the evaluation size."""
+        return self._cameras[name]
+
+    def size(self, name: str) -> tuple[int, int]:
+        camera = self._cameras[name]
+        return int(camera.width), int(camera.height)
+
+
+def _result(run, split: str, sel, views: _ViewPlan, render_preset, background, unavailable, scores, base_scores, nearest,
+            tof: bool, seconds: float) -> dict:
+    """The result dict of :func:`evaluate_run` (layout in the module docstring)."""
     consecutive = {s: _consecutive(f) for s, f in sel["sequences"].items()}
-    first_cam = scene_obj.camera(sel["cameras"][0]).camera
     common = {
         "format": EVAL_FORMAT, "version": EVAL_VERSION,
-        "run": str(run.root), "step": int(run.step), "scene": str(scene_obj.root), "split": split, "preset": render_preset.name,
+        "run": str(run.root), "step": int(run.step), "scene": str(run.scene.root), "split": split,
+        "preset": render_preset.name, "resolution": views.resolution,
         "sequences": {s: list(f) for s, f in sel["sequences"].items()}, "cameras": list(sel["cameras"]),
         "train_cameras": list(sel["train_cameras"]), "subsampled": bool(sel["subsampled"]),
-        "selection": sel["selection"], "resolution_wh": list(eval_size(cfg, first_cam)),
+        "selection": sel["selection"], "resolution_wh": list(views.size(sel["cameras"][0])),
         "background": list(background), "data_range": 1.0, "psnr_cap_db": PSNR_CAP_DB,
     }
 
     def result_of(s: _Scores, method: str) -> dict:
-        r = dict(common)
-        r["method"] = method
         part = s.finish(consecutive, tof)
-        r.update({"means": part["means"], "counts": part["counts"],
-                  "unavailable": {**unavailable, **part["unavailable"]},
-                  "per_frame": part["per_frame"], "per_camera": part["per_camera"]})
-        return r
+        return {**common, "method": method, "means": part["means"], "counts": part["counts"],
+                "unavailable": {**unavailable, **part["unavailable"]},
+                "per_frame": part["per_frame"], "per_camera": part["per_camera"]}
 
     out = result_of(scores, "model") if scores is not None else None
     if out is not None:
+        cfg = run.config
         out["palette"] = run.palette().cpu().tolist()
         out["model_config"] = {k: v for k, v in cfg.to_dict().items()
                                if k in ("image_resolution", "history", "use_detail_feature",
@@ -584,15 +718,22 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
             out = b
         else:
             out["baseline"] = b
-    out["seconds"] = time.perf_counter() - t_start
-    return _encode_float(out)
+            out["margin_db"] = {m: out["means"][m] - b["means"][m] for m in ("psnr", "fg_psnr")
+                                if m in out["means"] and m in b["means"]}
+    out["seconds"] = seconds
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
 # Text output
 # ---------------------------------------------------------------------------------------------
 
-_HEAD = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips_alex": "LPIPS↓", "stlpips_alex": "ST-LPIPS↓", "tof": "tOF↓"}
+_HEAD = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips_alex": "LPIPS↓", "stlpips_alex": "ST-LPIPS↓", "tof": "tOF↓",
+         "fg_psnr": "fg PSNR↑", "body_psnr": "body PSNR↑", "garment_psnr": "garment PSNR↑",
+         "silhouette_iou": "IoU↑", "sharpness": "sharpness→1"}
+
+#: The foreground figures in report order (a second table).
+FOREGROUND_ORDER = ("fg_psnr", "body_psnr", "garment_psnr", "silhouette_iou", "sharpness")
 
 
 def _fmt(v) -> str:
@@ -606,21 +747,29 @@ def _fmt(v) -> str:
 
 
 def format_result_table(result: dict) -> str:
-    """A small plain-text table of an :func:`evaluate_run` result (model and baseline rows)."""
+    """A small plain-text table of an :func:`evaluate_run` result (model and baseline rows; the
+    foreground figures in a second table; the margin over the nearest view last)."""
     rows = []
     if result.get("method"):
         rows.append((result["method"], result))
     if result.get("baseline"):
         rows.append((result["baseline"]["method"], result["baseline"]))
-    metrics = [m for m in METRIC_ORDER if any(m in r["means"] for _, r in rows)]
-    header = ["method"] + [_HEAD[m] for m in metrics]
-    table = [header] + [[name] + [_fmt(r["means"].get(m)) for m in metrics] for name, r in rows]
-    widths = [max(len(str(row[i])) for row in table) for i in range(len(header))]
-    lines = ["  ".join(str(c).ljust(w) for c, w in zip(row, widths)).rstrip() for row in table]
     frames = sum(len(f) for f in result["sequences"].values())
-    lines.insert(0, f"split {result['split']}: {len(result['cameras'])} camera(s) x {frames} frame(s) at "
-                    f"{result['resolution_wh'][0]}x{result['resolution_wh'][1]}, step {result['step']}"
-                    + (" (subsampled)" if result.get("subsampled") else ""))
+    lines = [f"split {result['split']}: {len(result['cameras'])} camera(s) x {frames} frame(s) at "
+             f"{result['resolution_wh'][0]}x{result['resolution_wh'][1]} ({result.get('resolution', 'model')}), "
+             f"step {result['step']}" + (" (subsampled)" if result.get("subsampled") else "")]
+    for order in (METRIC_ORDER, FOREGROUND_ORDER):
+        metrics = [m for m in order if any(m in r["means"] for _, r in rows)]
+        if not metrics:
+            continue
+        header = ["method"] + [_HEAD[m] for m in metrics]
+        table = [header] + [[name] + [_fmt(r["means"].get(m)) for m in metrics] for name, r in rows]
+        widths = [max(len(str(row[i])) for row in table) for i in range(len(header))]
+        lines += ["  ".join(str(c).ljust(w) for c, w in zip(row, widths)).rstrip() for row in table]
+    margin = result.get("margin_db") or {}
+    if margin:
+        lines.append("margin over the nearest view: " + ", ".join(
+            f"{_HEAD[m].rstrip('↑')} {_fmt(v)} dB" for m, v in margin.items()))
     for name, reason in result.get("unavailable", {}).items():
         lines.append(f"{name}: unavailable ({reason})")
     return "\n".join(lines)

@@ -126,6 +126,12 @@ def psnr(pred, target, data_range: float = 1.0) -> float:
     return 10.0 * math.log10(data_range * data_range / mse)
 
 
+def is_psnr_metric(name: str) -> bool:
+    """Whether a metric name is a PSNR (``psnr``, ``fg_psnr``, ``garment_psnr``, ...): its mean
+    caps each frame (:func:`mean_psnr`)."""
+    return name == "psnr" or name.endswith("_psnr")
+
+
 def mean_psnr(values: Iterable[float], cap_db: float = PSNR_CAP_DB) -> float:
     """Mean of per-frame PSNR values with each capped at ``cap_db`` (so +inf counts as the cap)."""
     v = np.asarray(list(values), dtype=np.float64)
@@ -154,6 +160,84 @@ def ssim(pred, target, data_range: float = 1.0) -> float:
         ssim_map = kornia.metrics.ssim(pt, tt, window_size=SSIM_WINDOW, max_val=float(data_range), eps=0.0,
                                        padding="valid")
     return float(ssim_map.mean())
+
+
+# ---------------------------------------------------------------------------------------------
+# Foreground: what users look at
+# ---------------------------------------------------------------------------------------------
+
+def masked_psnr(pred, target, region: np.ndarray, data_range: float = 1.0) -> float | None:
+    """PSNR over the pixels of ``region`` only (every channel), dB.
+
+    Args:
+        pred, target: (H, W, C) images in [0, 1] (or uint8).
+        region: (H, W) bool, the pixels that count.
+    Returns:
+        ``10 log10(data_range^2 / MSE)`` with the MSE over the region's pixels and channels;
+        ``+inf`` for a region reproduced exactly; None for an empty region (no value, not a stand-in).
+    """
+    p, t = _image_pair(pred, target)
+    region = np.asarray(region, dtype=bool)
+    if region.shape != p.shape[:2]:
+        raise ValueError(f"region {region.shape} does not match the images {p.shape[:2]}")
+    if not region.any():
+        return None
+    mse = float(np.mean((p[region] - t[region]) ** 2))
+    if mse == 0.0:
+        return float("inf")
+    return 10.0 * math.log10(data_range * data_range / mse)
+
+
+def silhouette_iou(pred_region: np.ndarray, target_region: np.ndarray) -> float:
+    """Intersection over union of two (H, W) bool silhouettes; 1 when both are empty."""
+    a = np.asarray(pred_region, dtype=bool)
+    b = np.asarray(target_region, dtype=bool)
+    union = int(np.count_nonzero(a | b))
+    return 1.0 if union == 0 else int(np.count_nonzero(a & b)) / union
+
+
+def gradient_energy(image, region: np.ndarray) -> float:
+    """Sum over ``region`` of the squared Sobel gradient magnitude of the image's luma.
+
+    Args:
+        image: (H, W, 3) image in [0, 1] (or uint8).
+        region: (H, W) bool.
+    Returns:
+        ``sum(gx^2 + gy^2)`` over the region, with ``gx, gy`` the 3x3 Sobel derivatives
+        (``cv2.Sobel``, reflected border) of ``0.299 R + 0.587 G + 0.114 B`` in float64.
+    """
+    import cv2
+
+    img = _as_float64_image(image, "image")
+    luma = img[..., :3] @ np.array([0.299, 0.587, 0.114])
+    gx = cv2.Sobel(luma, cv2.CV_64F, 1, 0, ksize=3)
+    gy = cv2.Sobel(luma, cv2.CV_64F, 0, 1, ksize=3)
+    return float(np.sum((gx * gx + gy * gy)[np.asarray(region, dtype=bool)]))
+
+
+def sharpness_ratio(pred, target, region: np.ndarray) -> float | None:
+    """How much of the ground truth's detail the prediction keeps: :func:`gradient_energy` of
+    ``pred`` over that of ``target`` in ``region`` (1 = as sharp, 0.5 = half the gradient energy:
+    folds blurred away; above 1 = noisier or harder edges). None when the region (or the
+    target's energy there) is empty."""
+    reference = gradient_energy(target, region)
+    if reference <= 0.0:
+        return None
+    return gradient_energy(pred, region) / reference
+
+
+def interior(region: np.ndarray, margin: int) -> np.ndarray:
+    """(H, W) bool: the pixels of ``region`` at least ``margin`` pixels (chessboard distance)
+    inside it (``cv2.erode`` with a ``(2 margin + 1)^2`` square; outside the image counts as
+    outside the region)."""
+    import cv2
+
+    region = np.asarray(region, dtype=bool)
+    if margin <= 0:
+        return region
+    kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    eroded = cv2.erode(region.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return eroded.astype(bool)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -368,7 +452,7 @@ class MetricSummary:
         out: dict[str, float] = {}
         for name in self.metric_names():
             v = self.values(name)
-            out[name] = mean_psnr(v, cap) if name == "psnr" else float(np.mean(v))
+            out[name] = mean_psnr(v, cap) if is_psnr_metric(name) else float(np.mean(v))
         if self.tof is not None:
             out["tof"] = self.tof.mean
         return out

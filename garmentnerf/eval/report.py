@@ -51,6 +51,10 @@ __all__ = ["Variant", "default_variants", "build_report", "train_variant", "rend
            "VARIANT_KINDS"]
 
 #: Kinds of variants a user can ask for by name (``k<N>`` and ``views_<N>`` are patterns).
+#: The ablation variants are scored at the model's internal resolution (the tables compare
+#: recipes of one model size with each other; ``garmentnerf eval`` defaults to the scene's).
+REPORT_RESOLUTION = "model"
+
 VARIANT_KINDS = ("full", "no_detail", "no_dynamic", "no_features", "k<N>", "views_<N>")
 
 _SPLIT_TITLE = {"seen": "seen", "unseen_view": "unseen view", "unseen_motion": "unseen motion"}
@@ -485,7 +489,8 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     from garmentnerf.eval.perceptual import lpips_available
 
     # an evaluation is reused only for the same frame selection and the same metric set
-    request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0])}
+    request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0]),
+               "resolution": REPORT_RESOLUTION}
 
     results: dict[str, dict[str, dict]] = {}
     status: dict[str, str] = {}
@@ -513,7 +518,8 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
                     nonlocal run
                     if run is None:
                         run = load_run(run_dir, device=device, scene=scene_path)
-                    return evaluate_run(run, split, frames=frames, progress=progress, gl_context=ctx)
+                    return evaluate_run(run, split, frames=frames, progress=progress, gl_context=ctx,
+                                        resolution=REPORT_RESOLUTION)
 
                 say(f"{v.name}: evaluating {split}")
                 per[split] = _cached_eval(run_dir / "eval" / f"{split}.json", request, step, compute)
@@ -522,7 +528,7 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
                 def compute_baseline():
                     r = load_run(run_dir, device=device, scene=scene_path)
                     return evaluate_run(r, "unseen_view", frames=frames, progress=progress, gl_context=ctx,
-                                        model=False, baseline=True)
+                                        model=False, baseline=True, resolution=REPORT_RESOLUTION)
 
                 say("nearest-view baseline: evaluating unseen_view")
                 baseline = _cached_eval(runs_dir / "baseline_unseen_view.json", request, step,
