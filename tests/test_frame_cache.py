@@ -89,7 +89,7 @@ def test_get_returns_float32_rebinds_and_half_precision_is_close():
 @pytest.fixture(scope="module")
 def run_dir(tiny_scene, tmp_path_factory):
     from garmentnerf.train.run import create_untrained_run
-    from garmentnerf.train.trainer import tiny_config
+    from garmentnerf.train.settings import tiny_config
 
     return create_untrained_run(tmp_path_factory.mktemp("run") / "r", tiny_scene.root,
                                 tiny_config().replace(samples_per_ray=4), seed=0)

@@ -252,3 +252,21 @@ def test_losses_without_perceptual_and_weighting():
     assert out["palette"].item() == pytest.approx(6 * 0.01)
     expected = sum(getattr(cfg, f"w_{k}") * out[k] for k in ("image", "mask", "sparsity", "offset", "palette"))
     torch.testing.assert_close(out["total"], expected)
+
+
+def test_generator_losses_are_the_weighted_l1_and_perceptual_terms():
+    """G_img's pre-training loss: w_image * mean |pred - target| + w_perceptual * perceptual."""
+    from types import SimpleNamespace
+
+    from garmentnerf.model.losses import generator_losses
+
+    pred = torch.tensor([[[[0.0, 1.0], [0.5, 0.25]]]]).expand(2, 3, 2, 2)
+    target = torch.zeros(2, 3, 2, 2)
+    cfg = SimpleNamespace(w_image=2.0, w_perceptual=0.5)
+    plain = generator_losses(pred, target, cfg)
+    assert set(plain) == {"image", "total"}
+    assert float(plain["image"]) == pytest.approx(0.4375)  # (0 + 1 + 0.5 + 0.25) / 4
+    assert float(plain["total"]) == pytest.approx(0.875)
+    with_perceptual = generator_losses(pred, target, cfg, perceptual=lambda a, b: torch.tensor(3.0))
+    assert float(with_perceptual["perceptual"]) == 3.0
+    assert float(with_perceptual["total"]) == pytest.approx(0.875 + 1.5)

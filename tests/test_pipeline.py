@@ -17,7 +17,7 @@ from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnim
                                         palette_initial_colours, reference_visibility)
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.motion.library import load_motion
-from garmentnerf.train.trainer import tiny_config as tiny_preset
+from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 

@@ -20,7 +20,7 @@ from garmentnerf.model.height_band import HeightRange
 from garmentnerf.model.shell_sampler import ShellSampler
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
-from garmentnerf.train.trainer import tiny_config as tiny_preset
+from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.15)

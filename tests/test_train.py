@@ -9,8 +9,10 @@ import socket
 import pytest
 import torch
 
+from garmentnerf.train.checkpoints import latest_checkpoint
 from garmentnerf.train.run import build_model, create_untrained_run, load_run, load_weights
-from garmentnerf.train.trainer import TrainConfig, Trainer, latest_checkpoint, tiny_config
+from garmentnerf.train.settings import TrainConfig, tiny_config
+from garmentnerf.train.trainer import Trainer
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # bit-equal resumes need one thread

@@ -24,7 +24,7 @@ import torch
 from safetensors.torch import load_file
 
 from garmentnerf.cli.main import main
-from garmentnerf.train.trainer import latest_checkpoint
+from garmentnerf.train.checkpoints import latest_checkpoint
 
 #: Options that keep every run of this file small and fast.
 FAST = ["--preset", "tiny", "--perceptual", "none", "--no-progress", "--threads", "1", "--log-every", "1",

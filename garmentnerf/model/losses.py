@@ -1,4 +1,7 @@
-"""Training losses (paper Sec. 4.4):
+"""Training losses (paper Sec. 4.4) of the NeRF (:func:`garment_losses`) and of G_img's
+pre-training (:func:`generator_losses`).
+
+The NeRF's:
 
     L = lambda_1 L_img + lambda_2 L_vgg + lambda_3 L_sp + lambda_4 L_off + lambda_5 L_p
 
@@ -14,6 +17,9 @@ Two optional terms are not in the paper (weight 0 gives its objective; the cpu_s
 them on, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
 opacity to the ground-truth mask, ``segmentation`` holds the garment blend weight to the label
 maps' garment share.
+
+G_img's pre-training (DNG's recipe, without its adversarial terms): ``w_image L1 + w_perceptual
+perceptual`` between the generated and the ground-truth reference images.
 
 The perceptual network is not defined here: pass any ``callable(pred, target) -> scalar`` (for
 example a VGG or shift-tolerant LPIPS module). Without one the ``perceptual`` term is absent
@@ -136,4 +142,27 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
                "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
                "segmentation": w_segmentation}
     terms["total"] = sum(weights[name] * value for name, value in terms.items())
+    return terms
+
+
+def generator_losses(pred: torch.Tensor, target: torch.Tensor, cfg,
+                     perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                     ) -> dict[str, torch.Tensor]:
+    """The loss terms of one G_img pre-training step.
+
+    Args:
+        pred: (B, 3, H, W) G_img's reference images (front and back: B = 2).
+        target: (B, 3, H, W) the ground-truth reference images.
+        cfg: anything with ``w_image`` and ``w_perceptual`` (a
+            :class:`~garmentnerf.model.config.ModelConfig`).
+        perceptual: optional ``(pred, target) -> scalar``; its term is left out when None.
+    Returns:
+        dict of the unweighted terms ``image, [perceptual]`` and ``total``, the weighted sum.
+    """
+    terms = {"image": l1(pred, target)}
+    total = cfg.w_image * terms["image"]
+    if perceptual is not None:
+        terms["perceptual"] = perceptual(pred, target)
+        total = total + cfg.w_perceptual * terms["perceptual"]
+    terms["total"] = total
     return terms

@@ -1,5 +1,16 @@
-"""Training: the run folder format (:mod:`.run`), per-frame inputs and targets (:mod:`.frames`)
-and the two-stage trainer (:mod:`.trainer`)."""
+"""Training the model on a scene.
+
+- :mod:`~garmentnerf.train.run`: the run folder format (``run.json``, weights, atomic writes) and
+  loading a run.
+- :mod:`~garmentnerf.train.settings`: :class:`~garmentnerf.train.settings.TrainConfig`, the model
+  presets, and the settings a resume trains with.
+- :mod:`~garmentnerf.train.trainer`: the two-stage trainer (G_img pre-training, then the NeRF).
+- :mod:`~garmentnerf.train.checkpoints`: checkpoint files, their RNG states, pruning and write errors.
+- :mod:`~garmentnerf.train.frames`: per-frame inputs and ground-truth targets, cached in memory.
+- :mod:`~garmentnerf.train.perceptual`: the perceptual loss network (VGG19 or shift-tolerant LPIPS).
+- :mod:`~garmentnerf.train.distributed`: data-parallel training over ``torch.distributed``.
+- :mod:`~garmentnerf.train.interrupts`: SIGINT/SIGTERM held while a step's update is applied.
+"""
 
 from garmentnerf.train.run import LoadedRun, create_untrained_run, load_run, save_run_model
 

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from garmentnerf.conventions import Camera
 
-__all__ = ["SceneFrames", "area_resize"]
+__all__ = ["SceneFrames", "SceneFramesFactory", "area_resize"]
 
 
 def area_resize(image: np.ndarray | torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
@@ -117,9 +117,6 @@ class SceneFrames:
         self._inputs[key] = self.inputs(*key).with_reference_images(
             None if images is None else images.detach().to("cpu", torch.float32))
 
-    def cached_frames(self) -> list[tuple[str, int]]:
-        return list(self._inputs)
-
     # ---- cameras and targets ----------------------------------------------------------------------------
     def camera(self, name: str) -> Camera:
         """The scene camera resized to the training image (``cfg.image_resolution`` squared)."""
@@ -188,3 +185,23 @@ class SceneFrames:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class SceneFramesFactory:
+    """Makes the :class:`~garmentnerf.train.frames.SceneFrames` (and its GL context) on first use."""
+
+    def __init__(self, scene, cfg, gl_context, body, cache_bytes):
+        self._args = (scene, cfg, gl_context, body, cache_bytes)
+        self._frames = None
+
+    @property
+    def frames(self):
+        if self._frames is None:
+            scene, cfg, ctx, body, cache_bytes = self._args
+            self._frames = SceneFrames(scene, cfg, ctx, body, cache_bytes)
+        return self._frames
+
+    def close(self) -> None:
+        if self._frames is not None:
+            self._frames.close()
+            self._frames = None

@@ -1,0 +1,55 @@
+"""Holding SIGINT and SIGTERM while a training step's update is applied, so a checkpoint never holds a
+half-updated step (see :mod:`garmentnerf.train.trainer`'s "Interruption, kills and a full disk")."""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+
+__all__ = ["HeldInterrupts"]
+
+
+class HeldInterrupts:
+    """SIGINT and SIGTERM wait while :meth:`hold` is active, then act (e.g. raise KeyboardInterrupt).
+
+    The handlers are wrapped only from the main thread and only where they are Python functions
+    (Python's default SIGINT handler, ``garmentnerf train``'s SIGTERM one); ``with`` restores them.
+    """
+
+    def __init__(self):
+        self._previous: dict = {}
+        self._holding = False
+        self._pending = None
+
+    def __enter__(self) -> "HeldInterrupts":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                handler = signal.getsignal(sig)
+                if callable(handler):
+                    self._previous[sig] = handler
+                    signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    def _handle(self, signum, frame) -> None:
+        if self._holding:
+            self._pending = (signum, frame)
+            return
+        self._previous[signum](signum, frame)
+
+    @contextlib.contextmanager
+    def hold(self):
+        """Run the body without interruption by SIGINT/SIGTERM; one that came meanwhile acts after it."""
+        self._holding = True
+        try:
+            yield
+        finally:
+            self._holding = False
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            self._previous[pending[0]](*pending)

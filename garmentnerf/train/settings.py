@@ -1,0 +1,266 @@
+"""What a training run is set up with: the :class:`TrainConfig`, the model presets, and how a
+resume reconciles the settings it is given with those its run recorded (see
+:mod:`garmentnerf.train.trainer`'s "Resume").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+
+from garmentnerf.model.config import ModelConfig
+
+__all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS", "tiny_config",
+           "model_config_for", "loss_weight_names", "new_run_settings", "resume_settings", "show_setting"]
+
+MODEL_PRESETS = ("paper", "cpu_small", "tiny")
+
+#: What a new run uses for the :class:`TrainConfig` fields left at None (a resume: the run's values).
+TRAIN_DEFAULTS = MappingProxyType({"preset": "cpu_small", "seed": 0, "log_every": 10, "image_every": 500,
+                                   "ckpt_every": 1000, "keep_checkpoints": 2, "perceptual": "auto"})
+#: :class:`TrainConfig` fields that define the run: a resume with another value is refused.
+RUN_SETTINGS = ("preset", "seed", "iterations", "generator_iterations", "sequences", "frames", "cameras",
+                "init_generator")
+#: :class:`TrainConfig` fields a resume may change (from the resumed step on; recorded in ``overrides``).
+OVERRIDABLE_SETTINGS = ("log_every", "image_every", "ckpt_every", "keep_checkpoints", "perceptual", "vgg19_weights")
+
+
+def tiny_config() -> ModelConfig:
+    """A model small enough for tests and smoke runs (64 x 64 images, seconds per dozen steps)."""
+    return ModelConfig.cpu_small().replace(
+        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
+        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
+        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
+        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0, iterations=200, generator_iterations=50)
+
+
+def loss_weight_names() -> tuple[str, ...]:
+    """The :class:`ModelConfig` fields that weight a loss term (``w_image``, ``w_mask``, ...)."""
+    return tuple(f.name for f in dataclasses.fields(ModelConfig) if f.name.startswith("w_"))
+
+
+def model_config_for(preset: str) -> ModelConfig:
+    """The :class:`ModelConfig` of a preset name (``paper``, ``cpu_small``, ``tiny``)."""
+    if preset == "paper":
+        return ModelConfig.paper()
+    if preset == "cpu_small":
+        return ModelConfig.cpu_small()
+    if preset == "tiny":
+        return tiny_config()
+    raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
+
+
+@dataclass
+class TrainConfig:
+    """Settings of one training run (everything not in the :class:`ModelConfig`).
+
+    Fields marked *run* (:data:`RUN_SETTINGS`) define the run: on ``resume`` None means the
+    run's value and another value is refused. Fields marked *override*
+    (:data:`OVERRIDABLE_SETTINGS`): on ``resume`` None means the run's value, another value
+    applies from the resumed step on and is recorded in ``run.json``'s ``overrides``. For a new
+    run None means the default (:data:`TRAIN_DEFAULTS`, or as described).
+
+    Attributes:
+        scene: the scene folder (on resume None: the run's; another folder, e.g. a moved scene,
+            is recorded in ``overrides``).
+        out: the run folder (must be empty or absent unless ``resume``).
+        preset: *run*; model preset (``paper``, ``cpu_small``, ``tiny``; default ``cpu_small``)
+            when ``model_config`` is None. With a ``model_config`` the run records the preset it
+            equals (apart from iterations and loss weights), else None.
+        model_config: an explicit model config (overrides ``preset``); on resume the run's own
+            config is used and this is ignored.
+        device: ``cpu``, ``cuda`` or ``cuda:N`` (under torchrun ``cuda`` means ``cuda:LOCAL_RANK``).
+        seed: *run*; seeds the initialisation, the (frame, camera) order and the ray jitter (default 0).
+        iterations: *run*; overrides ``cfg.iterations`` (NeRF steps; the lr decay spans them).
+        generator_iterations: *run*; overrides ``cfg.generator_iterations`` (G_img pre-training steps).
+        stop_after: stop (writing a checkpoint) once this global step is reached, without
+            changing the schedule (resume later to continue); None: train to the end. Not
+            inherited by a resume (given on one, it is recorded in ``overrides``).
+        log_every: *override*; steps between TensorBoard scalars (losses, lr, psnr; default 10).
+        image_every: *override*; steps between TensorBoard images (render | ground truth); 0:
+            never (default 500).
+        ckpt_every: *override*; steps between checkpoints (one is also written at the end of
+            each stage, at the end and on Ctrl-C; default 1000).
+        keep_checkpoints: *override*; checkpoints kept (the newest ones; default 2).
+        resume: continue the run in ``out`` from its newest readable checkpoint, with its settings.
+        sequences: *run*; training sequences (default: every ``train``-split sequence of the scene).
+        frames: *run*; frame indices used in each sequence (default: all).
+        cameras: *run*; training cameras (default: every ``train``-split camera).
+        perceptual: *override*; ``auto`` (the default: VGG19 when
+            ``vgg19_weights``/``$GARMENTNERF_VGG19`` names ImageNet weights, else shift-tolerant
+            LPIPS), ``vgg19``, ``stlpips`` or ``none``.
+        vgg19_weights: *override*; torchvision ``vgg19-dcbb9e9d.pth``.
+        progress: show a tqdm progress bar (rank 0).
+        threads: ``torch.set_num_threads`` (None: leave as is).
+        cache_bytes: bound of the in-memory target cache.
+        init_generator: *run*; a weights file (a run's ``model.safetensors`` or a checkpoint)
+            whose pre-trained G_img (with its neural texture) a new run starts from, skipping
+            stage 1; the model configs must agree on G_img's shapes.
+        loss_weights: overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a
+            resume they apply from the resumed step on (a curriculum: e.g. add a term once the
+            geometry is there); each change is logged and kept in ``run.json``'s
+            ``loss_weight_changes`` so the run's recipe stays on record.
+    """
+
+    scene: str | Path | None
+    out: str | Path
+    preset: str | None = None
+    model_config: ModelConfig | None = None
+    device: str = "cpu"
+    seed: int | None = None
+    iterations: int | None = None
+    generator_iterations: int | None = None
+    stop_after: int | None = None
+    log_every: int | None = None
+    image_every: int | None = None
+    ckpt_every: int | None = None
+    keep_checkpoints: int | None = None
+    resume: bool = False
+    sequences: tuple[str, ...] | None = None
+    frames: tuple[int, ...] | None = None
+    cameras: tuple[str, ...] | None = None
+    perceptual: str | None = None
+    vgg19_weights: str | None = None
+    progress: bool = True
+    threads: int | None = None
+    cache_bytes: int = 2 << 30
+    init_generator: str | Path | None = None
+    loss_weights: dict[str, float] | None = None
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first impossible setting (None fields are not checked)."""
+        if self.preset is not None and self.preset not in MODEL_PRESETS:
+            raise ValueError(f"unknown preset '{self.preset}' (known: {', '.join(MODEL_PRESETS)})")
+        known = loss_weight_names()
+        for name, value in (self.loss_weights or {}).items():
+            if name not in known:
+                raise ValueError(f"unknown loss weight '{name}' (known: {', '.join(known)})")
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"loss weight {name} must be a finite number >= 0, got {value}")
+        for name in ("log_every", "ckpt_every", "keep_checkpoints"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.image_every is not None and (isinstance(self.image_every, bool) or not isinstance(self.image_every, int)
+                                             or self.image_every < 0):
+            raise ValueError(f"image_every must be an integer >= 0, got {self.image_every!r}")
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)):
+            raise ValueError(f"seed must be an integer, got {self.seed!r}")
+        if self.iterations is not None and self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.generator_iterations is not None and self.generator_iterations < 0:
+            raise ValueError(f"generator_iterations must be >= 0, got {self.generator_iterations}")
+        if self.stop_after is not None and self.stop_after < 0:
+            raise ValueError(f"stop_after must be >= 0, got {self.stop_after}")
+
+    def to_json(self) -> dict:
+        """The fields as JSON values (``run.json``'s ``train``; ``model_config`` left out)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "model_config":
+                continue
+            out[f.name] = str(v) if isinstance(v, Path) else (list(v) if isinstance(v, tuple) else v)
+        return out
+
+
+# ---- run settings on resume ------------------------------------------------------------------------
+def _architecture(cfg: ModelConfig) -> dict:
+    """``cfg`` without what a run may set apart from its preset (iterations, loss weights)."""
+    names = {"iterations", "generator_iterations", *loss_weight_names()}
+    return {k: v for k, v in cfg.to_dict().items() if k not in names}
+
+
+def _preset_of(cfg: ModelConfig) -> str | None:
+    """The preset ``cfg`` is (apart from iterations and loss weights), or None."""
+    arch = _architecture(cfg)
+    return next((p for p in MODEL_PRESETS if _architecture(model_config_for(p)) == arch), None)
+
+
+def _plain(value):
+    """A setting as JSON has it (tuples as lists, paths as strings), to compare with ``run.json``."""
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return str(value) if isinstance(value, Path) else value
+
+
+def show_setting(name: str, value) -> str:
+    """A setting as a message shows it (``all`` for no sequence/frame/camera selection, lists joined by ",")."""
+    if value is None and name in ("sequences", "frames", "cameras"):
+        return "all"
+    if isinstance(value, (tuple, list)):
+        return ",".join(str(v) for v in value)
+    return str(value)
+
+
+def new_run_settings(tc: TrainConfig) -> TrainConfig:
+    """``tc`` with the defaults (:data:`TRAIN_DEFAULTS`) in its None fields and the preset it runs."""
+    values = {k: v for k, v in TRAIN_DEFAULTS.items() if k != "preset" and getattr(tc, k) is None}
+    if tc.model_config is not None:
+        values["preset"] = _preset_of(tc.model_config)
+    elif tc.preset is None:
+        values["preset"] = TRAIN_DEFAULTS["preset"]
+    return dataclasses.replace(tc, **values)
+
+
+def resume_settings(tc: TrainConfig, info: dict, cfg: ModelConfig, run_dir: Path) -> tuple[TrainConfig, dict]:
+    """The settings a resume of the run (``run.json`` ``info``, model config ``cfg``) trains with,
+    and what the resume changes (``{name: [run's value, new value]}``, for ``overrides``).
+
+    Raises:
+        ValueError: a :data:`RUN_SETTINGS` field of ``tc`` differs from the run's (names the
+            flag, the run's value and the given one).
+    """
+    recorded = info.get("train") if isinstance(info.get("train"), dict) else {}
+    run_values = {name: recorded.get(name) for name in RUN_SETTINGS}
+    run_values["seed"] = recorded.get("seed", info.get("seed"))
+    rec_preset = recorded.get("preset")
+    if rec_preset in MODEL_PRESETS and _architecture(model_config_for(rec_preset)) == _architecture(cfg):
+        run_values["preset"] = rec_preset
+    else:  # a custom config, or a run.json written by an older resume that recorded its default preset
+        run_values["preset"] = _preset_of(cfg)
+    # what the run trains for, when run.json recorded None (the preset's value)
+    effective = {"iterations": cfg.iterations,
+                 "generator_iterations": info.get("generator_iterations", cfg.generator_iterations)}
+    values = {}
+    for name in RUN_SETTINGS:
+        given, run_value = getattr(tc, name), run_values[name]
+        values[name] = tuple(run_value) if isinstance(run_value, list) else run_value
+        if given is None:
+            continue
+        if name == "preset":
+            same = given == run_value or _architecture(model_config_for(given)) == _architecture(cfg)
+        elif name == "seed" and run_value is None:  # a run.json from before seeds were recorded
+            same, values[name] = True, given
+        else:
+            same = _plain(given) == _plain(run_value) or (name in effective and given == effective[name])
+        if not same:
+            shown = effective[name] if run_value is None and name in effective else run_value
+            if name == "preset" and shown is None:
+                shown = "(a model config of no preset)"
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(f"{flag} {show_setting(name, given)}: the run in {run_dir} was trained with "
+                             f"{name} {show_setting(name, shown)}; --resume continues a run as it is (leave {flag} "
+                             f"out, or train a new run into another --out)")
+    changes = {}
+    for name in OVERRIDABLE_SETTINGS:
+        given, run_value = getattr(tc, name), recorded.get(name, TRAIN_DEFAULTS.get(name))
+        values[name] = run_value
+        if given is not None and _plain(given) != _plain(run_value):
+            values[name] = given
+            changes[name] = [run_value, _plain(given)]
+    if tc.stop_after is not None:
+        changes["stop_after"] = [recorded.get("stop_after"), tc.stop_after]
+    if tc.scene is not None and info.get("scene"):
+        rec_scene = Path(info["scene"])
+        rec_scene = rec_scene if rec_scene.is_absolute() else run_dir / rec_scene
+        if Path(tc.scene).resolve() != rec_scene.resolve():
+            changes["scene"] = [info["scene"], str(tc.scene)]
+    resolved = dataclasses.replace(tc, **values)
+    # a run.json from before these settings were recorded: the defaults
+    return dataclasses.replace(resolved, **{k: v for k, v in TRAIN_DEFAULTS.items()
+                                            if k != "preset" and getattr(resolved, k) is None}), changes
+
