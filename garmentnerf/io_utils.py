@@ -1,4 +1,5 @@
-"""Safe file writing: nothing a user made is lost to a crash or a second run."""
+"""Safe file handling: writes that lose nothing a user made to a crash or a second run, and
+reading a ``.npy`` header without loading (or unpickling) the array."""
 
 from __future__ import annotations
 
@@ -6,6 +7,9 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
+from typing import IO
+
+import numpy as np
 
 
 @contextlib.contextmanager
@@ -85,3 +89,16 @@ def next_free_path(path: str | Path) -> Path:
         if not candidate.exists():
             return candidate
     raise FileExistsError(f"{path}: no free numbered name left")
+
+
+def read_npy_header(file: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """(shape, fortran_order, dtype) of the ``.npy`` array at ``file``'s position, leaving ``file``
+    at the array's data. Raises ValueError for a bad magic string or an unsupported format version."""
+    version = np.lib.format.read_magic(file)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(file)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(file)
+    else:
+        raise ValueError(f"unsupported .npy format version {version[0]}.{version[1]}")
+    return tuple(int(n) for n in shape), bool(fortran), dtype

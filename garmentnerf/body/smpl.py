@@ -3,10 +3,11 @@
 :func:`load_smpl_asset` reads an SMPL model file exactly as its authors distribute it -- the
 Python 2 ``.pkl`` with chumpy arrays and a scipy sparse ``J_regressor``, or an ``.npz`` with the
 same keys -- and converts it into a :class:`~garmentnerf.body.asset.BodyAsset` in the project's
-world (Z up, character faces -Y, feet on z = 0). chumpy is *not* needed: a restricted unpickler
-maps chumpy objects to a stub that keeps their value (chumpy pickles it under the state key
-``'x'``), rebuilds scipy sparse matrices from their pickled fields, and never calls anything but
-a short allow-list of numpy/builtin reconstructors. SMPL-H (52 joints) and SMPL-X (55 joints)
+world (Z up, character faces -Y, feet on z = 0). chumpy is *not* needed: the package's restricted
+unpickler (:mod:`garmentnerf.safe_pickle`) maps chumpy objects to a stub that keeps their value
+(chumpy pickles it under the state key ``'x'``), rebuilds scipy sparse matrices from their pickled
+fields, calls nothing but a short allow-list of numpy/builtin reconstructors and refuses a file
+naming any other global. SMPL-H (52 joints) and SMPL-X (55 joints)
 files with the same keys load too; joints always come from ``kintree_table``.
 
 Frame conversion
@@ -50,14 +51,14 @@ UVs
 
 from __future__ import annotations
 
-import pickle
-import warnings
 import zipfile
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
 from garmentnerf.body.asset import BodyAsset, BodyAssetError
+from garmentnerf.safe_pickle import RefusedGlobal, StandIn, load_npy_restricted, load_restricted
 
 #: The 24 SMPL joints in the model files' order.
 SMPL_JOINT_NAMES = [
@@ -302,83 +303,27 @@ def _compact_weights(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order.astype(np.int64), np.take_along_axis(weights, order, axis=1)
 
 
-# ---- the chumpy-free, restricted unpickler ----------------------------------------------------------
-class _Stub:
-    """Stand-in for a class this loader does not run: accepts any construction, keeps its state."""
-
-    _origin = "?"
-
-    def __new__(cls, *args, **kwargs):
-        return object.__new__(cls)
-
-    def __init__(self, *args, **kwargs):
-        pass
-
-    def __setstate__(self, state):
-        if isinstance(state, tuple) and len(state) == 2 and isinstance(state[1], dict):
-            state = {**(state[0] or {}), **state[1]}  # (dict, slots) form
-        if isinstance(state, dict):
-            self.__dict__.update(state)
-        else:
-            self.__dict__["_state"] = state
-
-
-class _ChumpyStub(_Stub):
+# ---- chumpy-free reading through the package's restricted unpickler ------------------------------
+class _ChumpyStub(StandIn):
     """A chumpy object: ``chumpy.ch.Ch`` pickles its value under the state key ``'x'``."""
 
 
-class _SparseStub(_Stub):
+class _SparseStub(StandIn):
     """A scipy sparse matrix, rebuilt from its pickled fields by :func:`_sparse_to_dense`."""
 
 
-class _OpaqueStub(_Stub):
-    """Any other class: never executed, reported if a required field turns out to be one."""
-
-
-_stub_classes: dict[tuple[type, str, str], type] = {}
-
-
-def _stub_class(base: type, module: str, name: str) -> type:
-    key = (base, module, name)
-    if key not in _stub_classes:
-        _stub_classes[key] = type(name, (base,), {"_origin": f"{module}.{name}"})
-    return _stub_classes[key]
-
-
-_SAFE_BUILTINS = {"object", "set", "frozenset", "list", "dict", "tuple", "int", "float", "complex", "str",
-                  "bytes", "bytearray", "bool", "slice", "range"}
-_SAFE_GLOBALS = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
-}
-
-
-class _SmplUnpickler(pickle.Unpickler):
-    """Resolves only numpy array reconstruction and plain builtins; chumpy, scipy sparse and every
-    other class become inert stubs, so no code from the file runs and chumpy is not needed."""
-
-    def find_class(self, module: str, name: str):
-        if module in ("builtins", "__builtin__") and name in _SAFE_BUILTINS:
-            return super().find_class("builtins", name)
-        if (module, name) in _SAFE_GLOBALS or (module == "numpy.dtypes" and name.endswith("DType")):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", DeprecationWarning)
-                return super().find_class(module, name)
-        if module == "chumpy" or module.startswith("chumpy."):
-            return _stub_class(_ChumpyStub, module, name)
-        if module == "scipy.sparse" or module.startswith("scipy.sparse."):
-            return _stub_class(_SparseStub, module, name)
-        return _stub_class(_OpaqueStub, module, name)
+#: What an SMPL file may name beyond the allow-list of :mod:`garmentnerf.safe_pickle`: chumpy and
+#: scipy.sparse classes, read as inert stand-ins (neither package is imported or run).
+_SMPL_STAND_INS = MappingProxyType({"chumpy": _ChumpyStub, "scipy.sparse": _SparseStub})
 
 
 def _load_pickle(path: Path) -> dict:
     src = str(path)
     try:
         with open(path, "rb") as fh:
-            data = _SmplUnpickler(fh, encoding="latin1").load()
+            data = load_restricted(fh, _SMPL_STAND_INS)
+    except RefusedGlobal as exc:
+        raise BodyAssetError(f"{src}: {exc}") from None
     except Exception as exc:  # any failure inside pickle means the file is unusable
         raise BodyAssetError(f"{src}: not a readable SMPL pickle ({type(exc).__name__}: {exc})") from None
     if not isinstance(data, dict):
@@ -411,19 +356,14 @@ def _load_npz(path: Path) -> dict:
 
 def _read_npz_object_member(path: Path, key: str):
     src = str(path)
-    with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fp:
-        version = np.lib.format.read_magic(fp)
-        if version == (1, 0):
-            np.lib.format.read_array_header_1_0(fp)
-        elif version == (2, 0):
-            np.lib.format.read_array_header_2_0(fp)
-        else:
-            raise BodyAssetError(f"{src}: field '{key}' is an object array in unsupported .npy version {version}")
-        try:
-            return _SmplUnpickler(fp, encoding="latin1").load()
-        except Exception as exc:
-            raise BodyAssetError(f"{src}: field '{key}' is an unreadable object array "
-                                 f"({type(exc).__name__}: {exc})") from None
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fp:
+            return load_npy_restricted(fp, _SMPL_STAND_INS)
+    except RefusedGlobal as exc:
+        raise BodyAssetError(f"{src}: field '{key}': {exc}") from None
+    except Exception as exc:
+        raise BodyAssetError(f"{src}: field '{key}' is an unreadable object array "
+                             f"({type(exc).__name__}: {exc})") from None
 
 
 def _to_array(value, src: str, key: str, depth: int = 0) -> np.ndarray:
@@ -445,8 +385,6 @@ def _to_array(value, src: str, key: str, depth: int = 0) -> np.ndarray:
         return _sparse_to_dense(value, src, key)
     if hasattr(value, "toarray") and hasattr(value, "nnz"):  # a real scipy sparse matrix
         return np.asarray(value.toarray())
-    if isinstance(value, _Stub):
-        raise BodyAssetError(f"{src}: field '{key}' has unsupported type {value._origin}")
     try:
         arr = np.asarray(value)
     except Exception:

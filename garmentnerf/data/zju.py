@@ -61,15 +61,14 @@ Frames and parameters
     ``<f>.npy``. Sequences: ``train`` holds frames ``[0, train_frames)`` and ``unseen_motion``
     the rest (``train_frames=None``: all in ``train``).
 
-Pickles: ``annots.npy`` and the parameter files are pickled numpy objects. They are read with a
-restricted unpickler that only rebuilds numpy arrays and plain containers (nothing else runs).
+Pickles: ``annots.npy`` and the parameter files are pickled numpy objects. They are read with the
+package's restricted unpickler (:mod:`garmentnerf.safe_pickle`), which only rebuilds numpy arrays
+and plain containers and refuses a file naming anything else (nothing else runs).
 """
 
 from __future__ import annotations
 
-import pickle
 import re
-import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -80,6 +79,7 @@ import numpy as np
 
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR, Camera
 from garmentnerf.data.cameras import NamedCamera
+from garmentnerf.safe_pickle import RefusedGlobal, load_npy_restricted
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -101,54 +101,22 @@ class CaptureError(ValueError):
 
 
 # ---- restricted unpickling of .npy object arrays ---------------------------------------------------
-_SAFE_BUILTINS = {"object", "set", "frozenset", "list", "dict", "tuple", "int", "float", "complex", "str",
-                  "bytes", "bytearray", "bool", "slice", "range"}
-_SAFE_GLOBALS = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
-    ("collections", "OrderedDict"),
-}
-
-
-class _Refused(Exception):
-    pass
-
-
-class _NumpyOnlyUnpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str):
-        if module in ("builtins", "__builtin__") and name in _SAFE_BUILTINS:
-            return super().find_class("builtins", name)
-        if (module, name) in _SAFE_GLOBALS or (module == "numpy.dtypes" and name.endswith("DType")):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", DeprecationWarning)
-                return super().find_class(module, name)
-        raise _Refused(f"{module}.{name}")
-
-
 def load_pickled_npy(path: str | Path):
-    """``np.load(path, allow_pickle=True)`` without running foreign code; a 0-d object array
-    (a pickled dict, as ZJU stores) is unwrapped with ``.item()``."""
+    """``np.load(path, allow_pickle=True)`` without running foreign code (the allow-list of
+    :mod:`garmentnerf.safe_pickle`); a 0-d object array (a pickled dict, as ZJU stores) is
+    unwrapped with ``.item()``.
+
+    Raises:
+        CaptureError: naming the file: missing, unreadable, or naming a global outside the allow-list.
+    """
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-            else:
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-            if dtype.hasobject:
-                array = _NumpyOnlyUnpickler(fh, encoding="latin1").load()
-            else:
-                fh.seek(0)
-                array = np.load(fh, allow_pickle=False)
+            array = load_npy_restricted(fh)
     except FileNotFoundError:
         raise CaptureError(f"{path}: no such file") from None
-    except _Refused as exc:
-        raise CaptureError(f"{path}: refusing to unpickle '{exc}' (only numpy arrays and plain containers "
-                           f"are read)") from None
+    except RefusedGlobal as exc:
+        raise CaptureError(f"{path}: {exc}") from None
     except Exception as exc:  # truncated files, bad headers, pickle errors
         raise CaptureError(f"{path}: not a readable .npy file ({type(exc).__name__}: {exc})") from None
     if isinstance(array, np.ndarray) and array.dtype == object and array.shape == ():
