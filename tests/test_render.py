@@ -195,7 +195,7 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
     ``interactive`` render the same thing: same points, same size, same image."""
     from PIL import Image
 
-    from garmentnerf.cli.bench_cmd import preset_benchmark
+    from garmentnerf.perf.preset_bench import preset_benchmark
     from garmentnerf.perf.presets import RENDER_PRESETS, VIEWER_LEVELS
     from garmentnerf.viewer.quality import QualityController
     from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest

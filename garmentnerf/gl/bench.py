@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import torch
 
+from garmentnerf.benchmarks import median_ms
 from garmentnerf.conventions import orbit_camera
 from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.gl.context import context_info, create_context
@@ -44,17 +43,6 @@ def cube_atlas_mesh(subdivisions: int = 48, margin: float = 0.02):
             np.concatenate(uvs).astype(np.float32))
 
 
-def _median_ms(fn, runs: int, warmup: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - start) * 1e3)
-    return float(np.median(times))
-
-
 def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution: int = 128,
                         channels: int = 12, image_size: int = 512) -> dict:
     """Median milliseconds (readback to torch included) of:
@@ -79,9 +67,9 @@ def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution
         rng = np.random.default_rng(0)
         attributes = torch.from_numpy(rng.standard_normal((len(uv), channels)).astype(np.float32))
         with UVAttributeRasterizer(ctx, uv, faces, uv_resolution) as raster:
-            uv_ms = _median_ms(lambda: raster.render(attributes), runs, warmup)
+            uv_ms = median_ms(lambda: raster.render(attributes), runs, warmup)
         with UVAttributeRasterizer(ctx, uv, faces, uv_resolution, method="draw") as raster:
-            uv_draw_ms = _median_ms(lambda: raster.render(attributes), runs, warmup)
+            uv_draw_ms = median_ms(lambda: raster.render(attributes), runs, warmup)
 
         sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.6)
         s_verts = torch.from_numpy(np.asarray(sphere.vertices, dtype=np.float32) + np.float32([0, 0, 0.9]))
@@ -89,8 +77,8 @@ def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution
         s_uv = torch.from_numpy(np.asarray(sphere.vertices[:, :2] * 0.5 + 0.5, dtype=np.float32))
         camera = orbit_camera(30.0, 10.0, 2.5, width=image_size, height=image_size)
         with CameraPass(ctx) as cam_pass:
-            cam_ms = _median_ms(lambda: cam_pass.render(s_verts, s_faces, camera, s_uv, s_faces), runs, warmup)
-            range_ms = _median_ms(lambda: cam_pass.render_depth_range(s_verts, s_faces, camera), runs, warmup)
+            cam_ms = median_ms(lambda: cam_pass.render(s_verts, s_faces, camera, s_uv, s_faces), runs, warmup)
+            range_ms = median_ms(lambda: cam_pass.render_depth_range(s_verts, s_faces, camera), runs, warmup)
         return {
             "uv_raster_ms": uv_ms,
             "uv_raster_draw_ms": uv_draw_ms,
