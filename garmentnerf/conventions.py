@@ -113,6 +113,15 @@ class Camera:
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
         return Camera(K, self.R, self.t, width, height, self.near, self.far)
 
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> "Camera":
+        """The pixels ``[x0, x0 + width) x [y0, y0 + height)`` of this camera as a camera of their
+        own: pixel (c, r) of the crop is pixel (c + x0, r + y0) of this one (the principal point
+        moves by (-x0, -y0)); the window may extend past the image."""
+        K = self.K.copy()
+        K[0, 2] -= int(x0)
+        K[1, 2] -= int(y0)
+        return Camera(K, self.R, self.t, int(width), int(height), self.near, self.far)
+
 
 def gl_projection_from_intrinsics(K: np.ndarray, width: int, height: int, near: float, far: float) -> np.ndarray:
     """(4, 4) OpenCV-camera -> GL-clip matrix; see :meth:`Camera.gl_projection`.
