@@ -58,6 +58,7 @@ Cost
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -224,14 +225,10 @@ class SimResult:
 # ------------------------------------------------------------------------------------------------
 # warp / newton set-up
 # ------------------------------------------------------------------------------------------------
-_WARP = None
-
-
+@functools.cache
 def _warp():
-    """Import warp and newton once (quietly), check newton's version, define our kernel."""
-    global _WARP
-    if _WARP is not None:
-        return _WARP
+    """Import warp and newton (quietly), check newton's version, define our kernel: once per
+    process (a failed import is not cached, so installing newton and retrying works)."""
     try:
         import warp as wp
     except ImportError as exc:  # pragma: no cover - warp comes with newton
@@ -256,8 +253,7 @@ def _warp():
         else:
             out[i] = 1.0e6
 
-    _WARP = (wp, newton, signed_distance_kernel)
-    return _WARP
+    return wp, newton, signed_distance_kernel
 
 
 class _ClothSim:
@@ -487,6 +483,139 @@ def _chunk_path(out_dir: Path, k: int) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------
+# The steps of a simulation
+# ------------------------------------------------------------------------------------------------
+def _checked_betas(garment: Garment, body: "BodyModel", betas: torch.Tensor | str | None) -> torch.Tensor:
+    """(S,) shape coefficients in ``body.dtype``: ``betas`` as given (None: the garment's own),
+    which must be the shape the garment was built for."""
+    garment_betas = torch.as_tensor(garment.betas, dtype=body.dtype)
+    if betas is None:
+        betas = garment_betas
+    elif not isinstance(betas, torch.Tensor):
+        betas = body.betas(betas)
+    betas = betas.to(body.dtype)
+    if betas.shape != garment_betas.shape or not torch.allclose(betas, garment_betas, atol=1e-6):
+        raise ValueError(f"garment '{garment.name}' was built for another body shape than the one simulated; "
+                         f"build it with make_garment(kind, body, betas) for this shape")
+    return betas
+
+
+def _claim_out_dir(out_dir: Path, manifest: dict) -> None:
+    """Create ``out_dir`` and write its manifest; one of other inputs raises SimulationResumeError."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / _MANIFEST
+    if path.exists():
+        _check_manifest(path, manifest)
+    with atomic_write_path(path) as tmp:
+        tmp.write_text(json.dumps(manifest, indent=1))
+
+
+def _saved_chunks(out_dir: Path | None, Vg: int, T: int, C: int) -> list[dict]:
+    """The complete chunks already on disk, in order, up to the first missing or damaged one."""
+    chunks: list[dict] = []
+    if out_dir is None:
+        return chunks
+    for k in range((T + C - 1) // C):
+        first, count = k * C, min(C, T - k * C)
+        data = _load_state_file(_chunk_path(out_dir, k), Vg, first, count)
+        if data is None:
+            break
+        chunks.append(data)
+    return chunks
+
+
+@dataclass
+class _SimulationJob:
+    """What every step of one :func:`simulate` call shares.
+
+    Attributes:
+        garment: the garment; ``faces`` (F, 3) the body faces that collide; ``trajectory`` the
+        body and pin targets; ``settings``; ``fps`` the motion's; ``bar`` a tqdm bar or None.
+    """
+
+    garment: Garment
+    faces: np.ndarray
+    trajectory: _Trajectory
+    settings: SimSettings
+    fps: float
+    bar: object | None
+
+    def _cloth(self, q: np.ndarray, qd: np.ndarray) -> _ClothSim:
+        rest = self.trajectory.rest.astype(np.float32)
+        return _ClothSim(self.garment, self.faces, rest, self.settings, q, qd)
+
+    def settle(self) -> dict:
+        """Drape the garment from its rest shape (see the module docstring): ``{"q", "qd"}``
+        (Vg, 3) particle positions and velocities on motion frame 0, ``"penetration"`` there."""
+        body_k, pins_k = self.trajectory.settle()
+        sim = self._cloth(self.garment.vertices, np.zeros_like(self.garment.vertices))
+        for k in range(1, len(body_k)):
+            sim.advance(body_k[k - 1], body_k[k], pins_k[k - 1], pins_k[k], self.fps)
+            if self.bar is not None:
+                self.bar.update(1)
+        q, qd = sim.positions(), sim.velocities()
+        _check_finite(q, qd, "settling")
+        penetration = float(max(0.0, -sim.signed_distance(body_k[-1]).min()))
+        return {"q": q, "qd": qd, "penetration": np.float32(penetration)}
+
+    def chunk(self, q: np.ndarray, qd: np.ndarray, first: int, count: int) -> dict:
+        """Motion frames [first, first + count) from the particle state ``q``, ``qd`` (Vg, 3) at
+        frame ``first - 1`` (the settled state for ``first = 0``), on a freshly built simulator.
+
+        Returns the chunk file's arrays: ``vertices`` (count, Vg, 3), ``penetration`` (count,),
+        ``q``/``qd`` at the last frame, ``first_frame``, ``seconds`` and ``cpu_seconds``."""
+        t_start, c_start = time.perf_counter(), time.process_time()
+        lo = max(0, first - 1)
+        body_f, pins_f = self.trajectory.frames(lo, first + count)
+        sim = self._cloth(q, qd)
+        verts = np.zeros((count, self.garment.num_vertices, 3), np.float32)
+        pen = np.zeros(count, np.float32)
+        for i in range(count):
+            f = first + i
+            if f == 0:
+                sim.set_body(body_f[0], np.zeros_like(body_f[0]))
+                verts[0] = q
+            else:
+                j = f - lo
+                sim.advance(body_f[j - 1], body_f[j], pins_f[j - 1], pins_f[j], self.fps)
+                verts[i] = sim.positions()
+                _check_finite(verts[i], sim.velocities(), f"frame {f}")
+            pen[i] = max(0.0, -float(sim.signed_distance(body_f[f - lo]).min()))
+            if self.bar is not None:
+                self.bar.update(1)
+                self.bar.set_postfix(pen_mm=f"{pen[i] * 1000:.1f}")
+        q, qd = sim.positions(), sim.velocities()
+        return {"first_frame": np.int64(first), "vertices": verts, "penetration": pen, "q": q, "qd": qd,
+                "seconds": np.float64(time.perf_counter() - t_start),
+                "cpu_seconds": np.float64(time.process_time() - c_start)}
+
+
+def _progress_bar(frames: int, description: str):
+    """A tqdm bar over ``frames`` frames, or None when there are none to simulate."""
+    if frames <= 0:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=frames, desc=description, unit="frame", leave=False)
+
+
+def _result(chunks: list[dict], computed: list[dict], T: int, fps: float, settings: SimSettings) -> SimResult:
+    """The :class:`SimResult` of all ``chunks``; timings from those ``computed`` by this call
+    (from the stored timings when everything was loaded)."""
+    vertices = np.concatenate([c["vertices"] for c in chunks])[:T]
+    penetration = np.concatenate([c["penetration"] for c in chunks])[:T].astype(np.float32)
+    frames = sum(c["vertices"].shape[0] for c in computed)
+    if frames:
+        spf = sum(float(c["seconds"]) for c in computed) / frames
+        cpf = sum(float(c["cpu_seconds"]) for c in computed) / frames
+    else:
+        spf = float(sum(float(c.get("seconds", 0.0)) for c in chunks)) / max(T, 1)
+        cpf = float("nan")
+    return SimResult(vertices=vertices, penetration_max_m=penetration, seconds_per_frame=spf, fps=fps,
+                     settings=settings, frames_computed=frames, cpu_seconds_per_frame=cpf)
+
+
+# ------------------------------------------------------------------------------------------------
 # Entry point
 # ------------------------------------------------------------------------------------------------
 def simulate(garment: Garment, body: "BodyModel", motion: "Motion", betas: torch.Tensor | str | None = None,
@@ -513,118 +642,47 @@ def simulate(garment: Garment, body: "BodyModel", motion: "Motion", betas: torch
     """
     if not isinstance(settings, SimSettings):
         raise TypeError(f"settings must be a SimSettings, got {type(settings).__name__}")
-    garment_betas = torch.as_tensor(garment.betas, dtype=body.dtype)
-    if betas is None:
-        betas = garment_betas
-    elif not isinstance(betas, torch.Tensor):
-        betas = body.betas(betas)
-    betas = betas.to(body.dtype)
-    if betas.shape != garment_betas.shape or not torch.allclose(betas, garment_betas, atol=1e-6):
-        raise ValueError(f"garment '{garment.name}' was built for another body shape than the one simulated; "
-                         f"build it with make_garment(kind, body, betas) for this shape")
+    betas = _checked_betas(garment, body, betas)
     T = motion.num_frames if max_frames is None else min(int(max_frames), motion.num_frames)
     if T < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
-    fps = float(motion.fps)
-    Vg = garment.num_vertices
     C = settings.chunk_frames
     n_chunks = (T + C - 1) // C
-
     faces = body_collision_faces(body)
-    traj = _Trajectory(garment, body, motion, betas, faces, settings)
-    rest = traj.rest.astype(np.float32)
-
+    trajectory = _Trajectory(garment, body, motion, betas, faces, settings)
     out_path = Path(out_dir) if out_dir is not None else None
     if out_path is not None:
-        out_path.mkdir(parents=True, exist_ok=True)
-        manifest = _manifest(garment, motion, betas, settings, T)
-        mpath = out_path / _MANIFEST
-        if mpath.exists():
-            _check_manifest(mpath, manifest)
-        with atomic_write_path(mpath) as tmp:
-            tmp.write_text(json.dumps(manifest, indent=1))
+        _claim_out_dir(out_path, _manifest(garment, motion, betas, settings, T))
 
-    # What is already on disk: the settled state and a prefix of complete chunks.
-    chunks: list[dict] = []
+    # What is already on disk: a prefix of complete chunks, else perhaps the settled state.
+    chunks = _saved_chunks(out_path, garment.num_vertices, T, C)
     settled = None
-    if out_path is not None:
-        for k in range(n_chunks):
-            first, count = k * C, min(C, T - k * C)
-            data = _load_state_file(_chunk_path(out_path, k), Vg, first, count)
-            if data is None:
-                break
-            chunks.append(data)
-        if not chunks:
-            settled = _load_state_file(out_path / _SETTLE, Vg)
+    if out_path is not None and not chunks:
+        settled = _load_state_file(out_path / _SETTLE, garment.num_vertices)
 
-    settle_frames = len(traj.settle_w) - 1
+    settle_frames = len(trajectory.settle_w) - 1
     todo_frames = (0 if chunks else settle_frames) + (T - sum(c["vertices"].shape[0] for c in chunks))
-    bar = None
-    if progress and todo_frames > 0:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=todo_frames, desc=f"simulate {garment.name}/{motion.name}", unit="frame", leave=False)
-    computed_frames, computed_seconds, computed_cpu = 0, 0.0, 0.0
-    written = 0
+    bar = _progress_bar(todo_frames, f"simulate {garment.name}/{motion.name}") if progress else None
+    job = _SimulationJob(garment, faces, trajectory, settings, float(motion.fps), bar)
+    computed: list[dict] = []
     try:
-        # -- settle
         if chunks:
-            q, qd = chunks[-1]["q"], chunks[-1]["qd"]
+            state = chunks[-1]
         elif settled is not None:
-            q, qd = settled["q"], settled["qd"]
+            state = settled
         else:
-            body_k, pins_k = traj.settle()
-            sim = _ClothSim(garment, faces, rest, settings, garment.vertices, np.zeros_like(garment.vertices))
-            for k in range(1, settle_frames + 1):
-                sim.advance(body_k[k - 1], body_k[k], pins_k[k - 1], pins_k[k], fps)
-                if bar is not None:
-                    bar.update(1)
-            q, qd = sim.positions(), sim.velocities()
-            _check_finite(q, qd, "settling")
-            pen0 = float(max(0.0, -sim.signed_distance(body_k[-1]).min()))
+            state = job.settle()
             if out_path is not None:
-                _save_npz(out_path / _SETTLE, q=q, qd=qd, penetration=np.float32(pen0))
-            settled = {"q": q, "qd": qd, "penetration": np.float32(pen0)}
-            del sim
-
-        # -- motion chunks
+                _save_npz(out_path / _SETTLE, **state)
         for k in range(len(chunks), n_chunks):
-            first, count = k * C, min(C, T - k * C)
-            t_start, c_start = time.perf_counter(), time.process_time()
-            lo = max(0, first - 1)
-            body_f, pins_f = traj.frames(lo, first + count)
-            sim = _ClothSim(garment, faces, rest, settings, q, qd)
-            verts = np.zeros((count, Vg, 3), np.float32)
-            pen = np.zeros(count, np.float32)
-            for i in range(count):
-                f = first + i
-                if f == 0:
-                    sim.set_body(body_f[0], np.zeros_like(body_f[0]))
-                    verts[0] = q
-                else:
-                    j = f - lo
-                    sim.advance(body_f[j - 1], body_f[j], pins_f[j - 1], pins_f[j], fps)
-                    verts[i] = sim.positions()
-                    _check_finite(verts[i], sim.velocities(), f"frame {f}")
-                pen[i] = max(0.0, -float(sim.signed_distance(body_f[f - lo]).min()))
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(pen_mm=f"{pen[i] * 1000:.1f}")
-            q, qd = sim.positions(), sim.velocities()
-            seconds = time.perf_counter() - t_start
-            cpu_seconds = time.process_time() - c_start
-            computed_frames += count
-            computed_seconds += seconds
-            computed_cpu += cpu_seconds
-            data = {"first_frame": np.int64(first), "vertices": verts, "penetration": pen, "q": q, "qd": qd,
-                    "seconds": np.float64(seconds), "cpu_seconds": np.float64(cpu_seconds)}
+            data = job.chunk(state["q"], state["qd"], k * C, min(C, T - k * C))
             if out_path is not None:
                 _save_npz(_chunk_path(out_path, k), **data)
             chunks.append(data)
-            written += 1
-            del sim
-            if _stop_after_chunks is not None and written >= _stop_after_chunks:
-                raise KeyboardInterrupt(f"test hook: stopped after {written} chunk(s)")
+            computed.append(data)
+            state = data
+            if _stop_after_chunks is not None and len(computed) >= _stop_after_chunks:
+                raise KeyboardInterrupt(f"test hook: stopped after {len(computed)} chunk(s)")
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
@@ -638,16 +696,7 @@ def simulate(garment: Garment, body: "BodyModel", motion: "Motion", betas: torch
     finally:
         if bar is not None:
             bar.close()
-
-    vertices = np.concatenate([c["vertices"] for c in chunks])[:T]
-    penetration = np.concatenate([c["penetration"] for c in chunks])[:T].astype(np.float32)
-    if computed_frames:
-        spf = computed_seconds / computed_frames
-    else:
-        spf = float(sum(float(c.get("seconds", 0.0)) for c in chunks)) / max(T, 1)
-    cpf = computed_cpu / computed_frames if computed_frames else float("nan")
-    return SimResult(vertices=vertices, penetration_max_m=penetration, seconds_per_frame=spf, fps=fps,
-                     settings=settings, frames_computed=computed_frames, cpu_seconds_per_frame=cpf)
+    return _result(chunks, computed, T, job.fps, settings)
 
 
 def _check_finite(q: np.ndarray, qd: np.ndarray, where: str) -> None:
