@@ -1,0 +1,8 @@
+"""Geometry of sample points against the body surface.
+
+- :mod:`~garmentnerf.geometry.projection`: exact closest points on a triangle mesh (KD-tree, CPU).
+- :mod:`~garmentnerf.geometry.projection_dense`: the same queries by brute force in torch (GPU).
+- :mod:`~garmentnerf.geometry.body_points`: the paper's body-aware coordinates x^b = [b_o, h] and
+  the UV of the closest point.
+- :mod:`~garmentnerf.geometry.winding`: inside/outside a closed mesh by generalised winding numbers.
+"""

@@ -1,0 +1,11 @@
+"""The OpenGL passes (moderngl), each owning its GL objects on the context it is given.
+
+- :mod:`~garmentnerf.gl.context`: creating the (headless EGL or window) context; ``current``.
+- :mod:`~garmentnerf.gl.shaders`: loading the GLSL of the top-level ``shaders/`` folder.
+- :mod:`~garmentnerf.gl.uv_raster`: per-vertex attributes baked into UV-space maps (the info maps).
+- :mod:`~garmentnerf.gl.dilation`: gutter filling of UV-space maps.
+- :mod:`~garmentnerf.gl.camera_pass`: the camera-view G-buffer (depth, face, barycentrics, UV) and
+  per-pixel depth ranges.
+- :mod:`~garmentnerf.gl.shell_raster`: the distance range of a closed shell along every pixel ray.
+- :mod:`~garmentnerf.gl.bench`: timing of these passes.
+"""

@@ -20,196 +20,173 @@ RADIANCE_ACTIVATIONS = ("softplus", "sigmoid")
 
 @dataclass
 class ModelConfig:
-    """Configuration of the networks, the renderer, the losses and the optimiser schedule.
+    """Configuration of the networks, the renderer, the losses and the optimiser schedule; each
+    field is documented under it."""
 
-    Inputs
-        history: k, number of past velocity frames in the velocity map V_t (paper: 2). The
-            dynamic feature encoder E then sees 3 (k + 1) channels (normals + k velocities).
-        info_map_resolution: side of the UV info maps N_t, V_t and of the dynamic feature map
-            F^s_t (paper: 128).
-        image_resolution: side of the output image (paper: 512).
-        reference_resolution: side of the front/back reference images of G_img and of the detail
-            feature maps F^d_t made from them by G_en (paper: 512, the image size). G_en at this
-            size is the most expensive network on a CPU, hence a separate field.
-        feature_image_resolution: side of the volume-rendered appearance feature image F^zeta_t,
-            i.e. rays per image side (paper: 128 = image / 4). Must be image_resolution divided by
-            2 ** decoder_upsample_steps.
-
-    Features
-        dynamic_feature_dim: channels of F^s_t, the output of E (paper: 8).
-        detail_feature_dim: channels of F^d_t, the output of G_en (paper: 8).
-        appearance_dim: zeta, channels of the NeRF appearance feature and of F^zeta_t (paper: 128).
-
-    U-Nets E and G_en (``model/unet.py``)
-        encoder_base_width: width of the first conv, doubled at every down block (paper: 32, so
-            32 -> 64/128/256/512).
-        encoder_depth: number of stride-2 down blocks (paper: 4; 128 -> 8x8 bottleneck for E,
-            512 -> 32x32 for G_en).
-        encoder_width_scale: multiplies every U-Net width (paper: 1.0).
-
-    Image generator G_img (``model/image_generator.py``; pre-trained, then frozen)
-        neural_texture_channels: channels of every neural-texture level and of Q_t (DNG: 16).
-        neural_texture_levels: pyramid levels, each half the previous resolution (DNG: 4).
-        neural_texture_resolution: side of the finest level (DNG: 512 -> 512/256/128/64).
-        generator_width_scale: width factor of G_img's encoder-decoder (1.0: the E/G_en widths).
-
-    NeRF MLP M_NeRF (``model/nerf_mlp.py``)
-        mlp_depth: hidden Linear + ReLU layers (paper: 6).
-        mlp_width: hidden width (paper: 256).
-        density_activation: ``"softplus"`` (default) or ``"trunc_exp"``. Never the raw output:
-            the authors' code uses the unbounded head directly as alpha.
-        density_bias: added to the raw density before the activation (default -1.0, as in
-            Mip-NeRF). With softplus the untrained density is then about 0.3 per metre: rays
-            through a 1-2 m box start half transparent, so every sample gets gradient.
-        density_scale: multiplies the activated density (1/metre per unit; default 1).
-        body_prior_strength, body_prior_width: a fixed raw-density offset from h
-            (``nerf_mlp.body_density_prior``: +strength on and in the body, 0 at h = width,
-            -strength from 2 width out). 0 (default) is the paper's plain MLP.
-        positional_encoding_freqs: NeRF frequencies applied to b_o (paper: 0, none).
-
-    Sampling (``model/samplers.py``, ``model/volume_rendering.py``)
-        samples_per_ray: stratified samples between box entry and exit (paper: 64; no importance
-            pass).
-        bbox_padding: metres added on every side of the posed body's bounding box (paper code:
-            0.05).
-
-    Palette decoder M_D (``model/palette.py``)
-        palette_size: P, palette colours (paper: 2, garment p_G and body/other p_B).
-        decoder_upsample_steps: nearest x2 upsamplings (paper: 2, 128 -> 512).
-        decoder_width: width of the first decoder conv, halved after every upsampling down to
-            decoder_min_width (authors' code: 128 -> 64 -> 32).
-        decoder_min_width: floor of the decoder widths (authors' code: 32).
-        decoder_extra_layers: full-resolution conv3x3 + LeakyReLU layers after the upsampling
-            (authors' code: 2).
-        radiance_activation: ``"softplus"`` (default: unbounded above, shifted so the untrained
-            radiance is 1) or ``"sigmoid"``. The palette starts at mean colours, so pixels
-            brighter than the mean need r > 1, which a sigmoid cannot give.
-        radiance_channels: 3 (paper: r in R^3) or 1 (grey shading, which cannot absorb hue and
-            so makes recolouring follow the palette more faithfully).
-        offset_scale: offsets are ``offset_scale * tanh(.)`` (small, and bounded so a colour
-            p + o stays near [0, 1]).
-        blend_weight_floor: added after the softplus of the blend weights before they are
-            normalised (authors' code: 0.05), so no palette colour's weight reaches exactly 0
-            and the normalisation never divides by 0.
-        background: RGB in [0, 1] the output is composited over (default black, the background
-            of the ground-truth renders in ``garmentnerf.data.render_gt``).
-        garment_label, body_label: label-map values of garment and body pixels (0 is background),
-            used to initialise the palette from mean colours.
-
-    Ablations
-        use_dynamic_feature: feed f^s_t (from E) to the MLP (paper: on).
-        use_detail_feature: feed f^d_t (from G_img + G_en) to the MLP (paper: on).
-        detail_selection: how a sample's detail feature is taken from the front or back map:
-            ``"visibility"`` (paper: the map whose reference camera sees the projected body
-            point) or ``"soft_normal"`` (authors' code: weights (cos + 1) / 2 with cos between
-            the body normal and the direction to each camera, the pair L2-normalised).
-
-    Losses (paper Eq. for L; weights lambda_1..5)
-        w_image: L1 on the image (paper lambda_1 = 1).
-        w_mask: L1 on the mask (paper: inside L_img, weight 1).
-        w_perceptual: VGG/perceptual term (paper lambda_2 = 0.1).
-        w_sparsity: blend-weight sparsity (paper lambda_3 = 2e-4).
-        w_offset: colour-offset magnitude (paper lambda_4 = 0.03).
-        w_palette: palette drift from its initialisation (paper lambda_5 = 1e-3).
-        w_opacity: L1 between the volume-rendered opacity of the feature rays and the ground-truth
-            mask area-averaged to the feature resolution (not in the paper: 0 gives the paper's
-            objective). Default 1: the paper's only geometry signal reaches the density through
-            the decoder's mask, which at a few thousand steps leaves the density at its uniform
-            initial box (the decoder learns "features -> background" first); supervising the
-            opacity directly carves the body and garment within a few hundred steps.
-        w_segmentation: L1 between the garment blend weight w_G (palette colour 0) and the
-            ground-truth garment share of each foreground pixel, from the label maps (not in the
-            paper: 0 gives its objective). The paper leaves the garment/body split to the
-            sparsity and offset losses alone; at CPU schedules that split comes out wrong (a
-            model at NeRF step 400 put w_G = 0.06 on garment pixels and made them blue with a body
-            offset of 0.28), and recolouring the garment then barely changes it. The labels the
-            palette is initialised from already say which pixels are garment.
-        segmentation_start: NeRF steps done before the segmentation term applies (a curriculum:
-            the garment is first carved and coloured by the image and mask losses, then assigned
-            to its palette entry; the bundled model switched it on after 551 steps).
-        segmentation_head_only: the segmentation term trains only the decoder's weight head, not
-            the layers it shares with the mask and radiance (nor the NeRF behind them). With the
-            full gradient, switching the term on at NeRF step 551 of a run whose garment was already
-            rendered collapsed the garment's mask from 0.96 to 0.03 within 65 steps; head-only, the
-            mask stayed at 0.98 while w_G on the garment rose from 0.05 to 0.63 in 60 steps.
-
-    Optimisation
-        lr: initial Adam learning rate (paper: 5e-4).
-        lr_final: learning rate at the last iteration, exponential decay (paper: 5e-5).
-        iterations: training iterations (paper: 200k).
-        batch_size: images per iteration (paper: 1).
-        grad_clip_value: gradient clipping by value (authors' code: 40).
-        generator_lr: Adam learning rate of G_img pre-training (DNG: 1e-4).
-        generator_iterations: G_img pre-training iterations (DNG: 100k).
-    """
-
-    # inputs
+    # ---- Inputs
     history: int = 2
+    """k, number of past velocity frames in the velocity map V_t (paper: 2). The dynamic feature encoder E
+    then sees 3 (k + 1) channels (normals + k velocities)."""
     info_map_resolution: int = 128
+    """Side of the UV info maps N_t, V_t and of the dynamic feature map F^s_t (paper: 128)."""
     image_resolution: int = 512
+    """Side of the output image (paper: 512)."""
     reference_resolution: int = 512
+    """Side of the front/back reference images of G_img and of the detail feature maps F^d_t made from them by
+    G_en (paper: 512, the image size). G_en at this size is the most expensive network on a CPU, hence a
+    separate field."""
     feature_image_resolution: int = 128
-    # features
+    """Side of the volume-rendered appearance feature image F^zeta_t, i.e. rays per image side (paper: 128 =
+    image / 4). Must be image_resolution divided by 2 ** decoder_upsample_steps."""
+
+    # ---- Features
     dynamic_feature_dim: int = 8
+    """Channels of F^s_t, the output of E (paper: 8)."""
     detail_feature_dim: int = 8
+    """Channels of F^d_t, the output of G_en (paper: 8)."""
     appearance_dim: int = 128
-    # U-Nets
+    """zeta, channels of the NeRF appearance feature and of F^zeta_t (paper: 128)."""
+
+    # ---- U-Nets E and G_en (``model/unet.py``)
     encoder_base_width: int = 32
+    """Width of the first conv, doubled at every down block (paper: 32, so 32 -> 64/128/256/512)."""
     encoder_depth: int = 4
+    """Number of stride-2 down blocks (paper: 4; 128 -> 8x8 bottleneck for E, 512 -> 32x32 for G_en)."""
     encoder_width_scale: float = 1.0
-    # G_img
+    """Multiplies every U-Net width (paper: 1.0)."""
+
+    # ---- Image generator G_img (``model/image_generator.py``; pre-trained, then frozen)
     neural_texture_channels: int = 16
+    """Channels of every neural-texture level and of Q_t (DNG: 16)."""
     neural_texture_levels: int = 4
+    """Pyramid levels, each half the previous resolution (DNG: 4)."""
     neural_texture_resolution: int = 512
+    """Side of the finest level (DNG: 512 -> 512/256/128/64)."""
     generator_width_scale: float = 1.0
-    # NeRF MLP
+    """Width factor of G_img's encoder-decoder (1.0: the E/G_en widths)."""
+
+    # ---- NeRF MLP M_NeRF (``model/nerf_mlp.py``)
     mlp_depth: int = 6
+    """Hidden Linear + ReLU layers (paper: 6)."""
     mlp_width: int = 256
+    """Hidden width (paper: 256)."""
     density_activation: str = "softplus"
+    """``"softplus"`` (default) or ``"trunc_exp"``. Never the raw output: the authors' code uses the unbounded
+    head directly as alpha."""
     density_bias: float = -1.0
+    """Added to the raw density before the activation (default -1.0, as in Mip-NeRF). With softplus the
+    untrained density is then about 0.3 per metre: rays through a 1-2 m box start half transparent, so every
+    sample gets gradient."""
     density_scale: float = 1.0
+    """Multiplies the activated density (1/metre per unit; default 1)."""
     body_prior_strength: float = 0.0
+    """Strength of a fixed raw-density offset from h (``nerf_mlp.body_density_prior``: +strength on and in
+    the body, 0 at h = ``body_prior_width``, -strength from 2 ``body_prior_width`` out). 0 (default) is the
+    paper's plain MLP."""
     body_prior_width: float = 0.15
+    """Metres from the body surface at which the density prior of ``body_prior_strength`` crosses 0."""
     positional_encoding_freqs: int = 0
-    # sampling
+    """NeRF frequencies applied to b_o (paper: 0, none)."""
+
+    # ---- Sampling (``model/samplers.py``, ``model/volume_rendering.py``)
     samples_per_ray: int = 64
+    """Stratified samples between box entry and exit (paper: 64; no importance pass)."""
     bbox_padding: float = 0.05
-    # palette decoder
+    """Metres added on every side of the posed body's bounding box (paper code: 0.05)."""
+
+    # ---- Palette decoder M_D (``model/palette.py``)
     palette_size: int = 2
+    """P, palette colours (paper: 2, garment p_G and body/other p_B)."""
     decoder_upsample_steps: int = 2
+    """Nearest x2 upsamplings (paper: 2, 128 -> 512)."""
     decoder_width: int = 64
+    """Width of the first decoder conv, halved after every upsampling down to decoder_min_width (authors'
+    code: 128 -> 64 -> 32)."""
     decoder_min_width: int = 32
+    """Floor of the decoder widths (authors' code: 32)."""
     decoder_extra_layers: int = 2
+    """Full-resolution conv3x3 + LeakyReLU layers after the upsampling (authors' code: 2)."""
     radiance_activation: str = "softplus"
+    """``"softplus"`` (default: unbounded above, shifted so the untrained radiance is 1) or ``"sigmoid"``. The
+    palette starts at mean colours, so pixels brighter than the mean need r > 1, which a sigmoid cannot give."""
     radiance_channels: int = 3
+    """3 (paper: r in R^3) or 1 (grey shading, which cannot absorb hue and so makes recolouring follow the
+    palette more faithfully)."""
     offset_scale: float = 0.5
+    """Offsets are ``offset_scale * tanh(.)`` (small, and bounded so a colour p + o stays near [0, 1])."""
     blend_weight_floor: float = 0.05
+    """Added after the softplus of the blend weights before they are normalised (authors' code: 0.05), so no
+    palette colour's weight reaches exactly 0 and the normalisation never divides by 0."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """RGB in [0, 1] the output is composited over (default black, the background of the ground-truth renders
+    in ``garmentnerf.data.render_gt``)."""
     garment_label: int = 2
+    """Label-map value of garment pixels (0 is background), used to initialise the palette from mean
+    colours."""
     body_label: int = 1
-    # ablations
+    """Label-map value of body pixels (0 is background), used to initialise the palette from mean colours."""
+
+    # ---- Ablations
     use_dynamic_feature: bool = True
+    """Feed f^s_t (from E) to the MLP (paper: on)."""
     use_detail_feature: bool = True
+    """Feed f^d_t (from G_img + G_en) to the MLP (paper: on)."""
     detail_selection: str = "visibility"
-    # losses
+    """How a sample's detail feature is taken from the front or back map: ``"visibility"`` (paper: the map
+    whose reference camera sees the projected body point) or ``"soft_normal"`` (authors' code: weights
+    (cos + 1) / 2 with cos between the body normal and the direction to each camera, the pair L2-normalised)."""
+
+    # ---- Losses (paper Eq. for L; weights lambda_1..5)
     w_image: float = 1.0
+    """L1 on the image (paper lambda_1 = 1)."""
     w_mask: float = 1.0
+    """L1 on the mask (paper: inside L_img, weight 1)."""
     w_perceptual: float = 0.1
+    """VGG/perceptual term (paper lambda_2 = 0.1)."""
     w_sparsity: float = 2e-4
+    """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
+    """Colour-offset magnitude (paper lambda_4 = 0.03)."""
     w_palette: float = 1e-3
+    """Palette drift from its initialisation (paper lambda_5 = 1e-3)."""
     w_opacity: float = 1.0
+    """L1 between the volume-rendered opacity of the feature rays and the ground-truth mask area-averaged to
+    the feature resolution (not in the paper: 0 gives the paper's objective). Default 1: the paper's only
+    geometry signal reaches the density through the decoder's mask, which at a few thousand steps leaves the
+    density at its uniform initial box (the decoder learns "features -> background" first); supervising the
+    opacity directly carves the body and garment within a few hundred steps."""
     w_segmentation: float = 0.0
+    """L1 between the garment blend weight w_G (palette colour 0) and the ground-truth garment share of each
+    foreground pixel, from the label maps (not in the paper: 0 gives its objective). The paper leaves the
+    garment/body split to the sparsity and offset losses alone; at CPU schedules that split comes out wrong (a
+    model at NeRF step 400 put w_G = 0.06 on garment pixels and made them blue with a body offset of 0.28),
+    and recolouring the garment then barely changes it. The labels the palette is initialised from already say
+    which pixels are garment."""
     segmentation_start: int = 0
+    """NeRF steps done before the segmentation term applies (a curriculum: the garment is first carved and
+    coloured by the image and mask losses, then assigned to its palette entry; the bundled model switched it
+    on after 551 steps)."""
     segmentation_head_only: bool = True
-    # optimisation
+    """The segmentation term trains only the decoder's weight head, not the layers it shares with the mask and
+    radiance (nor the NeRF behind them). With the full gradient, switching the term on at NeRF step 551 of a
+    run whose garment was already rendered collapsed the garment's mask from 0.96 to 0.03 within 65 steps;
+    head-only, the mask stayed at 0.98 while w_G on the garment rose from 0.05 to 0.63 in 60 steps."""
+
+    # ---- Optimisation
     lr: float = 5e-4
+    """Initial Adam learning rate (paper: 5e-4)."""
     lr_final: float = 5e-5
+    """Learning rate at the last iteration, exponential decay (paper: 5e-5)."""
     iterations: int = 200_000
+    """Training iterations (paper: 200k)."""
     batch_size: int = 1
+    """Images per iteration (paper: 1)."""
     grad_clip_value: float = 40.0
+    """Gradient clipping by value (authors' code: 40)."""
     generator_lr: float = 1e-4
+    """Adam learning rate of G_img pre-training (DNG: 1e-4)."""
     generator_iterations: int = 100_000
+    """G_img pre-training iterations (DNG: 100k)."""
 
     def __post_init__(self) -> None:
         self.background = tuple(float(c) for c in self.background)

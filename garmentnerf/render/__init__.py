@@ -4,6 +4,10 @@ snapshots and video export, so their images agree.
 * :mod:`~garmentnerf.render.session` -- :class:`RenderSession` (model + body + GL input builder +
   per-frame feature cache) and :class:`NeuralFrame` (the decomposed maps of one view, composed
   with any palette by :func:`garmentnerf.model.palette.compose`).
+* :mod:`~garmentnerf.render.frame_cache` -- the per-frame features of a clip, kept in half
+  precision under a memory bound (what the session renders views from).
+* :mod:`~garmentnerf.render.screen_rect` -- the pixel rectangle a world box covers on screen (the
+  part of the image a render needs).
 * :mod:`~garmentnerf.render.cameras` -- turntable/orbit camera sequences, scene cameras by name or
   index, and the ``--camera`` argument.
 * :mod:`~garmentnerf.render.video` -- PNG frames written atomically (never overwriting) and mp4

@@ -63,72 +63,68 @@ class TrainConfig:
     applies from the resumed step on and is recorded in ``run.json``'s ``overrides``. For a new
     run None means the default (:data:`TRAIN_DEFAULTS`, or as described).
 
-    Attributes:
-        scene: the scene folder (on resume None: the run's; another folder, e.g. a moved scene,
-            is recorded in ``overrides``).
-        out: the run folder (must be empty or absent unless ``resume``).
-        preset: *run*; model preset (``paper``, ``cpu_small``, ``tiny``; default ``cpu_small``)
-            when ``model_config`` is None. With a ``model_config`` the run records the preset it
-            equals (apart from iterations and loss weights), else None.
-        model_config: an explicit model config (overrides ``preset``); on resume the run's own
-            config is used and this is ignored.
-        device: ``cpu``, ``cuda`` or ``cuda:N`` (under torchrun ``cuda`` means ``cuda:LOCAL_RANK``).
-        seed: *run*; seeds the initialisation, the (frame, camera) order and the ray jitter (default 0).
-        iterations: *run*; overrides ``cfg.iterations`` (NeRF steps; the lr decay spans them).
-        generator_iterations: *run*; overrides ``cfg.generator_iterations`` (G_img pre-training steps).
-        stop_after: stop (writing a checkpoint) once this global step is reached, without
-            changing the schedule (resume later to continue); None: train to the end. Not
-            inherited by a resume (given on one, it is recorded in ``overrides``).
-        log_every: *override*; steps between TensorBoard scalars (losses, lr, psnr; default 10).
-        image_every: *override*; steps between TensorBoard images (render | ground truth); 0:
-            never (default 500).
-        ckpt_every: *override*; steps between checkpoints (one is also written at the end of
-            each stage, at the end and on Ctrl-C; default 1000).
-        keep_checkpoints: *override*; checkpoints kept (the newest ones; default 2).
-        resume: continue the run in ``out`` from its newest readable checkpoint, with its settings.
-        sequences: *run*; training sequences (default: every ``train``-split sequence of the scene).
-        frames: *run*; frame indices used in each sequence (default: all).
-        cameras: *run*; training cameras (default: every ``train``-split camera).
-        perceptual: *override*; ``auto`` (the default: VGG19 when
-            ``vgg19_weights``/``$GARMENTNERF_VGG19`` names ImageNet weights, else shift-tolerant
-            LPIPS), ``vgg19``, ``stlpips`` or ``none``.
-        vgg19_weights: *override*; torchvision ``vgg19-dcbb9e9d.pth``.
-        progress: show a tqdm progress bar (rank 0).
-        threads: ``torch.set_num_threads`` (None: leave as is).
-        cache_bytes: bound of the in-memory target cache.
-        init_generator: *run*; a weights file (a run's ``model.safetensors`` or a checkpoint)
-            whose pre-trained G_img (with its neural texture) a new run starts from, skipping
-            stage 1; the model configs must agree on G_img's shapes.
-        loss_weights: overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a
-            resume they apply from the resumed step on (a curriculum: e.g. add a term once the
-            geometry is there); each change is logged and kept in ``run.json``'s
-            ``loss_weight_changes`` so the run's recipe stays on record.
+    Each field is documented under it.
     """
 
     scene: str | Path | None
+    """The scene folder (on resume None: the run's; another folder, e.g. a moved scene, is recorded in
+    ``overrides``)."""
     out: str | Path
+    """The run folder (must be empty or absent unless ``resume``)."""
     preset: str | None = None
+    """*run*; model preset (``paper``, ``cpu_small``, ``tiny``; default ``cpu_small``) when ``model_config``
+    is None. With a ``model_config`` the run records the preset it equals (apart from iterations and loss
+    weights), else None."""
     model_config: ModelConfig | None = None
+    """An explicit model config (overrides ``preset``); on resume the run's own config is used and this is
+    ignored."""
     device: str = "cpu"
+    """``cpu``, ``cuda`` or ``cuda:N`` (under torchrun ``cuda`` means ``cuda:LOCAL_RANK``)."""
     seed: int | None = None
+    """*run*; seeds the initialisation, the (frame, camera) order and the ray jitter (default 0)."""
     iterations: int | None = None
+    """*run*; overrides ``cfg.iterations`` (NeRF steps; the lr decay spans them)."""
     generator_iterations: int | None = None
+    """*run*; overrides ``cfg.generator_iterations`` (G_img pre-training steps)."""
     stop_after: int | None = None
+    """Stop (writing a checkpoint) once this global step is reached, without changing the schedule (resume
+    later to continue); None: train to the end. Not inherited by a resume (given on one, it is recorded in
+    ``overrides``)."""
     log_every: int | None = None
+    """*override*; steps between TensorBoard scalars (losses, lr, psnr; default 10)."""
     image_every: int | None = None
+    """*override*; steps between TensorBoard images (render | ground truth); 0: never (default 500)."""
     ckpt_every: int | None = None
+    """*override*; steps between checkpoints (one is also written at the end of each stage, at the end and on
+    Ctrl-C; default 1000)."""
     keep_checkpoints: int | None = None
+    """*override*; checkpoints kept (the newest ones; default 2)."""
     resume: bool = False
+    """Continue the run in ``out`` from its newest readable checkpoint, with its settings."""
     sequences: tuple[str, ...] | None = None
+    """*run*; training sequences (default: every ``train``-split sequence of the scene)."""
     frames: tuple[int, ...] | None = None
+    """*run*; frame indices used in each sequence (default: all)."""
     cameras: tuple[str, ...] | None = None
+    """*run*; training cameras (default: every ``train``-split camera)."""
     perceptual: str | None = None
+    """*override*; ``auto`` (the default: VGG19 when ``vgg19_weights``/``$GARMENTNERF_VGG19`` names ImageNet
+    weights, else shift-tolerant LPIPS), ``vgg19``, ``stlpips`` or ``none``."""
     vgg19_weights: str | None = None
+    """*override*; torchvision ``vgg19-dcbb9e9d.pth``."""
     progress: bool = True
+    """Show a tqdm progress bar (rank 0)."""
     threads: int | None = None
+    """``torch.set_num_threads`` (None: leave as is)."""
     cache_bytes: int = 2 << 30
+    """Bound of the in-memory target cache."""
     init_generator: str | Path | None = None
+    """*run*; a weights file (a run's ``model.safetensors`` or a checkpoint) whose pre-trained G_img (with its
+    neural texture) a new run starts from, skipping stage 1; the model configs must agree on G_img's shapes."""
     loss_weights: dict[str, float] | None = None
+    """Overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a resume they apply from the
+    resumed step on (a curriculum: e.g. add a term once the geometry is there); each change is logged and kept
+    in ``run.json``'s ``loss_weight_changes`` so the run's recipe stays on record."""
 
     def validate(self) -> None:
         """Raise ValueError naming the first impossible setting (None fields are not checked)."""
