@@ -1,11 +1,16 @@
-"""Safe file handling: writes that lose nothing a user made to a crash or a second run, and
-reading a ``.npy`` header without loading (or unpickling) the array."""
+"""Safe file handling: writes that lose nothing a user made to a crash or a second run, reading
+an ``.npy``/``.npz`` array's header without loading (or unpickling) the array, and content
+digests of files memoised on their size and modification time."""
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import tempfile
+import threading
+import zipfile
+from collections import OrderedDict
 from pathlib import Path
 from typing import IO
 
@@ -102,3 +107,52 @@ def read_npy_header(file: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype]:
     else:
         raise ValueError(f"unsupported .npy format version {version[0]}.{version[1]}")
     return tuple(int(n) for n in shape), bool(fortran), dtype
+
+
+def npz_member_shape(path: str | Path, key: str) -> tuple[int, ...] | None:
+    """Shape of array ``key`` of an ``.npz`` from its header alone (None if the file has no such
+    array). Raises OSError, ValueError or zipfile.BadZipFile for an unreadable file."""
+    with zipfile.ZipFile(path) as zf:
+        member = f"{key}.npy"
+        if member not in zf.namelist():
+            return None
+        with zf.open(member) as fh:
+            return read_npy_header(fh)[0]
+
+
+class FileDigests:
+    """SHA-256 of files' content, memoised on (resolved path, size, mtime) -- the ``capacity``
+    most recent -- so a file is hashed once while it is unchanged, and a copy hashes the same.
+
+    Thread-safe: one instance may be shared by threads (a scene read by the viewer's UI, its
+    render worker and its exporter); hashing itself runs outside the lock.
+    """
+
+    def __init__(self, capacity: int = 256) -> None:
+        self.capacity = int(capacity)
+        self._lock = threading.Lock()
+        self._digests: OrderedDict[tuple[str, int, int], str] = OrderedDict()  # guarded by _lock
+
+    def digest(self, path: str | Path) -> str | None:
+        """64 hex digits of the file's SHA-256, or None if it does not exist."""
+        path = Path(path)
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            return None
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+        with self._lock:
+            digest = self._digests.get(key)
+            if digest is not None:
+                self._digests.move_to_end(key)
+                return digest
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        digest = h.hexdigest()
+        with self._lock:
+            self._digests[key] = digest
+            while len(self._digests) > self.capacity:
+                self._digests.popitem(last=False)
+        return digest

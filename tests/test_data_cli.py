@@ -8,7 +8,8 @@ import imageio.v3 as iio
 import numpy as np
 
 from garmentnerf.cli.main import main
-from garmentnerf.data.scene import Scene, SceneImages
+from garmentnerf.data.scene import Scene
+from garmentnerf.data.scene_images import SceneImages
 from test_scene import build_scene
 
 

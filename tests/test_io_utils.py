@@ -73,3 +73,51 @@ def test_stale_temporaries_of_killed_writes_are_removed(tmp_path):
     video.abort()
     assert not stale[1].exists() and fresh.exists() and all(p.exists() for p in other)
     assert remove_stale_temporaries(tmp_path / "missing", "x") == []
+
+
+def test_file_digests_match_hashlib_and_follow_changes(tmp_path):
+    import hashlib
+
+    from garmentnerf.io_utils import FileDigests
+
+    digests = FileDigests(capacity=2)
+    path = tmp_path / "a.bin"
+    assert digests.digest(path) is None
+    path.write_bytes(b"x" * 3_000_000)  # more than one 1 MiB block
+    assert digests.digest(path) == hashlib.sha256(b"x" * 3_000_000).hexdigest()
+    path.write_bytes(b"changed")
+    os.utime(path, ns=(1, 1))  # a new (size, mtime): hashed afresh
+    assert digests.digest(path) == hashlib.sha256(b"changed").hexdigest()
+    for name in ("b", "c", "d"):
+        (tmp_path / name).write_bytes(name.encode())
+        assert digests.digest(tmp_path / name) == hashlib.sha256(name.encode()).hexdigest()
+    assert len(digests._digests) == 2  # bounded by capacity
+
+
+def test_file_digests_shared_between_threads(tmp_path):
+    import hashlib
+    from concurrent.futures import ThreadPoolExecutor
+
+    from garmentnerf.io_utils import FileDigests
+
+    files = []
+    for i in range(12):
+        files.append(tmp_path / f"f{i}")
+        files[-1].write_bytes(bytes([i]) * (1000 * i + 1))
+    expected = {f: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
+    digests = FileDigests(capacity=5)  # smaller than the set: entries are evicted while others read
+    with ThreadPoolExecutor(8) as pool:
+        got = list(pool.map(lambda k: (files[k % 12], digests.digest(files[k % 12])), range(2000)))
+    assert all(d == expected[f] for f, d in got)
+    assert len(digests._digests) <= 5
+
+
+def test_npz_member_shape_reads_headers_only(tmp_path):
+    import numpy as np
+
+    from garmentnerf.io_utils import npz_member_shape
+
+    np.savez(tmp_path / "a.npz", v=np.zeros((4, 7, 3), np.float32), o=np.array([{"k": 1}], dtype=object))
+    assert npz_member_shape(tmp_path / "a.npz", "v") == (4, 7, 3)
+    assert npz_member_shape(tmp_path / "a.npz", "o") == (1,)  # an object array: not unpickled
+    assert npz_member_shape(tmp_path / "a.npz", "missing") is None

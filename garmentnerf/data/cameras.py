@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -70,6 +71,27 @@ class NamedCamera:
     @property
     def height(self) -> int:
         return self.camera.height
+
+
+class _HasSplit(Protocol):
+    split: str
+
+
+_WithSplit = TypeVar("_WithSplit", bound=_HasSplit)
+
+
+def in_splits(items: Iterable[_WithSplit], split: str | Sequence[str] | None, known: Sequence[str] | None = None,
+              what: str = "camera", error: type[Exception] = ValueError) -> list[_WithSplit]:
+    """The ``items`` (cameras, sequences: anything with a ``split``) whose split is ``split`` -- a
+    name, several names, or None for all -- in their order. With ``known``, a name outside it
+    raises ``error("unknown <what> split(s) [...] (known: ...)")``."""
+    if split is None:
+        return list(items)
+    wanted = {split} if isinstance(split, str) else set(split)
+    unknown = wanted - set(known) if known is not None else set()
+    if unknown:
+        raise error(f"unknown {what} split(s) {sorted(unknown)} (known: {', '.join(known)})")
+    return [item for item in items if item.split in wanted]
 
 
 def ring_camera(azimuth_deg: float, radius: float = 3.0, height: float = 1.0, look_at_point=DEFAULT_LOOK_AT,

@@ -488,7 +488,7 @@ def _is_interrupted_creation(root: Path, names: list[str]) -> bool:
     """True when ``root`` holds nothing but what a ``data make`` killed while writing the scene
     (before ``scene.json``) leaves: motion files of the planned sequences, and temporaries of
     them and of ``scene.json``. (An empty folder is such a folder.)"""
-    from garmentnerf.data.scene import MOTION_FILE, SCENE_FILE
+    from garmentnerf.data.scene_schema import MOTION_FILE, SCENE_FILE
     from garmentnerf.io_utils import temporary_pattern
 
     sequences = root / "sequences"
@@ -547,7 +547,9 @@ def _make_locked(root: Path, spec: MakeSpec, settings, plan, progress: bool, kee
     from garmentnerf.body.model import BodyModel
     from garmentnerf.data.cameras import default_rig
     from garmentnerf.data.garments import GARMENT_COLORS
-    from garmentnerf.data.scene import SCENE_FILE, Scene, SceneImages, palette_from_images
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.data.scene_images import SceneImages, palette_from_images
+    from garmentnerf.data.scene_schema import SCENE_FILE
 
     names = [name for name, *_ in plan]
     wanted = _make_record(spec, settings)

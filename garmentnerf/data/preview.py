@@ -1,7 +1,7 @@
 """Contact sheets: a grid of views x frames with small text titles, to eyeball a data set.
 
 :func:`contact_sheet` lays out any images; :func:`scene_contact_sheet` fetches a scene's
-ground-truth images (through the on-demand cache of :class:`~garmentnerf.data.scene.SceneImages`)
+ground-truth images (through the on-demand cache of :class:`~garmentnerf.data.scene_images.SceneImages`)
 with cameras as rows and frames as columns. With label maps, the label borders are drawn over the
 images (garment border yellow, body border cyan) to check the labels against the pixels.
 """
@@ -17,7 +17,8 @@ from PIL import Image, ImageDraw, ImageFont
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
     from garmentnerf.data.render_gt import GroundTruthRenderer
-    from garmentnerf.data.scene import Scene, SceneImages
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.data.scene_images import SceneImages
 
 GARMENT_EDGE = (255, 220, 0)
 BODY_EDGE = (0, 220, 255)
@@ -148,7 +149,7 @@ def scene_contact_sheet(scene: "Scene", renderer: "GroundTruthRenderer | SceneIm
         cameras: camera names (default: the ``train`` cameras, at most 8 spread over the circle).
         frames: frame indices (default: 6 spread over the sequence).
     """
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
 
     if cameras is None:
         names = scene.camera_names("train") or scene.camera_names()

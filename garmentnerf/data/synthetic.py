@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from garmentnerf.data.scene import Scene, SceneImages, palette_from_images
+from garmentnerf.data.scene import Scene
+from garmentnerf.data.scene_images import SceneImages, palette_from_images
 
 __all__ = ["make_rigged_scene", "rigged_garment_vertices"]
 

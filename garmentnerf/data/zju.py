@@ -78,7 +78,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR, Camera
-from garmentnerf.data.cameras import NamedCamera
+from garmentnerf.data.cameras import NamedCamera, in_splits
 from garmentnerf.safe_pickle import RefusedGlobal, load_npy_restricted
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -379,10 +379,7 @@ class CaptureScene:
 
     # ---- accessors (as Scene) ---------------------------------------------------------------------
     def cameras(self, split: str | Sequence[str] | None = None) -> list[CaptureCamera]:
-        if split is None:
-            return list(self.rig)
-        wanted = {split} if isinstance(split, str) else set(split)
-        return [c for c in self.rig if c.split in wanted]
+        return in_splits(self.rig, split)
 
     def camera_names(self, split: str | Sequence[str] | None = None) -> list[str]:
         return [c.name for c in self.cameras(split)]

@@ -52,6 +52,7 @@ import torch
 
 from garmentnerf.io_utils import atomic_write_path, remove_stale_temporaries
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.version import package_version
 
 RUN_FORMAT = "garmentnerf-run"
 RUN_VERSION = 1
@@ -63,15 +64,6 @@ TB_DIR = "tb"
 __all__ = ["LoadedRun", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
            "save_weights", "load_weights", "load_scene", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
            "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "write_file_atomic", "remove_run_temporaries"]
-
-
-def _package_version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return f"garmentnerf {version('garmentnerf')}"
-    except Exception:  # not installed
-        return "garmentnerf (source tree)"
 
 
 @dataclass
@@ -357,7 +349,7 @@ def save_run_model(run_dir, model, config: ModelConfig, scene_path, step: int, e
         "palette_init": model.palette.initial.detach().cpu().tolist(),
         "perceptual": extra.pop("perceptual", previous.get("perceptual", "none")),
         "step": int(step),
-        "created_with": _package_version(),
+        "created_with": package_version(),
     })
     info.update(extra)
     save_weights(run_dir / MODEL_FILE, model, {"format": RUN_FORMAT, "step": int(step)})

@@ -1,0 +1,13 @@
+"""What wrote a file: the ``created_with`` stamp of scenes and runs."""
+
+from __future__ import annotations
+
+
+def package_version() -> str:
+    """``"garmentnerf <version>"`` of the installed package, or ``"garmentnerf (source tree)"``."""
+    try:
+        from importlib.metadata import version
+
+        return f"garmentnerf {version('garmentnerf')}"
+    except Exception:  # not installed
+        return "garmentnerf (source tree)"
