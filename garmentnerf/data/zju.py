@@ -69,7 +69,7 @@ and plain containers and refuses a file naming anything else (nothing else runs)
 from __future__ import annotations
 
 import re
-from collections import OrderedDict
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -196,6 +196,160 @@ def _param_index(stem: str) -> int | None:
     return int(digits[-1]) if digits else None
 
 
+# ---- reading annots.npy ---------------------------------------------------------------------------
+def _read_annots(root: Path) -> tuple[Path, dict]:
+    """``<root>/annots.npy`` and its dict, checked to hold ``cams`` (a dict) and ``ims``."""
+    annots_path = root / ANNOTS_FILE
+    if not root.is_dir():
+        raise CaptureError(f"{root}: no such capture folder")
+    if not annots_path.is_file():
+        raise CaptureError(f"{annots_path}: no such file (not a ZJU-MoCap capture folder)")
+    annots = load_pickled_npy(annots_path)
+    src = str(annots_path)
+    if not isinstance(annots, dict):
+        raise CaptureError(f"{src}: must hold a dict with 'cams' and 'ims', got {type(annots).__name__}")
+    for key in ("cams", "ims"):
+        if key not in annots:
+            raise CaptureError(f"{src}: '{key}' is missing")
+    if not isinstance(annots["cams"], dict):
+        raise CaptureError(f"{src}: cams must be a dict with K, R, T, D, got {type(annots['cams']).__name__}")
+    return annots_path, annots
+
+
+def _calibration_entry(cams: dict, key: str, i: int, shapes: set[tuple[int, ...]], shape_text: str,
+                       src: str) -> np.ndarray:
+    """float64 ``cams[key][i]``, checked to have one of ``shapes`` and finite values."""
+    try:
+        a = np.asarray(cams[key][i], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CaptureError(f"{src}: cams.{key}[{i}] must be numeric {shape_text}") from None
+    if a.shape not in shapes:
+        raise CaptureError(f"{src}: cams.{key}[{i}] must be {shape_text}, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise CaptureError(f"{src}: cams.{key}[{i}] contains NaN or Inf")
+    return a
+
+
+_DIST_SHAPES = {(k, 1) for k in (4, 5, 8)} | {(1, k) for k in (4, 5, 8)} | {(k,) for k in (4, 5, 8)}
+
+
+def _read_calibration(cams: dict, src: str) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per camera (K (3, 3), R (3, 3), T (3,) in the file's unit, D (k,) OpenCV coefficients; zeros
+    without ``cams['D']``), checked: intrinsics, rotations, matching counts."""
+    for key in ("K", "R", "T"):
+        if key not in cams:
+            raise CaptureError(f"{src}: cams.{key} is missing")
+    n = len(cams["K"])
+    if n < 1:
+        raise CaptureError(f"{src}: cams.K lists no camera")
+    for key in ("R", "T", "D"):
+        if key in cams and len(cams[key]) != n:
+            raise CaptureError(f"{src}: cams.{key} has {len(cams[key])} entries, cams.K has {n}")
+    calibration = []
+    for i in range(n):
+        K = _calibration_entry(cams, "K", i, {(3, 3)}, "3x3", src)
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-9:
+            raise CaptureError(f"{src}: cams.K[{i}] is not an intrinsics matrix (positive focal lengths, "
+                               f"last row [0, 0, 1])")
+        R = _calibration_entry(cams, "R", i, {(3, 3)}, "3x3", src)
+        if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+            raise CaptureError(f"{src}: cams.R[{i}] is not a rotation matrix")
+        T = _calibration_entry(cams, "T", i, {(3, 1), (3,), (1, 3)}, "3x1", src).reshape(3)
+        if "D" in cams:
+            D = _calibration_entry(cams, "D", i, _DIST_SHAPES, "5x1 (or 4/8 OpenCV coefficients)", src).reshape(-1)
+        else:
+            D = np.zeros(5)
+        calibration.append((K, R, T, D))
+    return calibration
+
+
+def _read_frame_images(ims, n: int, src: str) -> list[list[str]]:
+    """Per frame, the ``n`` image paths (relative to the capture folder) of ``annots['ims']``."""
+    if not isinstance(ims, (list, tuple, np.ndarray)) or len(ims) < 1:
+        raise CaptureError(f"{src}: ims must be a non-empty list of frames")
+    frame_images: list[list[str]] = []
+    for f, entry in enumerate(ims):
+        paths = entry.get("ims") if isinstance(entry, dict) else None
+        if paths is None:
+            raise CaptureError(f"{src}: ims[{f}] must be a dict with an 'ims' list")
+        paths = [str(p) for p in np.asarray(paths).reshape(-1)]
+        if len(paths) != n:
+            raise CaptureError(f"{src}: ims[{f}].ims lists {len(paths)} images for {n} cameras")
+        frame_images.append(paths)
+    return frame_images
+
+
+def _guess_translation_unit(calibration) -> str:
+    """``"mm"`` when the median camera centre is more than 50 units from the origin, else ``"m"``."""
+    dist = np.median([np.linalg.norm(R.T @ T) for _, R, T, _ in calibration])
+    return "mm" if dist > 50.0 else "m"
+
+
+def _world_alignment(align: str | np.ndarray, rotations: Sequence[np.ndarray]) -> np.ndarray:
+    """(4, 4) rigid ``world_from_capture`` for ``align`` (see the module docstring)."""
+    if isinstance(align, str):
+        if align == "none":
+            return np.eye(4)
+        if align == "auto":
+            up = estimate_up(rotations)
+            axis = int(np.argmax(np.abs(up)))
+            M = np.eye(4)
+            M[:3, :3] = _TO_Z[(axis, 1 if up[axis] > 0 else -1)]
+            return M
+        raise ValueError(f"align must be 'auto', 'none' or a (4, 4) matrix, got {align!r}")
+    M = np.asarray(align, dtype=np.float64)
+    if M.shape != (4, 4) or np.abs(M[:3, :3] @ M[:3, :3].T - np.eye(3)).max() > 1e-6 \
+            or np.linalg.det(M[:3, :3]) < 0 or np.abs(M[3] - [0, 0, 0, 1]).max() > 0:
+        raise ValueError("align must be a rigid (4, 4) matrix (rotation + translation)")
+    return M
+
+
+def _camera_names(first_frame_images: list[str]) -> list[str]:
+    """The cameras' image folder names when unique and file-safe, else ``cam00``, ``cam01``, ..."""
+    names = [Path(p).parent.name for p in first_frame_images]
+    n = len(names)
+    if len(set(names)) != n or not all(re.match(r"^[A-Za-z0-9][A-Za-z0-9_. ()-]*$", x) for x in names):
+        names = [f"cam{i:02d}" for i in range(n)]
+    return names
+
+
+def _checked_camera_splits(camera_splits: dict[str, str] | None, names: list[str]) -> dict[str, str]:
+    splits = dict(camera_splits or {})
+    unknown = set(splits) - set(names)
+    if unknown:
+        raise ValueError(f"camera_splits names unknown cameras {sorted(unknown)} (cameras: {', '.join(names)})")
+    for name, split in splits.items():
+        if split not in CAPTURE_SPLITS:
+            raise ValueError(f"camera '{name}': split must be one of {', '.join(CAPTURE_SPLITS)}, got {split!r}")
+    return splits
+
+
+def _image_size(image: Path, listed_as: str) -> tuple[int, int]:
+    """(width, height) of an image the annotations list (``listed_as`` names where)."""
+    from PIL import Image
+
+    try:
+        with Image.open(image) as im:
+            return im.size
+    except FileNotFoundError:
+        raise CaptureError(f"{listed_as} names a missing image {image}") from None
+    except OSError as exc:
+        raise CaptureError(f"{image}: not a readable image ({exc})") from None
+
+
+def _split_frames(train_frames: int | None, total: int) -> dict[str, list[int]]:
+    """Sequence name -> capture frames: ``train`` [0, train_frames), ``unseen_motion`` the rest."""
+    if train_frames is None:
+        return {"train": list(range(total))}
+    if isinstance(train_frames, bool) or not isinstance(train_frames, (int, np.integer)) \
+            or not 1 <= train_frames <= total:
+        raise ValueError(f"train_frames must be in [1, {total}], got {train_frames!r}")
+    sequences = {"train": list(range(int(train_frames)))}
+    if train_frames < total:
+        sequences["unseen_motion"] = list(range(int(train_frames), total))
+    return sequences
+
+
 # ---- the capture ----------------------------------------------------------------------------------
 class CaptureScene:
     """A ZJU-MoCap capture with the accessors of :class:`~garmentnerf.data.scene.Scene` where they
@@ -223,7 +377,10 @@ class CaptureScene:
         self.mask_dirs = tuple(mask_dirs)
         self.fps = float(fps)
         self.annots_path = annots_path
-        self._params_cache: OrderedDict[int, SmplParams] = OrderedDict()
+        # camera index -> cv2 undistortion maps, made on first use (guarded by the lock: loaders
+        # may read one capture from several threads)
+        self._undistort_maps_by_camera: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._undistort_maps_lock = threading.Lock()
 
     # ---- loading ----------------------------------------------------------------------------------
     @staticmethod
@@ -245,137 +402,29 @@ class CaptureScene:
             CaptureError: naming the file and the field.
         """
         root = Path(root)
-        annots_path = root / ANNOTS_FILE
-        if not root.is_dir():
-            raise CaptureError(f"{root}: no such capture folder")
-        if not annots_path.is_file():
-            raise CaptureError(f"{annots_path}: no such file (not a ZJU-MoCap capture folder)")
-        annots = load_pickled_npy(annots_path)
+        annots_path, annots = _read_annots(root)
         src = str(annots_path)
-        if not isinstance(annots, dict):
-            raise CaptureError(f"{src}: must hold a dict with 'cams' and 'ims', got {type(annots).__name__}")
-        for key in ("cams", "ims"):
-            if key not in annots:
-                raise CaptureError(f"{src}: '{key}' is missing")
-        cams = annots["cams"]
-        if not isinstance(cams, dict):
-            raise CaptureError(f"{src}: cams must be a dict with K, R, T, D, got {type(cams).__name__}")
-        for key in ("K", "R", "T"):
-            if key not in cams:
-                raise CaptureError(f"{src}: cams.{key} is missing")
-        n = len(cams["K"])
-        if n < 1:
-            raise CaptureError(f"{src}: cams.K lists no camera")
-        for key in ("R", "T", "D"):
-            if key in cams and len(cams[key]) != n:
-                raise CaptureError(f"{src}: cams.{key} has {len(cams[key])} entries, cams.K has {n}")
-
-        def arr(key, i, sizes, shape_text):
-            try:
-                a = np.asarray(cams[key][i], dtype=np.float64)
-            except (TypeError, ValueError):
-                raise CaptureError(f"{src}: cams.{key}[{i}] must be numeric {shape_text}") from None
-            if a.shape not in sizes:
-                raise CaptureError(f"{src}: cams.{key}[{i}] must be {shape_text}, got shape {a.shape}")
-            if not np.all(np.isfinite(a)):
-                raise CaptureError(f"{src}: cams.{key}[{i}] contains NaN or Inf")
-            return a
-
-        Ks, Rs, Ts, Ds = [], [], [], []
-        for i in range(n):
-            K = arr("K", i, {(3, 3)}, "3x3")
-            if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-9:
-                raise CaptureError(f"{src}: cams.K[{i}] is not an intrinsics matrix (positive focal lengths, "
-                                   f"last row [0, 0, 1])")
-            R = arr("R", i, {(3, 3)}, "3x3")
-            if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
-                raise CaptureError(f"{src}: cams.R[{i}] is not a rotation matrix")
-            T = arr("T", i, {(3, 1), (3,), (1, 3)}, "3x1").reshape(3)
-            if "D" in cams:
-                D = arr("D", i, {(k, 1) for k in (4, 5, 8)} | {(1, k) for k in (4, 5, 8)} | {(k,) for k in (4, 5, 8)},
-                        "5x1 (or 4/8 OpenCV coefficients)").reshape(-1)
-            else:
-                D = np.zeros(5)
-            Ks.append(K), Rs.append(R), Ts.append(T), Ds.append(D)
-
-        ims = annots["ims"]
-        if not isinstance(ims, (list, tuple, np.ndarray)) or len(ims) < 1:
-            raise CaptureError(f"{src}: ims must be a non-empty list of frames")
-        frame_images: list[list[str]] = []
-        for f, entry in enumerate(ims):
-            paths = entry.get("ims") if isinstance(entry, dict) else None
-            if paths is None:
-                raise CaptureError(f"{src}: ims[{f}] must be a dict with an 'ims' list")
-            paths = [str(p) for p in np.asarray(paths).reshape(-1)]
-            if len(paths) != n:
-                raise CaptureError(f"{src}: ims[{f}].ims lists {len(paths)} images for {n} cameras")
-            frame_images.append(paths)
-
-        # Units.
+        calibration = _read_calibration(annots["cams"], src)
+        frame_images = _read_frame_images(annots["ims"], len(calibration), src)
         if translation_unit not in ("auto", "mm", "m"):
             raise ValueError(f"translation_unit must be 'auto', 'mm' or 'm', got {translation_unit!r}")
         if translation_unit == "auto":
-            dist = np.median([np.linalg.norm(R.T @ T) for R, T in zip(Rs, Ts)])
-            translation_unit = "mm" if dist > 50.0 else "m"
-        scale = 1e-3 if translation_unit == "mm" else 1.0
-
-        # World alignment.
-        if isinstance(align, str):
-            if align == "none":
-                M = np.eye(4)
-            elif align == "auto":
-                up = estimate_up(Rs)
-                axis = int(np.argmax(np.abs(up)))
-                M = np.eye(4)
-                M[:3, :3] = _TO_Z[(axis, 1 if up[axis] > 0 else -1)]
-            else:
-                raise ValueError(f"align must be 'auto', 'none' or a (4, 4) matrix, got {align!r}")
-        else:
-            M = np.asarray(align, dtype=np.float64)
-            if M.shape != (4, 4) or np.abs(M[:3, :3] @ M[:3, :3].T - np.eye(3)).max() > 1e-6 \
-                    or np.linalg.det(M[:3, :3]) < 0 or np.abs(M[3] - [0, 0, 0, 1]).max() > 0:
-                raise ValueError("align must be a rigid (4, 4) matrix (rotation + translation)")
-        A, b = M[:3, :3], M[:3, 3]
-
-        # Names (camera folder names when unique) and image sizes.
-        names = [Path(p).parent.name for p in frame_images[0]]
-        if len(set(names)) != n or not all(re.match(r"^[A-Za-z0-9][A-Za-z0-9_. ()-]*$", x) for x in names):
-            names = [f"cam{i:02d}" for i in range(n)]
-        splits = dict(camera_splits or {})
-        unknown = set(splits) - set(names)
-        if unknown:
-            raise ValueError(f"camera_splits names unknown cameras {sorted(unknown)} (cameras: {', '.join(names)})")
-        for name, split in splits.items():
-            if split not in CAPTURE_SPLITS:
-                raise ValueError(f"camera '{name}': split must be one of {', '.join(CAPTURE_SPLITS)}, got {split!r}")
-        from PIL import Image
-
+            translation_unit = _guess_translation_unit(calibration)
+        world_from_capture = _world_alignment(align, [R for _, R, _, _ in calibration])
+        names = _camera_names(frame_images[0])
+        splits = _checked_camera_splits(camera_splits, names)
         rig = []
-        for i in range(n):
-            image = root / frame_images[0][i]
-            try:
-                with Image.open(image) as im:
-                    width, height = im.size
-            except FileNotFoundError:
-                raise CaptureError(f"{src}: ims[0].ims[{i}] names a missing image {image}") from None
-            except OSError as exc:
-                raise CaptureError(f"{image}: not a readable image ({exc})") from None
-            R_ours = Rs[i] @ A.T
-            t_ours = Ts[i] * scale - R_ours @ b
-            rig.append(CaptureCamera(names[i], Camera(Ks[i], R_ours, t_ours, width, height, near, far),
-                                     splits.get(names[i], "train"), None, Ds[i], i))
-
-        total = len(frame_images)
-        if train_frames is None:
-            sequences = {"train": list(range(total))}
-        else:
-            if isinstance(train_frames, bool) or not isinstance(train_frames, (int, np.integer)) \
-                    or not 1 <= train_frames <= total:
-                raise ValueError(f"train_frames must be in [1, {total}], got {train_frames!r}")
-            sequences = {"train": list(range(int(train_frames)))}
-            if train_frames < total:
-                sequences["unseen_motion"] = list(range(int(train_frames), total))
-        return CaptureScene(root, rig, frame_images, sequences, M, translation_unit, mask_dirs, fps, annots_path)
+        for i, (K, R, T, D) in enumerate(calibration):
+            width, height = _image_size(root / frame_images[0][i], f"{src}: ims[0].ims[{i}]")
+            # x_cam = R x_zju + t = R A^T (x_ours - b) + t: R' = R A^T, t' = t - R' b
+            A, b = world_from_capture[:3, :3], world_from_capture[:3, 3]
+            R_ours = R @ A.T
+            t_ours = T * (1e-3 if translation_unit == "mm" else 1.0) - R_ours @ b
+            rig.append(CaptureCamera(names[i], Camera(K, R_ours, t_ours, width, height, near, far),
+                                     splits.get(names[i], "train"), None, D, i))
+        sequences = _split_frames(train_frames, len(frame_images))
+        return CaptureScene(root, rig, frame_images, sequences, world_from_capture, translation_unit, mask_dirs,
+                            fps, annots_path)
 
     # ---- accessors (as Scene) ---------------------------------------------------------------------
     def cameras(self, split: str | Sequence[str] | None = None) -> list[CaptureCamera]:
@@ -425,15 +474,17 @@ class CaptureScene:
         return None
 
     # ---- images -----------------------------------------------------------------------------------
-    def _undistort_maps(self, cam: CaptureCamera):
+    def _undistort_maps(self, cam: CaptureCamera) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) float32 source x and y of every pinhole pixel in the raw image (``cv2.remap`` maps)."""
         import cv2
 
-        key = cam.index
-        cache = self.__dict__.setdefault("_maps", {})
-        if key not in cache:
-            c = cam.camera
-            cache[key] = cv2.initUndistortRectifyMap(c.K, cam.dist, None, c.K, (c.width, c.height), cv2.CV_32FC1)
-        return cache[key]
+        with self._undistort_maps_lock:
+            maps = self._undistort_maps_by_camera.get(cam.index)
+            if maps is None:
+                c = cam.camera
+                maps = cv2.initUndistortRectifyMap(c.K, cam.dist, None, c.K, (c.width, c.height), cv2.CV_32FC1)
+                self._undistort_maps_by_camera[cam.index] = maps
+        return maps
 
     def load_image(self, sequence: str, camera: str, frame: int, undistort: bool = True) -> np.ndarray:
         """(H, W, 3) float32 RGB in [0, 1]; undistorted to the pinhole camera by default."""
