@@ -10,8 +10,8 @@ import torch
 import trimesh
 
 import garmentnerf.assets
-from garmentnerf.geometry.projection import (SurfaceProjector, benchmark_projection, closest_point_on_triangles,
-                                             interpolate)
+from garmentnerf.geometry.projection import SurfaceProjector, benchmark_projection
+from garmentnerf.geometry.triangles import closest_point_on_triangles, interpolate
 
 
 # -- reference helpers (numpy / trimesh only) ---------------------------------------------------

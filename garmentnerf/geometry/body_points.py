@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from garmentnerf.body.model import BodyModel
-from garmentnerf.geometry.projection import SurfaceProjector, interpolate
+from garmentnerf.geometry.projection import SurfaceProjector
+from garmentnerf.geometry.triangles import interpolate
 from garmentnerf.geometry.projection_dense import DenseSurfaceProjector
 
 

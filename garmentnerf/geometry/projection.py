@@ -65,9 +65,12 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from garmentnerf.geometry.triangles import (FEATURE_TOL, check_points, closest_point_on_triangles, dot_rows,
+                                            face_frame_distance2, face_frame_table, face_reach, interpolate,
+                                            pseudo_normals)
+
 __all__ = [
-    "closest_point_on_triangles",
-    "interpolate",
+    "check_search_dtype",
     "SurfaceProjection",
     "SurfaceProjector",
     "PosedSurface",
@@ -86,170 +89,20 @@ _RETRY_GROWTH = 8
 _RETRY_BUDGET = 1 << 22
 #: Most point-face pairs evaluated at once (~100 bytes each).
 _PAIR_BUDGET = 1 << 21
-#: Barycentric coordinates below this count as zero when picking the pseudo-normal feature.
-#: Calling a point just inside a face an edge point is harmless (the edge pseudo-normal still
-#: has a positive component along the face normal); the reverse could flip the sign at sharp
-#: folds.
-_FEATURE_TOL = 1e-6
-#: Faces with twice their area below this times their longest edge squared (sine of the largest
-#: angle, roughly) have no usable normal: the fast pair kernel skips them and they are
-#: re-evaluated with :func:`closest_point_on_triangles`.
-_DEGENERATE_SIN = 1e-9
 
 
-def _check_points(name: str, x: torch.Tensor) -> None:
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {tuple(x.shape)}")
-    if not x.is_floating_point():
-        raise TypeError(f"{name} must be floating point, got {x.dtype}")
-    if x.numel() and not bool(torch.isfinite(x).all()):
-        bad = int((~torch.isfinite(x).all(dim=1)).sum())
-        raise ValueError(f"{name} contains NaN or Inf ({bad} of {x.shape[0]} rows)")
-
-
-def _dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    return (x * y).sum(-1)
-
-
-def closest_point_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
-                               c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact closest point on triangle ``(a[i], b[i], c[i])`` to ``points[i]``, vectorised.
-
-    The candidates are those of Ericson's Voronoi-region test (Real-Time Collision Detection,
-    5.1.5): the projection onto the face plane when it falls inside the triangle, and the
-    clamped projections onto the three edges (which cover the corner regions). Rather than
-    branching on signs of sub-areas, the closest candidate is kept, its distance measured as the
-    explicit residual ``|p - candidate|``: the same answer for a proper triangle, while a
-    zero-area triangle (collinear or coincident corners) simply reduces to its edges, so it
-    never divides by a vanishing area and never returns NaN, and a badly rounded interior
-    candidate of a sliver can only win if it really is closer.
-
-    Args:
-        points, a, b, c: (N, 3) float32 or float64, same dtype.
-    Returns:
-        closest (N, 3) the closest point on each triangle.
-        bary (N, 3) its barycentric coordinates w.r.t. (a, b, c): non-negative, sum 1, and
-        exactly zero for the corners not involved when the point is on an edge or a corner.
-    """
-    for name, x in (("points", points), ("a", a), ("b", b), ("c", c)):
-        if x.ndim != 2 or x.shape[1] != 3 or not x.is_floating_point():
-            raise ValueError(f"closest_point_on_triangles: {name} must be a float (N, 3) tensor, "
-                             f"got {tuple(x.shape)} {x.dtype}")
-    if not (points.shape == a.shape == b.shape == c.shape) or len({x.dtype for x in (points, a, b, c)}) > 1:
-        raise ValueError("closest_point_on_triangles: points, a, b, c must have the same shape and dtype, got "
-                         f"{[(tuple(x.shape), x.dtype) for x in (points, a, b, c)]}")
-    dtype = points.dtype
-    tiny = torch.finfo(dtype).tiny
-    # Component-wise on contiguous rows: reductions over a trailing axis of 3 are slow on the CPU.
-    px, py, pz = points.T.contiguous()
-    ax, ay, az = a.T.contiguous()
-    bx, by, bz = b.T.contiguous()
-    cx, cy, cz = c.T.contiguous()
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    acx, acy, acz = cx - ax, cy - ay, cz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-
-    def residual2(v, w):
-        rx = apx - v * abx - w * acx
-        ry = apy - v * aby - w * acy
-        rz = apz - v * abz - w * acz
-        return rx * rx + ry * ry + rz * rz
-
-    def safe_ratio(num, den):
-        return torch.where(den > tiny, num / den.clamp_min(tiny), torch.zeros_like(num)).clamp_(0.0, 1.0)
-
-    saa = abx * abx + aby * aby + abz * abz
-    scc = acx * acx + acy * acy + acz * acz
-    # Interior: barycentrics as ratios of signed areas (cross products, not the normal
-    # equations, whose determinant cancels badly for thin triangles).
-    nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
-    nn = nx * nx + ny * ny + nz * nz
-    proper = nn > (torch.finfo(dtype).eps ** 2) * saa * scc + tiny
-    inv_nn = torch.where(proper, 1.0 / torch.where(proper, nn, torch.ones_like(nn)), torch.zeros_like(nn))
-    v = ((apy * acz - apz * acy) * nx + (apz * acx - apx * acz) * ny + (apx * acy - apy * acx) * nz) * inv_nn
-    w = ((aby * apz - abz * apy) * nx + (abz * apx - abx * apz) * ny + (abx * apy - aby * apx) * nz) * inv_nn
-    inside = proper & (v >= 0) & (w >= 0) & (v + w <= 1)
-    best = torch.where(inside, residual2(v, w), math.inf)
-    zero = torch.zeros_like(v)
-    bu, bv, bw = (1.0 - v - w).clamp_(min=0.0), v, w  # clamp: v + w <= 1 may round to 1 - v - w < 0
-
-    def keep(d2, u_, v_, w_):
-        nonlocal best, bu, bv, bw
-        take = d2 < best
-        best = torch.where(take, d2, best)
-        bu, bv, bw = torch.where(take, u_, bu), torch.where(take, v_, bv), torch.where(take, w_, bw)
-
-    t = safe_ratio(apx * abx + apy * aby + apz * abz, saa)  # edge ab
-    keep(residual2(t, zero), 1.0 - t, t, zero)
-    t = safe_ratio(apx * acx + apy * acy + apz * acz, scc)  # edge ac
-    keep(residual2(zero, t), 1.0 - t, zero, t)
-    bcx, bcy, bcz = cx - bx, cy - by, cz - bz
-    t = safe_ratio((px - bx) * bcx + (py - by) * bcy + (pz - bz) * bcz, bcx * bcx + bcy * bcy + bcz * bcz)  # edge bc
-    keep(residual2(1.0 - t, t), zero, 1.0 - t, t)
-
-    bary = torch.stack([bu, bv, bw], dim=1)
-    closest = torch.stack([bu * ax + bv * bx + bw * cx, bu * ay + bv * by + bw * cy,
-                           bu * az + bv * bz + bw * cz], dim=1)
-    return closest, bary
-
-
-def face_frame_distance2(px: torch.Tensor, py: torch.Tensor, pz: torch.Tensor, frame) -> torch.Tensor:
-    """Squared point-triangle distances in each face's own frame (any matching shapes).
-
-    Args:
-        px, py, pz: the query minus the face's corner a, in world axes.
-        frame: the 16 per-face constants after a in the pair table
-            (e1, e2, e3 axes; bx, 1/bx; cx, cy, 1/|c|^2; cx - bx, 1/|c - b|^2).
-    Returns:
-        the squared height over the plane plus the squared 2-D distance to the triangle: zero
-        inside it, else the least distance to its three edges (segments, so corners are
-        covered). Degenerate faces come out wrong here; callers redo them.
-    """
-    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, bx, ibx, cx, cy, iscc, cbx, isbc = frame
-    x = px * e1x + py * e1y + pz * e1z
-    y = px * e2x + py * e2y + pz * e2z
-    z = px * e3x + py * e3y + pz * e3z
-    # Edge ab (the x axis).
-    s = (x * ibx).clamp_(0.0, 1.0)
-    dx = x - s * bx
-    d2 = dx * dx + y * y
-    # Edge ac.
-    s = ((x * cx + y * cy) * iscc).clamp_(0.0, 1.0)
-    dx, dy = x - s * cx, y - s * cy
-    d2 = torch.minimum(d2, dx * dx + dy * dy)
-    # Edge bc.
-    xb = x - bx
-    s = ((xb * cbx + y * cy) * isbc).clamp_(0.0, 1.0)
-    dx, dy = xb - s * cbx, y - s * cy
-    d2 = torch.minimum(d2, dx * dx + dy * dy)
-    # Inside: left of every directed edge (counter-clockwise about e3).
-    inside = (y >= 0) & (cx * y <= cy * x) & (cbx * y >= cy * xb)
-    return torch.where(inside, 0.0, d2).add_(z * z)
-
-
-def interpolate(values: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
-    """Barycentric interpolation of per-vertex values at points given as (face, bary).
-
-    Args:
-        values: (V, C) or (V,) per-vertex values, e.g. canonical vertex positions, or (U, 2) UVs.
-        faces: (F, 3) long indices into ``values`` (``uv_faces`` for UVs).
-        face: (N,) long face index of each point.
-        bary: (N, 3) barycentric coordinates w.r.t. the corners of ``faces[face]``.
-    Returns:
-        (N, C), or (N,) for 1-D ``values``; in the dtype of ``values`` promoted with ``bary``.
-    """
-    squeeze = values.ndim == 1
-    vals = values.unsqueeze(-1) if squeeze else values
-    if face.ndim != 1 or bary.shape != (face.shape[0], 3):
-        raise ValueError(f"interpolate: face must be (N,) and bary (N, 3), got {tuple(face.shape)} and "
-                         f"{tuple(bary.shape)}")
-    corners = faces.to(device=vals.device, dtype=torch.long)[face.to(vals.device)]  # (N, 3)
-    dtype = torch.promote_types(vals.dtype, bary.dtype)
-    w = bary.to(device=vals.device, dtype=dtype)
-    out = (vals[corners].to(dtype) * w.unsqueeze(-1)).sum(1)
-    return out.squeeze(-1) if squeeze else out
+def check_search_dtype(vertices: torch.Tensor, num_vertices: int, dtype: torch.dtype | None) -> torch.dtype:
+    """The search precision of a posed frame: ``dtype``, else that of ``vertices`` (float32 for
+    other float types). Raises when ``vertices`` is not (num_vertices, 3) finite floats or the
+    precision is not float32/float64."""
+    check_points("vertices", vertices)
+    if vertices.shape[0] != num_vertices:
+        raise ValueError(f"vertices has {vertices.shape[0]} rows, the projector was built for {num_vertices}")
+    if dtype is None:
+        dtype = vertices.dtype if vertices.dtype in (torch.float32, torch.float64) else torch.float32
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"search precision must be float32 or float64, got {dtype}")
+    return dtype
 
 
 @dataclass
@@ -386,32 +239,13 @@ class PosedSurface:
     """
 
     def __init__(self, projector: SurfaceProjector, vertices: torch.Tensor, dtype: torch.dtype | None = None):
-        _check_points("vertices", vertices)
-        if vertices.shape[0] != projector.num_vertices:
-            raise ValueError(f"vertices has {vertices.shape[0]} rows, the projector was built for "
-                             f"{projector.num_vertices}")
-        if dtype is None:
-            dtype = vertices.dtype if vertices.dtype in (torch.float32, torch.float64) else torch.float32
-        if dtype not in (torch.float32, torch.float64):
-            raise TypeError(f"search precision must be float32 or float64, got {dtype}")
         self.projector = projector
-        self.dtype = dtype
+        self.dtype = check_search_dtype(vertices, projector.num_vertices, dtype)
         P = projector
         v64 = vertices.detach().to("cpu", torch.float64)
         self._vertices64 = v64
         F = P.faces
-        a, b, c = v64[F[:, 0]], v64[F[:, 1]], v64[F[:, 2]]
-
-        # Reach of every face: radius of its smallest enclosing circle (see the module docstring).
-        la, lb, lc = (c - b).norm(dim=1), (a - c).norm(dim=1), (b - a).norm(dim=1)
-        cross = torch.cross(b - a, c - a, dim=1)
-        twice_area = cross.norm(dim=1)
-        longest = torch.maximum(torch.maximum(la, lb), lc)
-        sq = la * la + lb * lb + lc * lc
-        obtuse = 2.0 * longest * longest >= sq  # L^2 >= sum of the other two squares
-        circum = la * lb * lc / (2.0 * twice_area.clamp_min(1e-300))
-        r_face = torch.where(obtuse, 0.5 * longest, torch.minimum(circum, longest))  # min(): rounding guard
-        r_face = r_face * (1.0 + 1e-6) + 1e-12  # never under-estimate by rounding
+        r_face, cross, twice_area = face_reach(v64[F[:, 0]], v64[F[:, 1]], v64[F[:, 2]])
         reach = torch.zeros(P.used_vertices.shape[0], dtype=torch.float64)
         reach = reach.scatter_reduce(0, P._compact_faces.reshape(-1), r_face.repeat_interleave(3), "amax")
         self.reach_sq_max = float((reach * reach).max())
@@ -422,57 +256,11 @@ class PosedSurface:
         self._tree = cKDTree(pts4, leafsize=32)  # a little faster than 16 for k ~ 8
         self._num_tree = pts4.shape[0]
 
-        self._pair_table, self._degenerate = self._face_constants(v64, F)
+        table, self._degenerate = face_frame_table(v64, F)
+        self._pair_table = table.to(self.dtype).contiguous()
         self._has_degenerate = bool(self._degenerate.any())
-        self._normals(v64, F, cross, twice_area)
-
-    def _face_constants(self, v64: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(19, F) per-face constants of the pair kernel, rows contiguous; (F,) degenerate flags.
-
-        Each face gets an orthonormal frame (e1 along ab, e3 its unit normal) in which it is the
-        2-D triangle (0, 0), (bx, 0), (cx, cy) with cy > 0. The kernel then only forms
-        coordinate differences, whose rounding error is eps |q - a|; the shorter
-        ``|q - a|^2 - |projection|^2`` forms lose all digits for a point near a big face.
-        """
-        a, b, c = (v64[F[:, i]] for i in range(3))
-        ab, ac = b - a, c - a
-        n = torch.cross(ab, ac, dim=1)
-        twice_area = n.norm(dim=1)
-        longest2 = torch.stack([_dot(ab, ab), _dot(ac, ac), _dot(c - b, c - b)], 1).max(dim=1).values
-        degenerate = twice_area <= _DEGENERATE_SIN * longest2
-        lab = ab.norm(dim=1, keepdim=True)
-        e1 = torch.where(lab > 0, ab / lab.clamp_min(1e-300), torch.zeros_like(ab))
-        e3 = torch.where(degenerate.unsqueeze(1), torch.zeros_like(n), n / twice_area.clamp_min(1e-300).unsqueeze(1))
-        e2 = torch.cross(e3, e1, dim=1)
-        bx, cx, cy = lab.squeeze(1), _dot(ac, e1), _dot(ac, e2)
-        cbx = cx - bx
-        scc, sbc = cx * cx + cy * cy, cbx * cbx + cy * cy
-
-        def inv(x):
-            return torch.where(x > 0, 1.0 / x.clamp_min(1e-300), torch.zeros_like(x))
-
-        table = torch.stack([
-            a[:, 0], a[:, 1], a[:, 2], e1[:, 0], e1[:, 1], e1[:, 2], e2[:, 0], e2[:, 1], e2[:, 2],
-            e3[:, 0], e3[:, 1], e3[:, 2], bx, inv(bx), cx, cy, inv(scc), cbx, inv(sbc),
-        ], dim=0)
-        return table.to(self.dtype).contiguous(), degenerate
-
-    def _normals(self, v64: torch.Tensor, F: torch.Tensor, cross: torch.Tensor, twice_area: torch.Tensor) -> None:
-        """Unit face normals and angle-weighted edge / vertex pseudo-normals (float64)."""
-        P = self.projector
-        n = cross / twice_area.clamp_min(1e-300).unsqueeze(1)
-        n = torch.where((twice_area > 0).unsqueeze(1), n, torch.zeros_like(n))
-        self._face_normals = n
-        edge_n = torch.zeros(P.num_edges, 3, dtype=torch.float64)
-        edge_n.index_add_(0, P._face_edges.reshape(-1), n.repeat_interleave(3, dim=0))
-        self._edge_normals = edge_n
-        corner = torch.stack([v64[F[:, i]] for i in range(3)], dim=1)
-        e_next = corner.roll(-1, dims=1) - corner
-        e_prev = corner.roll(1, dims=1) - corner
-        angle = torch.atan2(torch.cross(e_next, e_prev, dim=-1).norm(dim=-1), _dot(e_next, e_prev))  # (F, 3)
-        vert_n = torch.zeros(P.num_vertices, 3, dtype=torch.float64)
-        vert_n.index_add_(0, F.reshape(-1), (angle.unsqueeze(-1) * n.unsqueeze(1)).reshape(-1, 3))
-        self._vertex_normals = vert_n
+        self._face_normals, self._edge_normals, self._vertex_normals = pseudo_normals(
+            v64, F, P._face_edges, P.num_edges, cross, twice_area)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -487,7 +275,7 @@ class PosedSurface:
             :class:`SurfaceProjection` in the dtype of the search and on the device of ``points``;
             no gradient flows through it.
         """
-        _check_points("points", points)
+        check_points("points", points)
         device = points.device
         N = points.shape[0]
         if stats is not None:
@@ -526,7 +314,7 @@ class PosedSurface:
 
     def _sign(self, offset: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
         """(N,) +1 outside / -1 inside from the pseudo-normal of the closest feature."""
-        zero = bary <= _FEATURE_TOL
+        zero = bary <= FEATURE_TOL
         nzero = zero.sum(dim=1)
         normal = self._face_normals[face]
         # Edge: the zero coordinate names the opposite corner, i.e. the edge's slot in face_edges.
@@ -538,7 +326,7 @@ class PosedSurface:
         if bool(on_corner.any()):
             slot = bary[on_corner].argmax(dim=1)
             normal[on_corner] = self._vertex_normals[self.projector.faces[face[on_corner], slot]]
-        dot = _dot(offset, normal)
+        dot = dot_rows(offset, normal)
         return torch.where(dot < 0, -1.0, 1.0).to(offset.dtype)
 
     def _nearest_faces(self, q: torch.Tensor, stats: dict | None) -> torch.Tensor:

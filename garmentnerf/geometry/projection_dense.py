@@ -72,15 +72,9 @@ import time
 import numpy as np
 import torch
 
-from garmentnerf.geometry.projection import (
-    _DEGENERATE_SIN,
-    _FEATURE_TOL,
-    SurfaceProjection,
-    SurfaceProjector,
-    _check_points,
-    closest_point_on_triangles,
-    face_frame_distance2,
-)
+from garmentnerf.geometry.projection import SurfaceProjection, SurfaceProjector, check_search_dtype
+from garmentnerf.geometry.triangles import (FEATURE_TOL, check_points, closest_point_on_triangles, dot_rows,
+                                            face_frame_distance2, face_frame_table, face_reach, pseudo_normals)
 
 __all__ = [
     "DenseSurfaceProjector",
@@ -117,10 +111,6 @@ def _ieee_fp32_matmul(device: torch.device) -> bool:
         return getattr(torch.backends.cuda.matmul, "fp32_precision", "none") in ("none", "ieee")
     except (AttributeError, RuntimeError):
         return False
-
-
-def _dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    return (x * y).sum(-1)
 
 
 class DenseSurfaceProjector(SurfaceProjector):
@@ -188,7 +178,7 @@ class DenseSurfaceProjector(SurfaceProjector):
         Runs on the device of ``points``; bind once and reuse the result when a frame is queried
         in several batches.
         """
-        _check_points("points", points)
+        check_points("points", points)
         dtype = points.dtype if points.dtype in (torch.float32, torch.float64) else torch.float32
         return self.bind(vertices, dtype, points.device).project(points)
 
@@ -205,14 +195,7 @@ class DensePosedSurface:
 
     def __init__(self, projector: DenseSurfaceProjector, vertices: torch.Tensor, dtype: torch.dtype | None = None,
                  device: torch.device | str | None = None):
-        _check_points("vertices", vertices)
-        if vertices.shape[0] != projector.num_vertices:
-            raise ValueError(f"vertices has {vertices.shape[0]} rows, the projector was built for "
-                             f"{projector.num_vertices}")
-        if dtype is None:
-            dtype = vertices.dtype if vertices.dtype in (torch.float32, torch.float64) else torch.float32
-        if dtype not in (torch.float32, torch.float64):
-            raise TypeError(f"search precision must be float32 or float64, got {dtype}")
+        dtype = check_search_dtype(vertices, projector.num_vertices, dtype)
         device = torch.device(device) if device is not None else vertices.device
         self.projector = projector
         self.dtype = dtype
@@ -227,18 +210,9 @@ class DensePosedSurface:
             v = vertices.detach().to(device, sd)
             self._vertices = v
             F = self._faces
-            a, b, c = v[F[:, 0]], v[F[:, 1]], v[F[:, 2]]
-
+            tiny = torch.finfo(sd).tiny
             # Reach of every face (projection.py's formula) and of every vertex.
-            la, lb, lc = (c - b).norm(dim=1), (a - c).norm(dim=1), (b - a).norm(dim=1)
-            cross = torch.cross(b - a, c - a, dim=1)
-            twice_area = cross.norm(dim=1)
-            longest = torch.maximum(torch.maximum(la, lb), lc)
-            sq = la * la + lb * lb + lc * lc
-            obtuse = 2.0 * longest * longest >= sq
-            circum = la * lb * lc / (2.0 * twice_area.clamp_min(torch.finfo(sd).tiny))
-            r_face = torch.where(obtuse, 0.5 * longest, torch.minimum(circum, longest))
-            r_face = r_face * (1.0 + 1e-6) + 1e-12
+            r_face, cross, twice_area = face_reach(v[F[:, 0]], v[F[:, 1]], v[F[:, 2]], tiny)
             n_used = T["used_vertices"].shape[0]
             reach = torch.zeros(n_used, dtype=sd, device=device).scatter_reduce(
                 0, T["compact_faces"].reshape(-1), r_face.repeat_interleave(3), "amax")
@@ -253,59 +227,16 @@ class DensePosedSurface:
             lift = reach_sq if projector.ranking == "power" else torch.zeros_like(reach_sq)
             # Certificate: k-th computed power minus this offset must exceed best^2.
             self._cert_offset = 0.0 if projector.ranking == "power" else self.reach_sq_max
-            self._score_bias = (_dot(u, u) - lift).to(dtype).contiguous()  # (U,)
+            self._score_bias = (dot_rows(u, u) - lift).to(dtype).contiguous()  # (U,)
             self._score_w = (-2.0 * u).T.to(dtype).contiguous()  # (3, U)
-            self._vmax2 = float(_dot(u, u).max())
+            self._vmax2 = float(dot_rows(u, u).max())
             self._lift_max = float(lift.max())
 
-            self._pair_table, self._degenerate = self._face_constants(v - self._center, F)
+            table, self._degenerate = face_frame_table(v - self._center, F, tiny)  # projection.py's pair table
+            self._pair_table = table.to(self.dtype).contiguous()
             self._has_degenerate = bool(self._degenerate.any())
-            self._normals(v, F, cross, twice_area)
-
-    # -- per-frame constants --------------------------------------------------------------------
-
-    def _face_constants(self, v: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(19, F) per-face frame constants (as projection.py's pair kernel), (F,) degenerate flags."""
-        a, b, c = (v[F[:, i]] for i in range(3))
-        ab, ac = b - a, c - a
-        n = torch.cross(ab, ac, dim=1)
-        twice_area = n.norm(dim=1)
-        longest2 = torch.stack([_dot(ab, ab), _dot(ac, ac), _dot(c - b, c - b)], 1).max(dim=1).values
-        degenerate = twice_area <= _DEGENERATE_SIN * longest2
-        tiny = torch.finfo(v.dtype).tiny
-        lab = ab.norm(dim=1, keepdim=True)
-        e1 = torch.where(lab > 0, ab / lab.clamp_min(tiny), torch.zeros_like(ab))
-        e3 = torch.where(degenerate.unsqueeze(1), torch.zeros_like(n), n / twice_area.clamp_min(tiny).unsqueeze(1))
-        e2 = torch.cross(e3, e1, dim=1)
-        bx, cx, cy = lab.squeeze(1), _dot(ac, e1), _dot(ac, e2)
-        cbx = cx - bx
-        scc, sbc = cx * cx + cy * cy, cbx * cbx + cy * cy
-
-        def inv(x):
-            return torch.where(x > 0, 1.0 / x.clamp_min(tiny), torch.zeros_like(x))
-
-        table = torch.stack([
-            a[:, 0], a[:, 1], a[:, 2], e1[:, 0], e1[:, 1], e1[:, 2], e2[:, 0], e2[:, 1], e2[:, 2],
-            e3[:, 0], e3[:, 1], e3[:, 2], bx, inv(bx), cx, cy, inv(scc), cbx, inv(sbc),
-        ], dim=0)
-        return table.to(self.dtype).contiguous(), degenerate
-
-    def _normals(self, v: torch.Tensor, F: torch.Tensor, cross: torch.Tensor, twice_area: torch.Tensor) -> None:
-        """Unit face normals and angle-weighted edge / vertex pseudo-normals (projection.py's rule)."""
-        P = self.projector
-        n = cross / twice_area.clamp_min(torch.finfo(v.dtype).tiny).unsqueeze(1)
-        n = torch.where((twice_area > 0).unsqueeze(1), n, torch.zeros_like(n))
-        self._face_normals = n
-        edge_n = torch.zeros(P.num_edges, 3, dtype=v.dtype, device=v.device)
-        edge_n.index_add_(0, self._face_edges.reshape(-1), n.repeat_interleave(3, dim=0))
-        self._edge_normals = edge_n
-        corner = torch.stack([v[F[:, i]] for i in range(3)], dim=1)
-        e_next = corner.roll(-1, dims=1) - corner
-        e_prev = corner.roll(1, dims=1) - corner
-        angle = torch.atan2(torch.cross(e_next, e_prev, dim=-1).norm(dim=-1), _dot(e_next, e_prev))
-        vert_n = torch.zeros(P.num_vertices, 3, dtype=v.dtype, device=v.device)
-        vert_n.index_add_(0, F.reshape(-1), (angle.unsqueeze(-1) * n.unsqueeze(1)).reshape(-1, 3))
-        self._vertex_normals = vert_n
+            self._face_normals, self._edge_normals, self._vertex_normals = pseudo_normals(
+                v, F, self._face_edges, projector.num_edges, cross, twice_area, tiny)
 
     # -- queries --------------------------------------------------------------------------------
 
@@ -331,7 +262,7 @@ class DensePosedSurface:
             :class:`SurfaceProjection` in the search dtype on the device of ``points``; no
             gradient flows through it.
         """
-        _check_points("points", points)
+        check_points("points", points)
         out_device = points.device
         N = points.shape[0]
         if stats is not None:
@@ -368,7 +299,7 @@ class DensePosedSurface:
 
     def _sign(self, offset: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
         """(M,) +1 outside / -1 inside from the pseudo-normal of the closest feature (no host sync)."""
-        zero = bary <= _FEATURE_TOL
+        zero = bary <= FEATURE_TOL
         nzero = zero.sum(dim=1)
         normal = self._face_normals[face]
         # Edge: the zero coordinate names the opposite corner, i.e. the edge's slot in face_edges.
@@ -377,7 +308,7 @@ class DensePosedSurface:
         corner_n = self._vertex_normals[self._faces[face, bary.argmax(dim=1)]]
         normal = torch.where((nzero == 1).unsqueeze(1), edge_n, normal)
         normal = torch.where((nzero >= 2).unsqueeze(1), corner_n, normal)
-        dot = _dot(offset, normal.to(offset.dtype))
+        dot = dot_rows(offset, normal.to(offset.dtype))
         return torch.where(dot < 0, -1.0, 1.0).to(offset.dtype)
 
     def _nearest_faces(self, qc: torch.Tensor, k: int, stats: dict | None) -> torch.Tensor:
@@ -434,7 +365,7 @@ class DensePosedSurface:
         face = cand.gather(1, arg.unsqueeze(1)).squeeze(1)
         if k >= self._num_used:
             return face, torch.ones(M, dtype=torch.bool, device=qc.device)
-        qq = _dot(qc, qc)
+        qq = dot_rows(qc, qc)
         eps = torch.finfo(self.dtype).eps
         rel = 64.0 * eps
         # Rounding of the score (|q|^2 + 2 |q||u| + |u|^2 + L terms) and of the pair kernel.
@@ -445,7 +376,7 @@ class DensePosedSurface:
     def _pair_distance2(self, qc: torch.Tensor, cand: torch.Tensor) -> torch.Tensor:
         """(M, C) squared distance from qc[i] to face cand[i, j] (inf for -1 padding).
 
-        :func:`~garmentnerf.geometry.projection.face_frame_distance2` on the pair table.
+        :func:`~garmentnerf.geometry.triangles.face_frame_distance2` on the pair table.
         """
         M, C = cand.shape
         flat = cand.reshape(-1).clamp_min(0)

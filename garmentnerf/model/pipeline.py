@@ -83,7 +83,7 @@ from torch import nn
 from garmentnerf.body.surface import vertex_normals
 from garmentnerf.conventions import Camera, project_points
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
-from garmentnerf.geometry.projection import interpolate
+from garmentnerf.geometry.triangles import interpolate
 from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import sample_image_features, select_detail_features
