@@ -541,8 +541,34 @@ def _make_dress(body: _Body) -> dict:
 # ------------------------------------------------------------------------------------------------
 # T-shirt
 # ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _TshirtLayout:
+    """Vertex counts of the t-shirt's structured mesh (see :func:`_make_tshirt`)."""
+
+    a: int = 33  #: vertices of the front (and of the back) arc of a torso ring
+    m: int = 3  #: vertices of each side arc of a torso ring
+    J: int = 22  #: torso rings, from the hem up to the armpits
+    H: int = 14  #: yoke rows above the top torso ring
+    s: int = 10  #: vertices of each shoulder seam (the yokes' top rows share them)
+    K: int = 10  #: sleeve rings beyond the armhole
+    clearance: float = 0.018  #: distance kept from the body, m
+
+    @property
+    def N(self) -> int:
+        """Vertices of a torso ring."""
+        return 2 * self.a + 2 * self.m
+
+    @property
+    def L(self) -> int:
+        """Vertices of an armhole loop (and of every sleeve ring)."""
+        return 2 * self.H + self.m + 1
+
+
+_TSHIRT = _TshirtLayout()
+
+
 def _make_tshirt(body: _Body) -> dict:
-    """Structured layout (see the module docstring):
+    """Structured layout (see the module docstring; counts in :class:`_TshirtLayout`):
 
     torso rings j = 0..J-1 (hem up to the armpits), N = 2a + 2m vertices each, counter-clockwise
     seen from above starting at the front right: front arc (a), left side (m), back arc (a),
@@ -551,25 +577,50 @@ def _make_tshirt(body: _Body) -> dict:
     each armhole loop (2H + m + 1 vertices: a yoke's outer column, the side arc, the other
     yoke's outer column, the shoulder point) is the first ring of a sleeve of K more rings.
     """
-    j = body.joints
-    a, m, J, H, s, K = 33, 3, 22, 14, 10, 10
-    N = 2 * a + 2 * m
-    L = 2 * H + m + 1
-    clearance = 0.018
+    lay = _TSHIRT
+    a, m, H, K, L = lay.a, lay.m, lay.H, lay.K, lay.L
+    torso, centre, z_hem = _tshirt_torso(body, lay)
+    yoke_front = _tshirt_yoke(torso[-1, 0:a], _tshirt_top_row(body, lay, front=True), centre, H)
+    yoke_back = _tshirt_yoke(torso[-1, a + m:2 * a + m], _tshirt_top_row(body, lay, front=False), centre, H)
+    pos, torso_idx, front_idx, back_idx = _tshirt_torso_and_yokes(torso, yoke_front, yoke_back, lay)
+    faces = [_grid_faces(torso_idx, wrap=True), _grid_faces(front_idx, wrap=False), _grid_faces(back_idx, wrap=False)]
+    part = [np.zeros(pos.shape[0])]
 
-    sh = {side: j[f"upperarm01.{side}"] for side in "LR"}
-    elbow = {side: j[f"lowerarm01.{side}"] for side in "LR"}
-    neck = j["neck01"]
+    sleeve_pos, sleeve_uv = [], []
+    first_new = pos.shape[0]
+    for side, part_id in (("L", 1), ("R", 2)):
+        loop = _tshirt_armhole_loop(side, torso_idx, front_idx, back_idx, lay)
+        sleeve_pos.append(_tshirt_sleeve_rings(body, side, pos[loop], lay).reshape(-1, 3))
+        ids = first_new + np.arange(K * L).reshape(K, L)
+        first_new += K * L
+        faces.append(_grid_faces(np.concatenate([loop[None], ids]), wrap=True))
+        u, v = np.meshgrid(np.arange(L) / L, np.arange(1, K + 1) / K)
+        sleeve_uv.append(np.stack([u, v], -1).reshape(-1, 2))
+        part.append(np.full(K * L, part_id))
+    pos = np.concatenate([pos] + sleeve_pos)
+    faces = np.concatenate(faces)
+    part = np.concatenate(part)
+    uv = _tshirt_uv(pos, part, centre, z_hem, np.concatenate(sleeve_uv))
+
+    # relax the rough placement: smooth junctions, keep the clearance
+    faces = _orient(faces, pos, body.surface)
+    pos = _relax(pos, faces, body.surface, lay.clearance, iterations=40, tangential_iterations=40)
+    collar = np.concatenate([front_idx[H, lay.s - 1:a - lay.s + 1], back_idx[H, lay.s:a - lay.s]])
+    return dict(vertices=pos, faces=faces, uv=np.clip(uv, 0, 1), pinned=np.unique(collar),
+                layer=np.zeros(pos.shape[0]), part=part)
+
+
+def _tshirt_torso(body: _Body, lay: _TshirtLayout) -> tuple[np.ndarray, np.ndarray, float]:
+    """(J, N, 3) torso rings from the hem up to the armpits -- a straight-hanging tube: the
+    running maximum of the body outline from the armpits down, plus the clearance -- its (2,)
+    x, y axis and the hem height."""
+    j, v, N, J = body.joints, body.vertices, lay.N, lay.J
     z_hem = float(j["root"][2]) - 0.04
-    z_arm = 0.5 * float(sh["L"][2] + sh["R"][2]) - 0.10
-    v = body.vertices
+    z_arm = 0.5 * float(j["upperarm01.L"][2] + j["upperarm01.R"][2]) - 0.10
     torso_sel = (~body.arm) & (np.abs(v[:, 2] - z_arm) < 0.03)
-    y_c = 0.5 * (v[torso_sel, 1].min() + v[torso_sel, 1].max())
-    centre = np.array([0.0, y_c])
-
-    # -- torso rings: a straight-hanging tube (running max of the outline from the armpits down)
+    centre = np.array([0.0, 0.5 * (v[torso_sel, 1].min() + v[torso_sel, 1].max())])
     delta = 2 * np.pi / N
-    angles = -0.5 * np.pi - 0.5 * (a - 1) * delta + delta * np.arange(N)
+    angles = -0.5 * np.pi - 0.5 * (lay.a - 1) * delta + delta * np.arange(N)
     zs = np.linspace(z_hem, z_arm, J)
     dz = zs[1] - zs[0]
     outlines = [_ring_radii(body, centre, angles, z - dz, z + dz, 2.5 * delta) for z in zs]
@@ -577,54 +628,64 @@ def _make_tshirt(body: _Body) -> dict:
     radii = [None] * J
     for i in range(J - 1, -1, -1):
         running = np.maximum(running, outlines[i])
-        radii[i] = _smooth_up(running, 2.0) + clearance
+        radii[i] = _smooth_up(running, 2.0) + lay.clearance
     torso = np.stack([np.stack([centre[0] + r * np.cos(angles), centre[1] + r * np.sin(angles),
-                                np.full(N, z)], 1) for r, z in zip(radii, zs)])  # (J, N, 3)
+                                np.full(N, z)], 1) for r, z in zip(radii, zs)])
+    return torso, centre, z_hem
 
-    # -- top rows of the yokes: shoulder seams and neckline
+
+def _tshirt_top_row(body: _Body, lay: _TshirtLayout, front: bool) -> np.ndarray:
+    """(a, 3) top row of the front or back yoke, right to left seen from the front for the front
+    yoke and reversed for the back: the shoulder seams (s vertices each, on the shoulders'
+    top) with the neckline between them (dipping more in front)."""
+    j, v, a, s = body.joints, body.vertices, lay.a, lay.s
+    neck = j["neck01"]
     x_nb = 0.075  # half width of the neck opening at the seams
-    x_sp = 0.5 * (sh["L"][0] - sh["R"][0]) + 0.03  # shoulder point
+    x_sp = 0.5 * (j["upperarm01.L"][0] - j["upperarm01.R"][0]) + 0.03  # shoulder point
 
     def shoulder_top(x: float) -> float:
         sel = (np.abs(v[:, 0] - x) < 0.012) & (np.abs(v[:, 1] - neck[1]) < 0.04) & (v[:, 2] < neck[2] + 0.02)
         return float(v[sel, 2].max())
 
-    def top_row(front: bool) -> np.ndarray:
-        pts = np.zeros((a, 3))
-        for k in range(a):
-            if k < s or k >= a - s:
-                t = k / (s - 1) if k < s else (a - 1 - k) / (s - 1)  # 0 at the shoulder point
-                x = -x_sp + t * (x_sp - x_nb) if k < s else x_sp - t * (x_sp - x_nb)
-                pts[k] = (x, neck[1], shoulder_top(x) + clearance)
-            else:
-                t = (k - (s - 1)) / (a - 2 * s + 1)
-                phi = np.pi * (1 - t)
-                ry, drop = (0.085, 0.07) if front else (0.07, 0.02)
-                z_nb = shoulder_top(x_nb) + clearance
-                y = neck[1] - ry * np.sin(phi) if front else neck[1] + ry * np.sin(phi)
-                pts[k] = (x_nb * np.cos(phi), y, z_nb - drop * np.sin(phi))
-        if not front:
-            pts = pts[::-1].copy()  # the back arc runs from left to right
-        return pts
+    pts = np.zeros((a, 3))
+    for k in range(a):
+        if k < s or k >= a - s:
+            t = k / (s - 1) if k < s else (a - 1 - k) / (s - 1)  # 0 at the shoulder point
+            x = -x_sp + t * (x_sp - x_nb) if k < s else x_sp - t * (x_sp - x_nb)
+            pts[k] = (x, neck[1], shoulder_top(x) + lay.clearance)
+        else:
+            t = (k - (s - 1)) / (a - 2 * s + 1)
+            phi = np.pi * (1 - t)
+            ry, drop = (0.085, 0.07) if front else (0.07, 0.02)
+            z_nb = shoulder_top(x_nb) + lay.clearance
+            y = neck[1] - ry * np.sin(phi) if front else neck[1] + ry * np.sin(phi)
+            pts[k] = (x_nb * np.cos(phi), y, z_nb - drop * np.sin(phi))
+    if not front:
+        pts = pts[::-1].copy()  # the back arc runs from left to right
+    return pts
 
-    top_front, top_back = top_row(True), top_row(False)
-    base_front = torso[-1, 0:a]
-    base_back = torso[-1, a + m:2 * a + m]
 
-    def yoke(base: np.ndarray, top: np.ndarray) -> np.ndarray:
-        rows = []
-        for r in range(1, H + 1):
-            t = r / H
-            p = (1 - t) * base + t * top
-            out = np.zeros_like(p)
-            out[:, :2] = p[:, :2] - centre[None, :]
-            out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-9)
-            rows.append(p + 0.04 * np.sin(np.pi * t) * out)  # bulge over the chest and back
-        return np.stack(rows)  # (H, a, 3)
+def _tshirt_yoke(base: np.ndarray, top: np.ndarray, centre: np.ndarray, H: int) -> np.ndarray:
+    """(H, a, 3) yoke rows from the (a, 3) ``base`` (the top torso ring's arc, excluded) up to
+    ``top``, bulging outwards from the (2,) axis ``centre`` over the chest and back."""
+    rows = []
+    for r in range(1, H + 1):
+        t = r / H
+        p = (1 - t) * base + t * top
+        out = np.zeros_like(p)
+        out[:, :2] = p[:, :2] - centre[None, :]
+        out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-9)
+        rows.append(p + 0.04 * np.sin(np.pi * t) * out)
+    return np.stack(rows)
 
-    yoke_front, yoke_back = yoke(base_front, top_front), yoke(base_back, top_back)
 
-    # -- vertex indices
+def _tshirt_torso_and_yokes(torso: np.ndarray, yoke_front: np.ndarray, yoke_back: np.ndarray,
+                            lay: _TshirtLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The torso and yokes as one vertex array: positions (P, 3), and the vertex indices of the
+    torso (J, N) and of the front and back yokes (H + 1, a) (row 0: the top torso ring's arc).
+    The back yoke's top row reuses the front's shoulder-seam vertices, placed halfway between
+    the two designs."""
+    a, m, J, N, H, s = lay.a, lay.m, lay.J, lay.N, lay.H, lay.s
     positions = [torso.reshape(-1, 3)]
     torso_idx = np.arange(J * N).reshape(J, N)
     nxt = J * N
@@ -646,81 +707,77 @@ def _make_tshirt(body: _Body) -> dict:
             back_idx[H, k] = nxt
             positions.append(yoke_back[H - 1, k][None])
             nxt += 1
-    # the shared shoulder vertices sit halfway between the front and back designs
     pos = np.concatenate(positions)
     for k in list(range(s)) + list(range(a - s, a)):
         pos[front_idx[H, k]] = 0.5 * (yoke_front[H - 1, k] + yoke_back[H - 1, a - 1 - k])
+    return pos, torso_idx, front_idx, back_idx
 
-    faces = [_grid_faces(torso_idx, wrap=True), _grid_faces(front_idx, wrap=False), _grid_faces(back_idx, wrap=False)]
-    part = [np.zeros(pos.shape[0])]
 
-    # -- sleeves
-    sleeve_pos, sleeve_uv = [], []
-    for side, part_id in (("L", 1), ("R", 2)):
-        if side == "L":  # front outer column is k = a-1, back outer column k = 0, side arc a..a+m-1
-            loop = ([front_idx[H, a - 1]] + [front_idx[r, a - 1] for r in range(H - 1, -1, -1)]
-                    + list(torso_idx[-1, a:a + m]) + [back_idx[r, 0] for r in range(0, H)])
-        else:  # front outer column k = 0, back outer column k = a-1, side arc 2a+m..2a+2m-1
-            loop = ([front_idx[H, 0]] + [front_idx[r, 0] for r in range(H - 1, -1, -1)]
-                    + list(torso_idx[-1, 2 * a + m:2 * a + 2 * m][::-1]) + [back_idx[r, a - 1] for r in range(0, H)])
-        loop = np.asarray(loop, dtype=np.int64)
-        if loop.size != L or np.unique(loop).size != L:  # pragma: no cover - a layout bug
-            raise GarmentError(f"t-shirt layout: the {side} armhole loop has {np.unique(loop).size} of {L} vertices")
-        axis = elbow[side] - sh[side]
-        length = np.linalg.norm(axis)
-        axis /= length
-        e1 = np.cross(axis, [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(axis, e1)
-        rel = pos[loop] - sh[side]
-        phi = np.unwrap(np.arctan2(rel @ e2, rel @ e1))
-        if phi[-1] < phi[0]:  # make the angles increase around the loop
-            phi = -phi
-            e2 = -e2
-        t_loop = rel @ axis
-        r_loop = np.linalg.norm(rel - t_loop[:, None] * axis[None], axis=1)
-        t_end = 0.65 * length
-        arm_sel = body.arm & ((v - sh[side]) @ axis > 0.02) & ((v - sh[side]) @ axis < t_end + 0.03)
-        arm_rel = v[arm_sel] - sh[side]
-        arm_radius = np.linalg.norm(arm_rel - (arm_rel @ axis)[:, None] * axis, axis=1).max()
-        ring_r = arm_radius + clearance + 0.012
-        rows = [loop]
-        uniform = phi[0] + 2 * np.pi * np.arange(L) / L
-        for q in range(1, K + 1):
-            w = q / K
-            # the cuff is tilted a little with the armhole, which evens out the ring spacing
-            t = (1 - w) * t_loop + w * (t_end + 0.5 * (t_loop - t_loop.mean()))
-            rad = (1 - w) * r_loop + w * ring_r
-            ang = (1 - w) * phi + w * uniform
-            ring = (sh[side][None] + t[:, None] * axis[None]
-                    + rad[:, None] * (np.cos(ang)[:, None] * e1[None] + np.sin(ang)[:, None] * e2[None]))
-            ids = nxt + np.arange(L)
-            nxt += L
-            sleeve_pos.append(ring)
-            sleeve_uv.append(np.stack([np.arange(L) / L, np.full(L, q / K)], 1))
-            rows.append(ids)
-            part.append(np.full(L, part_id))
-        faces.append(_grid_faces(np.stack(rows), wrap=True))
+def _tshirt_armhole_loop(side: str, torso_idx: np.ndarray, front_idx: np.ndarray, back_idx: np.ndarray,
+                         lay: _TshirtLayout) -> np.ndarray:
+    """(L,) vertex indices around the ``side`` ("L" or "R") armhole: the shoulder point, down the
+    front yoke's outer column, along the torso's side arc, up the back yoke's outer column."""
+    a, m, H, L = lay.a, lay.m, lay.H, lay.L
+    if side == "L":  # front outer column is k = a-1, back outer column k = 0, side arc a..a+m-1
+        loop = ([front_idx[H, a - 1]] + [front_idx[r, a - 1] for r in range(H - 1, -1, -1)]
+                + list(torso_idx[-1, a:a + m]) + [back_idx[r, 0] for r in range(0, H)])
+    else:  # front outer column k = 0, back outer column k = a-1, side arc 2a+m..2a+2m-1
+        loop = ([front_idx[H, 0]] + [front_idx[r, 0] for r in range(H - 1, -1, -1)]
+                + list(torso_idx[-1, 2 * a + m:2 * a + 2 * m][::-1]) + [back_idx[r, a - 1] for r in range(0, H)])
+    loop = np.asarray(loop, dtype=np.int64)
+    if loop.size != L or np.unique(loop).size != L:  # pragma: no cover - a layout bug
+        raise GarmentError(f"t-shirt layout: the {side} armhole loop has {np.unique(loop).size} of {L} vertices")
+    return loop
 
-    pos = np.concatenate([pos] + sleeve_pos)
-    faces = np.concatenate(faces)
-    part = np.concatenate(part)
 
-    # -- uv: torso by angle and height, yokes continue upwards, sleeves as set above
+def _tshirt_sleeve_rings(body: _Body, side: str, loop: np.ndarray, lay: _TshirtLayout) -> np.ndarray:
+    """(K, L, 3) sleeve rings of the ``side`` arm, blending from the armhole ``loop`` (L, 3) into a
+    round cuff around the upper arm, 65% of the way from the shoulder to the elbow."""
+    v, L, K = body.vertices, lay.L, lay.K
+    shoulder = body.joints[f"upperarm01.{side}"]
+    axis = body.joints[f"lowerarm01.{side}"] - shoulder
+    length = np.linalg.norm(axis)
+    axis /= length
+    e1 = np.cross(axis, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    rel = loop - shoulder
+    phi = np.unwrap(np.arctan2(rel @ e2, rel @ e1))
+    if phi[-1] < phi[0]:  # make the angles increase around the loop
+        phi = -phi
+        e2 = -e2
+    t_loop = rel @ axis
+    r_loop = np.linalg.norm(rel - t_loop[:, None] * axis[None], axis=1)
+    t_end = 0.65 * length
+    arm_sel = body.arm & ((v - shoulder) @ axis > 0.02) & ((v - shoulder) @ axis < t_end + 0.03)
+    arm_rel = v[arm_sel] - shoulder
+    arm_radius = np.linalg.norm(arm_rel - (arm_rel @ axis)[:, None] * axis, axis=1).max()
+    ring_r = arm_radius + lay.clearance + 0.012
+    uniform = phi[0] + 2 * np.pi * np.arange(L) / L
+    rings = []
+    for q in range(1, K + 1):
+        w = q / K
+        # the cuff is tilted a little with the armhole, which evens out the ring spacing
+        t = (1 - w) * t_loop + w * (t_end + 0.5 * (t_loop - t_loop.mean()))
+        rad = (1 - w) * r_loop + w * ring_r
+        ang = (1 - w) * phi + w * uniform
+        rings.append(shoulder[None] + t[:, None] * axis[None]
+                     + rad[:, None] * (np.cos(ang)[:, None] * e1[None] + np.sin(ang)[:, None] * e2[None]))
+    return np.stack(rings)
+
+
+def _tshirt_uv(pos: np.ndarray, part: np.ndarray, centre: np.ndarray, z_hem: float,
+               sleeve_uv: np.ndarray) -> np.ndarray:
+    """(P, 2) uv: torso and yokes (part 0) by angle around ``centre`` and height below the top,
+    sleeves (parts 1, 2) from ``sleeve_uv`` (their vertices' uv, in order)."""
     uv = np.zeros((pos.shape[0], 2))
     z_top = float(pos[:, 2].max())
     body_part = part == 0
     rel = pos[body_part, :2] - centre
     uv[body_part, 0] = ((np.arctan2(rel[:, 1], rel[:, 0]) + 0.5 * np.pi) / (2 * np.pi)) % 1.0
     uv[body_part, 1] = (z_top - pos[body_part, 2]) / (z_top - z_hem)
-    uv[~body_part] = np.concatenate(sleeve_uv)
-
-    # -- relax the rough placement: smooth junctions, keep the clearance
-    faces = _orient(faces, pos, body.surface)
-    pos = _relax(pos, faces, body.surface, clearance, iterations=40, tangential_iterations=40)
-    collar = np.concatenate([front_idx[H, s - 1:a - s + 1], back_idx[H, s:a - s]])
-    return dict(vertices=pos, faces=faces, uv=np.clip(uv, 0, 1), pinned=np.unique(collar),
-                layer=np.zeros(pos.shape[0]), part=part)
+    uv[~body_part] = sleeve_uv
+    return uv
 
 
 _BUILDERS = {"skirt": _make_skirt, "tshirt": _make_tshirt, "dress": _make_dress}
