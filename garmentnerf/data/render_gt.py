@@ -50,7 +50,8 @@ import scipy.sparse as sp
 import torch
 
 from garmentnerf.conventions import Camera
-from garmentnerf.gl.context import current, is_released
+from garmentnerf.gl.context import current
+from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
 from garmentnerf.gl.shaders import build_program
 
 #: Bump when the image formation changes (shaders, normals, filtering, label policy).
@@ -232,7 +233,7 @@ class _Targets:
             obj.release()
 
 
-class GroundTruthRenderer:
+class GroundTruthRenderer(GLObjectsOwner):
     """Shaded ground-truth renders of a body and (optionally) a garment on one moderngl context.
 
     Args:
@@ -259,7 +260,8 @@ class GroundTruthRenderer:
             self.resolve_program["u_source"].value = 0
             self.resolve_vao = ctx.vertex_array(self.resolve_program, [])
             self._meshes = {"body": _MeshBuffers(ctx, self.program), "garment": _MeshBuffers(ctx, self.program)}
-        self._targets: OrderedDict[tuple[int, int], _Targets] = OrderedDict()
+        self._targets: TargetCache[_Targets] = TargetCache(lambda size: _Targets(ctx, *size, self.supersample),
+                                                           self.max_sizes)
         self._normal_ops: OrderedDict[tuple, _NormalOperator] = OrderedDict()
         self._released = False
         self._set_lighting()
@@ -295,16 +297,7 @@ class GroundTruthRenderer:
         return op(verts)
 
     def _targets_for(self, width: int, height: int) -> _Targets:
-        key = (width, height)
-        targets = self._targets.get(key)
-        if targets is None:
-            targets = _Targets(self.ctx, width, height, self.supersample)
-            self._targets[key] = targets
-            while len(self._targets) > self.max_sizes:
-                self._targets.popitem(last=False)[1].release()
-        else:
-            self._targets.move_to_end(key)
-        return targets
+        return self._targets.get((width, height))
 
     def _upload(self, name: str, verts: np.ndarray, tris: np.ndarray) -> None:
         normals = self._normals(verts, tris)
@@ -332,8 +325,7 @@ class GroundTruthRenderer:
     def render_full(self, body_vertices, body_faces, garment_vertices=None, garment_faces=None,
                     garment_color=None, camera: Camera | None = None, body_color=SKIN_TONE) -> GroundTruthImage:
         """:meth:`render` plus coverage maps (:class:`GroundTruthImage`)."""
-        if self._released:
-            raise RuntimeError("GroundTruthRenderer used after release()")
+        self._check_not_released()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a conventions.Camera, got {type(camera).__name__}")
         bverts, btris = _check_mesh(body_vertices, body_faces, "body")
@@ -378,28 +370,13 @@ class GroundTruthRenderer:
                 targets.resolve_fbo.read_into(targets.buffer, attachment=0, components=4, dtype="f4")
             return _unpack(targets.buffer, s)
 
-    def release(self) -> None:
-        """Free the GL objects (the context itself stays)."""
-        if self._released:
-            return
-        self._released = True
-        if is_released(self.ctx):
-            return
-        with current(self.ctx):
-            for targets in self._targets.values():
-                targets.release()
-            self._targets.clear()
-            for mesh in self._meshes.values():
-                mesh.release()
-            self.resolve_vao.release()
-            self.resolve_program.release()
-            self.program.release()
-
-    def __enter__(self) -> "GroundTruthRenderer":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()
+    def _release_objects(self) -> None:
+        self._targets.release()
+        for mesh in self._meshes.values():
+            mesh.release()
+        self.resolve_vao.release()
+        self.resolve_program.release()
+        self.program.release()
 
 
 def _unpack(resolved: np.ndarray, s: int) -> GroundTruthImage:

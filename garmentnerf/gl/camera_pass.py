@@ -15,7 +15,6 @@ float + integer targets) makes the pass about a third faster on Mesa llvmpipe.
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import moderngl
@@ -23,7 +22,8 @@ import numpy as np
 import torch
 
 from garmentnerf.conventions import Camera
-from garmentnerf.gl.context import current, is_released
+from garmentnerf.gl.context import current
+from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
 from garmentnerf.gl.shaders import build_program
 
 
@@ -128,7 +128,7 @@ class _Program:
         self.program.release()
 
 
-class CameraPass:
+class CameraPass(GLObjectsOwner):
     """Renders camera-view G-buffers of triangle meshes on one moderngl context.
 
     Objects made here belong to ``ctx``, which every method makes current first (and leaves
@@ -142,25 +142,15 @@ class CameraPass:
         self.max_sizes = max(1, int(max_sizes))
         with current(ctx):
             self._programs = {False: _Program(ctx, False), True: _Program(ctx, True)}
-        self._targets: OrderedDict[tuple[int, int], _Targets] = OrderedDict()
+        self._targets: TargetCache[_Targets] = TargetCache(lambda size: _Targets(ctx, *size), self.max_sizes)
         self._released = False
 
     def _targets_for(self, width: int, height: int) -> _Targets:
-        key = (width, height)
-        targets = self._targets.get(key)
-        if targets is None:
-            targets = _Targets(self.ctx, width, height)
-            self._targets[key] = targets
-            while len(self._targets) > self.max_sizes:
-                self._targets.popitem(last=False)[1].release()
-        else:
-            self._targets.move_to_end(key)
-        return targets
+        return self._targets.get((width, height))
 
     def _prepare(self, vertices, faces, camera: Camera, uv=None, uv_faces=None) -> _Program:
         """Check the inputs, upload the expanded corners and the camera; the program to draw with."""
-        if self._released:
-            raise RuntimeError("CameraPass used after release()")
+        self._check_not_released()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a conventions.Camera, got {type(camera).__name__}")
         if (uv is None) != (uv_faces is None):
@@ -270,22 +260,7 @@ class CameraPass:
         far, _, _, _ = self._unpack(main_far)
         return DepthRange(near=near, far=far, mask=mask)
 
-    def release(self) -> None:
-        """Free the GL objects (the context itself stays)."""
-        if self._released:
-            return
-        self._released = True
-        if is_released(self.ctx):  # the context took its objects with it
-            return
-        with current(self.ctx):
-            for targets in self._targets.values():
-                targets.release()
-            self._targets.clear()
-            for program in self._programs.values():
-                program.release()
-
-    def __enter__(self) -> "CameraPass":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()
+    def _release_objects(self) -> None:
+        self._targets.release()
+        for program in self._programs.values():
+            program.release()

@@ -45,7 +45,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from garmentnerf.gl.context import current, is_released
+from garmentnerf.gl.context import current
+from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
 from garmentnerf.gl.dilation import NearestTexelDilation
 from garmentnerf.gl.shaders import build_program
 
@@ -175,7 +176,7 @@ def _uv_gbuffer(ctx: moderngl.Context, uv: np.ndarray, faces: np.ndarray, height
 METHODS = ("gather", "draw")
 
 
-class UVAttributeRasterizer:
+class UVAttributeRasterizer(GLObjectsOwner):
     """Rasterises per-UV-vertex attributes into UV-space maps, for one atlas at one resolution.
 
     GL objects made here belong to ``ctx``, which the methods make current (and leave current)
@@ -221,7 +222,7 @@ class UVAttributeRasterizer:
         self._uv_np, self._faces_np = uv_np, faces_np
         self._uv_buffer: moderngl.Buffer | None = None
         self._index_buffer: moderngl.Buffer | None = None
-        self._targets: dict[int, _TargetSet] = {}
+        self._targets: TargetCache[_TargetSet] = TargetCache(self._make_target_set)
         self._tables: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._released = False
 
@@ -269,21 +270,17 @@ class UVAttributeRasterizer:
         return full.view(self.height, self.width, -1)
 
     # -- "draw" ------------------------------------------------------------------------------
-    def _target_set(self, num_targets: int) -> _TargetSet:
+    def _make_target_set(self, num_targets: int) -> _TargetSet:
         if self._uv_buffer is None:
             self._uv_buffer = self.ctx.buffer(self._uv_np.tobytes())
             self._index_buffer = self.ctx.buffer(self._faces_np.astype(np.int32).tobytes() or b"\0" * 12)
-        targets = self._targets.get(num_targets)
-        if targets is None:
-            targets = _TargetSet(self.ctx, num_targets, self._uv_buffer, self._index_buffer,
-                                 self.num_vertices, self.height, self.width)
-            self._targets[num_targets] = targets
-        return targets
+        return _TargetSet(self.ctx, num_targets, self._uv_buffer, self._index_buffer, self.num_vertices,
+                          self.height, self.width)
 
     def _render_draw(self, attr: np.ndarray) -> torch.Tensor:
         channels = attr.shape[1]
         num_targets = -(-channels // 4)
-        targets = self._target_set(num_targets)
+        targets = self._targets.get(num_targets)
         if channels == 4 * num_targets and attr.dtype == np.float32 and attr.flags.c_contiguous:
             data = attr
         else:
@@ -315,8 +312,7 @@ class UVAttributeRasterizer:
             ``method="gather"`` the values are on the attributes' device and carry their gradient;
             with ``"draw"`` they are a CPU tensor.
         """
-        if self._released:
-            raise RuntimeError("UVAttributeRasterizer used after release()")
+        self._check_not_released()
         if not isinstance(attributes, torch.Tensor):
             attributes = torch.as_tensor(np.asarray(attributes))
         if attributes.ndim != 2 or attributes.shape[0] != self.num_vertices:
@@ -335,23 +331,8 @@ class UVAttributeRasterizer:
         values = self.render(attributes).values
         return values.masked_fill(~self.mask.to(values.device).unsqueeze(-1), 0.0)
 
-    def release(self) -> None:
-        """Free the GL objects (the context itself stays; a no-op once the context is released)."""
-        if self._released:
-            return
-        self._released = True
-        if is_released(self.ctx):  # the context took its objects with it
-            return
-        with current(self.ctx):
-            for targets in self._targets.values():
-                targets.release()
-            self._targets.clear()
-            for buffer in (self._uv_buffer, self._index_buffer):
-                if buffer is not None:
-                    buffer.release()
-
-    def __enter__(self) -> "UVAttributeRasterizer":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()
+    def _release_objects(self) -> None:
+        self._targets.release()
+        for buffer in (self._uv_buffer, self._index_buffer):
+            if buffer is not None:
+                buffer.release()
