@@ -53,3 +53,25 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def walk_clip(body):
+    """The first three frames of the walk posed on the default body, and the walk's frame rate."""
+    from garmentnerf.motion.library import load_motion
+
+    motion = load_motion("walk", body)
+    return motion.slice(0, 3).pose(body), motion.fps
+
+
+@pytest.fixture(scope="module")
+def walk_inputs(gl_context, body, walk_clip):
+    """The :class:`~garmentnerf.model.frame_context.FrameInputs` of frame 2 of ``walk_clip`` for the
+    tiny preset seen by the default reference cameras."""
+    from garmentnerf.data.cameras import reference_cameras
+    from garmentnerf.model.frame_context import FrameInputBuilder
+    from garmentnerf.train.settings import tiny_config
+
+    posed, fps = walk_clip
+    with FrameInputBuilder(gl_context, body, reference_cameras(), tiny_config()) as builder:
+        yield builder.build(posed, 2, fps)

@@ -16,7 +16,6 @@ from garmentnerf.model.palette import compose
 from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnimationNeRF, RenderCancelled,
                                         palette_initial_colours, reference_visibility)
 from garmentnerf.model.samplers import ray_aabb_intersect
-from garmentnerf.motion.library import load_motion
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
@@ -24,19 +23,6 @@ PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 
 def tiny_config(**changes) -> ModelConfig:
     return tiny_preset().replace(**changes)
-
-
-@pytest.fixture(scope="module")
-def clip(body):
-    motion = load_motion("walk", body)
-    return motion.slice(0, 3).pose(body), motion.fps
-
-
-@pytest.fixture(scope="module")
-def inputs(gl_context, body, clip):
-    posed, fps = clip
-    with FrameInputBuilder(gl_context, body, reference_cameras(), tiny_config()) as builder:
-        yield builder.build(posed, 2, fps)
 
 
 def make_model(body, projector, seed=0, **changes) -> GarmentAnimationNeRF:
@@ -50,35 +36,37 @@ def model(body, projector):
 
 
 @pytest.fixture(scope="module")
-def frame(model, inputs):
+def frame(model, walk_inputs):
     with torch.no_grad():
-        return model.prepare_frame(inputs)
+        return model.prepare_frame(walk_inputs)
 
 
 CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
 
 
 # ---------------------------------------------------------------------------------------- inputs
-def test_frame_inputs(gl_context, body, clip, inputs):
+def test_frame_inputs(gl_context, body, walk_clip, walk_inputs):
     cfg = tiny_config()
-    assert inputs.info_maps.shape == (9, 32, 32)
-    assert inputs.reference_uv.shape == (2, 32, 32, 2)
-    assert inputs.reference_mask.shape == inputs.reference_depth.shape == inputs.reference_face.shape == (2, 32, 32)
+    assert walk_inputs.info_maps.shape == (9, 32, 32)
+    assert walk_inputs.reference_uv.shape == (2, 32, 32, 2)
+    assert (walk_inputs.reference_mask.shape == walk_inputs.reference_depth.shape
+            == walk_inputs.reference_face.shape == (2, 32, 32))
     for i in range(2):
-        m = inputs.reference_mask[i]
+        m = walk_inputs.reference_mask[i]
         assert 0.05 < m.float().mean() < 0.6  # the body fills part of each reference view
-        assert torch.isfinite(inputs.reference_depth[i][m]).all() and torch.isinf(inputs.reference_depth[i][~m]).all()
-        assert (inputs.reference_face[i][m] >= 0).all()
-    assert set(inputs.timings) == {"info_maps", "reference_passes"}
+        depth = walk_inputs.reference_depth[i]
+        assert torch.isfinite(depth[m]).all() and torch.isinf(depth[~m]).all()
+        assert (walk_inputs.reference_face[i][m] >= 0).all()
+    assert set(walk_inputs.timings) == {"info_maps", "reference_passes"}
     # A single frame equals the same frame of the whole clip (velocity history included).
-    posed, fps = clip
+    posed, fps = walk_clip
     with FrameInputBuilder(gl_context, body, reference_cameras(), cfg) as builder:
         whole = builder.build_clip(posed, fps)
     assert len(whole) == 3
-    torch.testing.assert_close(whole[2].info_maps, inputs.info_maps, atol=1e-5, rtol=0)
-    assert inputs.info_maps[3:].abs().max() > 0  # the body moves
+    torch.testing.assert_close(whole[2].info_maps, walk_inputs.info_maps, atol=1e-5, rtol=0)
+    assert walk_inputs.info_maps[3:].abs().max() > 0  # the body moves
     with pytest.raises(ValueError, match="info_maps"):
-        inputs.validate(cfg.replace(history=1))
+        walk_inputs.validate(cfg.replace(history=1))
 
 
 def test_resolve_reference_cameras():
@@ -151,9 +139,9 @@ def test_missed_rays_are_not_evaluated(model, frame):
         hook.remove()
 
 
-def test_gradients_reach_every_trainable_module(body, projector, inputs):
+def test_gradients_reach_every_trainable_module(body, projector, walk_inputs):
     model = make_model(body, projector, seed=1).train()
-    frame = model.prepare_frame(inputs)
+    frame = model.prepare_frame(walk_inputs)
     out = model.render(frame, CAMERA, generator=torch.Generator().manual_seed(0))
     target = torch.rand(out.image.shape, generator=torch.Generator().manual_seed(1))
     loss = (out.image - target).abs().mean()
@@ -174,11 +162,11 @@ def test_gradients_reach_every_trainable_module(body, projector, inputs):
     assert model.image_generator.training is False  # train() keeps the frozen G_img in eval mode
 
 
-def test_unfrozen_image_generator_gets_gradient(body, projector, inputs):
+def test_unfrozen_image_generator_gets_gradient(body, projector, walk_inputs):
     model = make_model(body, projector, seed=2).train()
     model.set_image_generator_frozen(False)
     assert "image_generator" in model.trainable_modules()
-    out = model.render(model.prepare_frame(inputs), CAMERA)
+    out = model.render(model.prepare_frame(walk_inputs), CAMERA)
     out.image.mean().backward()
     assert sum(float(p.grad.abs().sum()) for p in model.image_generator.parameters()) > 0
 
@@ -292,9 +280,9 @@ def test_visibility_selects_front_for_front_and_back_for_back(model, frame, proj
 @pytest.mark.parametrize("changes", [dict(use_detail_feature=False), dict(use_dynamic_feature=False),
                                      dict(use_detail_feature=False, use_dynamic_feature=False),
                                      dict(detail_selection="soft_normal")])
-def test_ablations_and_modes(body, projector, inputs, changes):
+def test_ablations_and_modes(body, projector, walk_inputs, changes):
     model = make_model(body, projector, **changes).train()
-    frame = model.prepare_frame(inputs)
+    frame = model.prepare_frame(walk_inputs)
     cfg = model.cfg
     assert (model.encoder is None) == (frame.dynamic_features is None) == (not cfg.use_dynamic_feature)
     assert (model.detail_encoder is None) == (frame.detail_features is None) == (not cfg.use_detail_feature)

@@ -11,15 +11,12 @@ import pytest
 import torch
 
 from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera
-from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.frame_context import FrameInputBuilder
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.geometry.winding import point_in_shell, winding_number
 from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
 from garmentnerf.model.samplers import BoxStratifiedSampler, body_aabb
 from garmentnerf.model.shell_sampler import ShellSampler
-from garmentnerf.motion.library import load_motion
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
@@ -44,19 +41,6 @@ class Banded(torch.nn.Module):
         return sigma * inside.to(sigma.dtype) * self.scale, zeta
 
 
-@pytest.fixture(scope="module")
-def posed(body):
-    motion = load_motion("walk", body)
-    return motion.slice(0, 3).pose(body), motion.fps
-
-
-@pytest.fixture(scope="module")
-def inputs(gl_context, body, posed):
-    clip, fps = posed
-    with FrameInputBuilder(gl_context, body, reference_cameras(), tiny_config()) as builder:
-        yield builder.build(clip, 2, fps)
-
-
 def banded_model(body, projector, scale=1.0, **changes):
     torch.manual_seed(0)
     model = GarmentAnimationNeRF(tiny_config(**changes), body, PALETTE, projector=projector).eval()
@@ -65,10 +49,10 @@ def banded_model(body, projector, scale=1.0, **changes):
 
 
 @pytest.fixture(scope="module")
-def model_and_frame(body, projector, inputs):
+def model_and_frame(body, projector, walk_inputs):
     model = banded_model(body, projector)
     with torch.no_grad():
-        frame = model.prepare_frame(inputs)
+        frame = model.prepare_frame(walk_inputs)
     return model, frame
 
 
@@ -108,8 +92,8 @@ def _keys(ray_ids, t_starts):
 
 
 # ---------------------------------------------------------------------------------------------
-def test_shell_contains_every_box_sample_near_the_body(gl_context, posed, projector):
-    clip, _ = posed
+def test_shell_contains_every_box_sample_near_the_body(gl_context, walk_clip, projector):
+    clip, _ = walk_clip
     verts = clip.vertices[2].float()
     sampler = ShellSampler(64, projector.faces, BAND, gl_context=gl_context)
     cam = CAMERA.resized(40, 40)
@@ -140,8 +124,8 @@ def test_shell_contains_every_box_sample_near_the_body(gl_context, posed, projec
     sampler.release()
 
 
-def test_rays_that_miss_get_nothing(gl_context, posed, projector):
-    clip, _ = posed
+def test_rays_that_miss_get_nothing(gl_context, walk_clip, projector):
+    clip, _ = walk_clip
     verts = clip.vertices[2].float()
     sampler = ShellSampler(16, projector.faces, BAND, gl_context=gl_context)
     cam = CAMERA.resized(32, 32)
@@ -164,8 +148,8 @@ def test_rays_that_miss_get_nothing(gl_context, posed, projector):
     sampler.release()
 
 
-def test_inside_the_shell_and_far_away(gl_context, posed, projector):
-    clip, _ = posed
+def test_inside_the_shell_and_far_away(gl_context, walk_clip, projector):
+    clip, _ = walk_clip
     verts = clip.vertices[2].float()
     faces = projector.faces
     centre = verts[faces.reshape(-1)].mean(0)
@@ -233,11 +217,11 @@ def test_height_band_drop_does_not_change_the_image(model_and_frame):
     torch.testing.assert_close(banded.image, everything.image, atol=1e-5, rtol=0)
 
 
-def test_early_termination(gl_context, body, projector, inputs):
+def test_early_termination(gl_context, body, projector, walk_inputs):
     """An opaque model: rays stop once T < eps; the result moves by at most about eps."""
     model = banded_model(body, projector, scale=200.0)
     with torch.no_grad():
-        frame = model.prepare_frame(inputs)
+        frame = model.prepare_frame(walk_inputs)
         ref = model.render(frame, CAMERA)
     assert ref.opacity.max() > 0.999
     eps = 1e-3
@@ -299,8 +283,8 @@ def test_per_vertex_band_is_tight_where_the_garment_never_goes(tiny_scene, body,
     assert got == set(rings)
 
 
-def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, posed, projector):
-    clip, _ = posed
+def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, walk_clip, projector):
+    clip, _ = walk_clip
     verts = clip.vertices[2].float()
     V = verts.shape[0]
     reach = 0.03
@@ -328,10 +312,10 @@ def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, posed, projec
     assert torch.allclose(bound, torch.full_like(bound, reach))
 
 
-def test_occlusion_cuts_rays_behind_the_skin(gl_context, posed, projector):
+def test_occlusion_cuts_rays_behind_the_skin(gl_context, walk_clip, projector):
     import trimesh
 
-    clip, _ = posed
+    clip, _ = walk_clip
     verts = clip.vertices[2].float()
     cam = CAMERA.resized(32, 32)
     origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
