@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -244,6 +243,45 @@ def load_sequence(path: str | Path) -> GarmentSequence:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such garment sequence file")
+    f = _Fields(str(path), _read_members(path))
+    if f.string("format") != _FORMAT:
+        f.fail("format", f"expected '{_FORMAT}', got '{f.string('format')}'")
+    version = f.data["version"]
+    if version.shape != () or version.dtype.kind not in "iu" or int(version) != _VERSION:
+        f.fail("version", f"unsupported version {version!r} (this code reads version {_VERSION})")
+    vertices, lo, hi = _dequantised_vertices(f)
+    fps = f.data["fps"]
+    if fps.shape != () or fps.dtype.kind not in "fiu":
+        f.fail("fps", f"must be a number, got {fps.dtype} {fps.shape}")
+    fps = float(fps)
+    color, pen = f.floats("color"), f.floats("penetration_max_m")
+    _check_arrays(vertices, f.data["faces"], color.reshape(-1) if color.ndim == 1 else color, pen, fps, f.where)
+    try:
+        settings = json.loads(f.string("settings_json"))
+    except ValueError as exc:
+        raise GarmentSequenceError(f"{f.where}: field 'settings_json': not valid JSON ({exc})") from exc
+    if not isinstance(settings, dict):
+        f.fail("settings_json", "must hold a JSON object")
+    V = vertices.shape[1]
+    uv = f.data["uv"]
+    if uv.dtype.kind != "f" or uv.shape not in ((V, 2), (0, 2)) or not np.all(np.isfinite(uv)):
+        f.fail("uv", f"must be finite floats of shape ({V}, 2) or (0, 2), got {uv.dtype} {uv.shape}")
+    betas = f.data["betas"]
+    if betas.ndim != 1 or betas.dtype.kind != "f" or not np.all(np.isfinite(betas)):
+        f.fail("betas", f"must be a finite 1-D float array, got {betas.dtype} {betas.shape}")
+    kind = f.string("kind")
+    if not kind:
+        f.fail("kind", "is empty")
+    return GarmentSequence(vertices=vertices, faces=f.data["faces"].astype(np.int32), color=color.astype(np.float32),
+                           kind=kind, penetration_max_m=pen.astype(np.float32), fps=fps, settings=settings,
+                           name=f.string("name"), motion=f.string("motion"), betas=betas.astype(np.float32),
+                           uv=uv.astype(np.float32) if uv.shape[0] else None, bbox_min=lo.astype(np.float64),
+                           bbox_max=hi.astype(np.float64))
+
+
+def _read_members(path: Path) -> dict[str, np.ndarray]:
+    """Every required array of the archive; a missing, truncated or unreadable one raises
+    GarmentSequenceError naming it."""
     where = str(path)
     try:
         archive = np.load(path, allow_pickle=False)
@@ -263,66 +301,46 @@ def load_sequence(path: str | Path) -> GarmentSequence:
         for key in _REQUIRED:
             try:
                 data[key] = archive[key]
-            except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
+            except Exception as exc:  # zipfile.BadZipFile, OSError, ValueError, EOFError, zlib.error ...
                 raise GarmentSequenceError(f"{where}: field '{key}': unreadable (truncated file? {exc})") from exc
-            except Exception as exc:  # zlib.error and friends
-                raise GarmentSequenceError(f"{where}: field '{key}': unreadable (truncated file? {exc})") from exc
+    return data
 
-    def fail(field, msg):
-        raise GarmentSequenceError(f"{where}: field '{field}': {msg}")
 
-    def string(field):
-        v = data[field]
+class _Fields:
+    """The arrays of one garment sequence file and checks that fail naming the file and field."""
+
+    def __init__(self, where: str, data: dict[str, np.ndarray]) -> None:
+        self.where, self.data = where, data
+
+    def fail(self, field: str, msg: str):
+        raise GarmentSequenceError(f"{self.where}: field '{field}': {msg}")
+
+    def string(self, field: str) -> str:
+        v = self.data[field]
         if v.shape != () or v.dtype.kind != "U":
-            fail(field, f"must be a string, got {v.dtype} {v.shape}")
+            self.fail(field, f"must be a string, got {v.dtype} {v.shape}")
         return str(v)
 
-    if string("format") != _FORMAT:
-        fail("format", f"expected '{_FORMAT}', got '{string('format')}'")
-    version = data["version"]
-    if version.shape != () or version.dtype.kind not in "iu" or int(version) != _VERSION:
-        fail("version", f"unsupported version {version!r} (this code reads version {_VERSION})")
-    q = data["vertices_q"]
+    def floats(self, field: str) -> np.ndarray:
+        v = self.data[field]
+        if v.dtype.kind != "f":
+            self.fail(field, f"must be floats, got {v.dtype}")
+        return v
+
+
+def _dequantised_vertices(f: _Fields) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T, V, 3) float32 vertices from the uint16 ``vertices_q`` over the box, and the box's
+    (3,) ``bbox_min`` and ``bbox_max``, checked."""
+    q = f.data["vertices_q"]
     if q.dtype != np.uint16:
-        fail("vertices_q", f"must be uint16, got {q.dtype}")
+        f.fail("vertices_q", f"must be uint16, got {q.dtype}")
     if q.ndim != 3 or q.shape[2] != 3 or q.shape[0] < 1 or q.shape[1] < 3:
-        fail("vertices_q", f"must have shape (T >= 1, V >= 3, 3), got {q.shape}")
-    lo, hi = data["bbox_min"], data["bbox_max"]
+        f.fail("vertices_q", f"must have shape (T >= 1, V >= 3, 3), got {q.shape}")
+    lo, hi = f.data["bbox_min"], f.data["bbox_max"]
     for field, v in (("bbox_min", lo), ("bbox_max", hi)):
         if v.shape != (3,) or v.dtype.kind != "f" or not np.all(np.isfinite(v)):
-            fail(field, f"must be 3 finite floats, got {v.dtype} {v.shape}")
+            f.fail(field, f"must be 3 finite floats, got {v.dtype} {v.shape}")
     if np.any(hi < lo):
-        fail("bbox_max", "is below bbox_min")
-    fps = data["fps"]
-    if fps.shape != () or fps.dtype.kind not in "fiu":
-        fail("fps", f"must be a number, got {fps.dtype} {fps.shape}")
-    fps = float(fps)
-    color = data["color"]
-    if color.dtype.kind != "f":
-        fail("color", f"must be floats, got {color.dtype}")
-    pen = data["penetration_max_m"]
-    if pen.dtype.kind != "f":
-        fail("penetration_max_m", f"must be floats, got {pen.dtype}")
+        f.fail("bbox_max", "is below bbox_min")
     vertices = (lo + q.astype(np.float64) * ((hi - lo) / QUANT_LEVELS)).astype(np.float32)
-    _check_arrays(vertices, data["faces"], color.reshape(-1) if color.ndim == 1 else color, pen, fps, where)
-    try:
-        settings = json.loads(string("settings_json"))
-    except ValueError as exc:
-        raise GarmentSequenceError(f"{where}: field 'settings_json': not valid JSON ({exc})") from exc
-    if not isinstance(settings, dict):
-        fail("settings_json", "must hold a JSON object")
-    V = q.shape[1]
-    uv = data["uv"]
-    if uv.dtype.kind != "f" or uv.shape not in ((V, 2), (0, 2)) or not np.all(np.isfinite(uv)):
-        fail("uv", f"must be finite floats of shape ({V}, 2) or (0, 2), got {uv.dtype} {uv.shape}")
-    betas = data["betas"]
-    if betas.ndim != 1 or betas.dtype.kind != "f" or not np.all(np.isfinite(betas)):
-        fail("betas", f"must be a finite 1-D float array, got {betas.dtype} {betas.shape}")
-    kind = string("kind")
-    if not kind:
-        fail("kind", "is empty")
-    return GarmentSequence(vertices=vertices, faces=data["faces"].astype(np.int32), color=color.astype(np.float32),
-                           kind=kind, penetration_max_m=pen.astype(np.float32), fps=fps, settings=settings,
-                           name=string("name"), motion=string("motion"), betas=betas.astype(np.float32),
-                           uv=uv.astype(np.float32) if uv.shape[0] else None, bbox_min=lo.astype(np.float64),
-                           bbox_max=hi.astype(np.float64))
+    return vertices, lo, hi

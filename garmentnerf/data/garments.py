@@ -433,7 +433,6 @@ def _ring_radii(body: _Body, centre: np.ndarray, angles: np.ndarray, z_lo: float
 
 def _smooth_up(r: np.ndarray, sigma: float) -> np.ndarray:
     """Circularly smoothed radii, raised so that they nowhere fall below ``r``."""
-    n = r.shape[0]
     k = np.arange(-3 * int(math.ceil(sigma)), 3 * int(math.ceil(sigma)) + 1)
     w = np.exp(-0.5 * (k / sigma) ** 2)
     w /= w.sum()
