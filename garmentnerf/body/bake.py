@@ -42,9 +42,10 @@ def bake_anny(num_samples: int = 512, max_components: int = 24, tolerance_m: flo
         max_components: upper bound on the number of shape coefficients.
         tolerance_m: keep the fewest components whose worst vertex reconstruction error over the
             samples and presets is below this (or ``max_components``).
+    Returns:
+        (asset, stats): the validated asset and ``{"components", "max_reconstruction_error_m",
+        "residual_variance_explained"}``.
     """
-    import torch
-
     try:
         import anny
     except ImportError:
@@ -52,39 +53,86 @@ def bake_anny(num_samples: int = 512, max_components: int = 24, tolerance_m: flo
     from garmentnerf.body.asset import BodyAsset
 
     model = anny.Anny()
+    avg_v, avg_j, offsets = _shape_offsets(model, num_samples, seed)
+    V, J = avg_v.shape[1], avg_j.shape[1]
+    basis, preset_betas, stats = _fit_shape_basis(offsets, num_samples, V, max_components, tolerance_m)
+    n_comp = len(basis)
+    named = {name: preset_betas[i].astype(np.float32) for i, name in enumerate(PHENOTYPE_PRESETS)}
+    named["average"] = np.zeros(n_comp, dtype=np.float32)
+    weights = model.vertex_bone_weights / model.vertex_bone_weights.sum(1, keepdim=True)
+    asset = BodyAsset(
+        name="anny",
+        template_vertices=avg_v[0].astype(np.float32),
+        shape_dirs=basis[:, : V * 3].reshape(n_comp, V, 3).astype(np.float32),
+        template_joints=avg_j[0].astype(np.float32),
+        joint_shape_dirs=basis[:, V * 3:].reshape(n_comp, J, 3).astype(np.float32),
+        faces=model.faces.numpy().astype(np.int64),
+        uv=model.texture_coordinates.numpy().astype(np.float32),
+        uv_faces=model.face_texture_coordinate_indices.numpy().astype(np.int64),
+        skin_indices=model.vertex_bone_indices.numpy().astype(np.int64),
+        skin_weights=weights.numpy().astype(np.float32),
+        parents=np.asarray(model.bone_parents, dtype=np.int64),
+        joint_names=list(model.bone_labels),
+        named_shapes=named,
+        license=ANNY_LICENSE,
+    )
+    return asset.validate("anny bake"), stats
+
+
+def _rest_shapes(model, phenotypes: dict) -> tuple[np.ndarray, np.ndarray]:
+    """float64 rest vertices (B, V, 3) and joints (B, J, 3) of anny for a batch of phenotype
+    slider tensors (B,), each shifted so that its feet rest on z = 0."""
+    import torch
+
+    with torch.no_grad():
+        out = model(phenotype_kwargs=phenotypes)
+    verts = out["rest_vertices"].double().numpy()
+    joints = out["rest_bone_heads"].double().numpy()
+    floor = verts[:, :, 2].min(axis=1, keepdims=True)  # feet on z = 0 for every shape
+    verts[:, :, 2] -= floor
+    joints[:, :, 2] -= floor
+    return verts, joints
+
+
+def _shape_offsets(model, num_samples: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The average body's (1, V, 3) vertices and (1, J, 3) joints, and the (num_samples + P, 3V + 3J)
+    offsets from it of ``num_samples`` random phenotypes then the P :data:`PHENOTYPE_PRESETS`
+    (vertices then joints, flattened)."""
+    import torch
+
     labels = list(model.phenotype_labels)
     gen = torch.Generator().manual_seed(seed)
-
-    def rest_shapes(phenotypes: dict[str, torch.Tensor]) -> tuple[np.ndarray, np.ndarray]:
-        with torch.no_grad():
-            out = model(phenotype_kwargs=phenotypes)
-        verts = out["rest_vertices"].double().numpy()
-        joints = out["rest_bone_heads"].double().numpy()
-        floor = verts[:, :, 2].min(axis=1, keepdims=True)  # feet on z = 0 for every shape
-        verts[:, :, 2] -= floor
-        joints[:, :, 2] -= floor
-        return verts, joints
 
     def preset_tensor(preset: dict[str, float]) -> dict[str, torch.Tensor]:
         return {k: torch.tensor([preset.get(k, 0.5)], dtype=torch.float64) for k in labels}
 
-    avg_v, avg_j = rest_shapes(preset_tensor({}))
+    avg_v, avg_j = _rest_shapes(model, preset_tensor({}))
     samples_v, samples_j = [], []
     batch = 64
     for start in range(0, num_samples, batch):
         n = min(batch, num_samples - start)
-        ph = {k: torch.rand(n, generator=gen, dtype=torch.float64) for k in labels}
-        v, j = rest_shapes(ph)
+        v, j = _rest_shapes(model, {k: torch.rand(n, generator=gen, dtype=torch.float64) for k in labels})
         samples_v.append(v)
         samples_j.append(j)
-    preset_v, preset_j = zip(*(rest_shapes(preset_tensor(p)) for p in PHENOTYPE_PRESETS.values()))
+    preset_v, preset_j = zip(*(_rest_shapes(model, preset_tensor(p)) for p in PHENOTYPE_PRESETS.values()))
     all_v = np.concatenate(samples_v + list(preset_v))
     all_j = np.concatenate(samples_j + list(preset_j))
+    offsets = np.concatenate([(all_v - avg_v).reshape(len(all_v), -1), (all_j - avg_j).reshape(len(all_j), -1)],
+                             axis=1)
+    return avg_v, avg_j, offsets
 
-    V, J = avg_v.shape[1], avg_j.shape[1]
-    offsets = np.concatenate([(all_v - avg_v).reshape(len(all_v), -1), (all_j - avg_j).reshape(len(all_j), -1)], axis=1)
-    # The presets span the first directions exactly (so "round" and "thin" are reproduced to
-    # float precision); principal components of what remains fill the rest of the basis.
+
+def _fit_shape_basis(offsets: np.ndarray, num_samples: int, V: int, max_components: int,
+                     tolerance_m: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The shape basis of the module docstring from :func:`_shape_offsets`' (num_samples + P, D)
+    ``offsets`` (the first 3V columns are vertex offsets).
+
+    The presets span the first directions exactly (so "round" and "thin" are reproduced to float
+    precision); principal components of what remains fill the rest, as few as keep the worst
+    vertex error below ``tolerance_m``. Returns the (C, D) basis, scaled so that the random
+    samples' betas have unit standard deviation (as in SMPL); the (P, C) betas of the presets;
+    and the stats :func:`bake_anny` returns.
+    """
     preset_offsets = offsets[num_samples:]
     preset_basis = np.linalg.qr(preset_offsets[1:].T)[0].T  # skip "average" (zero offset)
     residual = offsets[:num_samples] - offsets[:num_samples] @ preset_basis.T @ preset_basis
@@ -100,34 +148,9 @@ def bake_anny(num_samples: int = 512, max_components: int = 24, tolerance_m: flo
             n_pca = k
             break
     basis = np.concatenate([preset_basis, Vt[:n_pca]])
-    n_comp = len(basis)
-    final_err = max_error(basis)
-    # Scale each direction so that betas of the random samples have unit standard deviation, as in SMPL.
+    stats = {"components": len(basis), "max_reconstruction_error_m": max_error(basis),
+             "residual_variance_explained": float((sing[:n_pca] ** 2).sum() / max((sing ** 2).sum(), 1e-30))}
     scale = (offsets[:num_samples] @ basis.T).std(axis=0)
     basis = basis * scale[:, None]
-    shape_dirs = basis[:, : V * 3].reshape(n_comp, V, 3)
-    joint_dirs = basis[:, V * 3:].reshape(n_comp, J, 3)
     preset_betas = np.linalg.lstsq(basis.T, preset_offsets.T, rcond=None)[0].T
-    named = {name: preset_betas[i].astype(np.float32) for i, name in enumerate(PHENOTYPE_PRESETS)}
-    named["average"] = np.zeros(n_comp, dtype=np.float32)
-
-    faces = model.faces.numpy().astype(np.int64)
-    asset = BodyAsset(
-        name="anny",
-        template_vertices=avg_v[0].astype(np.float32),
-        shape_dirs=shape_dirs.astype(np.float32),
-        template_joints=avg_j[0].astype(np.float32),
-        joint_shape_dirs=joint_dirs.astype(np.float32),
-        faces=faces,
-        uv=model.texture_coordinates.numpy().astype(np.float32),
-        uv_faces=model.face_texture_coordinate_indices.numpy().astype(np.int64),
-        skin_indices=model.vertex_bone_indices.numpy().astype(np.int64),
-        skin_weights=(model.vertex_bone_weights / model.vertex_bone_weights.sum(1, keepdim=True)).numpy().astype(np.float32),
-        parents=np.asarray(model.bone_parents, dtype=np.int64),
-        joint_names=list(model.bone_labels),
-        named_shapes=named,
-        license=ANNY_LICENSE,
-    )
-    stats = {"components": n_comp, "max_reconstruction_error_m": final_err,
-             "residual_variance_explained": float((sing[:n_pca] ** 2).sum() / max((sing ** 2).sum(), 1e-30))}
-    return asset.validate("anny bake"), stats
+    return basis, preset_betas, stats
