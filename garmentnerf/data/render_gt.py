@@ -47,10 +47,10 @@ from dataclasses import asdict, dataclass
 import moderngl
 import numpy as np
 import scipy.sparse as sp
-import torch
 
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.context import current
+from garmentnerf.gl.mesh_arrays import check_mesh_arrays
 from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
 from garmentnerf.gl.shaders import build_program
 
@@ -122,23 +122,10 @@ def renderer_settings(supersample: int = 2, background=BACKGROUND, lighting: "Li
 
 
 # ---- geometry helpers -----------------------------------------------------------------------------
-def _as_numpy(array, dtype) -> np.ndarray:
-    if isinstance(array, torch.Tensor):
-        array = array.detach().cpu().numpy()
-    return np.asarray(array, dtype=dtype)
-
-
 def _check_mesh(vertices, faces, what: str) -> tuple[np.ndarray, np.ndarray]:
-    verts = _as_numpy(vertices, np.float32)
-    tris = _as_numpy(faces, np.int64)
-    if verts.ndim != 2 or verts.shape[1] != 3:
-        raise ValueError(f"{what} vertices must be (V, 3), got shape {verts.shape}")
-    if tris.ndim != 2 or tris.shape[1] != 3:
-        raise ValueError(f"{what} faces must be (F, 3), got shape {tris.shape}")
+    verts, tris = check_mesh_arrays(vertices, faces, what)
     if not np.all(np.isfinite(verts)):
         raise ValueError(f"{what} vertices contain NaN or Inf")
-    if tris.size and (tris.min() < 0 or tris.max() >= len(verts)):
-        raise ValueError(f"{what} faces index out of range [0, {len(verts)})")
     if len(verts) >= 2**31:
         raise ValueError(f"{what}: too many vertices for 32-bit indices")
     return verts, tris

@@ -23,6 +23,7 @@ import torch
 
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.context import current
+from garmentnerf.gl.mesh_arrays import as_numpy, check_mesh_arrays
 from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
 from garmentnerf.gl.shaders import build_program
 
@@ -60,12 +61,6 @@ class DepthRange:
     near: torch.Tensor
     far: torch.Tensor
     mask: torch.Tensor
-
-
-def _as_numpy(array, dtype) -> np.ndarray:
-    if isinstance(array, torch.Tensor):
-        array = array.detach().cpu().numpy()
-    return np.asarray(array, dtype=dtype)
 
 
 #: Face indices travel as float32 values, exact below 2^24.
@@ -155,20 +150,13 @@ class CameraPass(GLObjectsOwner):
             raise TypeError(f"camera must be a conventions.Camera, got {type(camera).__name__}")
         if (uv is None) != (uv_faces is None):
             raise ValueError("give both uv and uv_faces, or neither")
-        verts = _as_numpy(vertices, np.float32)
-        tris = _as_numpy(faces, np.int64)
-        if verts.ndim != 2 or verts.shape[1] != 3:
-            raise ValueError(f"vertices must be (V, 3), got shape {verts.shape}")
-        if tris.ndim != 2 or tris.shape[1] != 3:
-            raise ValueError(f"faces must be (F, 3), got shape {tris.shape}")
+        verts, tris = check_mesh_arrays(vertices, faces)
         if len(tris) > MAX_FACES:
             raise ValueError(f"at most {MAX_FACES} faces, got {len(tris)}")
-        if tris.size and (tris.min() < 0 or tris.max() >= len(verts)):
-            raise ValueError(f"faces index out of range [0, {len(verts)})")
         arrays = [verts[tris.reshape(-1)]]
         if uv is not None:
-            uv_np = _as_numpy(uv, np.float32)
-            uv_tris = _as_numpy(uv_faces, np.int64)
+            uv_np = as_numpy(uv, np.float32)
+            uv_tris = as_numpy(uv_faces, np.int64)
             if uv_np.ndim != 2 or uv_np.shape[1] != 2:
                 raise ValueError(f"uv must be (Nuv, 2), got shape {uv_np.shape}")
             if uv_tris.shape != tris.shape:

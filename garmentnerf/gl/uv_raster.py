@@ -46,6 +46,7 @@ import torch
 import torch.nn.functional as F
 
 from garmentnerf.gl.context import current
+from garmentnerf.gl.mesh_arrays import as_numpy
 from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
 from garmentnerf.gl.dilation import NearestTexelDilation
 from garmentnerf.gl.shaders import build_program
@@ -92,12 +93,6 @@ class UVRaster(NamedTuple):
 
     values: torch.Tensor
     mask: torch.Tensor
-
-
-def _as_numpy(array, dtype) -> np.ndarray:
-    if isinstance(array, torch.Tensor):
-        array = array.detach().cpu().numpy()
-    return np.ascontiguousarray(array, dtype=dtype)
 
 
 def _parse_resolution(resolution) -> tuple[int, int]:
@@ -200,8 +195,8 @@ class UVAttributeRasterizer(GLObjectsOwner):
 
     def __init__(self, ctx: moderngl.Context, uv, uv_faces, resolution=DEFAULT_RESOLUTION,
                  dilation_radius: float = DEFAULT_DILATION_RADIUS, method: str = "gather") -> None:
-        uv_np = _as_numpy(uv, np.float32)
-        faces_np = _as_numpy(uv_faces, np.int64)
+        uv_np = as_numpy(uv, np.float32)
+        faces_np = as_numpy(uv_faces, np.int64)
         if uv_np.ndim != 2 or uv_np.shape[1] != 2 or len(uv_np) == 0:
             raise ValueError(f"uv must be (Nuv, 2) with Nuv > 0, got shape {uv_np.shape}")
         if not np.all(np.isfinite(uv_np)):
