@@ -94,6 +94,32 @@ def in_splits(items: Iterable[_WithSplit], split: str | Sequence[str] | None, kn
     return [item for item in items if item.split in wanted]
 
 
+class RigLookup:
+    """Camera lookups shared by the scenes (synthetic and captured): ``camera_names`` and
+    ``camera`` over ``self.rig`` (a list of :class:`NamedCamera`) and ``self.cameras(split)``.
+    A class using it says how a missing name fails with :meth:`_lookup_error`."""
+
+    rig: list[NamedCamera]
+
+    def cameras(self, split: str | Sequence[str] | None = None) -> list[NamedCamera]:  # pragma: no cover
+        raise NotImplementedError
+
+    def _lookup_error(self, problem: str) -> Exception:  # pragma: no cover
+        """The exception for ``problem`` (e.g. ``no camera 'x' (...)``), naming the scene's file."""
+        raise NotImplementedError
+
+    def camera_names(self, split: str | Sequence[str] | None = None) -> list[str]:
+        """Names of the cameras of ``split`` (as :meth:`cameras` takes it), in rig order."""
+        return [c.name for c in self.cameras(split)]
+
+    def camera(self, name: str) -> NamedCamera:
+        """The camera called ``name``; a missing one raises :meth:`_lookup_error`."""
+        for cam in self.rig:
+            if cam.name == name:
+                return cam
+        raise self._lookup_error(f"no camera '{name}' (cameras: {', '.join(self.camera_names())})")
+
+
 def ring_camera(azimuth_deg: float, radius: float = 3.0, height: float = 1.0, look_at_point=DEFAULT_LOOK_AT,
                 width: int = 512, height_px: int = 512, fov_y_deg: float = DEFAULT_FOV_Y_DEG,
                 near: float = DEFAULT_NEAR, far: float = DEFAULT_FAR) -> Camera:

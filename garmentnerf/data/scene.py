@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR
-from garmentnerf.data.cameras import CAMERA_SPLITS, NamedCamera, in_splits
+from garmentnerf.data.cameras import CAMERA_SPLITS, NamedCamera, RigLookup, in_splits
 from garmentnerf.data.scene_images import (FrameGeometry, GarmentArrays, SceneImages, palette_from_images,
                                            read_garment_arrays)
 from garmentnerf.data.scene_schema import (GARMENT_FILE, GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, MOTION_FILE,
@@ -53,7 +53,7 @@ CACHE_DIR = "cache"
 
 
 @dataclass
-class Scene:
+class Scene(RigLookup):
     """A scene folder (see the module docstring). Build with :meth:`create`, read with :meth:`load`.
 
     Attributes:
@@ -145,14 +145,8 @@ class Scene:
         """The cameras of ``split`` (a name, several names, or None for all), in file order."""
         return in_splits(self.rig, split, CAMERA_SPLITS, "camera", SceneError)
 
-    def camera_names(self, split: str | Sequence[str] | None = None) -> list[str]:
-        return [c.name for c in self.cameras(split)]
-
-    def camera(self, name: str) -> NamedCamera:
-        for cam in self.rig:
-            if cam.name == name:
-                return cam
-        raise SceneError(f"{self.scene_file}: no camera '{name}' (cameras: {', '.join(self.camera_names())})")
+    def _lookup_error(self, problem: str) -> SceneError:
+        return SceneError(f"{self.scene_file}: {problem}")
 
     def sequence_names(self, split: str | Sequence[str] | None = None) -> list[str]:
         """Sequence names of ``split`` (a name, several, or None for all), in file order."""
@@ -161,7 +155,7 @@ class Scene:
     def sequence(self, name: str) -> SequenceInfo:
         info = self.sequences.get(name)
         if info is None:
-            raise SceneError(f"{self.scene_file}: no sequence '{name}' (sequences: {', '.join(self.sequences)})")
+            raise self._lookup_error(f"no sequence '{name}' (sequences: {', '.join(self.sequences)})")
         return info
 
     def num_frames(self, sequence: str) -> int:

@@ -78,7 +78,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR, Camera
-from garmentnerf.data.cameras import NamedCamera, in_splits
+from garmentnerf.data.cameras import NamedCamera, RigLookup, in_splits
 from garmentnerf.safe_pickle import RefusedGlobal, load_npy_restricted
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -351,7 +351,7 @@ def _split_frames(train_frames: int | None, total: int) -> dict[str, list[int]]:
 
 
 # ---- the capture ----------------------------------------------------------------------------------
-class CaptureScene:
+class CaptureScene(RigLookup):
     """A ZJU-MoCap capture with the accessors of :class:`~garmentnerf.data.scene.Scene` where they
     make sense. Build with :meth:`load`.
 
@@ -430,14 +430,8 @@ class CaptureScene:
     def cameras(self, split: str | Sequence[str] | None = None) -> list[CaptureCamera]:
         return in_splits(self.rig, split)
 
-    def camera_names(self, split: str | Sequence[str] | None = None) -> list[str]:
-        return [c.name for c in self.cameras(split)]
-
-    def camera(self, name: str) -> CaptureCamera:
-        for cam in self.rig:
-            if cam.name == name:
-                return cam
-        raise CaptureError(f"{self.annots_path}: no camera '{name}' (cameras: {', '.join(self.camera_names())})")
+    def _lookup_error(self, problem: str) -> CaptureError:
+        return CaptureError(f"{self.annots_path}: {problem}")
 
     def sequence_names(self, split: str | Sequence[str] | None = None) -> list[str]:
         if split is None:
@@ -450,7 +444,7 @@ class CaptureScene:
 
     def _frames(self, sequence: str) -> list[int]:
         if sequence not in self.sequences:
-            raise CaptureError(f"{self.annots_path}: no sequence '{sequence}' (sequences: {', '.join(self.sequences)})")
+            raise self._lookup_error(f"no sequence '{sequence}' (sequences: {', '.join(self.sequences)})")
         return self.sequences[sequence]
 
     def capture_frame(self, sequence: str, frame: int) -> int:
