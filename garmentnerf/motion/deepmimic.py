@@ -144,6 +144,8 @@ def clip_path(name: str) -> Path:
 
 @lru_cache(maxsize=32)
 def _read_cached(path: str, mtime: float) -> DeepMimicClip:
+    """The parsed clip at ``path`` as of ``mtime`` (a pure function of the file: cached, with
+    read-only arrays)."""
     p = Path(path)
     try:
         doc = json.loads(p.read_text())
@@ -177,6 +179,8 @@ def _read_cached(path: str, mtime: float) -> DeepMimicClip:
     times = np.concatenate([[0.0], np.cumsum(dt[:-1])])
     keep = np.concatenate([[True], np.diff(times) > 1e-9])  # drop zero-length frames
     frames, times = frames[keep], times[keep]
+    frames.setflags(write=False)  # the cached clip is shared by every caller: read-only
+    times.setflags(write=False)
     name = p.stem.removeprefix("humanoid3d_")
     return DeepMimicClip(name, times, frames, str(doc.get("Loop", "none")), fps)
 
@@ -191,13 +195,13 @@ def read_deepmimic(name_or_path: str | Path) -> DeepMimicClip:
 # ---- retargeting -------------------------------------------------------------------------------
 def _quat(frames: np.ndarray, col: int) -> torch.Tensor:
     """(T, 3, 3) rotation matrices from the wxyz quaternion at ``col`` (normalised)."""
-    wxyz = torch.as_tensor(frames[:, col:col + 4], dtype=torch.float64)
+    wxyz = torch.tensor(frames[:, col:col + 4], dtype=torch.float64)
     q = torch.cat([wxyz[:, 1:], wxyz[:, :1]], dim=1)  # roma: xyzw
     return roma.unitquat_to_rotmat(q / q.norm(dim=1, keepdim=True))
 
 
 def _hinge(frames: np.ndarray, col: int) -> torch.Tensor:
-    angle = torch.as_tensor(frames[:, col], dtype=torch.float64)
+    angle = torch.tensor(frames[:, col], dtype=torch.float64)
     rotvec = torch.zeros(angle.shape[0], 3, dtype=torch.float64)
     rotvec[:, 2] = angle
     return roma.rotvec_to_rotmat(rotvec)
@@ -322,7 +326,7 @@ def retarget_deepmimic(clip: DeepMimicClip, body: "BodyModel", betas: torch.Tens
     rotations = roma.rotmat_to_rotvec(local)
 
     # Root translation: scaled DeepMimic root path, horizontal start at the origin.
-    root_pos = torch.as_tensor(frames[:, _ROOT_POS:_ROOT_POS + 3], dtype=torch.float64) @ C.T
+    root_pos = torch.tensor(frames[:, _ROOT_POS:_ROOT_POS + 3], dtype=torch.float64) @ C.T
     rest_root = torch.as_tensor(rest_j[ix["root"]], dtype=torch.float64)
     scale = (float(rest_root[2]) - ground) / DEEPMIMIC_ROOT_HEIGHT
     pos = root_pos * scale
@@ -355,5 +359,5 @@ def load_deepmimic(name: str, body: "BodyModel", betas: torch.Tensor | str | Non
         raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
     n = clip.uniform_frame_count(out_fps)
     new_times = torch.arange(n, dtype=torch.float64) / out_fps
-    rot, trans = sample_at_times(rot, trans, torch.as_tensor(clip.times), new_times)
+    rot, trans = sample_at_times(rot, trans, torch.tensor(clip.times), new_times)
     return Motion(clip.name, list(body.joint_names), rot.float(), trans.float(), out_fps, "anny")
