@@ -6,7 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from garmentnerf.cli.common import add_body_args, add_motion_args, check_frame, load_body, load_motion_arg
+from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, load_body, load_motion_arg,
+                                    refuse_existing)
 
 
 def register(sub) -> None:
@@ -45,8 +46,7 @@ def run_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in (".ply", ".obj", ".glb"):
         raise ValueError(f"{out}: unsupported mesh format '{out.suffix}' (use .ply, .obj or .glb)")
-    if out.exists() and not args.overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    refuse_existing(out, args.overwrite)
     body, betas = load_body(args)
     motion = load_motion_arg(args, body, betas)
     check_frame(motion, args.frame)
@@ -79,9 +79,7 @@ def run_info(args: argparse.Namespace) -> int:
 def run_bake(args: argparse.Namespace) -> int:
     from garmentnerf.body.bake import bake_anny
 
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    out = refuse_existing(args.out, args.overwrite)
     asset, stats = bake_anny(num_samples=args.samples, max_components=args.components)
     asset.save(out)
     print(f"wrote {out}: {json.dumps(stats)}")

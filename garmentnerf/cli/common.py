@@ -27,6 +27,16 @@ def add_motion_args(parser: argparse.ArgumentParser, frame: bool = True) -> None
         parser.add_argument("--frame", type=int, default=0, help="frame index (default: 0)")
 
 
+def add_scene_override_arg(parser: argparse.ArgumentParser) -> None:
+    """``--scene DIR``: a scene folder to use instead of the one a run recorded."""
+    parser.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+
+
+def add_device_arg(parser: argparse.ArgumentParser) -> None:
+    """``--device``: the torch device to render or evaluate on (checked by :func:`parse_device`)."""
+    parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+
+
 def load_body(args):
     """(BodyModel, betas) from --body and --shape."""
     from garmentnerf.body.model import BodyModel
@@ -101,6 +111,14 @@ def check_output_dir(path, flag: str = "--out") -> Path:
         raise ValueError(f"{flag} {path}: {base} is a file, not a folder")
     if not os.access(base, os.W_OK | os.X_OK):
         raise PermissionError(f"{flag} {path}: {base} is not writable")
+    return path
+
+
+def refuse_existing(path, overwrite: bool) -> Path:
+    """``path`` as a Path; FileExistsError when it exists and ``overwrite`` is off."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: already exists (pass --overwrite to replace it)")
     return path
 
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+
+from garmentnerf.cli.common import refuse_existing
 
 
 def register(sub) -> None:
@@ -166,9 +167,7 @@ def run_preview(args: argparse.Namespace) -> int:
     from garmentnerf.data.scene import Scene, SceneImages
     from garmentnerf.io_utils import atomic_write_path
 
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    out = refuse_existing(args.out, args.overwrite)
     scene = Scene.load(args.scene)
     sequence = args.sequence or scene.sequence_names()[0]
     scene.sequence(sequence)

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from garmentnerf.cli.common import add_body_args, add_motion_args, check_frame, load_body, load_motion_arg
+from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, load_body, load_motion_arg,
+                                    refuse_existing)
 
 DESCRIPTION = """\
 Rasterise the body's UV-space info maps for one frame of a motion and save them as .npz:
@@ -43,9 +44,7 @@ def run_maps(args: argparse.Namespace) -> int:
     from garmentnerf.info_maps import InfoMapRenderer
     from garmentnerf.io_utils import atomic_write_path
 
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    out = refuse_existing(args.out, args.overwrite)
     if args.history < 0 or args.history > 8:
         raise ValueError(f"--history must be between 0 and 8, got {args.history}")
     if not 8 <= args.resolution <= 4096:

@@ -8,6 +8,8 @@ import re
 import sys
 from pathlib import Path
 
+from garmentnerf.cli.common import add_device_arg, add_scene_override_arg
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -17,7 +19,7 @@ def register(sub) -> None:
                     "written so far stay, and the video holds them.")
     p.add_argument("--run", default=None, metavar="DIR",
                    help="run folder (run.json + model.safetensors); default: the bundled demo run")
-    p.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+    add_scene_override_arg(p)
     p.add_argument("--motion", default=None,
                    help="a scene sequence name or a motion name/file (default: the scene's first training "
                         "sequence, else walk)")
@@ -42,7 +44,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (made if needed)")
     p.add_argument("--video", action="store_true", help="also write an mp4 of the frames")
     p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the motion's)")
-    p.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    add_device_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_render)
 
@@ -94,42 +96,12 @@ def _safe(name: str) -> str:
 def run_render(args: argparse.Namespace) -> int:
     from garmentnerf.gl.context import create_context
     from garmentnerf.render.cameras import cameras_for, parse_camera_spec
-    from garmentnerf.render.colors import build_palette, parse_hex_color
-    from garmentnerf.perf.presets import get_render_preset
-    from garmentnerf.render.session import DEFAULT_PRESET, RenderSession
+    from garmentnerf.render.colors import build_palette
+    from garmentnerf.render.session import RenderSession
     from garmentnerf.render.video import FrameWriter, VideoWriter
-    from garmentnerf.train.run import load_run
 
-    # -- everything that can be wrong with the arguments fails before the model loads -----------------
-    from garmentnerf.cli.common import check_output_dir, parse_device
-
-    size = parse_output_size(args.size)
-    parse_device(args.device)
-    check_output_dir(args.out)
-    preset = get_render_preset(args.preset if args.preset is not None else DEFAULT_PRESET)
-    if args.quality is not None and not (args.quality > 0 and args.quality <= 4):
-        raise ValueError(f"--quality must be in (0, 4], got {args.quality}")
-    if args.palette is not None:
-        for i, item in enumerate(c.strip() for c in args.palette.split(",")):
-            if item not in ("", "-"):
-                parse_hex_color(item, f"--palette colour {i}")
-    if args.body_colour is not None:
-        parse_hex_color(args.body_colour, "--body-colour")
-    background = parse_hex_color(args.background, "--background") if args.background else None
-    if args.fps is not None and not args.fps > 0:
-        raise ValueError(f"--fps must be > 0, got {args.fps}")
-
-    run_dir = args.run
-    if run_dir is None:
-        from garmentnerf.cli.view_cmd import DEMO_RUN
-
-        if not (DEMO_RUN / "run.json").is_file():
-            raise FileNotFoundError(f"{DEMO_RUN}: the bundled demo run is not installed; pass --run DIR")
-        run_dir = DEMO_RUN
-    run = load_run(run_dir, device=args.device, scene=args.scene)
-    if run.scene is None and run.info.get("scene") and args.motion is None:
-        raise FileNotFoundError(f"{run_dir}: the run's scene {run.info['scene']} is missing; pass --scene DIR, or "
-                                f"--motion NAME to render a motion without it")
+    size, preset, background = _checked_render_args(args)  # before the model loads
+    run_dir, run = _load_render_run(args)
     spec = parse_camera_spec(args.camera, run.scene)
     palette = build_palette(run.palette(), args.palette, args.body_colour)
     ctx = create_context(headless=True)
@@ -146,37 +118,8 @@ def run_render(args: argparse.Namespace) -> int:
         cam_label = spec.name if spec.kind == "scene" else spec.kind
         video_path = out / f"{_safe(motion_name)}_{_safe(cam_label)}.mp4"
         video = VideoWriter(video_path, args.fps or session.fps) if args.video else None
-        interrupted = False
-        times = []
-        progress = None
-        if not args.no_progress:
-            from tqdm import tqdm
-
-            progress = tqdm(total=len(frames), unit="frame", desc="render", file=sys.stderr)
-        try:
-            for f, cam in zip(frames, cameras):
-                nf = session.render(f, cam, args.quality, preset=preset)
-                image = nf.composite(palette, background)
-                writer.write(f, image)
-                if video is not None:
-                    video.append(image)
-                times.append(nf.timings["total"])
-                if progress is not None:
-                    progress.set_postfix_str(f"{nf.timings['total']:.0f} ms")
-                    progress.update(1)
-        except KeyboardInterrupt:
-            interrupted = True
-        finally:
-            if progress is not None:
-                progress.close()
-            if video is not None:
-                try:
-                    written_video = video.close()
-                except BaseException:
-                    video.abort()
-                    raise
-            else:
-                written_video = None
+        times, interrupted, written_video = _render_frames(session, frames, cameras, args, preset, palette,
+                                                           background, writer, video)
         n = len(writer.written)
         speed = f"{sum(times) / len(times):.0f} ms/frame" if times else "no frame finished"
         where = f"{out}" + (f" and {written_video}" if written_video else "")
@@ -191,6 +134,87 @@ def run_render(args: argparse.Namespace) -> int:
         if session is not None:
             session.close()
         ctx.release()
+
+
+def _checked_render_args(args: argparse.Namespace):
+    """(output size, render preset, background colour or None); everything that can be wrong with
+    the arguments fails here, before the model loads."""
+    from garmentnerf.cli.common import check_output_dir, parse_device
+    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.colors import parse_hex_color
+    from garmentnerf.render.session import DEFAULT_PRESET
+
+    size = parse_output_size(args.size)
+    parse_device(args.device)
+    check_output_dir(args.out)
+    preset = get_render_preset(args.preset if args.preset is not None else DEFAULT_PRESET)
+    if args.quality is not None and not (args.quality > 0 and args.quality <= 4):
+        raise ValueError(f"--quality must be in (0, 4], got {args.quality}")
+    if args.palette is not None:
+        for i, item in enumerate(c.strip() for c in args.palette.split(",")):
+            if item not in ("", "-"):
+                parse_hex_color(item, f"--palette colour {i}")
+    if args.body_colour is not None:
+        parse_hex_color(args.body_colour, "--body-colour")
+    background = parse_hex_color(args.background, "--background") if args.background else None
+    if args.fps is not None and not args.fps > 0:
+        raise ValueError(f"--fps must be > 0, got {args.fps}")
+    return size, preset, background
+
+
+def _load_render_run(args: argparse.Namespace):
+    """(run folder, loaded run) of ``--run`` (default: the bundled demo run) with ``--scene``."""
+    from garmentnerf.train.run import load_run
+
+    run_dir = args.run
+    if run_dir is None:
+        from garmentnerf.cli.view_cmd import DEMO_RUN
+
+        if not (DEMO_RUN / "run.json").is_file():
+            raise FileNotFoundError(f"{DEMO_RUN}: the bundled demo run is not installed; pass --run DIR")
+        run_dir = DEMO_RUN
+    run = load_run(run_dir, device=args.device, scene=args.scene)
+    if run.scene is None and run.info.get("scene") and args.motion is None:
+        raise FileNotFoundError(f"{run_dir}: the run's scene {run.info['scene']} is missing; pass --scene DIR, or "
+                                f"--motion NAME to render a motion without it")
+    return run_dir, run
+
+
+def _render_frames(session, frames, cameras, args, preset, palette, background, writer, video):
+    """Render and write every frame (and append it to ``video``); Ctrl-C stops after the frames
+    written. Returns (ms per frame rendered, interrupted, the video written or None)."""
+    interrupted = False
+    times = []
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=len(frames), unit="frame", desc="render", file=sys.stderr)
+    try:
+        for f, cam in zip(frames, cameras):
+            nf = session.render(f, cam, args.quality, preset=preset)
+            image = nf.composite(palette, background)
+            writer.write(f, image)
+            if video is not None:
+                video.append(image)
+            times.append(nf.timings["total"])
+            if progress is not None:
+                progress.set_postfix_str(f"{nf.timings['total']:.0f} ms")
+                progress.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        if progress is not None:
+            progress.close()
+        if video is not None:
+            try:
+                written_video = video.close()
+            except BaseException:
+                video.abort()
+                raise
+        else:
+            written_video = None
+    return times, interrupted, written_video
 
 
 def _hex(rgb) -> str:
