@@ -41,6 +41,12 @@ class Banded(torch.nn.Module):
         return sigma * inside.to(sigma.dtype) * self.scale, zeta
 
 
+@pytest.fixture(scope="module")
+def verts(walk_clip):
+    """Frame 2 of the walk clip: the posed skin (V, 3) float32 the samplers bind to."""
+    return walk_clip[0].vertices[2].float()
+
+
 def banded_model(body, projector, scale=1.0, **changes):
     torch.manual_seed(0)
     model = GarmentAnimationNeRF(tiny_config(**changes), body, PALETTE, projector=projector).eval()
@@ -92,9 +98,7 @@ def _keys(ray_ids, t_starts):
 
 
 # ---------------------------------------------------------------------------------------------
-def test_shell_contains_every_box_sample_near_the_body(gl_context, walk_clip, projector):
-    clip, _ = walk_clip
-    verts = clip.vertices[2].float()
+def test_shell_contains_every_box_sample_near_the_body(gl_context, verts, projector):
     sampler = ShellSampler(64, projector.faces, BAND, gl_context=gl_context)
     cam = CAMERA.resized(40, 40)
     _, shell = _sample(sampler, verts, cam)
@@ -124,9 +128,7 @@ def test_shell_contains_every_box_sample_near_the_body(gl_context, walk_clip, pr
     sampler.release()
 
 
-def test_rays_that_miss_get_nothing(gl_context, walk_clip, projector):
-    clip, _ = walk_clip
-    verts = clip.vertices[2].float()
+def test_rays_that_miss_get_nothing(gl_context, verts, projector):
     sampler = ShellSampler(16, projector.faces, BAND, gl_context=gl_context)
     cam = CAMERA.resized(32, 32)
     bound, out = _sample(sampler, verts, cam)
@@ -148,9 +150,7 @@ def test_rays_that_miss_get_nothing(gl_context, walk_clip, projector):
     sampler.release()
 
 
-def test_inside_the_shell_and_far_away(gl_context, walk_clip, projector):
-    clip, _ = walk_clip
-    verts = clip.vertices[2].float()
+def test_inside_the_shell_and_far_away(gl_context, verts, projector):
     faces = projector.faces
     centre = verts[faces.reshape(-1)].mean(0)
     torso = torch.tensor([float(centre[0]), float(centre[1]), 1.2])
@@ -283,9 +283,7 @@ def test_per_vertex_band_is_tight_where_the_garment_never_goes(tiny_scene, body,
     assert got == set(rings)
 
 
-def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, walk_clip, projector):
-    clip, _ = walk_clip
-    verts = clip.vertices[2].float()
+def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, verts, projector):
     V = verts.shape[0]
     reach = 0.03
     thin = HeightRange(-0.05, 0.30, vertex_h_max=torch.full((V,), reach))
@@ -312,11 +310,9 @@ def test_per_vertex_shell_culls_samples_near_bare_skin(gl_context, walk_clip, pr
     assert torch.allclose(bound, torch.full_like(bound, reach))
 
 
-def test_occlusion_cuts_rays_behind_the_skin(gl_context, walk_clip, projector):
+def test_occlusion_cuts_rays_behind_the_skin(gl_context, verts, projector):
     import trimesh
 
-    clip, _ = walk_clip
-    verts = clip.vertices[2].float()
     cam = CAMERA.resized(32, 32)
     origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
     margin = 0.05
