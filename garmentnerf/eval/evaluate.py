@@ -594,13 +594,16 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
             size = views.size(cam)
             target = gt.view(seq, cam, frame, size)
             shown: dict[str, np.ndarray] = {}
+            character = target.labels != 0
             if scores is not None:
                 if session.sequence != seq:
                     session.set_motion(seq)
                 nf = session.render(frame, views.camera(cam), quality=render_preset.resolution_scale,
                                     preset=render_preset)
                 shown["render"] = nf.composite(None, background)
-                row = scores.add(seq, cam, frame, shown["render"], target, pred_silhouette=nf.mask() > 0.5)
+                silhouette = nf.mask() > 0.5
+                character = character | silhouette
+                row = scores.add(seq, cam, frame, shown["render"], target, pred_silhouette=silhouette)
             if base_scores is not None:
                 near = nearest[cam]["camera"]
                 if views.size(near) != size:
@@ -611,7 +614,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
                                            pred_silhouette=near_view.labels != 0)
                 row = row if scores is not None else base_row
             if gallery is not None and gallery.wants(index):
-                gallery.add(f"{seq} {cam} frame {frame}", target.image, shown, row)
+                gallery.add(f"{seq} {cam} frame {frame}", target.image, shown, row, character)
             if bar is not None:
                 bar.update(1)
     finally:

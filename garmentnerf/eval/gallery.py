@@ -7,7 +7,9 @@ them out as rows::
 
     ground truth | render | error of render [| nearest view | error of nearest view]
 
-Each row has a caption with the view (sequence, camera, frame) and its foreground figures.
+Each row has a caption with the view (sequence, camera, frame) and its foreground figures, and is
+cropped to the character (the box around the ground truth's and the render's silhouettes, grown by
+:data:`CROP_MARGIN_PX`; the same window in every tile of the row).
 The error image is the per-pixel mean absolute RGB difference, ``|pred - gt|`` averaged over
 channels, mapped through the *inferno* colour map with :data:`ERROR_FULL_SCALE` as white-hot
 (black: exact; so errors on the background show too).
@@ -23,6 +25,9 @@ __all__ = ["Gallery", "ERROR_FULL_SCALE", "error_image"]
 
 #: Mean absolute RGB error shown at the top of the colour map (errors above it saturate).
 ERROR_FULL_SCALE = 0.25
+
+#: Pixels kept around the character when a row is cropped to it.
+CROP_MARGIN_PX = 16
 
 #: Height of a caption band, pixels.
 CAPTION_PX = 22
@@ -60,6 +65,17 @@ def _figures(row: dict) -> str:
     return ", ".join(parts)
 
 
+def _window(region: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """(rows, columns) of the box around ``region``'s pixels grown by ``margin`` (clipped to the
+    image); the whole image when the region is empty."""
+    rows, cols = np.nonzero(np.asarray(region, dtype=bool))
+    if rows.size == 0:
+        return slice(None), slice(None)
+    h, w = region.shape
+    return (slice(max(int(rows.min()) - margin, 0), min(int(rows.max()) + 1 + margin, h)),
+            slice(max(int(cols.min()) - margin, 0), min(int(cols.max()) + 1 + margin, w)))
+
+
 class Gallery:
     """Keeps ``count`` evaluated views and lays them out (see the module docstring).
 
@@ -84,7 +100,8 @@ class Gallery:
         """Whether view number ``index`` (0-based, evaluation order) is one to keep."""
         return index in self._picks
 
-    def add(self, title: str, truth: np.ndarray, shown: dict[str, np.ndarray], row: dict | None = None) -> None:
+    def add(self, title: str, truth: np.ndarray, shown: dict[str, np.ndarray], row: dict | None = None,
+            character: np.ndarray | None = None) -> None:
         """Add one view.
 
         Args:
@@ -92,10 +109,12 @@ class Gallery:
             truth: (H, W, 3) ground truth in [0, 1].
             shown: method name -> (H, W, 3) image in [0, 1] (e.g. ``{"render": ..., "nearest view": ...}``).
             row: the view's per-frame figures (captioned when present).
+            character: (H, W) bool, where the character is: the row is cropped to it (None: whole).
         """
-        tiles = [_to_uint8(truth)]
+        window = _window(character, CROP_MARGIN_PX) if character is not None else (slice(None), slice(None))
+        tiles = [_to_uint8(truth)[window]]
         for image in shown.values():
-            tiles += [_to_uint8(image), error_image(image, truth)]
+            tiles += [_to_uint8(image)[window], error_image(image, truth)[window]]
         strip = np.concatenate(tiles, axis=1)
         heads = " | ".join(["ground truth"] + [f"{name} | error" for name in shown])
         text = f"{title}: {heads}" + (f"  ({_figures(row)})" if row else "")
