@@ -1,7 +1,7 @@
 #version 330 core
-// Previewer body mesh (garmentnerf.viewer.scene_gl.BodyMesh): positions and smooth normals per vertex,
+// Previewer body mesh (garmentnerf.viewer.renderables.BodyMesh): positions and smooth normals per vertex,
 // uploaded when the shown frame changes. u_proj is the *display* projection
-// (scene_gl.display_projection: Camera.gl_projection with its y flip undone), so image row 0 lands
+// (renderables.display_projection: Camera.gl_projection with its y flip undone), so image row 0 lands
 // at the top of the window and front faces keep GL's default counter-clockwise winding.
 
 uniform mat4 u_view;  // world -> OpenCV camera (x_cam = R x + t)

@@ -1,5 +1,5 @@
 #version 330 core
-// The neural layer's palette composition (garmentnerf.viewer.scene_gl.PaletteLayer): the decomposed
+// The neural layer's palette composition (garmentnerf.viewer.palette_layer.PaletteLayer): the decomposed
 // maps of a neural render, cached as textures, composed with the palette per fragment. This is
 // THE SAME formula as garmentnerf.model.palette.compose (tests/test_render.py compares them):
 //

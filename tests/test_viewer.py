@@ -25,7 +25,7 @@ import_viewer("timeline")  # registers garmentnerf.viewer when running from a so
 from garmentnerf.conventions import Camera  # noqa: E402
 from garmentnerf.viewer import shortcuts as sc  # noqa: E402
 from garmentnerf.viewer.camera import VIEW_DIRECTIONS, OrbitController  # noqa: E402
-from garmentnerf.viewer.export import parse_size, snapshot_name, write_png  # noqa: E402
+from garmentnerf.viewer.export_jobs import parse_size, snapshot_name, write_png  # noqa: E402
 from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED, Timeline  # noqa: E402
 from garmentnerf.viewer.worker import RenderWorker  # noqa: E402
 
@@ -244,29 +244,74 @@ def _headless_scene(ctx, walk, frame, samples):
     return scene
 
 
-def test_neural_layer_composites_by_depth(gl_context, walk):
+def _flat_maps(H, W, mask=1.0):
+    """Maps of a flat image: radiance 1, palette colour 0 only, no offsets, the given mask."""
+    from garmentnerf.viewer.palette_layer import pack_maps
+
+    weights = np.zeros((2, H, W), np.float32)
+    weights[0] = 1.0
+    return pack_maps(np.ones((3, H, W), np.float32), np.zeros((2, 3, H, W), np.float32), weights,
+                     np.full((H, W), mask, np.float32))
+
+
+def test_palette_layer_composites_by_depth(gl_context, walk):
+    """The network's image over the rasterised body by depth: in front it covers everything, behind it
+    only the background; an empty mask leaves the scene untouched."""
     scene = _headless_scene(gl_context, walk, 0, samples=0)
     try:
         cam = OrbitController()
         cam.preset("front")
         camera = cam.camera(96, 128)
+        layer = scene.palette_layer
+        layer.visible = False
         base = scene.render_image(camera, samples=0)
         H, W = 128, 96
-        color = np.zeros((H, W, 4), np.uint8)
-        color[:, :] = (0, 0, 255, 255)  # opaque blue everywhere
+        layer.visible, layer.use_depth = True, True
+        layer.set_palette([(0.0, 0.0, 1.0), (1.0, 1.0, 1.0)])  # colour 0: pure blue
         near = np.full((H, W), 0.5, np.float32)  # in front of the body (the camera is ~3.6 m away)
-        scene.neural.submit(color, near)
+        layer.submit(_flat_maps(H, W), near, (W, H))
         front = scene.render_image(camera, samples=0)
         assert (front == (0, 0, 255)).all()
         far = np.full((H, W), 50.0, np.float32)  # behind the body: only the background turns blue
-        scene.neural.submit(color, far)
+        layer.submit(_flat_maps(H, W), far, (W, H))
         behind = scene.render_image(camera, samples=0)
         body_px = (np.abs(base.astype(int) - behind.astype(int)).sum(-1) == 0)
         assert 0.02 < body_px.mean() < 0.5  # the body (and nothing else) kept its pixels
         assert (behind[~body_px] == (0, 0, 255)).all()
-        empty = np.zeros((H, W), np.float32)  # depth 0 = empty: the layer shows nothing
-        scene.neural.submit(color, empty)
+        layer.submit(_flat_maps(H, W, mask=0.0), near, (W, H))  # mask 0 = empty: the layer shows nothing
         assert (scene.render_image(camera, samples=0) == base).all()
+    finally:
+        scene.release()
+
+
+def test_palette_layer_side_by_side_fits_the_free_area(gl_context, walk):
+    """Side by side: the network's image and the ground truth are fitted (aspect kept) into the two
+    halves of the free area the window's panels leave, and nothing is drawn outside it."""
+    from garmentnerf.viewer.scene_gl import read_image
+
+    scene = _headless_scene(gl_context, walk, 0, samples=0)
+    try:
+        camera = OrbitController().camera(160, 120)
+        layer = scene.palette_layer
+        layer.side_by_side = True
+        layer.set_palette([(0.0, 0.0, 1.0), (1.0, 1.0, 1.0)])  # the network's image: blue
+        layer.submit(_flat_maps(40, 40), np.ones((40, 40), np.float32), (40, 40))
+        layer.submit_ground_truth(np.full((40, 40, 3), (255, 0, 0), np.uint8))  # the ground truth: red
+        target = scene.make_target(160, 120, samples=0)
+        try:
+            for area, (x0, x1, y0, y1) in (((-1.0, -1.0, 1.0, 1.0), (0, 160, 0, 120)),   # the whole view
+                                           ((0.0, -0.5, 1.0, 1.0), (80, 160, 0, 90))):  # right of a panel, above a bar
+                scene.render(target, camera, free_area=area)
+                image = read_image(target.resolve_fbo, 160, 120)
+                blue, red = [np.argwhere((image == c).all(-1)) for c in ((0, 0, 255), (255, 0, 0))]
+                middle, size = (x0 + x1) // 2, min((x1 - x0) // 2, y1 - y0)  # each half: a square image
+                for pixels, left in ((blue, x0), (red, middle)):
+                    rows, cols = pixels[:, 0], pixels[:, 1]
+                    assert len(pixels) == pytest.approx(size * size, rel=0.1), (area, len(pixels))
+                    assert left <= cols.min() and cols.max() < left + (x1 - x0) // 2, area
+                    assert y0 <= rows.min() and rows.max() < y1, area
+        finally:
+            target.release()
     finally:
         scene.release()
 
@@ -331,7 +376,7 @@ def _background_and_body(app, gl_context, walk, frame):
     """Headless renders of the app's current view: with the body and without it."""
     scene = _headless_scene(gl_context, walk, frame, samples=app.scene.samples)
     try:
-        camera = app.controller.camera(*app.framebuffer_size)
+        camera = app.controller.camera(*app.window.framebuffer_size)
         with_body = scene.render_image(camera)
         scene.body.visible = False
         without = scene.render_image(camera)
@@ -465,7 +510,7 @@ def test_snapshot_matches_offscreen_render_and_never_overwrites(app, gl_context,
 def test_resize_to_zero_and_back(app, monkeypatch):
     from garmentnerf.viewer.gui_libs import glfw
 
-    glfw.set_window_size(app.window, 0, 0)  # X11 makes this 1 x 1
+    glfw.set_window_size(app.window.handle, 0, 0)  # X11 makes this 1 x 1
     for _ in range(3):
         assert app.step()
     tiny = app.read_framebuffer()
@@ -475,15 +520,15 @@ def test_resize_to_zero_and_back(app, monkeypatch):
         m.setattr(glfw, "get_window_size", lambda window: (0, 0))
         for _ in range(3):
             assert app.step()
-        assert app.minimized
+        assert app.window.minimized
         assert app.read_framebuffer().shape == (0, 0, 3)
         app.snapshot(32, 24)  # snapshots do not need the window
-    glfw.set_window_size(app.window, *WINDOW)
+    glfw.set_window_size(app.window.handle, *WINDOW)
     deadline = time.monotonic() + 5
-    while app.framebuffer_size != WINDOW and time.monotonic() < deadline:
+    while app.window.framebuffer_size != WINDOW and time.monotonic() < deadline:
         app.step()
         time.sleep(0.01)
-    assert not app.minimized
+    assert not app.window.minimized
     assert app.read_framebuffer().shape == (WINDOW[1], WINDOW[0], 3)
 
 
@@ -513,14 +558,14 @@ def _drive_random_input(app, seed: int, count: int, sizes) -> int:
                 io.add_key_event(key, down)
                 (down_keys.add if down else down_keys.discard)(key)
             elif kind < 6:
-                w, h = app.window_size
+                w, h = app.window.window_size
                 io.add_mouse_pos_event(float(rng.uniform(-20, w + 20)), float(rng.uniform(-20, h + 20)))
             elif kind < 8:
                 io.add_mouse_button_event(int(rng.integers(0, 3)), bool(rng.integers(0, 2)))
             elif kind < 9:
                 io.add_mouse_wheel_event(0.0, float(rng.normal(0, 2)))
             elif rng.random() < 0.1:
-                glfw.set_window_size(app.window, *sizes[rng.integers(len(sizes))])
+                glfw.set_window_size(app.window.handle, *sizes[rng.integers(len(sizes))])
             else:
                 app.handle_key(str(rng.choice([k for k, _ in keys])))
             events += 1
@@ -534,7 +579,7 @@ def _drive_random_input(app, seed: int, count: int, sizes) -> int:
         app.step()
     finally:
         io.config_input_trickle_event_queue = trickle
-        glfw.set_window_size(app.window, *sizes[-1])
+        glfw.set_window_size(app.window.handle, *sizes[-1])
         app.show_help = False
         app.show_ui = True
         app.timeline.pause()
@@ -562,7 +607,7 @@ def test_real_x_key_event_reaches_shortcuts(app):
 
     app.timeline.pause()
     app.step()
-    xid = glfw.get_x11_window(app.window)
+    xid = glfw.get_x11_window(app.window.handle)
     subprocess.run([exe, "key", "--window", str(xid), "space"], check=True, timeout=10)
     deadline = time.monotonic() + 5
     while not app.timeline.playing and time.monotonic() < deadline:
@@ -582,11 +627,11 @@ def test_motion_switch_in_background(app):
     assert app.timeline.num_frames == app.sequence.num_frames and app.timeline.frame == 0
     app.load_motion("no_such_motion")
     deadline = time.monotonic() + 10
-    while app.loading_motion() and time.monotonic() < deadline:
+    while app.motions.loading and time.monotonic() < deadline:
         app.step()
         time.sleep(0.01)
     app.step()
-    assert "cannot load motion" in app.status_message() and app.motion_name == "sway"
+    assert "cannot load motion" in app.status.message() and app.motion_name == "sway"
 
 
 def test_run_frame_limit_and_quit(xvfb, body, walk, monkeypatch, tmp_path):
@@ -638,60 +683,57 @@ def test_quality_controller_moving_still_floor_and_hysteresis():
 
 
 # ==== the neural layer in the window (untrained run on the tiny scene) ========================================
-def _tiny_run_config():
-    from garmentnerf.model.config import ModelConfig
-
-    return ModelConfig.cpu_small().replace(
-        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
-        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
-        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
-        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
-
-
 @pytest.fixture(scope="module")
 def untrained_run(tiny_scene, tmp_path_factory):
     from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.train.settings import tiny_config
 
-    return create_untrained_run(tmp_path_factory.mktemp("viewer_run") / "run", tiny_scene.root, _tiny_run_config())
+    return create_untrained_run(tmp_path_factory.mktemp("viewer_run") / "run", tiny_scene.root, tiny_config())
 
 
 def _settle(app, seconds=60.0):
-    """Step until the worker is idle, the view is still and the newest result is on the GPU."""
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        app.step()
-        if app.neural.worker.idle() and not app._neural_done and not app.quality.moving(app.clock()):
-            app.step()
-            return
-        time.sleep(0.02)
+    """Step until the worker is idle, the view is still and the newest result is on the GPU (the first
+    step sends the request for a view just changed)."""
+    app.step()
+    app.run_until(app.neural_view.settled, seconds)
+    app.step()
 
 
 def test_neural_viewer_palette_is_a_uniform_and_modes_switch(xvfb, untrained_run, tmp_path):
     from garmentnerf.viewer.app import App
+    from garmentnerf.viewer.renderables import FULL_VIEW
 
     with App(motion=None, run=untrained_run, size=(320, 240), samples=0, vsync=False, playing=False,
              snapshot_dir=tmp_path) as viewer:
-        assert viewer.motion_name == "train" and viewer.ground_truth_available()
-        assert viewer.wait_for_neural(180), viewer.neural_error()
+        view = viewer.neural_view
+        assert viewer.motion_name == "train" and view.ground_truth_available()
+        assert viewer.wait_for_neural(180), view.error()
         _settle(viewer)
         viewer.show_ui = False
         layer = viewer.scene.palette_layer
-        assert viewer.view_mode == "neural" and not viewer.scene.body.visible
+        assert view.mode == "neural" and not viewer.scene.body.visible
         before = viewer.read_framebuffer()
-        uploads, renders = layer.uploads, viewer.neural.stats.renders
-        viewer.set_palette_colour(0, (1.0, 0.0, 0.0))
+        uploads, renders = layer.uploads, view.renderer.stats.renders
+        view.set_palette_colour(0, (1.0, 0.0, 0.0))
         recoloured = viewer.read_framebuffer()
-        assert layer.uploads == uploads and viewer.neural.stats.renders == renders  # no re-render, no upload
+        assert layer.uploads == uploads and view.renderer.stats.renders == renders  # no re-render, no upload
         diff = np.abs(recoloured.astype(int) - before.astype(int))
         assert diff.max() > 10 and diff[..., 0].sum() > diff[..., 2].sum()  # more red
-        viewer.reset_palette()
+        view.reset_palette()
         assert np.abs(viewer.read_framebuffer().astype(int) - before.astype(int)).max() <= 1
         for mode in ("side_by_side", "difference", "maps", "ground_truth"):
-            viewer.set_view_mode(mode)
+            view.set_mode(mode)
             _settle(viewer)
             assert layer.has_ground_truth
             assert viewer.read_framebuffer().shape == before.shape
-        viewer.set_view_mode("body")
+        # side by side beside the control panel: the free area starts at the panel's right edge
+        view.set_mode("side_by_side")
+        assert viewer.free_area == FULL_VIEW  # panels hidden: the whole window
+        viewer.show_ui = True
+        viewer.step()
+        x0, y0, x1, y1 = viewer.free_area
+        assert -1.0 < x0 < x1 == 1.0 and -1.0 < y0 < y1 == 1.0  # right of the panel, above the timeline bar
+        view.set_mode("body")
         assert viewer.scene.body.visible and not layer.visible
         stats = viewer.stats()["neural"]
         assert stats["renders"] >= 2 and stats["errors"] == 0 and stats["timings"]["render_total"] > 0
@@ -765,7 +807,7 @@ def test_neural_viewer_survives_random_input_and_zero_size(xvfb, untrained_run, 
     size = (320, 240)
     with App(motion=None, run=untrained_run, size=size, samples=0, vsync=False, playing=False,
              snapshot_dir=tmp_path) as viewer:
-        assert viewer.wait_for_neural(180), viewer.neural_error()
+        assert viewer.wait_for_neural(180), viewer.neural_view.error()
         steps = _drive_random_input(viewer, 4321, 1500, [(160, 120), (1, 1), (400, 300), size])
         assert steps >= 100
         with monkeypatch.context() as m:  # minimised: a 0 x 0 framebuffer
@@ -773,14 +815,14 @@ def test_neural_viewer_survives_random_input_and_zero_size(xvfb, untrained_run, 
             m.setattr(glfw, "get_window_size", lambda window: (0, 0))
             for _ in range(3):
                 assert viewer.step()
-            assert viewer.minimized and viewer.read_framebuffer().shape == (0, 0, 3)
+            assert viewer.window.minimized and viewer.read_framebuffer().shape == (0, 0, 3)
         deadline = time.monotonic() + 5
-        while viewer.framebuffer_size != size and time.monotonic() < deadline:
+        while viewer.window.framebuffer_size != size and time.monotonic() < deadline:
             viewer.step()
             time.sleep(0.01)
-        viewer.set_view_mode("neural")
+        viewer.neural_view.set_mode("neural")
         _settle(viewer)
-        assert viewer.neural.stats.errors == 0, viewer.neural_error()
+        assert viewer.neural_view.renderer.stats.errors == 0, viewer.neural_view.error()
         assert viewer.scene.palette_layer.has_image
         assert viewer.read_framebuffer().shape == (size[1], size[0], 3)
     from PIL import Image
@@ -798,7 +840,7 @@ def test_the_scene_is_redrawn_only_when_something_it_shows_changes(app):
     stats = app.scene.stats
 
     def scene_image():  # the 3D scene the window shows (the panels on top change every frame)
-        return app.scene.read(app._target_for(*app.render_size))
+        return app.scene.read(app.scene.window_target(*app.render_size))
 
     def redraws_after(change) -> int:
         change()

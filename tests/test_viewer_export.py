@@ -1,4 +1,4 @@
-"""Viewer exports (:mod:`garmentnerf.viewer.exporter`): neural snapshots and mp4 videos rendered on the
+"""Viewer exports (:mod:`garmentnerf.viewer.exporting`): neural snapshots and mp4 videos rendered on the
 exporter's thread through the headless command's path, compared with
 :meth:`garmentnerf.render.session.RenderSession.render_image` on a headless EGL context; cancel,
 never-overwrite, and the window drawing on meanwhile. Pure planning/progress logic first.
@@ -20,9 +20,8 @@ import_viewer("timeline")  # registers garmentnerf.viewer when running from a so
 
 from garmentnerf.render.video import count_video_frames, to_uint8  # noqa: E402
 from garmentnerf.viewer.camera import OrbitController  # noqa: E402
-from garmentnerf.viewer.export import video_name  # noqa: E402
-from garmentnerf.viewer.exporter import (ExportJob, ExportSettings, format_seconds, plan_range,  # noqa: E402
-                                         plan_turntable)
+from garmentnerf.viewer.export_jobs import (ExportJob, ExportSettings, format_seconds, plan_range,  # noqa: E402
+                                            plan_turntable, video_name)
 from test_viewer import untrained_run, xvfb  # noqa: E402,F401  (shared fixtures: Xvfb and the tiny run)
 
 SIZE = (48, 32)
@@ -133,38 +132,38 @@ def test_neural_snapshot_equals_headless_render(neural_app, headless):
     from PIL import Image
 
     app = neural_app
-    app.set_view_mode("neural")
-    app.quality.set_preset("interactive")  # the preview renders that preset (half resolution); the snapshot must not
+    app.neural_view.set_mode("neural")
+    app.neural_view.quality.set_preset("interactive")  # the preview renders that preset (half resolution); the snapshot must not
     app.set_frame(1)
     app.controller.preset("left")
-    app.set_palette_colour(0, (0.9, 0.2, 0.1))
+    app.neural_view.set_palette_colour(0, (0.9, 0.2, 0.1))
     frames = app.timer.frames
-    job = app.start_snapshot(*SIZE)
+    job = app.exports.start_snapshot(*SIZE)
     assert job.source == "neural" and job.quality >= 1.0
     assert not job.finished  # off the UI thread
     path = app.wait_export(job, timeout=300)
     assert app.timer.frames > frames  # the window kept drawing while it rendered
-    assert app.last_snapshot == path and "saved" in app.status_message()
+    assert app.exports.last_snapshot == path and "saved" in app.status.message()
     saved = np.asarray(Image.open(path).convert("RGB"))
     assert saved.shape == (SIZE[1], SIZE[0], 3)
     camera = app.controller.camera(*SIZE)
-    reference = to_uint8(headless.render_image(1, camera, app.palette, quality=1.0))
+    reference = to_uint8(headless.render_image(1, camera, app.neural_view.palette, quality=1.0))
     assert reference.reshape(-1, 3).std(axis=0).max() > 5.0  # not a flat image: the comparison means something
     # the same path on another GL context and thread: mean abs diff <= 1/255, max <= 3/255 (uint8)
     diff = np.abs(saved.astype(int) - reference.astype(int))
     assert diff.mean() <= 1.0 and diff.max() <= 3, (diff.mean(), diff.max())
-    preview = to_uint8(headless.render_image(1, camera, app.palette, preset="interactive"))
+    preview = to_uint8(headless.render_image(1, camera, app.neural_view.palette, preset="interactive"))
     # not the preview's quality: far further from the preview than from the headless full-quality render
     assert np.abs(saved.astype(int) - preview.astype(int)).mean() > max(2.0, 4 * diff.mean())
-    app.quality.set_preset("full")
-    app.reset_palette()
+    app.neural_view.quality.set_preset("full")
+    app.neural_view.reset_palette()
 
 
 def test_neural_snapshot_never_overwrites(neural_app):
     app = neural_app
-    app.set_view_mode("neural")
+    app.neural_view.set_mode("neural")
     app.set_frame(2)
-    folder = app.snapshot_dir / "never"
+    folder = app.exports.directory / "never"
     folder.mkdir()
     taken = folder / "train_f0002.png"
     taken.write_bytes(b"someone else's file")
@@ -179,22 +178,22 @@ def test_range_video_export_matches_headless_render(neural_app, headless, tmp_pa
     import imageio.v2 as iio
 
     app = neural_app
-    app.set_view_mode("neural")
+    app.neural_view.set_mode("neural")
     app.controller.preset("front")
     settings = ExportSettings(mode="range", range_first=0, range_last=2, size=SIZE, quality=1.0)
-    job = app.start_video_export(settings, directory=tmp_path)
+    job = app.exports.start_video(settings, directory=tmp_path)
     path = app.wait_export(job, timeout=300)
-    assert path == tmp_path / "train_f0000-0002.mp4" and app.last_export == path
+    assert path == tmp_path / "train_f0000-0002.mp4" and app.exports.last_export == path
     assert count_video_frames(path) == 3
     with iio.get_reader(str(path), format="FFMPEG") as reader:
         first = np.asarray(reader.get_data(0))[..., :3]
-    reference = to_uint8(headless.render_image(0, app.controller.camera(*SIZE), app.palette, quality=1.0))
+    reference = to_uint8(headless.render_image(0, app.controller.camera(*SIZE), app.neural_view.palette, quality=1.0))
     assert first.shape == reference.shape
     # H.264 (yuv420p, chroma at half resolution): mean abs diff below 8/255
     diff = np.abs(first.astype(int) - reference.astype(int))
     assert diff.mean() < 8.0, diff.mean()
     # a second export of the same range never replaces the first
-    again = app.wait_export(app.start_video_export(settings, directory=tmp_path), timeout=300)
+    again = app.wait_export(app.exports.start_video(settings, directory=tmp_path), timeout=300)
     assert again.name == "train_f0000-0002_001.mp4" and count_video_frames(path) == 3
     assert _files(tmp_path) == ["train_f0000-0002.mp4", "train_f0000-0002_001.mp4"]
 
@@ -203,14 +202,14 @@ def test_cancel_export_leaves_no_file_and_ui_keeps_running(neural_app, tmp_path,
     from garmentnerf.viewer.gui_libs import imgui
 
     app = neural_app
-    app.set_view_mode("neural")
+    app.neural_view.set_mode("neural")
     # every panel section open, so the Snapshot and Export sections (progress bars) draw meanwhile
     monkeypatch.setattr(imgui, "collapsing_header", lambda *args, **kwargs: True)
     settings = ExportSettings(mode="turntable", turntable_frames=200, size=SIZE, quality=1.0)
     frames = app.timer.frames
-    job = app.start_video_export(settings, directory=tmp_path)
+    job = app.exports.start_video(settings, directory=tmp_path)
     with pytest.raises(RuntimeError, match="still running"):
-        app.start_snapshot(*SIZE)  # one export at a time
+        app.exports.start_snapshot(*SIZE)  # one export at a time
     deadline = time.monotonic() + 300
     while job.progress().done < 1 and not job.finished and time.monotonic() < deadline:
         assert app.step()
@@ -218,14 +217,14 @@ def test_cancel_export_leaves_no_file_and_ui_keeps_running(neural_app, tmp_path,
     assert not job.finished and job.progress().done >= 1
     assert app.timer.frames > frames + 1  # the UI loop ran while the export was in progress
     assert any(name.endswith(".tmp") for name in _files(tmp_path))  # a partial video is being written
-    app.cancel_export()
+    app.exports.cancel()
     deadline = time.monotonic() + 60
     while not job.finished and time.monotonic() < deadline:
         assert app.step()
         time.sleep(0.01)
     assert job.state == "cancelled" and job.written is None
     app.step()
-    assert "cancelled" in app.status_message()
+    assert "cancelled" in app.status.message()
     assert _files(tmp_path) == []  # the partial file is gone
     assert app.stats()["export"]["state"] == "cancelled"
 
@@ -241,19 +240,19 @@ def test_body_only_video_and_errors_in_the_window(xvfb, tmp_path):  # noqa: F811
     with App(sequence=walk, body=body, size=(160, 120), samples=0, vsync=False, playing=False,
              snapshot_dir=tmp_path) as app:
         app.step()
-        assert app.export_source() == "body"
-        job = app.start_video_export(ExportSettings(mode="range", range_first=5, range_last=7, size=SIZE))
+        assert app.exports.source() == "body"
+        job = app.exports.start_video(ExportSettings(mode="range", range_first=5, range_last=7, size=SIZE))
         path = app.wait_export(job, timeout=120)
         assert count_video_frames(path) == 3 and path.name == "walk_f0005-0007.mp4"
         # an export that fails shows its error and the window goes on
         blocked = tmp_path / "not_a_folder"
         blocked.write_text("x")
-        job = app.start_video_export(ExportSettings(mode="turntable", turntable_frames=2, size=SIZE),
+        job = app.exports.start_video(ExportSettings(mode="turntable", turntable_frames=2, size=SIZE),
                                      directory=blocked)
         assert job.wait(60)
         assert app.step()
-        assert job.state == "failed" and "export failed" in app.status_message()
-        app.export_settings.range_first, app.export_settings.range_last = 3, 1  # bad settings: status, no raise
-        app.export_settings.mode = "range"
-        app.start_export_with_status()
-        assert "frame range" in app.status_message() and app.step()
+        assert job.state == "failed" and "export failed" in app.status.message()
+        app.exports.settings.range_first, app.exports.settings.range_last = 3, 1  # bad settings: status, no raise
+        app.exports.settings.mode = "range"
+        app.exports.start_video_with_status()
+        assert "frame range" in app.status.message() and app.step()

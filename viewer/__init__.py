@@ -1,21 +1,34 @@
 """The desktop previewer (``garmentnerf view``): a GLFW window with a moderngl scene and imgui panels.
 
-Modules, each with one job (none keeps GL objects at module level, so several contexts can live in one
-process):
+Modules, each with one job (none keeps mutable state at module level, so several windows and GL
+contexts can live in one process):
 
-* :mod:`~garmentnerf.viewer.timeline` -- playback state (frame, play/pause, loop, speed); pure logic.
-* :mod:`~garmentnerf.viewer.camera` -- turntable orbit/pan/zoom controller producing a
-  :class:`garmentnerf.conventions.Camera`; pure math.
+* :mod:`~garmentnerf.viewer.app` -- :class:`~garmentnerf.viewer.app.App`: the main loop, input and actions.
+* :mod:`~garmentnerf.viewer.window` -- the GLFW window, its GL and imgui contexts, HiDPI; the
+  process's window system (GLFW init/terminate, EGL release).
+* :mod:`~garmentnerf.viewer.neural_view` -- view modes, palette, ground-truth camera, quality, and the
+  render worker's requests and results.
+* :mod:`~garmentnerf.viewer.worker` -- the render worker thread (coalescing requests) and the
+  neural renderer that runs the render session on it.
+* :mod:`~garmentnerf.viewer.render_thread` -- a render session (and its GL context) that lives on its
+  own thread: the one helper of the worker and the exporter.
+* :mod:`~garmentnerf.viewer.scene_gl` -- the scene renderer: render targets and the GL passes.
+* :mod:`~garmentnerf.viewer.renderables` -- the body mesh and the floor (each owns its GL objects,
+  pass state and panel rows); orientation of the display projection.
+* :mod:`~garmentnerf.viewer.palette_layer` -- the neural layer: decomposed maps composed with the
+  palette on the GPU.
+* :mod:`~garmentnerf.viewer.exporting` -- snapshots and videos: the export thread and the window's side.
+* :mod:`~garmentnerf.viewer.export_jobs` -- what an export is: sizes, names, writers, settings, plans, jobs.
+* :mod:`~garmentnerf.viewer.panels`, :mod:`~garmentnerf.viewer.control_panel`,
+  :mod:`~garmentnerf.viewer.export_panel` -- the imgui panels.
+* :mod:`~garmentnerf.viewer.timeline` -- playback state and the overlay's meters; pure logic.
+* :mod:`~garmentnerf.viewer.camera` -- turntable orbit/pan/zoom controller and its mouse gestures;
+  pure math.
+* :mod:`~garmentnerf.viewer.quality` -- dynamic resolution of the neural render; pure logic.
+* :mod:`~garmentnerf.viewer.sequence` -- a posed body clip, the motions offered, the background loader.
 * :mod:`~garmentnerf.viewer.shortcuts` -- the one shortcuts table (key handling and the help window).
-* :mod:`~garmentnerf.viewer.sequence` -- a posed body clip ready for upload, and its background loader.
-* :mod:`~garmentnerf.viewer.scene_gl` -- GL renderables (body mesh, floor grid, neural layer) and the
-  scene renderer that draws them into an off-screen target.
-* :mod:`~garmentnerf.viewer.worker` -- the render worker thread that will fill the neural layer.
-* :mod:`~garmentnerf.viewer.export` -- snapshots: off-screen render at any resolution, atomic PNG.
-* :mod:`~garmentnerf.viewer.exporter` -- the export thread: neural snapshots and mp4 videos (turntable or
-  timeline range) through the headless command's render path, with progress and cancel.
-* :mod:`~garmentnerf.viewer.panels` -- the imgui panels.
-* :mod:`~garmentnerf.viewer.app` -- the window, the main loop and its frame-time measurement.
+* :mod:`~garmentnerf.viewer.gui_libs` -- imgui and glfw, imported in the one order that works.
 
-Importing this package imports nothing heavy; the window libraries load with ``app``/``panels``.
+Importing this package imports nothing heavy; the window libraries load with ``app``, ``window`` and
+the panels.
 """

@@ -6,6 +6,9 @@ of :func:`garmentnerf.conventions.orbit_camera`: azimuth 0 looks at the characte
 :class:`~garmentnerf.conventions.Camera` for any image size. The world's up (+Z) stays up on screen:
 elevation is clamped short of the poles.
 
+:class:`MouseGestures` turns the window's mouse input (imgui's state, handed in) into orbit, pan and
+zoom of a controller.
+
 Follow mode: the target is stored *relative to an anchor* (the body's ground position, updated by
 the app every frame), so the camera travels with a walking body; switching follow on or off
 re-expresses the target so the view does not jump.
@@ -101,6 +104,11 @@ class OrbitController:
         if self.follow:
             self.target[:2] = 0.0
 
+    def aim_home(self, centers: np.ndarray) -> None:
+        """The home view looks at the middle of a clip's path: ``centers`` (T, 3) per-frame body centres."""
+        mid = np.asarray(centers).mean(axis=0)
+        self.home.target = (float(mid[0]), float(mid[1]), self.home.target[2])
+
     def preset(self, name: str) -> None:
         """Look from a named side (:data:`VIEW_DIRECTIONS`) at the home elevation; distance and target stay."""
         if name not in VIEW_DIRECTIONS:
@@ -174,3 +182,42 @@ class OrbitController:
         if not np.all(np.isfinite(p)):
             return np.zeros(3)
         return np.array([p[0], p[1], 0.0])
+
+
+@dataclass
+class MouseGestures:
+    """Turntable mouse gestures: left drag orbits, right / middle (or shift + left) drag pans, the
+    wheel zooms. A drag starts only where imgui does not want the mouse (not over a panel) and lasts
+    until its button is released.
+
+    Attributes:
+        drag: ``"orbit"``, ``"pan"`` or None; button: the mouse button holding the drag.
+    """
+
+    drag: str | None = None
+    button: int = -1
+
+    def update(self, imgui, controller: OrbitController, viewport_height: float) -> None:
+        """Once per UI frame (between imgui's new_frame and render), with the imgui module."""
+        io = imgui.get_io()
+        if self.drag is not None and not imgui.is_mouse_down(self.button):
+            self.drag = None
+        if self.drag is None and not io.want_capture_mouse:
+            for button in (0, 1, 2):
+                if imgui.is_mouse_clicked(button):
+                    pan = button in (1, 2) or io.key_shift
+                    self.drag, self.button = ("pan" if pan else "orbit"), button
+                    break
+        if self.drag is not None:
+            dx, dy = io.mouse_delta.x, io.mouse_delta.y
+            if math.isfinite(dx) and math.isfinite(dy) and abs(dx) < 1e5 and abs(dy) < 1e5 and (dx or dy):
+                if self.drag == "orbit":
+                    controller.orbit(dx, dy)
+                else:
+                    controller.pan(dx, dy, viewport_height)
+        if not io.want_capture_mouse and io.mouse_wheel and math.isfinite(io.mouse_wheel):
+            controller.zoom(io.mouse_wheel)
+
+    def cancel(self) -> None:
+        """Drop a drag in progress (e.g. the window was minimised)."""
+        self.drag = None

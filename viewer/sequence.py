@@ -1,15 +1,20 @@
-"""A posed body clip ready for the GPU, and the background loader that makes one.
+"""A posed body clip ready for the GPU, the motions the window offers, and the background loader.
 
 The whole clip is posed once (linear blend skinning of every frame in one call) and its smooth
 normals computed, so playing it only copies one frame's (V, 6) interleaved position+normal array into
 the vertex buffer. About 0.3 MB per frame for the anny body (13,718 vertices).
+
+:class:`MotionMenu` lists the motions (the run scene's sequences first: they have ground truth) and
+poses the chosen one on :class:`SequenceLoader`'s thread, so no torch work runs on the UI thread.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -80,16 +85,15 @@ class BodySequence:
 
 
 class SequenceLoader:
-    """Loads :class:`BodySequence` objects on one background thread, newest request wins.
+    """Runs ``load(name)`` (e.g. posing a :class:`BodySequence`) on one background thread, newest request wins.
 
     ``request(name)`` returns at once; the app calls :meth:`poll` every frame and gets the finished
-    sequence (or the error) exactly once. A request made while another is loading supersedes it:
+    result (or the error) exactly once. A request made while another is loading supersedes it:
     the older result is dropped when it arrives.
     """
 
-    def __init__(self, body, betas) -> None:
-        self.body = body
-        self.betas = betas
+    def __init__(self, load: Callable[[str], Any]) -> None:
+        self._load = load
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="garmentnerf-motion")
         self._lock = threading.Lock()
         self._future: Future | None = None
@@ -106,10 +110,10 @@ class SequenceLoader:
             if self._future is not None:
                 self._future.cancel()  # only succeeds if it has not started; else its result is dropped
             self._pending_name = motion
-            self._future = self._executor.submit(BodySequence.load, self.body, self.betas, motion)
+            self._future = self._executor.submit(self._load, motion)
 
-    def poll(self) -> tuple[BodySequence | None, BaseException | None]:
-        """(sequence, None) when the newest request finished, (None, error) when it failed, else (None, None)."""
+    def poll(self) -> tuple[Any, BaseException | None]:
+        """(result, None) when the newest request finished, (None, error) when it failed, else (None, None)."""
         with self._lock:
             future = self._future
             if future is None or not future.done():
@@ -119,7 +123,7 @@ class SequenceLoader:
         error = future.exception()
         return (None, error) if error is not None else (future.result(), None)
 
-    def wait(self, timeout: float | None = None) -> tuple[BodySequence | None, BaseException | None]:
+    def wait(self, timeout: float | None = None) -> tuple[Any, BaseException | None]:
         """Block until the newest request finishes (tests), then :meth:`poll`."""
         with self._lock:
             future = self._future
@@ -132,3 +136,98 @@ class SequenceLoader:
 
     def close(self) -> None:
         self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+def body_and_shape(run, body, betas) -> tuple[Any, Any, str]:
+    """(body model, shape coefficients, shape label): the run's body (and its shape unless one is
+    given), else ``body`` (default: the bundled anny body); ``betas`` may be a preset name."""
+    if run is not None:
+        body = run.model.body
+        if getattr(run, "betas", None) is not None and betas is None:
+            betas = run.betas
+    if body is None:
+        from garmentnerf.body.model import BodyModel
+
+        body = BodyModel.default()
+    if betas is None or isinstance(betas, str):
+        return body, body.betas(betas), betas or "average"
+    return body, betas, "custom"
+
+
+class MotionMenu:
+    """The motions the window offers and how a chosen one becomes a posed clip.
+
+    Args:
+        body: the :class:`~garmentnerf.body.model.BodyModel`; betas: its shape coefficients.
+        run: a :class:`~garmentnerf.train.run.LoadedRun` whose scene sequences come first (None: none).
+    """
+
+    def __init__(self, body, betas, run=None) -> None:
+        from garmentnerf.motion.library import available_motions
+
+        self.body, self.betas, self.run = body, betas, run
+        self._infos = {m.name: m for m in available_motions()}
+        self._loader = SequenceLoader(self._load)
+
+    def first_clip(self, motion: str | None, sequence: BodySequence | None = None) -> tuple[BodySequence, str, Any]:
+        """(clip, its name in the menu, its motion spec for the neural render) the window starts with:
+        ``sequence`` if given; with a run ``motion`` as its session resolves it (:meth:`pose_for_run`);
+        else the library motion ``motion`` (default ``walk``). Posed here, before the window opens."""
+        if sequence is not None:
+            return sequence, sequence.name, sequence.name
+        if self.run is not None:
+            sequence, spec = self.pose_for_run(motion)
+            return sequence, sequence.name, spec
+        motion = motion or "walk"
+        return BodySequence.load(self.body, self.betas, motion), motion, motion
+
+    def scene_sequences(self) -> list[str]:
+        run = self.run
+        return list(run.scene.sequences) if run is not None and run.scene is not None else []
+
+    def names(self, current: str) -> list[str]:
+        """The run scene's sequences, then the library's motions (``current`` first if it is neither)."""
+        seqs = self.scene_sequences()
+        names = seqs + [n for n in self._infos if n not in seqs]
+        return names if current in names else [current] + names
+
+    def labels(self, names: list[str]) -> list[str]:
+        """What the menu shows for ``names``: ``walk  (4.2 s)``, ``train  (scene sequence)``."""
+        seqs = set(self.scene_sequences())
+        return [f"{n}  (scene sequence)" if n in seqs else f"{n}  ({self._infos[n].duration:.1f} s)"
+                if n in self._infos else n for n in names]
+
+    def pose_for_run(self, motion: str | None) -> tuple[BodySequence, Any]:
+        """(clip, its motion spec for the neural render), ``motion`` resolved as the run's render
+        session resolves it (a scene sequence; None: the scene's first training sequence; else a
+        library motion at the scene's frame rate)."""
+        from garmentnerf.render.session import resolve_motion
+
+        clip, seq = resolve_motion(motion, self.body, self.betas, self.run.scene)
+        with torch.no_grad():
+            posed = clip.pose(self.body, self.betas)
+        spec = seq if seq is not None else (motion if motion is not None else clip.name)
+        return BodySequence.from_vertices(seq or clip.name, clip.fps, posed.vertices, self.body.faces), spec
+
+    def _load(self, name: str) -> tuple[BodySequence, Any]:
+        """The loader thread's job: a scene sequence as :meth:`pose_for_run`; anything else from the
+        motion library (spec None: the clip's own name)."""
+        if name in self.scene_sequences():
+            return self.pose_for_run(name)
+        return BodySequence.load(self.body, self.betas, name), None
+
+    @property
+    def loading(self) -> str | None:
+        """The motion being posed in the background, or None."""
+        return self._loader.loading
+
+    def request(self, name: str) -> None:
+        """Pose ``name`` in the background (:meth:`poll` hands it over)."""
+        self._loader.request(name)
+
+    def poll(self) -> tuple[tuple[BodySequence, Any] | None, BaseException | None]:
+        """((clip, spec), None) once the newest request is posed, (None, error) if it failed, else (None, None)."""
+        return self._loader.poll()
+
+    def close(self) -> None:
+        self._loader.close()

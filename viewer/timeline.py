@@ -1,4 +1,5 @@
-"""Playback state of the previewer: current frame, play/pause, loop, speed. Pure logic, no GL.
+"""Playback state of the previewer (current frame, play/pause, loop, speed) and the meters the stats
+overlay reads (:class:`PlaybackMeter`, :class:`FrameTimer`). Pure logic, no GL.
 
 Time is kept as a continuous position in frames (frame ``i`` is shown while ``i <= position < i + 1``,
 as :class:`garmentnerf.motion.motion.Motion` defines a clip of T frames to last ``T / fps`` seconds).
@@ -166,3 +167,50 @@ class PlaybackMeter:
     def reset(self) -> None:
         self._shown.clear()
         self._rendered.clear()
+
+
+class FrameTimer:
+    """UI frame timing over the last ``window`` frames (seconds in, milliseconds out).
+
+    interval: time between the starts of consecutive frames (what the user sees: 1 / fps).
+    work: time spent inside one frame before the buffer swap; scene: the scene's share of it.
+    """
+
+    def __init__(self, window: int = 120) -> None:
+        self.intervals: deque[float] = deque(maxlen=window)
+        self.work: deque[float] = deque(maxlen=window)
+        self.scene: deque[float] = deque(maxlen=window)
+        self._last_start: float | None = None
+        self.frames = 0
+
+    def start(self, now: float) -> None:
+        if self._last_start is not None:
+            self.intervals.append(now - self._last_start)
+        self._last_start = now
+
+    def finish(self, work: float, scene: float) -> None:
+        self.work.append(work)
+        self.scene.append(scene)
+        self.frames += 1
+
+    @property
+    def fps(self) -> float:
+        total = sum(self.intervals)
+        return len(self.intervals) / total if total > 0 else float("nan")
+
+    @property
+    def interval_ms(self) -> float:
+        return _mean_ms(self.intervals)
+
+    @property
+    def work_ms(self) -> float:
+        return _mean_ms(self.work)
+
+    @property
+    def scene_ms(self) -> float:
+        return _mean_ms(self.scene)
+
+
+def _mean_ms(seconds) -> float:
+    """Mean of ``seconds`` in milliseconds (NaN when empty)."""
+    return 1000.0 * sum(seconds) / len(seconds) if seconds else float("nan")

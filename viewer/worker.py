@@ -1,10 +1,10 @@
-"""The render worker: one background thread that renders the newest request (the neural garment,
-once a trained model exists) and hands each result to a sink (:meth:`NeuralLayer.submit`).
+"""The render worker: one background thread that renders the newest request (the neural garment)
+and hands each result to a sink (the neural view's, which queues it for the palette layer).
 
 Requests coalesce: while a render runs, newer requests replace each other and only the newest is
 rendered next, so a moving camera never builds a queue. Each request gets a generation number; the
-render function may call :meth:`RenderWorker.is_stale` with it and give up early (return None) when a
-newer request has arrived, which keeps a slow high-resolution render from blocking the next view.
+render function may call :meth:`RenderWorker.should_cancel` with it and give up early (return None)
+when a newer request has arrived, which keeps a slow high-resolution render from blocking the next view.
 Progress is guaranteed, though: once the screen has gone ``max_stale_s`` without a new result, the
 render in flight is no longer cancelled and is shown even if a newer request exists (a camera that
 moves every UI frame would otherwise cancel every render, and the layer would never update).
@@ -14,7 +14,7 @@ No GL here: the GL thread uploads what the sink received.
 :meth:`garmentnerf.render.session.RenderSession.render` for the newest :class:`NeuralRequest`
 (frame, camera, quality), cancels a superseded render between chunks of samples, and hands the
 decomposed maps (packed for the palette shader) to the GL thread. Its session and that session's
-headless GL context live on the worker thread.
+headless GL context live on the worker thread (:class:`~garmentnerf.viewer.render_thread.ThreadSession`).
 """
 
 from __future__ import annotations
@@ -27,14 +27,17 @@ from typing import Any
 
 from garmentnerf.perf.presets import VIEWER_LEVELS
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB
+from garmentnerf.viewer.render_thread import ThreadSession
 
 
 @dataclass
 class WorkerStats:
+    """What the worker has done (read by the UI thread for the overlay and the bench)."""
+
     renders: int = 0
     dropped: int = 0        # requests superseded before they started, or given up as stale
     errors: int = 0
-    last_ms: float = 0.0
+    last_ms: float = 0.0    # wall time of the last delivered render (request taken -> result handed over)
     last_error: str = ""
 
 
@@ -42,7 +45,7 @@ class RenderWorker:
     """Args:
         render: ``render(request, generation) -> result or None``; runs on the worker thread.
         sink: ``sink(result, request, generation)``; runs on the worker thread after a render
-            (must be thread-safe, e.g. ``NeuralLayer.submit``).
+            (must be thread-safe, e.g. ``PaletteLayer.submit``).
         idle_work: ``idle_work() -> bool``, one short step of background work (e.g. precomputing
             one frame) run on the worker thread whenever no request waits; True: there is more.
             A new request waits for at most one step.
@@ -67,11 +70,6 @@ class RenderWorker:
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
-    @property
-    def generation(self) -> int:
-        with self._cond:
-            return self._generation
-
     def request(self, request: Any) -> int:
         """Ask for a render of ``request`` (replacing any request not yet started); returns its generation."""
         with self._cond:
@@ -81,11 +79,6 @@ class RenderWorker:
             self._request, self._has_request = request, True
             self._cond.notify()
             return self._generation
-
-    def is_stale(self, generation: int) -> bool:
-        """True when a newer request exists (or the worker is stopping)."""
-        with self._cond:
-            return self._stop or generation != self._generation
 
     def should_cancel(self, generation: int) -> bool:
         """True when the render of ``generation`` should give up: it is stale *and* the screen got
@@ -185,7 +178,16 @@ class NeuralRequest:
 
 @dataclass
 class NeuralResult:
-    """One finished neural frame, as numpy for the GL thread (see ``scene_gl.pack_maps``)."""
+    """One finished neural frame, as numpy for the GL thread.
+
+    Attributes:
+        layers: (2 + P, h, w, 4) float32 maps packed by :func:`~garmentnerf.viewer.palette_layer.pack_maps`.
+        depth: (h, w) float32 camera-space z, 0 where empty.
+        image_size: (W, H) of the requested camera; render_size: (w, h) actually rendered.
+        quality, preset: what was rendered; frame: the clip frame (clamped to the clip).
+        timings: stage -> ms (``RenderSession.render``'s); cached_frame: the frame's features were cached.
+        ground_truth: (H, W, 3) of the request's scene camera, or None; counts: sample counts.
+    """
 
     layers: Any
     depth: Any
@@ -195,9 +197,7 @@ class NeuralResult:
     frame: int
     timings: dict
     cached_frame: bool
-    learned_palette: Any
     ground_truth: Any = None
-    gt_key: Any = None
     preset: str = ""
     counts: dict | None = None
 
@@ -206,8 +206,9 @@ class NeuralRenderer:
     """Runs :class:`garmentnerf.render.session.RenderSession` on a :class:`RenderWorker` thread.
 
     The session (and the headless GL context its input passes need) is made *on the worker thread*
-    at the first request, so the window's GL context is never touched from there. Each render polls
-    :meth:`RenderWorker.is_stale` between chunks of samples: a newer request cancels it
+    at the first request (:class:`~garmentnerf.viewer.render_thread.ThreadSession`), so the window's
+    GL context is never touched from there. Each render polls :meth:`RenderWorker.should_cancel`
+    between chunks of samples: a newer request cancels it
     (:class:`~garmentnerf.model.pipeline.RenderCancelled`, counted as dropped). Results go to
     ``sink(result, request)``, errors to :attr:`RenderWorker.stats` (``last_error``), which the
     window shows.
@@ -222,12 +223,10 @@ class NeuralRenderer:
         self.run = run
         self._sink = sink
         self._motion = motion
-        self._session = None
-        self._ctx = None
-        self._images = None
+        self._cache_mb = DEFAULT_CACHE_MB
+        self._thread_session = ThreadSession(run, cache_mb=self._cache_mb, cache_half=True)  # worker thread only
         self._gt_cache: dict = {}
         self.last: NeuralResult | None = None
-        self._cache_mb = DEFAULT_CACHE_MB
         self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural", idle_work=self._precompute)
 
     @property
@@ -237,45 +236,32 @@ class NeuralRenderer:
     def request(self, request: NeuralRequest) -> int:
         return self.worker.request(request)
 
-    def _ensure_session(self, motion):
-        if self._session is None:
-            from garmentnerf.gl.context import create_context
-            from garmentnerf.render.session import RenderSession
-
-            self._ctx = create_context(headless=True)
-            self._session = RenderSession(self.run, self._ctx, motion, cache_mb=self._cache_mb, cache_half=True)
-            self._motion = motion
-        elif motion != self._motion:
-            self._session.set_motion(motion)
-            self._motion = motion
-        return self._session
-
     def _ground_truth(self, session, request: NeuralRequest):
+        """(H, W, 3) ground truth of the request's scene camera and frame, or None (worker thread)."""
         scene = session.scene
         if request.gt_camera is None or scene is None or session.sequence is None:
-            return None, None
+            return None
         if request.gt_camera not in scene.camera_names():
-            return None, None
+            return None
         key = (session.sequence, request.gt_camera, request.frame)
         if key not in self._gt_cache:
-            from garmentnerf.data.scene import SceneImages
+            from garmentnerf.data.scene_images import SceneImages
 
-            if self._images is None:
-                self._images = SceneImages(scene, body_model=session.body)
-            rgb, _ = self._images.image(session.sequence, request.gt_camera, request.frame)
+            images = self._thread_session.helper("images", lambda: SceneImages(scene, body_model=session.body))
+            rgb, _ = images.image(session.sequence, request.gt_camera, request.frame)
             self._gt_cache.clear()  # one image is enough: the view shows one frame
             self._gt_cache[key] = rgb
-        return self._gt_cache[key], key
+        return self._gt_cache[key]
 
     def _render(self, request: NeuralRequest, generation: int):
         from garmentnerf.model.pipeline import RenderCancelled
 
         if request is _CLOSE:
-            self._close_on_thread()
+            self._thread_session.close()
             return None
-        from garmentnerf.viewer.scene_gl import pack_maps
+        from garmentnerf.viewer.palette_layer import pack_maps
 
-        session = self._ensure_session(request.motion)
+        session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
         frame = min(max(0, int(request.frame)), session.num_frames - 1)
         session.frames.set_playhead(frame)
         try:
@@ -285,20 +271,19 @@ class NeuralRenderer:
             return None
         m = nf.maps
         layers = pack_maps(m.radiance[0].numpy(), m.offsets[0].numpy(), m.weights[0].numpy(), m.mask[0].numpy())
-        gt, gt_key = self._ground_truth(session, request)
         return NeuralResult(layers, nf.depth, nf.output_size, nf.render_size, nf.quality, frame, nf.timings,
-                            nf.cached_frame, nf.palette.numpy(), gt, gt_key, nf.preset, dict(nf.counts))
+                            nf.cached_frame, self._ground_truth(session, request), nf.preset, dict(nf.counts))
 
     def _precompute(self) -> bool:
         """Idle work: the next frame of the clip nearest to the playhead (see
         :meth:`RenderSession.precompute_next`); False when there is nothing (left) to do."""
-        session = self._session
+        session = self._thread_session.current
         return session is not None and session.precompute_next() is not None
 
     def cache_status(self) -> dict | None:
         """The frame cache as the UI shows it (thread-safe): ``ready`` (sorted frames),
         ``frames`` (in the clip), ``bytes``, ``budget_bytes``; None before the first render."""
-        session = self._session
+        session = self._thread_session.current
         if session is None:
             return None
         cache = session.frames
@@ -310,7 +295,8 @@ class NeuralRenderer:
         if not megabytes >= 0:
             raise ValueError(f"frame cache budget must be >= 0 MiB, got {megabytes!r}")
         self._cache_mb = float(megabytes)
-        session = self._session
+        self._thread_session.session_options["cache_mb"] = self._cache_mb  # a session made later
+        session = self._thread_session.current
         if session is not None:
             session.frames.set_budget_mb(self._cache_mb)
         self.worker.wake_idle()
@@ -318,18 +304,6 @@ class NeuralRenderer:
     def _deliver(self, result: NeuralResult, request: NeuralRequest, generation: int) -> None:
         self.last = result
         self._sink(result, request)
-
-    def _close_on_thread(self) -> None:
-        """Free the session, the ground-truth renderer and the GL context (on the worker thread,
-        which made them)."""
-        for obj in (self._session, self._images, self._ctx):
-            if obj is None:
-                continue
-            try:
-                (obj.release if obj is self._ctx else obj.close)()
-            except Exception:  # noqa: BLE001 - best effort at shutdown
-                pass
-        self._session = self._images = self._ctx = None
 
     def stop(self, timeout: float = 30.0) -> None:
         """Cancel any render, free the worker's GL objects on its thread, and end it."""

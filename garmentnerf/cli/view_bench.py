@@ -60,16 +60,15 @@ def _finite(x):
 
 
 def _wait_settled(app, timeout: float) -> bool:
-    """Step UI frames until the worker is idle, the view still and every result drained."""
-    def settled() -> bool:
-        neural = app.neural
-        return neural is None or (neural.worker.idle() and not app._neural_done and not app.quality.moving(app.clock()))
-
+    """Step UI frames until the worker is idle, the view still and every result drained, twice in a
+    row (a still view asks for its full quality in the frame after it settles; the last result then
+    reaches the GPU)."""
+    settled = app.neural_view.settled
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not app.closed:
         app.step()
         if settled():
-            app.step()  # a still view asks for its full quality here; the last result reaches the GPU
+            app.step()
             if settled():
                 return True
         time.sleep(0.005)
@@ -82,8 +81,9 @@ def measure_busy_fps(app, seconds: float) -> dict:
     intervals: list[float] = []
     busy = 0
     frames = 0
-    renders0 = app.neural.stats.renders if app.neural is not None else 0
-    dropped0 = app.neural.stats.dropped if app.neural is not None else 0
+    renderer = app.neural_view.renderer
+    renders0 = renderer.stats.renders if renderer is not None else 0
+    dropped0 = renderer.stats.dropped if renderer is not None else 0
     start = last = time.perf_counter()
     while time.perf_counter() - start < seconds and not app.closed:
         app.controller.orbit(ORBIT_STEP, 0.0)
@@ -93,7 +93,7 @@ def measure_busy_fps(app, seconds: float) -> dict:
         intervals.append(now - last)
         last = now
         frames += 1
-        if app.neural is not None and not app.neural.worker.idle():
+        if renderer is not None and not renderer.worker.idle():
             busy += 1
     elapsed = time.perf_counter() - start
     app.timeline.pause()
@@ -103,29 +103,30 @@ def measure_busy_fps(app, seconds: float) -> dict:
            "frame_ms_max": max(ms) if ms else float("nan"), "goal_fps": 30.0,
            # the App's own split of the last frames: time inside a frame before the swap, and the scene's share
            "work_ms": app.timer.work_ms, "scene_ms": app.timer.scene_ms}
-    if app.neural is not None:
+    if renderer is not None:
         out["worker_busy_fraction"] = busy / frames if frames else float("nan")
-        out["worker_renders"] = app.neural.stats.renders - renders0
-        out["worker_superseded"] = app.neural.stats.dropped - dropped0
+        out["worker_renders"] = renderer.stats.renders - renders0
+        out["worker_superseded"] = renderer.stats.dropped - dropped0
     out["meets_goal"] = bool(out["fps"] >= 30.0)
     return out
 
 
 def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
     """Frames from a palette change to changed garment pixels, per palette entry (1 = next frame)."""
-    if app.neural is None or app.palette is None:
+    view = app.neural_view
+    if view.renderer is None or view.palette is None:
         return {"available": False}
     _wait_settled(app, settle_timeout)
     show_ui = app.show_ui
     app.show_ui = False  # the panels show the palette too: judge the scene only
-    renders0 = app.neural.stats.renders
+    renders0 = view.renderer.stats.renders
     uploads0 = app.scene.palette_layer.uploads
     per_entry = []
     try:
-        for index in range(len(app.palette)):
+        for index in range(len(view.palette)):
             before = app.read_framebuffer()
-            old = app.palette[index].copy()
-            app.set_palette_colour(index, 1.0 - old)
+            old = view.palette[index].copy()
+            view.set_palette_colour(index, 1.0 - old)
             latency = None
             for n in range(1, RECOLOUR_MAX_FRAMES + 1):
                 shot = app.read_framebuffer()
@@ -133,7 +134,7 @@ def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
                 if changed > RECOLOUR_THRESHOLD:
                     latency = n
                     break
-            app.set_palette_colour(index, old)
+            view.set_palette_colour(index, old)
             app.read_framebuffer()
             per_entry.append(latency)
     finally:
@@ -141,19 +142,20 @@ def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
     seen = [x for x in per_entry if x is not None]
     return {"available": True, "latency_frames": max(seen) if seen else None, "per_entry": per_entry,
             "entries_visible": len(seen), "entries": len(per_entry),
-            "worker_renders": app.neural.stats.renders - renders0,
+            "worker_renders": view.renderer.stats.renders - renders0,
             "layer_uploads": app.scene.palette_layer.uploads - uploads0,
             "threshold": RECOLOUR_THRESHOLD, "goal_frames": 1,
-            "meets_goal": bool(seen) and max(seen) <= 1 and app.neural.stats.renders == renders0}
+            "meets_goal": bool(seen) and max(seen) <= 1 and view.renderer.stats.renders == renders0}
 
 
 def measure_presets(app, repeats: int, timeout: float) -> dict:
     """Neural frame time at each quality preset (full quality, dynamic resolution off)."""
-    if app.neural is None:
+    renderer = app.neural_view.renderer
+    if renderer is None:
         return {}
     from garmentnerf.perf.presets import VIEWER_LEVELS, get_render_preset
 
-    q = app.quality
+    q = app.neural_view.quality
     saved = (q.preset, q.dynamic)
     out = {}
     try:
@@ -163,23 +165,23 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
             q.set_preset(name)
             totals, walls, sizes, cached, rendered = [], [], [], [], []
             for _ in range(max(1, repeats)):
-                renders = app.neural.stats.renders
+                renders = renderer.stats.renders
                 app.controller.orbit(2.0, 0.0)  # a new view: one new request at the preset's quality
                 deadline = time.monotonic() + timeout
                 while time.monotonic() < deadline and not app.closed:
                     app.step()
-                    last = app.neural.last
-                    if (app.neural.stats.renders > renders and app.neural.worker.idle() and last is not None
+                    last = renderer.last
+                    if (renderer.stats.renders > renders and renderer.worker.idle() and last is not None
                             and abs(last.quality - quality) < 1e-6):
                         break
-                    if app.neural.stats.errors:
+                    if renderer.stats.errors:
                         break
                     time.sleep(0.005)
-                last = app.neural.last
-                if last is None or app.neural.stats.renders <= renders or abs(last.quality - quality) > 1e-6:
+                last = renderer.last
+                if last is None or renderer.stats.renders <= renders or abs(last.quality - quality) > 1e-6:
                     continue
                 totals.append(float(last.timings.get("total", float("nan"))))
-                walls.append(float(app.neural.stats.last_ms))
+                walls.append(float(renderer.stats.last_ms))
                 sizes.append(list(last.render_size))
                 cached.append(bool(last.cached_frame))
                 rendered.append(last.preset)
@@ -194,24 +196,25 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
 
 def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.0) -> dict:
     """All three measurements on an open ``app`` (see the module docstring); returns the figures."""
-    w, h = app.framebuffer_size
-    result = {"window": [w, h], "gl_renderer": app.gl_renderer, "run": None, "motion": app.motion_name,
-              "neural": app.neural is not None}
-    if app.run_data is not None:
-        result["run"] = str(getattr(app.run_data, "root", getattr(app.run_data, "path", "")) or "")
+    w, h = app.window.framebuffer_size
+    view = app.neural_view
+    result = {"window": [w, h], "gl_renderer": app.window.gl_renderer, "run": None, "motion": app.motion_name,
+              "neural": view.renderer is not None}
+    if view.run is not None:
+        result["run"] = str(getattr(view.run, "root", getattr(view.run, "path", "")) or "")
     for _ in range(3):
         app.step()
-    if app.neural is not None:
+    if view.renderer is not None:
         t0 = time.perf_counter()
         ok = app.wait_for_neural(timeout)
         result["first_neural_frame_s"] = time.perf_counter() - t0
         if not ok:
-            raise RuntimeError(f"no neural frame within {timeout:.0f} s ({app.neural_error() or 'no error'})")
+            raise RuntimeError(f"no neural frame within {timeout:.0f} s ({view.error() or 'no error'})")
     result["ui_busy"] = measure_busy_fps(app, seconds)
     result["recolour"] = measure_recolour(app, timeout)
     result["presets"] = measure_presets(app, repeats, timeout)
-    if app.neural is not None:
-        st = app.neural.stats
+    if view.renderer is not None:
+        st = view.renderer.stats
         result["worker"] = {"renders": st.renders, "superseded": st.dropped, "errors": st.errors,
                             "last_error": st.last_error}
     return result

@@ -101,9 +101,9 @@ def import_viewer(module: str = "app"):
 
 
 def run_view(args: argparse.Namespace) -> int:
-    export = import_viewer("export")
-    size = export.parse_size(args.size, "--size")
-    snapshot_size = export.parse_size(args.snapshot_size, "--snapshot-size")
+    export_jobs = import_viewer("export_jobs")
+    size = export_jobs.parse_size(args.size, "--size")
+    snapshot_size = export_jobs.parse_size(args.snapshot_size, "--snapshot-size")
     if args.msaa is not None and args.msaa < 0:
         raise ValueError(f"--msaa must be >= 0, got {args.msaa}")
     if not (0.25 <= args.render_scale <= 1.0):
@@ -162,11 +162,11 @@ def run_view(args: argparse.Namespace) -> int:
         frames = app.run()
         if app.max_frames is not None:
             t = app.timer
-            w, h = app.framebuffer_size
+            w, h = app.window.framebuffer_size
             print(f"viewer: {frames} frames, UI {t.fps:.1f} fps ({t.interval_ms:.1f} ms/frame, "
-                  f"work {t.work_ms:.1f} ms, scene {t.scene_ms:.1f} ms) at {w}x{h} on {app.gl_renderer}")
-            if app.neural is not None:
-                st, n = app.neural.stats, app.neural_stats
+                  f"work {t.work_ms:.1f} ms, scene {t.scene_ms:.1f} ms) at {w}x{h} on {app.window.gl_renderer}")
+            if app.neural_view.renderer is not None:
+                st, n = app.neural_view.renderer.stats, app.neural_view.last_result
                 last = f", last {n['timings'].get('render_total', 0):.0f} ms at quality {n['quality']:.2f}" if n else ""
                 print(f"viewer: {st.renders} neural frame(s){last}; errors {st.errors}"
                       + (f" ({st.last_error})" if st.last_error else ""))

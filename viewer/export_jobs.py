@@ -1,38 +1,28 @@
-"""Exports that take time, off the UI thread: neural snapshots and mp4 videos.
+"""What an export is: sizes and file names, the never-overwriting writers, the export settings, the
+frame plans and one job's progress. Pure logic and files, no GL and no threads of its own: the
+exports are *run* by :mod:`~garmentnerf.viewer.exporting`.
 
-One render path
-    A neural frame is rendered exactly as ``garmentnerf render`` renders it:
-    :meth:`RenderSession.render_image` (:meth:`~garmentnerf.render.session.RenderSession.render`
-    then :meth:`~garmentnerf.render.session.NeuralFrame.composite` with the palette and the model's
-    background) and :func:`garmentnerf.render.video.to_uint8`. A viewer export therefore equals the
-    headless command's output for the same frame, camera, palette and quality. It is the
-    network's image only: the floor, the rasterised body overlay and the window's preview quality
-    are viewer aids and are not in it. Body-only exports (no run loaded, or the "body" view mode)
-    draw the viewer's GL scene (floor, body) instead.
-
-Threads
-    :class:`Exporter` owns one thread. Made lazily *on that thread*, it has its own headless GL
-    context, :class:`~garmentnerf.render.session.RenderSession` (neural jobs) and
-    :class:`~garmentnerf.viewer.scene_gl.SceneRenderer` (body-only videos). It is deliberately
-    separate from the interactive :class:`~garmentnerf.viewer.worker.NeuralRenderer`: a session
-    must only be used from one thread, and the preview's coalescing (a newer view cancels the
-    render in flight) must never cancel an export. One job runs at a time; the UI thread only reads
-    an :class:`ExportJob`'s progress and may cancel it, so the window keeps drawing.
+Files
+    Snapshot and video names come from the motion and the frame (range) (:func:`snapshot_name`,
+    :func:`video_name`). Files are written atomically (a temporary file renamed into place) and never
+    replace an existing file: a taken name gets the next free ``_001``, ``_002`` ... suffix
+    (:func:`write_png`, :func:`open_video`).
 
 Plans
     A job renders a list of ``(body frame, camera)`` pairs built on the UI thread from a *copy* of
     the window's orbit controller (:func:`plan_turntable`, :func:`plan_range`): the export shows the
     view as it was when it started, whatever the user does meanwhile.
 
-Cancel
-    :meth:`ExportJob.cancel` is polled between chunks of samples (the session's ``should_cancel``)
-    and between frames. A cancelled video is aborted (:meth:`VideoWriter.abort` deletes its
-    temporary file), a cancelled snapshot writes nothing: no partial file is ever left.
+Jobs
+    An :class:`ExportJob` is shared by the UI thread (reads :meth:`~ExportJob.progress`, may
+    :meth:`~ExportJob.cancel`) and the export thread (sets the progress under a lock). Cancel is
+    polled between chunks of samples and between frames; a cancelled job leaves no file.
 """
 
 from __future__ import annotations
 
 import copy
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -41,8 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from garmentnerf.viewer.export import check_size, write_png
+from garmentnerf.io_utils import atomic_write_path, next_free_path
 
+#: Largest image side we accept (GL limits may be lower; the renderer checks those).
+MAX_SIDE = 16384
 #: Export modes: label per key, in menu order.
 EXPORT_MODES = {"turntable": "Turntable", "range": "Timeline range"}
 #: Render quality limits of exports (fraction of the training pixel density, as ``render --quality``).
@@ -58,6 +50,78 @@ Plan = list[tuple[int, object]]
 
 class ExportCancelled(Exception):
     """Raised on the export thread when the job was cancelled (between frames or chunks)."""
+
+
+# ---- sizes, names and files --------------------------------------------------------------------------
+_SIZE = re.compile(r"^\s*(\d+)\s*[xX*]\s*(\d+)\s*$")
+
+
+def parse_size(text: str, what: str = "size") -> tuple[int, int]:
+    """``"1280x800"`` -> (1280, 800); raises ValueError with a one-line message."""
+    m = _SIZE.match(str(text))
+    if not m:
+        raise ValueError(f"{what} must look like WIDTHxHEIGHT (e.g. 1280x800), got '{text}'")
+    w, h = int(m.group(1)), int(m.group(2))
+    check_size(w, h, what)
+    return w, h
+
+
+def check_size(width: int, height: int, what: str = "size") -> None:
+    """ValueError (one line) unless 1 <= width, height <= :data:`MAX_SIDE`."""
+    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
+        raise ValueError(f"{what} {width}x{height} is out of range (1..{MAX_SIDE} per side)")
+
+
+def _safe_name(text: str, fallback: str) -> str:
+    """``text`` with characters unsafe in file names replaced by ``-`` (``fallback`` when nothing is left)."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-.") or fallback
+
+
+def snapshot_name(motion: str, frame: int) -> str:
+    """File name for a snapshot of ``motion`` at ``frame`` (characters unsafe in file names replaced)."""
+    return f"{_safe_name(Path(str(motion)).stem or 'body', 'body')}_f{int(frame):04d}.png"
+
+
+def video_name(motion: str, label: str) -> str:
+    """File name of a video export, e.g. ``walk_turntable.mp4`` or ``walk_f0003-0010.mp4``."""
+    return f"{_safe_name(Path(str(motion)).stem or 'body', 'body')}_{_safe_name(str(label), 'video')}.mp4"
+
+
+def write_png(image: np.ndarray, path: str | Path, attempts: int = 20) -> Path:
+    """Write (H, W, 3|4) uint8 ``image`` to ``path`` or, if taken, the next free numbered name.
+
+    Never overwrites: the final rename is a hard link that fails if the name appeared meanwhile
+    (another process snapshotting into the same folder), in which case the next free name is tried.
+    Returns the path written.
+    """
+    from PIL import Image
+
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise ValueError(f"snapshot image must be (H, W, 3|4) uint8, got {image.dtype} {image.shape}")
+    pil = Image.fromarray(image)
+    path = Path(path)
+    for _ in range(attempts):
+        target = next_free_path(path)
+        try:
+            with atomic_write_path(target, overwrite=False) as tmp:
+                pil.save(tmp, format="PNG")
+            return target
+        except FileExistsError:
+            continue  # somebody took the name between next_free_path and the link: try the next one
+    raise FileExistsError(f"{path}: could not find a free snapshot name after {attempts} attempts")
+
+
+def open_video(path: Path, fps: float, attempts: int = 20):
+    """A :class:`VideoWriter` on ``path`` or, if taken, the next free numbered name (never replaces)."""
+    from garmentnerf.render.video import VideoWriter
+
+    for _ in range(attempts):
+        try:
+            return VideoWriter(next_free_path(path), fps)
+        except FileExistsError:
+            continue  # the name appeared between next_free_path and the check: try the next one
+    raise FileExistsError(f"{path}: could not find a free video name after {attempts} attempts")
 
 
 # ---- settings and plans (UI thread, pure) ------------------------------------------------------------
@@ -289,209 +353,3 @@ def format_seconds(seconds: float | None) -> str:
         return "--"
     s = int(round(seconds))
     return f"{s} s" if s < 60 else f"{s // 60}:{s % 60:02d}"
-
-
-# ---- the export thread -------------------------------------------------------------------------------
-class Exporter:
-    """Runs :class:`ExportJob` s one at a time on its own thread (see the module docstring).
-
-    Args:
-        run: a :class:`~garmentnerf.train.run.LoadedRun` for neural jobs (None: body-only jobs only).
-    """
-
-    def __init__(self, run=None, name: str = "garmentnerf-export") -> None:
-        self.run = run
-        self._cond = threading.Condition()
-        self._queued: ExportJob | None = None
-        self.current: ExportJob | None = None
-        self._stop = False
-        # made and freed on the export thread only
-        self._ctx = None
-        self._session = None
-        self._session_motion = None
-        self._scene = None
-        self._jobs_started = 0
-        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
-        self._thread.start()
-
-    @property
-    def busy(self) -> bool:
-        job = self.current
-        return job is not None and not job.finished
-
-    def submit(self, job: ExportJob) -> ExportJob:
-        """Queue ``job``; RuntimeError while another job is queued or running (one at a time)."""
-        if job.source == "neural" and self.run is None:
-            raise ValueError("a neural export needs a run (garmentnerf view --run DIR)")
-        with self._cond:
-            if self._stop:
-                raise RuntimeError("the exporter is closed")
-            if self.busy:
-                what = "a snapshot" if self.current.kind == "snapshot" else "an export"
-                raise RuntimeError(f"{what} is still running: wait for it or cancel it")
-            self._queued = self.current = job
-            self._cond.notify()
-        return job
-
-    def cancel(self) -> None:
-        job = self.current
-        if job is not None:
-            job.cancel()
-
-    def close(self, timeout: float = 30.0) -> None:
-        """Cancel any job, free the thread's GL objects (on it) and end it."""
-        self.cancel()
-        with self._cond:
-            self._stop = True
-            self._cond.notify()
-        self._thread.join(timeout)
-
-    # ---- the thread --------------------------------------------------------------------------
-    def _loop(self) -> None:
-        try:
-            while True:
-                with self._cond:
-                    while self._queued is None and not self._stop:
-                        self._cond.wait()
-                    if self._stop:
-                        if self._queued is not None:
-                            self._queued._finish("cancelled")
-                        return
-                    job, self._queued = self._queued, None
-                self._run(job)
-        finally:
-            self._release()
-
-    def _run(self, job: ExportJob) -> None:
-        from garmentnerf.model.pipeline import RenderCancelled
-
-        job._start(job.clock())
-        self._jobs_started += 1
-        try:
-            render = self._frame_renderer(job)
-            path = self._run_snapshot(job, render) if job.kind == "snapshot" else self._run_video(job, render)
-        except (ExportCancelled, RenderCancelled):
-            job._finish("cancelled")
-        except BaseException as exc:  # noqa: BLE001 - a failed export is shown in the window, never crashes it
-            job._finish("failed", error=" ".join(f"{type(exc).__name__}: {exc}".split()))
-            if not isinstance(exc, Exception):
-                raise  # SystemExit and the like end the thread, but the job is not left "running"
-        else:
-            job._finish("done", path)
-
-    @staticmethod
-    def _run_snapshot(job: ExportJob, render) -> Path:
-        frame, camera = job.plan[0]
-        image = render(frame, camera)
-        job.check_cancel()  # a cancel during the last chunk still writes nothing
-        job.target = job.path
-        path = write_png(image, job.path)
-        job._frame_done(job.clock())
-        return path
-
-    @staticmethod
-    def _run_video(job: ExportJob, render) -> Path:
-        writer = _open_video(job.path, job.fps)
-        job.target = writer.path
-        try:
-            for frame, camera in job.plan:
-                job.check_cancel()
-                writer.append(render(frame, camera))
-                job._frame_done(job.clock())
-            job.check_cancel()
-            path = writer.close()
-        except BaseException:
-            writer.abort()  # deletes the temporary file: a cancelled or failed export leaves nothing
-            raise
-        if path is None:
-            raise RuntimeError("no frame was written")
-        return path
-
-    # ---- renderers (export thread) -----------------------------------------------------------
-    def _frame_renderer(self, job: ExportJob) -> Callable[[int, object], np.ndarray]:
-        """``render(frame, camera) -> (H, W, 3) uint8`` for ``job``'s source."""
-        return self._neural_renderer(job) if job.source == "neural" else self._body_renderer(job)
-
-    def _neural_renderer(self, job: ExportJob):
-        from garmentnerf.render.video import to_uint8
-
-        session = self._neural_session(job.motion)
-
-        def render(frame: int, camera) -> np.ndarray:
-            # the headless command's path: RenderSession.render + NeuralFrame.composite, then to_uint8
-            image = session.render_image(frame, camera, job.palette, job.background, job.quality,
-                                         should_cancel=job.cancel_requested)
-            return to_uint8(image)
-
-        return render
-
-    def _body_renderer(self, job: ExportJob):
-        scene = self._body_scene()
-        options = job.scene_options
-        scene.floor.visible = bool(options.get("floor", True))
-        scene.floor.show_lines = bool(options.get("grid", True))
-        scene.body.visible = bool(options.get("body", True))
-        samples = int(options.get("samples", scene.snapshot_samples))
-        seq, serial = job.sequence, self._jobs_started
-
-        def render(frame: int, camera) -> np.ndarray:
-            scene.set_body((serial, frame), seq.frame(frame), seq.faces, seq.centers[frame])
-            return scene.render_image(camera, samples=samples)
-
-        return render
-
-    def _gl_context(self):
-        if self._ctx is None:
-            from garmentnerf.gl.context import create_context
-
-            self._ctx = create_context(headless=True)  # this thread's own context, never the window's
-        return self._ctx
-
-    def _neural_session(self, motion):
-        if self._session is None:
-            from garmentnerf.render.session import RenderSession
-
-            self._session = RenderSession(self.run, self._gl_context(), motion)
-            self._session_motion = motion
-        elif motion != self._session_motion:
-            self._session.set_motion(motion)
-            self._session_motion = motion
-        return self._session
-
-    def _body_scene(self):
-        if self._scene is None:
-            from garmentnerf.viewer.scene_gl import SceneRenderer
-
-            self._scene = SceneRenderer(self._gl_context(), samples=0)
-        return self._scene
-
-    def _release(self) -> None:
-        for obj in (self._session, self._scene):
-            if obj is not None:
-                try:
-                    (obj.close if obj is self._session else obj.release)()
-                except Exception:  # noqa: BLE001 - best effort at shutdown
-                    pass
-        if self._ctx is not None:
-            try:
-                self._ctx.release()
-            except Exception:  # noqa: BLE001
-                pass
-        self._session = self._scene = self._ctx = None
-
-
-def _open_video(path: Path, fps: float, attempts: int = 20):
-    """A :class:`VideoWriter` on ``path`` or, if taken, the next free numbered name (never replaces)."""
-    from garmentnerf.io_utils import next_free_path
-    from garmentnerf.render.video import VideoWriter
-
-    for _ in range(attempts):
-        try:
-            return VideoWriter(next_free_path(path), fps)
-        except FileExistsError:
-            continue  # the name appeared between next_free_path and the check: try the next one
-    raise FileExistsError(f"{path}: could not find a free video name after {attempts} attempts")
-
-
-__all__ = ["EXPORT_MODES", "ExportSettings", "ExportJob", "ExportProgress", "Exporter", "ExportCancelled",
-           "plan_turntable", "plan_range", "format_seconds"]

@@ -1,0 +1,166 @@
+"""The control panel (top left): motion, camera, display, neural render, palette, snapshot, export.
+
+Each section reads the app's state and changes it only through actions (methods of the app, its
+neural view, its exports) or the panel rows the renderables draw themselves (``gui(imgui)``);
+never through GL. Sizes are multiples of the font size, so the layout follows the content scale.
+"""
+
+from __future__ import annotations
+
+from garmentnerf.viewer.camera import VIEW_DIRECTIONS
+from garmentnerf.viewer.export_panel import ERROR_COLOUR, export_section, snapshot_section
+from garmentnerf.viewer.gui_libs import imgui
+from garmentnerf.viewer.neural_view import GROUND_TRUTH_MODES, VIEW_MODES
+from garmentnerf.viewer.palette_layer import MAP_VIEWS
+
+_PANEL_FLAGS = imgui.WindowFlags_.no_saved_settings
+
+
+def draw_controls(app) -> tuple[float, float, float, float] | None:
+    """The panel; returns the window-unit rect (x0, y0, x1, y1) it covers, None while collapsed."""
+    em = imgui.get_font_size()
+    imgui.set_next_window_pos(imgui.ImVec2(0.6 * em, 0.6 * em), imgui.Cond_.first_use_ever)
+    imgui.set_next_window_size(imgui.ImVec2(20 * em, 0.0), imgui.Cond_.first_use_ever)
+    imgui.set_next_window_bg_alpha(0.88)
+    expanded, _ = imgui.begin("garmentnerf", None, _PANEL_FLAGS)
+    covered = None
+    if expanded:
+        pos, size = imgui.get_window_pos(), imgui.get_window_size()
+        covered = (pos.x, pos.y, pos.x + size.x, pos.y + size.y)
+        _motion_section(app)
+        _camera_section(app, em)
+        _display_section(app)
+        _neural_section(app, em)
+        _palette_section(app)
+        snapshot_section(app, em)
+        export_section(app, em)
+        imgui.separator()
+        imgui.text_disabled("H or F1: shortcuts and mouse help")
+    imgui.end()
+    return covered
+
+
+def _motion_section(app) -> None:
+    if not imgui.collapsing_header("Motion", imgui.TreeNodeFlags_.default_open):
+        return
+    names = app.motions.names(app.motion_name)
+    current = names.index(app.motion_name) if app.motion_name in names else 0
+    imgui.set_next_item_width(-1.0)
+    changed, index = imgui.combo("##motion", current, app.motions.labels(names))
+    if changed and names[index] != app.motion_name:
+        app.load_motion(names[index])
+    loading = app.motions.loading
+    if loading:
+        imgui.text_disabled(f"loading {loading} ...")
+    seq = app.sequence
+    imgui.text(f"{seq.name}: {seq.num_frames} frames at {seq.fps:g} fps")
+    imgui.text_disabled(f"body shape: {app.shape_label}, {seq.num_vertices} vertices")
+
+
+def _camera_section(app, em: float) -> None:
+    if not imgui.collapsing_header("Camera", imgui.TreeNodeFlags_.default_open):
+        return
+    cam = app.controller
+    for i, name in enumerate(VIEW_DIRECTIONS):
+        if i:
+            imgui.same_line()
+        if imgui.button(name.capitalize()):
+            app.do(f"camera_{name}")
+    imgui.same_line()
+    if imgui.button("Reset"):
+        app.do("reset_camera")
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Azimuth", cam.azimuth, -180.0, 180.0, "%.0f deg")
+    if changed:
+        cam.azimuth = value
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Elevation", cam.elevation, -cam.max_elevation, cam.max_elevation, "%.0f deg")
+    if changed:
+        cam.elevation = value
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Distance", cam.distance, cam.min_distance, cam.max_distance, "%.2f m",
+                                        imgui.SliderFlags_.logarithmic)
+    if changed:
+        cam.set_distance(value)
+    imgui.set_next_item_width(-6 * em)
+    changed, value = imgui.slider_float("Field of view", cam.fov_y, 10.0, 90.0, "%.0f deg")
+    if changed:
+        cam.fov_y = value
+    changed, follow = imgui.checkbox("Follow the body (T)", cam.follow)
+    if changed:
+        app.set_follow(follow)
+
+
+def _display_section(app) -> None:
+    if not imgui.collapsing_header("Display"):
+        return
+    app.scene.floor.gui(imgui)
+    app.scene.body.gui(imgui)
+    changed, scale = imgui.slider_float("Render scale", app.render_scale, 0.25, 1.0, "%.2f")
+    if changed:
+        app.set_render_scale(scale)
+
+
+def _neural_section(app, em: float) -> None:
+    view = app.neural_view
+    if view.run is None or not imgui.collapsing_header("Neural render", imgui.TreeNodeFlags_.default_open):
+        return
+    from garmentnerf.perf.presets import VIEWER_LEVELS
+
+    _combo(em, "View (V)", list(VIEW_MODES), view.mode, view.set_mode, labels=list(VIEW_MODES.values()))
+    if view.mode == "maps":
+        _combo(em, "Map", list(MAP_VIEWS), app.scene.palette_layer.map_view, view.set_map_view)
+    if view.mode == "neural":
+        changed, on = imgui.checkbox("Rasterised body too (by depth)", view.body_with_neural)
+        if changed:
+            view.set_body_with_neural(on)
+    names = view.run.scene.camera_names() if view.run.scene is not None else []
+    if names and view.mode in GROUND_TRUTH_MODES:
+        _combo(em, "Scene camera", names, view.gt_camera if view.gt_camera in names else names[0], view.set_gt_camera)
+        if not view.ground_truth_available():
+            imgui.text_disabled("no ground truth: pick a scene sequence")
+    q = view.quality
+    _combo(em, "Quality", list(VIEWER_LEVELS), q.preset, q.set_preset)
+    _, q.dynamic = imgui.checkbox("Coarser while moving", q.dynamic)
+    status = view.renderer.cache_status() if view.renderer is not None else None
+    if status is not None:
+        imgui.set_next_item_width(-6 * em)
+        changed, mb = imgui.slider_float("Frame cache", status["budget_bytes"] / 2**20, 0.0, 4096.0, "%.0f MiB",
+                                         imgui.SliderFlags_.logarithmic)
+        if changed:
+            view.set_cache_mb(mb)
+        imgui.text_disabled(f"{len(status['ready'])} / {status['frames']} frames ready, "
+                            f"{status['bytes'] / 2**20:.0f} MiB (half precision)")
+    error = view.error()
+    if error:
+        imgui.text_colored(imgui.ImVec4(*ERROR_COLOUR), "render failed:")
+        imgui.text_wrapped(error)
+
+
+def _combo(em: float, label: str, keys: list, current, choose, labels: list | None = None) -> None:
+    """A combo box of ``keys`` (shown as ``labels``) with ``current`` selected; ``choose(key)`` on a change."""
+    imgui.set_next_item_width(-6 * em)
+    changed, index = imgui.combo(label, keys.index(current), labels or [str(k) for k in keys])
+    if changed:
+        choose(keys[index])
+
+
+def _palette_section(app) -> None:
+    view = app.neural_view
+    if not imgui.collapsing_header("Garment palette", imgui.TreeNodeFlags_.default_open if view.palette is not None
+                                   else 0):
+        return
+    if view.palette is None:
+        imgui.text_wrapped("No garment model loaded (body only). Open a run with garmentnerf view --run DIR "
+                           "to recolour its neural garment.")
+        return
+    names = ["Garment", "Body / other"] + [f"Colour {i}" for i in range(2, len(view.palette))]
+    flags = imgui.ColorEditFlags_.float | imgui.ColorEditFlags_.display_hex
+    for i in range(len(view.palette)):
+        changed, col = imgui.color_edit3(names[i], [float(c) for c in view.palette[i]], flags)
+        if changed:
+            view.set_palette_colour(i, col[:3])
+    if imgui.button("Reset to learned palette"):
+        view.reset_palette()
+    imgui.text_disabled("recolouring only changes a shader uniform")
+

@@ -1,0 +1,209 @@
+"""The neural view: what the window's neural layer shows, and asking the render worker for it.
+
+:class:`NeuralView` owns the view mode (:data:`VIEW_MODES`), the palette being edited (the learned
+one until changed), the scene camera whose ground truth is shown, the quality controller, the
+:class:`~garmentnerf.viewer.worker.NeuralRenderer` and its result sink. Per UI frame the app calls
+:meth:`NeuralView.update`: finished renders are drained into the statistics and the quality
+controller, and when the view, the frame or the quality changed the newest request goes to the
+worker (which coalesces them). Results reach the GL thread through the palette layer's thread-safe
+``submit``; the torch work never runs on the UI thread.
+
+Modes: ``neural`` (the network's image, composited into the scene; optionally with the rasterised
+body by depth), ``ground_truth``, ``side_by_side`` (network | ground truth, fitted beside the
+panels), ``difference``, ``body`` (the rasterised body only, no neural layer) and ``maps`` (the raw
+decomposed maps). The ground-truth modes render the chosen scene camera's view, and only exist for
+the run scene's sequences. Without a run only ``body`` is available.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+
+from garmentnerf.viewer.palette_layer import MAP_VIEWS
+from garmentnerf.viewer.quality import QualityController
+
+#: View modes: label per key, in menu order.
+VIEW_MODES = {"neural": "Neural render", "ground_truth": "Ground truth", "side_by_side": "Side by side",
+              "difference": "Difference", "body": "Body only", "maps": "Maps"}
+#: View modes that show the ground truth (and so render the scene camera's view).
+GROUND_TRUTH_MODES = ("ground_truth", "side_by_side", "difference")
+
+
+class NeuralView:
+    """See the module docstring.
+
+    Args:
+        scene: the window's :class:`~garmentnerf.viewer.scene_gl.SceneRenderer` (its palette layer and body).
+        run: a :class:`~garmentnerf.train.run.LoadedRun`, or None (body only).
+        motion: the motion spec the worker's session renders (a scene sequence or motion name).
+        status: shows one line on the window's status line.
+        clock: seconds (the quality controller's time base).
+    """
+
+    def __init__(self, scene, run, motion, status: Callable[[str], None], clock: Callable[[], float]) -> None:
+        self.scene, self.run, self.motion = scene, run, motion
+        self._status, self._clock = status, clock
+        self.mode = "neural" if run is not None else "body"
+        self.quality = QualityController()
+        self.body_with_neural = False
+        self.learned_palette: np.ndarray | None = None  # (P, 3) in [0, 1]
+        self.palette: np.ndarray | None = None          # (P, 3): what the shader composes with
+        self.gt_camera: str | None = None
+        self.last_result: dict = {}                     # the newest result's figures (overlay, stats hook)
+        self.results: deque = deque(maxlen=64)          # the result sink: worker thread -> UI thread
+        self.renderer = None                            # the NeuralRenderer (None without a run)
+        self._last_request = None
+        self._clip_serial = 0
+        if run is not None:
+            self._start()
+
+    def _start(self) -> None:
+        from garmentnerf.viewer.worker import NeuralRenderer
+
+        run, layer = self.run, self.scene.palette_layer
+        self.learned_palette = run.palette().detach().cpu().numpy().astype(np.float32)
+        self.palette = self.learned_palette.copy()
+        layer.set_palette(self.palette)
+        layer.background = tuple(float(c) for c in run.config.background)
+        if run.scene is not None:
+            names = run.scene.camera_names("train") or run.scene.camera_names()
+            self.gt_camera = names[0] if names else None
+        self.set_mode(self.mode)
+        self.renderer = NeuralRenderer(run, self._sink, self.motion)
+
+    def _sink(self, result, request) -> None:
+        """Worker thread: hand the maps to the layer (thread-safe) and queue the result for the UI."""
+        layer = self.scene.palette_layer
+        layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality))
+        if result.ground_truth is not None:
+            layer.submit_ground_truth(result.ground_truth)
+        self.results.append(result)
+
+    # ---- actions ----------------------------------------------------------------------------------
+    def ground_truth_available(self) -> bool:
+        run = self.run
+        return (run is not None and run.scene is not None and self.gt_camera is not None
+                and self.motion in run.scene.sequences)
+
+    def set_mode(self, mode: str) -> None:
+        """Show ``mode`` (a key of :data:`VIEW_MODES`; without a run only ``body``, said on the status line)."""
+        if mode not in VIEW_MODES:
+            raise ValueError(f"unknown view mode '{mode}' (known: {', '.join(VIEW_MODES)})")
+        if self.run is None and mode != "body":
+            self._status("no run loaded: body only (open one with garmentnerf view --run DIR)")
+            mode = "body"
+        self.mode = mode
+        layer = self.scene.palette_layer
+        layer.visible = mode != "body"
+        layer.side_by_side = mode == "side_by_side"
+        layer.mode = mode if mode in ("ground_truth", "difference", "maps") else "neural"
+        layer.use_depth = mode == "neural" and self.body_with_neural
+        self.scene.body.visible = mode == "body" or (mode == "neural" and self.body_with_neural)
+        if mode in GROUND_TRUTH_MODES and not self.ground_truth_available():
+            self._status("no ground truth for this motion (only the run scene's sequences have it)")
+
+    def next_mode(self) -> None:
+        modes = list(VIEW_MODES)
+        self.set_mode(modes[(modes.index(self.mode) + 1) % len(modes)])
+
+    def set_body_with_neural(self, on: bool) -> None:
+        """Draw the rasterised body too, composited with the network's image by depth."""
+        self.body_with_neural = bool(on)
+        self.set_mode(self.mode)
+
+    def set_palette_colour(self, index: int, rgb) -> None:
+        """Change one palette colour (only the shader's uniform changes; nothing re-renders)."""
+        if self.palette is None:
+            return
+        self.palette[index] = np.clip(np.asarray(rgb, dtype=np.float32)[:3], 0.0, 1.0)
+        self.scene.palette_layer.set_palette(self.palette)
+
+    def reset_palette(self) -> None:
+        if self.learned_palette is not None:
+            self.palette = self.learned_palette.copy()
+            self.scene.palette_layer.set_palette(self.palette)
+
+    def set_gt_camera(self, name: str) -> None:
+        """Show the ground truth of scene camera ``name`` (and render the network from it)."""
+        self.gt_camera = name
+
+    def set_map_view(self, name: str) -> None:
+        """What the ``maps`` mode shows: a key of :data:`~garmentnerf.viewer.palette_layer.MAP_VIEWS`."""
+        if name not in MAP_VIEWS:
+            raise ValueError(f"unknown map '{name}' (known: {', '.join(MAP_VIEWS)})")
+        self.scene.palette_layer.map_view = name
+
+    def set_cache_mb(self, megabytes: float) -> None:
+        if self.renderer is not None:
+            self.renderer.set_cache_mb(megabytes)
+
+    def set_motion(self, motion) -> None:
+        """The shown clip changed: the worker's session switches to ``motion`` at the next request."""
+        if self.run is None:
+            return
+        self.motion = motion
+        self._clip_serial += 1
+        self.scene.palette_layer.submit_ground_truth(None)
+
+    # ---- per UI frame -----------------------------------------------------------------------------
+    def update(self, camera, frame: int, playback_meter=None) -> None:
+        """Drain finished renders into the statistics and the quality controller (``playback_meter``:
+        counts them while playing), and request the view of ``camera`` at ``frame`` when it changed."""
+        if self.renderer is None:
+            return
+        while self.results:
+            result = self.results.popleft()
+            if playback_meter is not None:
+                playback_meter.neural_received(result.frame, self._clock())
+            self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
+            self.last_result = {"renders": self.renderer.stats.renders, "quality": result.quality,
+                                "render_size": list(result.render_size), "frame": result.frame,
+                                "cached_frame": result.cached_frame,
+                                "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
+        if self.mode == "body":
+            return
+        gt = self.gt_camera if self.mode in GROUND_TRUTH_MODES and self.ground_truth_available() else None
+        cam = self.run.scene.camera(gt).camera if gt is not None else camera
+        now = self._clock()
+        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height, frame, self.motion,
+               self._clip_serial)
+        self.quality.view_changed(key, now)
+        q = self.quality.quality(now)
+        request_key = (key, q, gt, self.quality.preset)
+        if request_key != self._last_request:
+            from garmentnerf.viewer.worker import NeuralRequest
+
+            self._last_request = request_key
+            self.renderer.request(NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset))
+
+    def busy(self) -> bool:
+        """Whether the worker renders, a result waits to be drained, or the view is still moving."""
+        return self.renderer is not None and not self.settled()
+
+    def settled(self) -> bool:
+        """The worker is idle, every result drained and the view still (True without a run)."""
+        return self.renderer is None or (self.renderer.worker.idle() and not self.results
+                                         and not self.quality.moving(self._clock()))
+
+    @property
+    def has_image(self) -> bool:
+        """Whether a neural frame is on the GPU."""
+        return self.scene.palette_layer.has_image
+
+    def error(self) -> str:
+        return self.renderer.stats.last_error if self.renderer is not None else ""
+
+    def stats(self) -> dict | None:
+        """The worker's figures and the newest result's (the stats hook); None without a run."""
+        if self.renderer is None:
+            return None
+        st = self.renderer.stats
+        return {"renders": st.renders, "dropped": st.dropped, "errors": st.errors, "last_error": st.last_error,
+                "last_ms": st.last_ms, "layer_has_image": self.has_image, **self.last_result}
+
+    def stop(self) -> None:
+        if self.renderer is not None:
+            self.renderer.stop()

@@ -1,0 +1,286 @@
+"""The neural layer: the network's decomposed maps composed with the palette on the GPU.
+
+:class:`PaletteLayer` holds the maps of the newest neural render as textures and composes them with
+the palette in ``shaders/viewer_palette.frag`` (the formula of
+:func:`garmentnerf.model.palette.compose`): recolouring changes a uniform and re-renders nothing.
+It also shows the ground truth, their difference and the raw maps (:data:`PALETTE_MODES`).
+
+How it is drawn is decided once per draw, by :meth:`PaletteLayer.composition`: the same
+:class:`Composition` gives the GL state of its pass (blended by its mask over the scene, optionally
+depth tested against the body; or opaque) and the shader's uniforms, so the two cannot disagree.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from garmentnerf.gl.shaders import build_program
+from garmentnerf.viewer.renderables import PassState, ViewParams
+
+#: View modes of the palette layer (what the neural layer shows).
+PALETTE_MODES = {"neural": 0, "ground_truth": 1, "difference": 2, "maps": 3}
+#: Modes that need the ground-truth image (until it arrives the network's image is drawn).
+NEEDS_GROUND_TRUTH = ("ground_truth", "difference")
+#: What the ``maps`` mode shows.
+MAP_VIEWS = ("mask", "weights", "radiance")
+#: Most palette colours the shader handles.
+MAX_PALETTE = 4
+
+
+def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Decomposed maps (batch dimension dropped, rows top-first) -> (2 + P, H, W, 4) float32 layers
+    for ``shaders/viewer_palette.frag``: [radiance rgb + mask], [weights], [offset_i rgb + 0] ...
+
+    Args:
+        radiance: (3 or 1, H, W); offsets: (P, 3, H, W); weights: (P, H, W); mask: (1, H, W) or (H, W).
+    """
+    radiance = np.asarray(radiance, dtype=np.float32)
+    offsets = np.asarray(offsets, dtype=np.float32)
+    weights = np.asarray(weights, dtype=np.float32)
+    mask = np.asarray(mask, dtype=np.float32).reshape(-1, *weights.shape[-2:])[0]
+    P, H, W = weights.shape
+    if not 1 <= P <= MAX_PALETTE:
+        raise ValueError(f"the viewer's palette shader handles 1..{MAX_PALETTE} colours, got {P}")
+    if offsets.shape != (P, 3, H, W) or radiance.shape[1:] != (H, W) or radiance.shape[0] not in (1, 3):
+        raise ValueError(f"maps disagree: radiance {radiance.shape}, offsets {offsets.shape}, weights {weights.shape}")
+    out = np.zeros((2 + P, H, W, 4), dtype=np.float32)
+    out[0, ..., :3] = np.broadcast_to(radiance, (3, H, W)).transpose(1, 2, 0)
+    out[0, ..., 3] = mask
+    out[1, ..., :P] = weights.transpose(1, 2, 0)
+    out[2:, ..., :3] = offsets.transpose(0, 2, 3, 1)
+    return out
+
+
+def fit_rect(area: tuple[float, float, float, float], vw: float, vh: float,
+             size: tuple[int, int] | None) -> tuple[float, float, float, float]:
+    """NDC rect of an image of ``size`` (W, H) fitted (aspect kept, centred) into the NDC rect
+    ``area`` (x0, y0, x1, y1) of a ``vw`` x ``vh`` pixel viewport; ``area`` itself when ``size`` is None."""
+    if size is None:
+        return area
+    x0, y0, x1, y1 = area
+    s = min(vw * (x1 - x0) / 2.0 / size[0], vh * (y1 - y0) / 2.0 / size[1])
+    hw, hh = size[0] * s / vw, size[1] * s / vh  # half extents in NDC units (2 * px / (2 * v))
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    return (cx - hw, cy - hh, cx + hw, cy + hh)
+
+
+@dataclass(frozen=True)
+class Composition:
+    """How the layer is drawn this frame (see :meth:`PaletteLayer.composition`).
+
+    Attributes:
+        mode: the :data:`PALETTE_MODES` key drawn (the network's image until the ground truth arrives).
+        side_by_side: the network's image and the ground truth beside each other.
+        opaque: the layer covers its rectangles, composed over the layer's background; otherwise it is
+            blended (premultiplied) over the scene by its mask.
+        use_depth: depth tested against the rasterised body with the network's depth.
+    """
+
+    mode: str
+    side_by_side: bool
+    opaque: bool
+    use_depth: bool
+
+    def pass_state(self) -> PassState:
+        return PassState.of(depth_test=self.use_depth, blend=not self.opaque)
+
+
+@dataclass
+class _PaletteMaps:
+    layers: np.ndarray          # (2 + P, h, w, 4) float32, see pack_maps
+    depth: np.ndarray           # (h, w) float32 camera-space z, 0 where empty
+    image_size: tuple[int, int]  # (W, H) of the camera the maps belong to (its aspect is kept)
+    tag: object = None
+
+
+def _texture(ctx: moderngl.Context, size: tuple[int, int], components: int, dtype: str, filter_: int,
+             **kwargs) -> moderngl.Texture:
+    """A clamped (not repeating) texture with ``filter_`` for minification and magnification."""
+    tex = ctx.texture(size, components, dtype=dtype, **kwargs)
+    tex.filter = (filter_, filter_)
+    tex.repeat_x = tex.repeat_y = False
+    return tex
+
+
+class PaletteLayer:
+    """The neural render as decomposed maps, composed with the palette in a fragment shader.
+
+    Thread contract: :meth:`submit` / :meth:`submit_ground_truth` from any thread (numpy only),
+    uploads in :meth:`prepare` on the GL thread. :meth:`set_palette` only sets a uniform:
+    recolouring costs nothing.
+
+    Attributes:
+        mode: key of :data:`PALETTE_MODES`; side_by_side: draw the neural image and the ground truth
+            next to each other (each fitted into half of the view's free area).
+        map_view: what ``maps`` mode shows (:data:`MAP_VIEWS`).
+        use_depth: write the network's depth (composite with the rasterised body by depth); off:
+            drawn over everything by its mask.
+        opaque: compose over :attr:`background` (as compose() does) instead of blending over the scene.
+    """
+
+    def __init__(self, ctx: moderngl.Context) -> None:
+        self.ctx = ctx
+        self.visible = True
+        self.opacity = 1.0
+        self.mode = "neural"
+        self.side_by_side = False
+        self.map_view = "mask"
+        self.use_depth = False
+        self.depth_bias = 0.03
+        self.opaque = False
+        self.background = (0.0, 0.0, 0.0)
+        self.diff_gain = 4.0
+        self.palette = np.full((1, 3), 0.5, dtype=np.float32)
+        self.program = build_program(ctx, "viewer_palette.vert", "viewer_palette.frag")
+        for name, unit in (("u_maps", 0), ("u_gt", 1), ("u_depth", 2)):
+            self.program[name].value = unit
+        self.vao = ctx.vertex_array(self.program, [])
+        self.maps_tex: moderngl.TextureArray | None = None
+        self.depth_tex: moderngl.Texture | None = None
+        self.gt_tex: moderngl.Texture | None = None
+        self.image_size: tuple[int, int] | None = None
+        self.tag: object = None
+        self.uploads = 0
+        self._lock = threading.Lock()
+        self._pending: _PaletteMaps | None = None
+        self._pending_gt: np.ndarray | None = None
+        self._clear_gt = False
+
+    @property
+    def has_image(self) -> bool:
+        return self.maps_tex is not None
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.gt_tex is not None
+
+    @property
+    def palette_size(self) -> int:
+        return 0 if self.maps_tex is None else self.maps_tex.layers - 2
+
+    # ---- inputs (any thread) ---------------------------------------------------------------------
+    def set_palette(self, palette) -> None:
+        """(P, 3) colours in [0, 1] (a uniform; takes effect at the next draw)."""
+        pal = np.asarray(palette, dtype=np.float32).reshape(-1, 3)
+        if not 1 <= pal.shape[0] <= MAX_PALETTE or not np.all(np.isfinite(pal)):
+            raise ValueError(f"palette must be (P, 3) finite with 1 <= P <= {MAX_PALETTE}, got {pal.shape}")
+        self.palette = np.clip(pal, 0.0, 1.0)
+
+    def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None) -> None:
+        """Queue maps packed by :func:`pack_maps` with their depth (h, w) and the output size (W, H)."""
+        layers = np.ascontiguousarray(layers, dtype=np.float32)
+        depth = np.ascontiguousarray(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0))
+        if layers.ndim != 4 or layers.shape[-1] != 4 or layers.shape[0] < 3 or depth.shape != layers.shape[1:3]:
+            raise ValueError(f"palette layer needs (2 + P, h, w, 4) maps and (h, w) depth, got {layers.shape} "
+                             f"and {depth.shape}")
+        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag)
+        with self._lock:
+            self._pending = item
+
+    def submit_ground_truth(self, image: np.ndarray | None) -> None:
+        """Queue the ground-truth image (H, W, 3) uint8 or float in [0, 1] (None: none)."""
+        if image is not None:
+            image = np.asarray(image)
+            if image.dtype != np.uint8:
+                image = np.clip(np.rint(np.asarray(image, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+            image = np.ascontiguousarray(image[..., :3])
+        with self._lock:
+            self._pending_gt = image
+            self._clear_gt = image is None
+
+    # ---- GL thread -------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        with self._lock:
+            item, self._pending = self._pending, None
+            gt, self._pending_gt = self._pending_gt, None
+            clear_gt, self._clear_gt = self._clear_gt, False
+        if self.gt_tex is not None and (clear_gt or (gt is not None and self.gt_tex.size != gt.shape[1::-1])):
+            self.gt_tex.release()
+            self.gt_tex = None
+        if gt is not None:
+            if self.gt_tex is None:
+                self.gt_tex = _texture(self.ctx, gt.shape[1::-1], 3, "f1", moderngl.LINEAR, alignment=1)
+            self.gt_tex.write(gt)
+        if item is None:
+            return
+        L, h, w, _ = item.layers.shape
+        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers) != (w, h, L):
+            self._release_maps()
+            self.maps_tex = self.ctx.texture_array((w, h, L), 4, dtype="f4")
+            self.maps_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self.maps_tex.repeat_x = self.maps_tex.repeat_y = False
+            self.depth_tex = _texture(self.ctx, (w, h), 1, "f4", moderngl.NEAREST)
+        self.maps_tex.write(item.layers)
+        self.depth_tex.write(item.depth)
+        self.image_size = item.image_size
+        self.tag = item.tag
+        self.uploads += 1
+
+    def composition(self) -> Composition:
+        """How to draw now: the requested mode, or the network's image while a mode that needs the
+        ground truth has none; opaque in every mode but the plain neural one (and when :attr:`opaque`);
+        depth tested only in the plain neural mode with :attr:`use_depth`."""
+        waiting = self.gt_tex is None and (self.side_by_side or self.mode in NEEDS_GROUND_TRUTH)
+        mode = "neural" if waiting and self.mode in NEEDS_GROUND_TRUTH else self.mode
+        plain = self.mode == "neural" and not self.side_by_side
+        return Composition(mode, self.side_by_side and not waiting, opaque=bool(self.opaque) or not plain,
+                           use_depth=bool(self.use_depth) and plain)
+
+    def pass_state(self) -> PassState:
+        return self.composition().pass_state()
+
+    def draw(self, view: ViewParams) -> None:
+        if not self.visible or self.maps_tex is None:
+            return
+        how = self.composition()
+        self.maps_tex.use(location=0)
+        if self.gt_tex is not None:
+            self.gt_tex.use(location=1)
+        self.depth_tex.use(location=2)
+        vw, vh = float(view.camera.width), float(view.camera.height)
+        if how.side_by_side:
+            x0, y0, x1, y1 = view.free_area
+            middle = 0.5 * (x0 + x1)
+            left = "neural" if how.mode == "ground_truth" else how.mode
+            self._draw_rect(view, how, left, fit_rect((x0, y0, middle, y1), vw, vh, self.image_size))
+            self._draw_rect(view, how, "ground_truth", fit_rect((middle, y0, x1, y1), vw, vh, self.image_size))
+        else:
+            self._draw_rect(view, how, how.mode, fit_rect((-1.0, -1.0, 1.0, 1.0), vw, vh, self.image_size))
+
+    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect) -> None:
+        p = self.program
+        pal = np.zeros((MAX_PALETTE, 3), dtype=np.float32)
+        n = min(self.palette.shape[0], MAX_PALETTE)
+        pal[:n] = self.palette[:n]
+        p["u_palette"].write(pal.tobytes())
+        p["u_palette_size"].value = int(min(n, self.palette_size))
+        p["u_background"].value = tuple(float(c) for c in self.background)
+        p["u_opaque"].value = int(how.opaque)
+        p["u_mode"].value = PALETTE_MODES[mode]
+        p["u_map"].value = MAP_VIEWS.index(self.map_view)
+        p["u_diff_gain"].value = float(self.diff_gain)
+        p["u_opacity"].value = float(self.opacity)
+        p["u_use_depth"].value = int(how.use_depth)
+        p["u_depth_bias"].value = float(self.depth_bias)
+        p["u_near"].value = float(view.camera.near)
+        p["u_far"].value = float(view.camera.far)
+        p["u_rect"].value = tuple(float(v) for v in rect)
+        self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4)
+
+    def _release_maps(self) -> None:
+        for tex in (self.maps_tex, self.depth_tex):
+            if tex is not None:
+                tex.release()
+        self.maps_tex = self.depth_tex = None
+
+    def release(self) -> None:
+        self._release_maps()
+        if self.gt_tex is not None:
+            self.gt_tex.release()
+            self.gt_tex = None
+        self.vao.release()
+        self.program.release()
