@@ -840,7 +840,7 @@ def test_the_scene_is_redrawn_only_when_something_it_shows_changes(app):
     stats = app.scene.stats
 
     def scene_image():  # the 3D scene the window shows (the panels on top change every frame)
-        return app.scene.read(app.scene.window_target(*app.render_size))
+        return app.scene.read(app.scene.window_target(*app.scene.render_size(app.window.framebuffer_size)))
 
     def redraws_after(change) -> int:
         change()

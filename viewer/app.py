@@ -10,14 +10,9 @@ The parts it holds, each in its own module:
 * :class:`~garmentnerf.viewer.sequence.MotionMenu` -- the motions offered, posed in the background;
 * the panels (:mod:`~garmentnerf.viewer.panels`), which change state only through actions.
 
-One UI frame (:meth:`App._frame`): begin the window's frame (a minimised window only advances the
-timeline); hand over what background threads finished (a posed motion, an ended export); imgui's
-frame: shortcuts (:mod:`~garmentnerf.viewer.shortcuts`) and mouse gestures, ignored while imgui
-wants them; the timeline advances by the measured frame time; the panels draw; the scene is
-synchronised and drawn, but only redrawn when its state changed (:meth:`SceneRenderer.render
-<garmentnerf.viewer.scene_gl.SceneRenderer.render>`); imgui on top; swap; the frame's timing goes
-into the stats overlay. Without a frame limit an idle window (paused, no input, the worker idle)
-waits for events instead of drawing.
+One UI frame (:meth:`App._frame`): window frame, background results, input, timeline, panels, scene
+(redrawn only when its state changed), imgui, swap. Without a frame limit an idle window (paused,
+no input, the worker idle) waits for events instead of drawing.
 
 Test hooks: ``max_frames`` (or the environment variable ``GARMENTNERF_VIEWER_FRAMES``) makes
 :meth:`App.run` return after that many frames (waiting, up to :data:`NEURAL_WAIT_SECONDS`, for the
@@ -61,8 +56,6 @@ ENV_STATS = "GARMENTNERF_VIEWER_STATS"
 NEURAL_WAIT_SECONDS = 180.0
 #: Longest UI-frame time the timeline advances by (a stall, e.g. a snapshot, does not jump ahead).
 MAX_STEP_SECONDS = 0.25
-#: Lowest render scale (fraction of the framebuffer size the scene renders at).
-MIN_RENDER_SCALE = 0.25
 
 
 class App:
@@ -120,8 +113,6 @@ class App:
         self.controller.aim_home(sequence.centers)
         self.controller.reset()
         self.show_ui, self.show_help, self.scrubbing, self.goto_frame = True, False, False, 0
-        self.render_scale = 1.0
-        self.set_render_scale(render_scale)
         self.status = StatusLine()
         self.fixed_dt, self.clock = fixed_dt, clock
         self.max_frames = max_frames if max_frames is not None else _env_frames()
@@ -136,7 +127,8 @@ class App:
         # -- the window, its scene and the parts that draw into it -----------------------------------------
         self.window = Window(width, height, f"{title} - {sequence.name}", vsync, visible)
         try:
-            self.scene = SceneRenderer(self.window.ctx, samples=samples, snapshot_samples=snapshot_samples)
+            self.scene = SceneRenderer(self.window.ctx, samples=samples, snapshot_samples=snapshot_samples,
+                                       render_scale=render_scale)
         except BaseException:
             self.window.close()
             raise
@@ -268,7 +260,7 @@ class App:
         fb_w, fb_h = self.window.framebuffer_size
         self._sync_scene()
         camera = self.controller.camera(fb_w, fb_h)
-        rw, rh = self.render_size
+        rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
         self.neural_view.update(camera, self.timeline.frame, self.playback_meter if self.timeline.playing else None)
         target = self.scene.window_target(rw, rh)
@@ -312,18 +304,6 @@ class App:
         """Show ``frame`` (clamped to the clip); playback continues if it was playing."""
         self.timeline.set_frame(frame)
 
-    @property
-    def render_size(self) -> tuple[int, int]:
-        """Size of the scene's render target: the framebuffer size times :attr:`render_scale`."""
-        w, h = self.window.framebuffer_size
-        return max(1, round(w * self.render_scale)), max(1, round(h * self.render_scale))
-
-    def set_render_scale(self, scale: float) -> None:
-        scale = float(scale)
-        if not math.isfinite(scale):
-            raise ValueError(f"render scale must be a number in [{MIN_RENDER_SCALE}, 1], got {scale!r}")
-        self.render_scale = min(1.0, max(MIN_RENDER_SCALE, scale))
-
     def set_follow(self, follow: bool) -> None:
         self.controller.set_follow(follow, self.sequence.centers[self.timeline.frame])
 
@@ -360,10 +340,7 @@ class App:
             job.wait(None if deadline is None else max(0.0, deadline - time.monotonic()))
         if not job.finished:
             raise RuntimeError(f"{job.label} did not finish within {timeout} s")
-        self.exports.report(job)
-        if job.state != "done":
-            raise RuntimeError(job.status_line())
-        return job.written
+        return self.exports.outcome(job)
 
     def wait_for_neural(self, timeout: float = NEURAL_WAIT_SECONDS) -> bool:
         """Keep drawing frames until the first neural frame is on the GPU (or an error, or timeout)."""

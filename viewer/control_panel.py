@@ -12,6 +12,7 @@ from garmentnerf.viewer.export_panel import ERROR_COLOUR, export_section, snapsh
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import GROUND_TRUTH_MODES, VIEW_MODES
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
+from garmentnerf.viewer.scene_gl import MIN_RENDER_SCALE
 
 _PANEL_FLAGS = imgui.WindowFlags_.no_saved_settings
 
@@ -96,9 +97,9 @@ def _display_section(app) -> None:
         return
     app.scene.floor.gui(imgui)
     app.scene.body.gui(imgui)
-    changed, scale = imgui.slider_float("Render scale", app.render_scale, 0.25, 1.0, "%.2f")
+    changed, scale = imgui.slider_float("Render scale", app.scene.render_scale, MIN_RENDER_SCALE, 1.0, "%.2f")
     if changed:
-        app.set_render_scale(scale)
+        app.scene.set_render_scale(scale)
 
 
 def _neural_section(app, em: float) -> None:

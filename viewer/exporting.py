@@ -365,6 +365,14 @@ class Exports:
         else:
             self._status(job.status_line())
 
+    def outcome(self, job: ExportJob) -> Path:
+        """The file a finished ``job`` wrote (reported on the status line); RuntimeError with its
+        status line when it was cancelled or failed."""
+        self.report(job)
+        if job.state != "done":
+            raise RuntimeError(job.status_line())
+        return job.written
+
     def stats(self) -> dict | None:
         """The newest job for the stats hook: kind, state, frames done / total, seconds, file."""
         if self.job is None:

@@ -23,6 +23,7 @@ Redraws
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import moderngl
@@ -40,6 +41,8 @@ __all__ = ["SceneRenderer", "RenderTarget", "SceneStats", "read_image", "scene_s
 
 #: Window/snapshot background (display RGB).
 BACKGROUND = (0.155, 0.165, 0.185)
+#: Lowest render scale of the window's scene (fraction of the framebuffer size).
+MIN_RENDER_SCALE = 0.25
 #: Renderer names (substrings, lower case) of software rasterisers, where MSAA costs too much.
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software", "swiftshader")
 
@@ -126,10 +129,12 @@ class SceneRenderer:
         samples: MSAA samples of the window's render targets (0 or 1: none; None: 4 on a GPU, none on
             a software rasteriser such as llvmpipe, where 4x MSAA triples the frame time).
         snapshot_samples: MSAA samples of off-screen snapshots (quality over speed).
+        render_scale: the window's scene renders at this fraction of the framebuffer size (see
+            :meth:`set_render_scale`); snapshots ignore it.
     """
 
     def __init__(self, ctx: moderngl.Context, samples: int | None = None, background=BACKGROUND,
-                 snapshot_samples: int = 4) -> None:
+                 snapshot_samples: int = 4, render_scale: float = 1.0) -> None:
         self.ctx = ctx
         self.renderer_name = str(ctx.info.get("GL_RENDERER", ""))
         if samples is None:
@@ -137,6 +142,8 @@ class SceneRenderer:
         self.samples = int(samples)
         self.snapshot_samples = int(snapshot_samples)
         self.background = tuple(float(x) for x in background)
+        self.render_scale = 1.0
+        self.set_render_scale(render_scale)
         with current(ctx):
             self.floor = FloorGrid(ctx)
             self.body = BodyMesh(ctx)
@@ -163,6 +170,19 @@ class SceneRenderer:
     def make_target(self, width: int, height: int, samples: int | None = None) -> RenderTarget:
         with current(self.ctx):
             return RenderTarget(self.ctx, width, height, self.samples if samples is None else samples)
+
+    def set_render_scale(self, scale: float) -> None:
+        """Render the window's scene at this fraction of the framebuffer size, clamped to
+        [:data:`MIN_RENDER_SCALE`, 1] (lower is faster on a software rasteriser; the image is stretched)."""
+        scale = float(scale)
+        if not math.isfinite(scale):
+            raise ValueError(f"render scale must be a number in [{MIN_RENDER_SCALE}, 1], got {scale!r}")
+        self.render_scale = min(1.0, max(MIN_RENDER_SCALE, scale))
+
+    def render_size(self, framebuffer_size: tuple[int, int]) -> tuple[int, int]:
+        """(W, H) of the window's render target: the framebuffer size times :attr:`render_scale`."""
+        w, h = framebuffer_size
+        return max(1, round(w * self.render_scale)), max(1, round(h * self.render_scale))
 
     def window_target(self, width: int, height: int) -> RenderTarget:
         """The window's render target (``samples``) at this size: kept while the size stays, remade
