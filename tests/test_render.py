@@ -9,19 +9,11 @@ import pytest
 import torch
 
 from garmentnerf.cli.main import main
-from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.palette import compose
 from garmentnerf.render.cameras import fit_size, orbit_view, parse_camera_spec, turntable
 from garmentnerf.render.colors import build_palette, parse_hex_color, to_hex
 from garmentnerf.render.video import FrameWriter, VideoWriter, count_video_frames
-
-
-def tiny_config() -> ModelConfig:
-    return ModelConfig.cpu_small().replace(
-        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
-        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
-        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
-        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0)
+from garmentnerf.train.settings import tiny_config
 
 
 @pytest.fixture(scope="module")
