@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from garmentnerf.cli.main import main
-from garmentnerf.train.trainer import tiny_config
+from garmentnerf.train.settings import tiny_config
 
 CASES = [
     # --- render -------------------------------------------------------------------------------------

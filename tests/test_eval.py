@@ -29,7 +29,7 @@ def scene(tmp_path_factory, gl_context):
 @pytest.fixture(scope="module")
 def run_dir(scene, tmp_path_factory):
     from garmentnerf.train.run import create_untrained_run
-    from garmentnerf.train.trainer import tiny_config
+    from garmentnerf.train.settings import tiny_config
 
     return create_untrained_run(tmp_path_factory.mktemp("eval_run") / "untrained", scene.root, tiny_config(), seed=0)
 
@@ -361,7 +361,8 @@ def test_report_tiny(scene, tmp_path):
 def test_train_variant_resumes_and_skips(scene, gl_context, tmp_path):
     """An unfinished run is resumed from its checkpoint, a finished one is left alone."""
     from garmentnerf.eval.report import train_variant
-    from garmentnerf.train.trainer import TrainConfig, Trainer, tiny_config
+    from garmentnerf.train.settings import TrainConfig, tiny_config
+    from garmentnerf.train.trainer import Trainer
 
     cfg = tiny_config().replace(use_detail_feature=False, use_dynamic_feature=False)  # no G_img: cheapest
     run = tmp_path / "runs" / "no_features"

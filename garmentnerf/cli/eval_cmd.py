@@ -9,11 +9,13 @@ import argparse
 import json
 from pathlib import Path
 
+from garmentnerf.cli.common import add_device_arg, add_scene_override_arg
+
 
 def register(sub) -> None:
     p = sub.add_parser(
         "eval", help="evaluate a run on a scene split with the paper's metrics",
-        description="Render a run's views of a scene split at the model's image resolution and compare them with "
+        description="Render a run's views of a scene split and compare them with "
                     "the ground truth: PSNR, SSIM, LPIPS (needs $GARMENTNERF_LPIPS_ALEXNET, else reported "
                     "unavailable), shift-tolerant LPIPS and tOF. Splits: seen (training motion and cameras; "
                     "subsampled by default to 4 cameras x 30 frames), unseen_view (training motion, held-out "
@@ -24,7 +26,7 @@ def register(sub) -> None:
     p.add_argument("--run", required=True, metavar="DIR", help="run folder (run.json + model.safetensors)")
     # not argparse choices: an unknown split is a one-line error like every other bad input
     p.add_argument("--split", required=True, metavar="SPLIT", help="seen, unseen_view or unseen_motion")
-    p.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+    add_scene_override_arg(p)
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="frames A..B-1 of every sequence of the split (A:B, A:, :B or N; default: the split's "
                         "default, see above)")
@@ -44,7 +46,7 @@ def register(sub) -> None:
     p.add_argument("--preset", default="reference", metavar="NAME",
                    help="render preset: reference (the paper's sampling, default), full, balanced or interactive "
                         "(the rows of 'garmentnerf bench --run')")
-    p.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    add_device_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_eval)
 
@@ -79,7 +81,7 @@ def register(sub) -> None:
                    help="frames evaluated in every split (default: each split's default)")
     r.add_argument("--perceptual", default="auto", metavar="LOSS",
                    help="training perceptual loss: auto, stlpips, vgg19 or none (default: auto)")
-    r.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    add_device_arg(r)
     r.add_argument("--seed", type=int, default=0, help="training seed of every variant (default: 0)")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.set_defaults(func=run_report)
@@ -150,7 +152,7 @@ def _int_list(text: str, option: str) -> tuple[int, ...]:
 def run_report(args: argparse.Namespace) -> int:
     from garmentnerf.eval.evaluate import SPLITS, parse_frame_range
     from garmentnerf.eval.report import build_report
-    from garmentnerf.train.trainer import MODEL_PRESETS
+    from garmentnerf.train.settings import MODEL_PRESETS
 
     from garmentnerf.cli.common import check_output_file, parse_device
 

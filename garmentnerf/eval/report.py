@@ -172,7 +172,9 @@ def train_variant(scene_path, run_dir, cfg, cameras=None, *, iterations: int | N
     """
     from garmentnerf.model.config import ModelConfig
     from garmentnerf.train.run import RUN_FILE, read_run_info
-    from garmentnerf.train.trainer import TrainConfig, Trainer, latest_checkpoint
+    from garmentnerf.train.checkpoints import latest_checkpoint
+    from garmentnerf.train.settings import TrainConfig
+    from garmentnerf.train.trainer import Trainer
 
     run_dir = Path(run_dir)
     expected_cfg, gen, total = _expected(cfg, iterations, generator_iterations)
@@ -451,7 +453,7 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     """
     from garmentnerf.gl.context import create_context
     from garmentnerf.train.run import load_run, load_scene
-    from garmentnerf.train.trainer import MODEL_PRESETS, model_config_for
+    from garmentnerf.train.settings import MODEL_PRESETS, model_config_for
 
     t0 = time.perf_counter()
     say = log or (lambda m: print(f"garmentnerf report: {m}", file=sys.stderr))
