@@ -112,6 +112,42 @@ def test_session_caches_frames_and_scales(session):
         session.render(99, cam)
 
 
+def test_character_rect_render_equals_the_whole_frame_inside_it(session):
+    """A culled preset casts rays and decodes only in the character's rectangle: inside it (less the
+    decoder's margin) the maps equal a whole-frame render's, outside it they are empty, and fewer
+    rays are cast."""
+    import dataclasses
+
+    from garmentnerf.perf.presets import CHARACTER_RECT_MARGIN, RENDER_PRESETS
+
+    cam = orbit_view(20.0, width=256, height=192, radius=6.0)  # far: the character is small
+    cropped_preset = RENDER_PRESETS["full"]
+    assert cropped_preset.character_rect
+    whole_preset = dataclasses.replace(cropped_preset, name="full_whole_frame", character_rect=False)
+    whole = session.render(1, cam, quality=2.0, preset=whole_preset)
+    cropped = session.render(1, cam, quality=2.0, preset=cropped_preset)
+    assert whole.render_size == cropped.render_size == (128, 96)
+    up = 2 ** session.config.decoder_upsample_steps
+    assert whole.counts["rays_total"] == cropped.counts["rays_frame"] == (128 // up) * (96 // up)
+    assert 0 < cropped.counts["rays_total"] < 0.6 * whole.counts["rays_total"]
+    from garmentnerf.render.session import padded_render_camera
+
+    padded, _, _ = padded_render_camera(cam, cropped.scale, up)
+    features, _ = session.frame_features(1)
+    rect = session.character_rect(features, padded, up)
+    m = CHARACTER_RECT_MARGIN * up
+    inner = (slice(rect.y0 + m, rect.y1 - m), slice(rect.x0 + m, rect.x1 - m))
+    for a, b in zip((whole.maps.radiance, whole.maps.weights, whole.maps.mask),
+                    (cropped.maps.radiance, cropped.maps.weights, cropped.maps.mask)):
+        assert torch.allclose(a[..., inner[0], inner[1]], b[..., inner[0], inner[1]], atol=1e-5)
+    outside = np.ones(cropped.maps.mask.shape[-2:], bool)
+    outside[rect.slices()] = False
+    assert outside.any() and float(cropped.maps.mask[0, 0].numpy()[outside].max()) == 0.0
+    # the rays the whole frame cast outside the rectangle met no sample: its mask there is the
+    # decoder's empty-space output, not the character
+    assert whole.counts["points_evaluated"] == cropped.counts["points_evaluated"]
+
+
 def test_palette_change_only_moves_garment_weighted_pixels(session):
     nf = session.render(2, orbit_view(0.0, width=64, height=64))
     learned = nf.palette

@@ -178,6 +178,23 @@ class DecomposedMaps:
         """The top-left ``width x height`` of every map (undoes padding on the right and bottom)."""
         return DecomposedMaps(*(x[..., :height, :width] for x in (self.radiance, self.offsets, self.weights, self.mask)))
 
+    def placed(self, x0: int, y0: int, width: int, height: int) -> "DecomposedMaps":
+        """These maps put at ``(x0, y0)`` in maps of ``width x height`` that are empty elsewhere
+        (mask 0, so :func:`compose` gives the background there; radiance and offsets 0, weights
+        uniform)."""
+        h, w = self.mask.shape[-2:]
+        if (x0, y0, w, h) == (0, 0, int(width), int(height)):
+            return self
+
+        def canvas(x, fill):
+            out = x.new_full((*x.shape[:-2], int(height), int(width)), fill)
+            out[..., y0:y0 + h, x0:x0 + w] = x
+            return out
+
+        P = self.weights.shape[1]
+        return DecomposedMaps(canvas(self.radiance, 0.0), canvas(self.offsets, 0.0), canvas(self.weights, 1.0 / P),
+                              canvas(self.mask, 0.0))
+
     def resized(self, width: int, height: int) -> "DecomposedMaps":
         """Every map resampled to ``width x height`` (bilinear, antialiased; a convex combination,
         so the weights still sum to 1 after renormalising, the mask stays in [0, 1] and the

@@ -18,6 +18,9 @@ preset           resolution  samples/ray  sampler                               
 ``interactive``  0.5         0.5 x S      shell + band + occlusion + stop (1e-2)       auto
 ===============  ==========  ===========  ===========================================  =========
 
+The culled presets also render only the character's screen rectangle
+(:attr:`RenderPreset.character_rect`): rays and the decoder run where the sampling box projects.
+
 S is the model's ``cfg.samples_per_ray`` (the sampling it was trained with; the paper: 64), at
 least 4. The resolution scale multiplies the pixel density the model was trained at
 (``cfg.image_resolution`` across the larger image side; ``RenderSession`` calls it ``quality``):
@@ -37,6 +40,12 @@ from garmentnerf.model.height_band import HeightRange, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
 
 SAMPLERS = ("box", "shell")
+
+#: Feature cells around the character's rectangle: the palette decoder's receptive field
+#: (nearest x2 upsampling then 3x3 convolutions: 1.5 feature cells for the default 2 upsamplings,
+#: 2 extra layers and the head) rounded up, so that inside the rectangle the decoder sees what it
+#: sees in a whole-frame render.
+CHARACTER_RECT_MARGIN = 2
 
 
 @dataclass(frozen=True)
@@ -60,6 +69,12 @@ class RenderPreset:
     """Early ray termination: transmittance below which a ray stops (0: never)."""
     occlusion: bool = False
     """Shell sampler only: cut rays just behind their first skin crossing."""
+    character_rect: bool = False
+    """Cast rays and decode only in the screen rectangle of the sampling box (the padded body
+    box, aligned to the decoder's feature grid, plus :data:`CHARACTER_RECT_MARGIN` feature
+    cells); outside it the maps are empty (background). Rays outside that box meet no sample, so
+    this changes nothing but the decoder's output in empty space
+    (:mod:`garmentnerf.render.screen_rect`)."""
     description: str = ""
     """One line for listings."""
 
@@ -131,12 +146,12 @@ class SamplingPlan:
 RENDER_PRESETS: dict[str, RenderPreset] = {p.name: p for p in (
     RenderPreset("reference", 1.0, 1.0, "box", "float32", 0.0,
                  description="the paper's sampling: S stratified samples in the padded body box, every ray that hits it"),
-    RenderPreset("full", 1.0, 1.0, "shell", "float32", 1e-4, occlusion=True,
+    RenderPreset("full", 1.0, 1.0, "shell", "float32", 1e-4, occlusion=True, character_rect=True,
                  description="the reference's samples, minus those outside the shell/height band, behind the skin "
                              "or behind opacity"),
-    RenderPreset("balanced", 0.75, 0.5, "shell", "auto", 1e-3, occlusion=True,
+    RenderPreset("balanced", 0.75, 0.5, "shell", "auto", 1e-3, occlusion=True, character_rect=True,
                  description="3/4 resolution, half the samples, culled"),
-    RenderPreset("interactive", 0.5, 0.5, "shell", "auto", 1e-2, occlusion=True,
+    RenderPreset("interactive", 0.5, 0.5, "shell", "auto", 1e-2, occlusion=True, character_rect=True,
                  description="half resolution, half the samples, culled"),
 )}
 RENDER_PRESET_NAMES = tuple(RENDER_PRESETS)

@@ -64,6 +64,7 @@ import torch
 from garmentnerf.conventions import Camera
 from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
+from garmentnerf.render.screen_rect import PixelRect, box_rect
 
 #: The render preset used when none is named (``garmentnerf render``, snapshots, exports): ``full``,
 #: the reference's samples minus those the culls prove empty (the same PSNR to 0.01 dB on the
@@ -89,7 +90,8 @@ class NeuralFrame:
         cached_frame: whether the frame's features came from the cache.
         preset: the render preset's name.
         counts: ``points_evaluated``, ``points_projected``, ``samples_placed``, ``rays_evaluated``,
-            ``rays_total``, ``rays_terminated`` of the render.
+            ``rays_total`` (cast: the character's rectangle for presets that crop to it),
+            ``rays_terminated`` of the render, and ``rays_frame`` (the whole frame's).
     """
 
     maps: DecomposedMaps
@@ -324,21 +326,42 @@ class RenderSession:
             raise ValueError(f"scale must be > 0, got {scale!r}")
         up = 2 ** self.config.decoder_upsample_steps
         padded, (fw, fh), (wr, hr) = padded_render_camera(camera, s, up)
+        rect = PixelRect(0, 0, padded.width, padded.height)
+        if plan.preset.character_rect:
+            rect = self.character_rect(feats, padded, up)
+        view = padded if rect.area == padded.width * padded.height else padded.cropped(
+            rect.x0, rect.y0, rect.width, rect.height)
         with torch.no_grad():
-            out = self.model.render(feats, padded, feature_size=(fw, fh), should_cancel=should_cancel,
-                                    **plan.render_kwargs())
-        cropped = out.maps.cropped(wr, hr)
-        maps = DecomposedMaps(*(x.detach().to("cpu", torch.float32).contiguous()
-                                for x in (cropped.radiance, cropped.offsets, cropped.weights, cropped.mask)))
-        depth = _camera_depth(out.depth.detach().cpu(), out.opacity.detach().cpu(), padded.resized(fw, fh))
+            out = self.model.render(feats, view, feature_size=(rect.width // up, rect.height // up),
+                                    should_cancel=should_cancel, **plan.render_kwargs())
+        placed = out.maps.detach().placed(rect.x0, rect.y0, padded.width, padded.height).cropped(wr, hr)
+        maps = DecomposedMaps(*(x.to("cpu", torch.float32).contiguous()
+                                for x in (placed.radiance, placed.offsets, placed.weights, placed.mask)))
+        depth = np.zeros((fh, fw), np.float32)
+        depth[rect.y0 // up:rect.y1 // up, rect.x0 // up:rect.x1 // up] = _camera_depth(
+            out.depth.detach().cpu(), out.opacity.detach().cpu(), view.resized(rect.width // up, rect.height // up))
         depth = np.repeat(np.repeat(depth, up, axis=0), up, axis=1)[:hr, :wr]
         timings = dict(out.timings)
         timings["total"] = (time.perf_counter() - t0) * 1e3
         counts = {k: int(getattr(out, k)) for k in ("points_evaluated", "points_projected", "samples_placed",
                                                       "rays_evaluated", "rays_total", "rays_terminated")}
+        counts["rays_frame"] = fw * fh
         return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
                            timings, cached, plan.preset.name, counts)
+
+    def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
+        """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which
+        the frame's sampling box (the body box padded by ``cfg.bbox_padding``, as both samplers pad
+        it) can be seen, grown by :data:`~garmentnerf.perf.presets.CHARACTER_RECT_MARGIN` cells; one
+        cell in the corner when the box is out of view (nothing to render)."""
+        from garmentnerf.perf.presets import CHARACTER_RECT_MARGIN
+
+        box = features.aabb.detach().to("cpu", torch.float64)
+        pad = float(self.config.bbox_padding)
+        box = box + torch.tensor([[-pad], [pad]], dtype=torch.float64)
+        rect = box_rect(camera, box, cell=cell, margin_cells=CHARACTER_RECT_MARGIN)
+        return rect if rect is not None else PixelRect(0, 0, cell, cell)
 
     def render_image(self, frame: int, camera: Camera, palette=None, background=None, quality: float | None = None,
                      **kwargs) -> np.ndarray:
