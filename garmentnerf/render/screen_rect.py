@@ -16,7 +16,7 @@ import torch
 
 from garmentnerf.conventions import Camera, project_points
 
-__all__ = ["PixelRect", "box_rect"]
+__all__ = ["PixelRect", "box_rect", "box_extent"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,29 @@ class PixelRect:
         return slice(self.y0, self.y1), slice(self.x0, self.x1)
 
 
+def _projected_corners(camera: Camera, box) -> np.ndarray | None:
+    """(8, 2) pixel coordinates of the box's corners; None when the projection is unbounded (the
+    camera inside the box, or a corner behind the camera)."""
+    lo, hi = np.asarray(torch.as_tensor(box, dtype=torch.float64).cpu(), dtype=np.float64)
+    centre = camera.center
+    if np.all(centre >= lo) and np.all(centre <= hi):
+        return None
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    uv, depth = project_points(camera, torch.as_tensor(corners, dtype=torch.float64))
+    if bool((depth <= camera.near * 1e-3).any()):
+        return None
+    return uv.numpy()
+
+
+def box_extent(camera: Camera, box: np.ndarray | torch.Tensor) -> float | None:
+    """The larger side, in ``camera``'s pixels, of the box's projection (not clipped to the image):
+    how large the box looks. None when the projection is unbounded."""
+    uv = _projected_corners(camera, box)
+    if uv is None:
+        return None
+    return float(np.max(uv.max(axis=0) - uv.min(axis=0)))
+
+
 def box_rect(camera: Camera, box: np.ndarray | torch.Tensor, *, cell: int = 1, margin_cells: int = 0
              ) -> PixelRect | None:
     """The rectangle of ``camera``'s pixels that can see into an axis-aligned box.
@@ -70,15 +93,9 @@ def box_rect(camera: Camera, box: np.ndarray | torch.Tensor, *, cell: int = 1, m
     if camera.width % cell or camera.height % cell:
         raise ValueError(f"the image ({camera.width}x{camera.height}) is not a multiple of the cell ({cell})")
     whole = PixelRect(0, 0, camera.width, camera.height)
-    lo, hi = (np.asarray(torch.as_tensor(box, dtype=torch.float64).cpu(), dtype=np.float64))
-    centre = camera.center
-    if np.all(centre >= lo) and np.all(centre <= hi):
+    uv = _projected_corners(camera, box)
+    if uv is None:
         return whole
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    uv, depth = project_points(camera, torch.as_tensor(corners, dtype=torch.float64))
-    if bool((depth <= camera.near * 1e-3).any()):
-        return whole
-    uv = uv.numpy()
     # pixel (c, r) covers [c - 0.5, c + 0.5): the cells touched by the corners' hull
     u0, v0 = np.floor((uv.min(axis=0) + 0.5) / cell).astype(int) - margin_cells
     u1, v1 = np.floor((uv.max(axis=0) + 0.5) / cell).astype(int) + 1 + margin_cells

@@ -22,11 +22,17 @@ Presets
     it to the model. Default: :data:`DEFAULT_PRESET`.
 
 Resolution
-    :meth:`RenderSession.render` renders a camera ``W x H`` at ``scale`` times its pixels:
-    default ``scale = quality * cfg.image_resolution / max(W, H)``, i.e. ``quality = 1`` is the
-    pixel density the model was trained at and lower qualities are proportionally coarser (fewer
-    rays: the cost is about ``quality**2``); ``quality`` defaults to the preset's
-    ``resolution_scale``. The rendered size is padded to a multiple of the decoder's upsampling
+    :meth:`RenderSession.render` renders a camera ``W x H`` at ``scale`` times its pixels;
+    ``quality = 1`` is the pixel density the model was trained at and lower qualities are
+    proportionally coarser (fewer rays: the cost is about ``quality**2``); ``quality`` defaults to
+    the preset's ``resolution_scale``. The density is measured on the character for the presets
+    that render only its rectangle (``character_rect``): ``scale = quality * e_train / e_view``
+    with ``e`` the projected size of the frame's sampling box in the median training camera (at
+    ``cfg.image_resolution``) and in this view, so a character filling a 1280 x 800 window is
+    rendered as sharp as the model can make it, in about a training view's rays, and a distant
+    one costs little (capped at one rendered pixel per output pixel, or the frame density when
+    that is higher). The ``reference`` preset, and any view where the box's projection is
+    unbounded, use the frame: ``scale = quality * cfg.image_resolution / max(W, H)``. The rendered size is padded to a multiple of the decoder's upsampling
     factor (:func:`padded_render_camera`) and the maps cropped back
     (:meth:`~garmentnerf.model.palette.DecomposedMaps.cropped`). The :class:`NeuralFrame` keeps
     the maps at the *rendered* size; :meth:`NeuralFrame.maps_at` resamples them
@@ -54,6 +60,7 @@ Threads
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -64,7 +71,7 @@ import torch
 from garmentnerf.conventions import Camera
 from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
-from garmentnerf.render.screen_rect import PixelRect, box_rect
+from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
 
 #: The render preset used when none is named (``garmentnerf render``, snapshots, exports): ``full``,
 #: the reference's samples minus those the culls prove empty (the same PSNR to 0.01 dB on the
@@ -300,11 +307,40 @@ class RenderSession:
         return plan
 
     # ---- views --------------------------------------------------------------------------------------
-    def render_scale(self, camera: Camera, quality: float = 1.0) -> float:
-        """Rendered pixels per output pixel for ``camera`` at ``quality`` (see the module docstring)."""
+    def render_scale(self, camera: Camera, quality: float = 1.0, features=None) -> float:
+        """Rendered pixels per output pixel for ``camera`` at ``quality`` (see the module docstring,
+        "Resolution"): the character's training density when ``features`` (the frame's
+        :class:`FrameFeatures`) are given and the run's training cameras are known, else the frame's."""
         if not (np.isfinite(quality) and quality > 0):
             raise ValueError(f"quality must be a number > 0, got {quality!r}")
-        return float(quality) * self.config.image_resolution / max(camera.width, camera.height)
+        frame_scale = float(quality) * self.config.image_resolution / max(camera.width, camera.height)
+        if features is None or not self.training_views:
+            return frame_scale
+        box = self.sampling_box(features)
+        seen = box_extent(camera, box)
+        trained = [e for e in (box_extent(c, box) for c in self.training_views) if e is not None]
+        if seen is None or seen <= 0 or not trained:
+            return frame_scale
+        return min(float(quality) * float(np.median(trained)) / seen, max(1.0, frame_scale))
+
+    @functools.cached_property
+    def training_views(self) -> list[Camera]:
+        """The run's training cameras at the size the model was trained at (``image_resolution``
+        squared, as the trainer renders them); empty without a scene."""
+        if self.scene is None:
+            return []
+        recorded = ((getattr(self.run, "info", None) or {}).get("train") or {}).get("cameras")
+        names = [c for c in (recorded or []) if c in set(self.scene.camera_names())]
+        names = names or self.scene.camera_names("train")
+        R = int(self.config.image_resolution)
+        return [self.scene.camera(n).camera.resized(R, R) for n in names]
+
+    def sampling_box(self, features) -> torch.Tensor:
+        """(2, 3) float64 the frame's sampling box: the body box padded by ``cfg.bbox_padding``, as
+        both samplers pad it; no sample of the frame lies outside it."""
+        box = features.aabb.detach().to("cpu", torch.float64)
+        pad = float(self.config.bbox_padding)
+        return box + torch.tensor([[-pad], [pad]], dtype=torch.float64)
 
     def render(self, frame: int, camera: Camera, quality: float | None = None, *, preset=DEFAULT_PRESET,
                scale: float | None = None, should_cancel: Callable[[], bool] | None = None) -> NeuralFrame:
@@ -321,7 +357,8 @@ class RenderSession:
         plan = self.sampling(preset)
         quality = plan.preset.resolution_scale if quality is None else quality
         feats, cached = self.frame_features(frame)
-        s = self.render_scale(camera, quality) if scale is None else float(scale)
+        character = feats if plan.preset.character_rect else None
+        s = self.render_scale(camera, quality, character) if scale is None else float(scale)
         if not s > 0:
             raise ValueError(f"scale must be > 0, got {scale!r}")
         up = 2 ** self.config.decoder_upsample_steps
@@ -357,10 +394,7 @@ class RenderSession:
         cell in the corner when the box is out of view (nothing to render)."""
         from garmentnerf.perf.presets import CHARACTER_RECT_MARGIN
 
-        box = features.aabb.detach().to("cpu", torch.float64)
-        pad = float(self.config.bbox_padding)
-        box = box + torch.tensor([[-pad], [pad]], dtype=torch.float64)
-        rect = box_rect(camera, box, cell=cell, margin_cells=CHARACTER_RECT_MARGIN)
+        rect = box_rect(camera, self.sampling_box(features), cell=cell, margin_cells=CHARACTER_RECT_MARGIN)
         return rect if rect is not None else PixelRect(0, 0, cell, cell)
 
     def render_image(self, frame: int, camera: Camera, palette=None, background=None, quality: float | None = None,
