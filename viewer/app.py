@@ -209,10 +209,7 @@ class App:
         """One UI frame (see the module docstring); returns the window's image when ``capture``."""
         start = self.clock()
         self.timer.start(start)
-        dt = 0.0
-        if self._last_time is not None:
-            dt = self.fixed_dt if self.fixed_dt is not None else min(MAX_STEP_SECONDS, max(0.0, start - self._last_time))
-        self._last_time = start
+        dt = self._frame_dt(start)
         drawable = self.window.begin_frame()
         self._receive_background_work()
         if not drawable:  # minimised: nothing to draw into; imgui gets no frame either
@@ -236,6 +233,14 @@ class App:
             self._snapshot_requested = False
             self.exports.snapshot_with_status()
         return image
+
+    def _frame_dt(self, now: float) -> float:
+        """Seconds the timeline moves this frame: ``fixed_dt``, or the time since the last frame (at
+        most :data:`MAX_STEP_SECONDS`); 0 for the first frame."""
+        last, self._last_time = self._last_time, now
+        if last is None:
+            return 0.0
+        return self.fixed_dt if self.fixed_dt is not None else min(MAX_STEP_SECONDS, max(0.0, now - last))
 
     def _advance(self, advance: bool, dt: float, now: float) -> None:
         """Move the timeline on by ``dt`` (not while scrubbing) and count the frames playback shows."""

@@ -6,7 +6,8 @@ methods (and the :class:`~garmentnerf.viewer.export_jobs.ExportSettings` the Exp
 
 from __future__ import annotations
 
-from garmentnerf.viewer.export_jobs import EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY, MIN_SNAPSHOT_QUALITY
+from garmentnerf.viewer.export_jobs import (EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY,
+                                            MIN_SNAPSHOT_QUALITY)
 from garmentnerf.viewer.gui_libs import imgui
 
 ERROR_COLOUR = (1.0, 0.45, 0.4, 1.0)

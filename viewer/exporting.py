@@ -280,9 +280,9 @@ class Exports:
             return ExportJob.completed("snapshot", write_png(image, directory / snapshot_name(clip.name, frame)))
         self.controller.update_anchor(clip.centers[frame])  # the camera the window shows
         quality = min(MAX_QUALITY, max(MIN_SNAPSHOT_QUALITY, self.snapshot_quality))
-        view = self.neural_view
-        job = ExportJob("snapshot", [(frame, self.controller.camera(w, h))], directory / snapshot_name(clip.name, frame),
-                        source="neural", quality=quality, palette=view.palette.copy(), motion=view.motion, fps=clip.fps)
+        view, path = self.neural_view, directory / snapshot_name(clip.name, frame)
+        job = ExportJob("snapshot", [(frame, self.controller.camera(w, h))], path, source="neural", quality=quality,
+                        palette=view.palette.copy(), motion=view.motion, fps=clip.fps)
         return self._submit(job)
 
     def snapshot_with_status(self) -> None:
