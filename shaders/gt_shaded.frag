@@ -3,7 +3,7 @@
 // so every camera sees the same radiance apart from the small specular term:
 //   c = base * side * (hemi_ambient(n) + sum_k I_k max(n.L_k, 0)) + side * k_s * I_0 max(n.h_0, 0)^p
 // Two-sided: on a back-facing triangle (the inside of the garment, seen at the hem) the normal is
-// flipped toward the viewer and the colour scaled by u_inside (side = u_inside, else 1). The
+// flipped toward the viewer and the color scaled by u_inside (side = u_inside, else 1). The
 // Python side sets glFrontFace so that gl_FrontFacing is true for faces wound counter-clockwise
 // as seen from outside (the project's winding) under the y-flipping projection.
 // Output: rgb and the label (0 background, 1 body, 2 garment) in alpha.
@@ -12,7 +12,7 @@
 
 uniform vec3 u_base_color;
 uniform float u_label;
-uniform float u_inside;           // colour factor of back faces
+uniform float u_inside;           // color factor of back faces
 uniform vec3 u_camera_center;     // world
 uniform vec3 u_light_dir[NUM_LIGHTS];        // unit vectors toward the lights (world)
 uniform float u_light_intensity[NUM_LIGHTS];

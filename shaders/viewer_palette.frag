@@ -13,11 +13,11 @@
 // u_maps (sampler2DArray, RGBA32F, rows top-first like every image of the package):
 //   layer 0: radiance r (rgb; a grey radiance is uploaded to all three) and mask m (a)
 //   layer 1: blend weights w_0..w_3
-//   layer 2 + i: offset o_i (rgb) of palette colour i
-// Changing a colour only changes u_palette: recolouring never re-runs the network.
+//   layer 2 + i: offset o_i (rgb) of palette color i
+// Changing a color only changes u_palette: recoloring never re-runs the network.
 //
 // Modes (u_mode): 0 neural, 1 ground truth (u_gt), 2 difference |neural over u_background - gt| x
-// u_diff_gain, 3 maps (u_map: 0 mask, 1 blend weights as colours, 2 radiance).
+// u_diff_gain, 3 maps (u_map: 0 mask, 1 blend weights as colors, 2 radiance).
 // Depth (u_use_depth = 1): the fragment's depth comes from u_depth (camera-space z, 0 = nothing),
 // pulled u_depth_bias metres towards the camera so the network's body surface wins over the
 // rasterised body where they coincide; empty pixels go just in front of the far plane (behind
@@ -45,7 +45,7 @@ in vec2 v_uv;
 
 layout(location = 0) out vec4 out_color;
 
-const vec3 MAP_COLOURS[MAX_PALETTE] = vec3[](vec3(1.0, 0.25, 0.2), vec3(0.2, 0.55, 1.0),
+const vec3 MAP_COLORS[MAX_PALETTE] = vec3[](vec3(1.0, 0.25, 0.2), vec3(0.2, 0.55, 1.0),
                                              vec3(0.3, 0.9, 0.3), vec3(0.95, 0.85, 0.2));
 
 vec3 foreground(vec2 uv, out float mask) {
@@ -90,7 +90,7 @@ void main() {
                 if (i >= u_palette_size) {
                     break;
                 }
-                c += w[i] * MAP_COLOURS[i];
+                c += w[i] * MAP_COLORS[i];
             }
         } else {
             c = clamp(rm.rgb, 0.0, 1.0);

@@ -1,4 +1,4 @@
-"""The bundled demo model: it loads, renders the skirt where the ground truth has it, and recolours
+"""The bundled demo model: it loads, renders the skirt where the ground truth has it, and recolors
 only the garment (the issue's acceptance test, measured on the shipped weights)."""
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def test_render_matches_ground_truth_regions(rendered):
     assert -10 * np.log10(mse) > 20.0  # PSNR on an unseen view, frame 20
 
 
-def _recolour(rendered):
+def _recolor(rendered):
     run, nf, rgb, labels = rendered
     before = nf.composite()
     palette = nf.palette.clone()
@@ -66,14 +66,14 @@ def _recolour(rendered):
     return before, nf.composite(palette), _downsample_labels(labels, SIZE)
 
 
-def test_recolour_leaves_everything_but_the_garment(rendered):
-    before, after, lab = _recolour(rendered)
+def test_recolor_leaves_everything_but_the_garment(rendered):
+    before, after, lab = _recolor(rendered)
     change = np.abs(after - before)[lab != 2].mean()
     assert change <= 2 / 255, change
 
 
-def test_recolour_turns_the_garment_to_the_new_hue(rendered):
-    before, after, lab = _recolour(rendered)
+def test_recolor_turns_the_garment_to_the_new_hue(rendered):
+    before, after, lab = _recolor(rendered)
     garment = after[lab == 2]
     hues = np.array([colorsys.rgb_to_hsv(*px)[0] for px in garment if px.max() > 0.05])
     red = (hues < 0.08) | (hues > 0.92)

@@ -228,7 +228,7 @@ def test_gradients_reach_every_parameter_end_to_end():
     target = torch.rand_like(image)
     target_mask = torch.rand(1, cfg.image_resolution, cfg.image_resolution) > 0.5
     perceptual = lambda a, b: F.l1_loss(F.avg_pool2d(a, 4), F.avg_pool2d(b, 4))  # noqa: E731
-    losses = garment_losses(image, target, maps, target_mask, palette.colours, palette.initial, cfg, perceptual)
+    losses = garment_losses(image, target, maps, target_mask, palette.colors, palette.initial, cfg, perceptual)
     assert set(losses) == {"image", "mask", "perceptual", "sparsity", "offset", "palette", "total"}
     assert all(torch.isfinite(v) for v in losses.values())
     losses["total"].backward()

@@ -1,4 +1,4 @@
-"""The palette composition formula: identities, recolouring, range checks, the decoder's heads."""
+"""The palette composition formula: identities, recoloring, range checks, the decoder's heads."""
 
 from __future__ import annotations
 
@@ -26,20 +26,20 @@ def maps(weight_garment: torch.Tensor | float = 1.0, mask: float | torch.Tensor 
     return DecomposedMaps(radiance, o, weights, m)
 
 
-def test_garment_weight_one_gives_radiance_times_garment_colour():
+def test_garment_weight_one_gives_radiance_times_garment_color():
     m = maps(1.0)
     image = m.compose(PALETTE)
     torch.testing.assert_close(image, (m.radiance * GARMENT.view(1, 3, 1, 1)).clamp(0, 1))
 
 
-def test_paper_formula_for_two_colours_on_black():
+def test_paper_formula_for_two_colors_on_black():
     g = torch.Generator().manual_seed(3)
     w = torch.rand(B, H, W, generator=g)
     m = maps(w, mask=torch.rand(B, 1, H, W, generator=g), offsets=True)
     o_g, o_b = m.offsets[:, 0], m.offsets[:, 1]
     wv = w.unsqueeze(1)
     paper = m.mask * m.radiance * (wv * (GARMENT.view(1, 3, 1, 1) + o_g) + (1 - wv) * (BODY.view(1, 3, 1, 1) + o_b))
-    # The paper composites over black; radiance < 1 and colours < 1 keep it inside [0, 1].
+    # The paper composites over black; radiance < 1 and colors < 1 keep it inside [0, 1].
     assert paper.max() <= 1 and paper.min() >= 0
     torch.testing.assert_close(compose(m.radiance, m.offsets, m.weights, m.mask, PALETTE), paper)
 
@@ -50,7 +50,7 @@ def test_mask_zero_gives_background(background):
     torch.testing.assert_close(image, torch.tensor(background).view(1, 3, 1, 1).expand(B, 3, H, W))
 
 
-def test_recolouring_changes_pixels_in_proportion_to_garment_weight():
+def test_recoloring_changes_pixels_in_proportion_to_garment_weight():
     g = torch.Generator().manual_seed(5)
     w = torch.rand(B, H, W, generator=g)
     w[0, 0, 0] = 0.0  # a pure body pixel must not change at all
@@ -119,7 +119,7 @@ def test_decoder_heads():
     assert (out.radiance >= 0).all()
     assert out.offsets.abs().max() <= 0.25
     torch.testing.assert_close(out.weights.sum(dim=1), torch.ones(2, 16, 24))
-    # softplus + 0.05 before normalising: no colour's weight reaches 0.
+    # softplus + 0.05 before normalising: no color's weight reaches 0.
     assert out.weights.min() > 0
     assert ((out.mask > 0) & (out.mask < 1)).all()
     # Untrained radiance is 1 where the raw head is 0 (shifted softplus).
@@ -133,7 +133,7 @@ def test_decoder_heads():
     assert g_out.compose(PALETTE).shape == (1, 3, 8, 8)
 
 
-def test_sparsity_loss_two_colours_matches_paper():
+def test_sparsity_loss_two_colors_matches_paper():
     w = torch.rand(1, 1, 4, 4)
     weights = torch.cat([w, 1 - w], dim=1)
     paper = (1 / (w ** 2 + (1 - w) ** 2) - 1).mean()
@@ -157,7 +157,7 @@ def test_palette_module_and_init_from_labels():
         palette_from_labels(image, labels, classes=(2, 7))
     module = Palette(p)
     with torch.no_grad():
-        module.colours[0, 0] = 1.5  # drifted out of range by an optimiser step
+        module.colors[0, 0] = 1.5  # drifted out of range by an optimiser step
     assert module().max() == 1.0
     torch.testing.assert_close(module.initial, p)
 

@@ -14,7 +14,7 @@ from garmentnerf.model.detail_features import sample_image_features
 from garmentnerf.model.frame_context import FrameInputBuilder, resolve_reference_cameras
 from garmentnerf.model.palette import compose
 from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnimationNeRF, RenderCancelled,
-                                        palette_initial_colours, reference_visibility)
+                                        palette_initial_colors, reference_visibility)
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
@@ -80,13 +80,13 @@ def test_resolve_reference_cameras():
 
 
 def test_palette_init():
-    p = palette_initial_colours(PALETTE)
+    p = palette_initial_colors(PALETTE)
     torch.testing.assert_close(p, torch.tensor([PALETTE["garment"], PALETTE["body"]]))
-    assert palette_initial_colours(None, 3).shape == (3, 3)
+    assert palette_initial_colors(None, 3).shape == (3, 3)
     with pytest.raises(ValueError):
-        palette_initial_colours(torch.zeros(3, 3), 2)
+        palette_initial_colors(torch.zeros(3, 3), 2)
     with pytest.raises(ValueError):
-        palette_initial_colours([[1.5, 0, 0], [0, 0, 0]], 2)
+        palette_initial_colors([[1.5, 0, 0], [0, 0, 0]], 2)
 
 
 # ---------------------------------------------------------------------------------------- render
@@ -154,7 +154,7 @@ def test_gradients_reach_every_trainable_module(body, projector, walk_inputs):
         assert sum(float(g.abs().sum()) for g in grads) > 0, name
     for head in (model.nerf.density_head, model.nerf.appearance_head):
         assert head.weight.grad.abs().sum() > 0
-    assert model.palette.colours.grad.abs().sum() > 0
+    assert model.palette.colors.grad.abs().sum() > 0
     # G_img is frozen: no gradient, and its output is not part of the graph.
     assert model.image_generator_frozen
     assert all(p.grad is None and not p.requires_grad for p in model.image_generator.parameters())
@@ -171,16 +171,16 @@ def test_unfrozen_image_generator_gets_gradient(body, projector, walk_inputs):
     assert sum(float(p.grad.abs().sum()) for p in model.image_generator.parameters()) > 0
 
 
-def test_recolouring_equals_rerendering(model, frame):
+def test_recoloring_equals_rerendering(model, frame):
     new = torch.tensor([[0.1, 0.3, 0.9], [0.2, 0.8, 0.3]])
     with torch.no_grad():
         out = model.render(frame, CAMERA)
         again = model.render(frame, CAMERA, palette=new, background=(1.0, 1.0, 1.0))
     maps = out.maps
-    recoloured = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, new, (1.0, 1.0, 1.0))[0]
-    torch.testing.assert_close(recoloured, again.image, atol=1e-6, rtol=0)
-    torch.testing.assert_close(out.recolour(new, (1.0, 1.0, 1.0)), again.image, atol=1e-6, rtol=0)
-    assert (recoloured - out.image).abs().max() > 1e-3  # the palette does change the image
+    recolored = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, new, (1.0, 1.0, 1.0))[0]
+    torch.testing.assert_close(recolored, again.image, atol=1e-6, rtol=0)
+    torch.testing.assert_close(out.recolor(new, (1.0, 1.0, 1.0)), again.image, atol=1e-6, rtol=0)
+    assert (recolored - out.image).abs().max() > 1e-3  # the palette does change the image
 
 
 def test_cancellation(model, frame):

@@ -47,19 +47,19 @@ def session(run_dir, gl_context):
 
 
 # ---- pure parts ---------------------------------------------------------------------------------
-def test_colours_and_palette_parsing():
+def test_colors_and_palette_parsing():
     assert parse_hex_color("#c03030") == pytest.approx((192 / 255, 48 / 255, 48 / 255))
     assert parse_hex_color("fff") == (1.0, 1.0, 1.0)
     assert to_hex((0.752941, 0.188235, 0.188235)) == "#c03030"
     for bad in ("#12345", "red", "#gg0000", ""):
-        with pytest.raises(ValueError, match="not a hex colour"):
+        with pytest.raises(ValueError, match="not a hex color"):
             parse_hex_color(bad)
     learned = torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]])
     pal = build_palette(learned, "#ff0000")
     assert pal[0].tolist() == [1.0, 0.0, 0.0] and torch.equal(pal[1], learned[1])
     pal = build_palette(learned, "-,#00ff00", body="#0000ff")
     assert torch.equal(pal[0], learned[0]) and pal[1].tolist() == [0.0, 0.0, 1.0]
-    with pytest.raises(ValueError, match="3 colours"):
+    with pytest.raises(ValueError, match="3 colors"):
         build_palette(learned, "#000,#111,#222")
 
 
@@ -190,7 +190,7 @@ def test_palette_change_only_moves_garment_weighted_pixels(session):
     sel = inside[0]
     assert sel.float().mean() > 0.5
     assert torch.allclose(diff[sel], predicted[sel], atol=1e-5)
-    # the same palette gives the same image: recolouring with the learned palette changes nothing
+    # the same palette gives the same image: recoloring with the learned palette changes nothing
     assert np.array_equal(nf.composite(learned.clone()), a)
     # and compose() on the maps is what composite() returns
     ref = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, new, nf.background)[0].permute(1, 2, 0)
@@ -287,8 +287,8 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--palette", "#zz0000"], "not a hex colour"),
-    (["--body-colour", "blue"], "not a hex colour"),
+    (["--palette", "#zz0000"], "not a hex color"),
+    (["--body-color", "blue"], "not a hex color"),
     (["--camera", "nope"], "unknown camera 'nope'"),
     (["--camera", "42"], "camera index 42 is out of range"),
     (["--frames", "2:99"], "out of range"),
@@ -352,7 +352,7 @@ def test_palette_shader_matches_compose(gl_context, radiance_channels):
     ref = ref.permute(1, 2, 0).numpy()
     got = _gl_compose(gl_context, maps, palette, background)
     assert np.abs(got - ref).max() < 2 / 255
-    # recolour: only the uniform changes
+    # recolor: only the uniform changes
     new = palette.clone()
     new[0] = torch.tensor([0.1, 0.8, 0.2])
     ref2 = compose(maps["radiance"], maps["offsets"], maps["weights"], maps["mask"], new, background)[0]

@@ -182,7 +182,7 @@ def _quad(facing_camera: bool):
 
 def test_two_sided_inside_is_darker(gl_context):
     """A face seen from its back (the garment's inside) is lit with the flipped normal and scaled by
-    `inside`: exactly `inside` x the front-facing colour. Also pins the winding convention."""
+    `inside`: exactly `inside` x the front-facing color. Also pins the winding convention."""
     R, t = look_at([0.0, -3.0, 0.9], [0.0, 0.0, 0.9])
     cam = Camera(np.array([[120.0, 0, 31.5], [0, 120.0, 31.5], [0, 0, 1]]), R, t, 64, 64)
     tiny_body_v = np.zeros((3, 3), dtype=np.float32) + [0, 50.0, 0]  # a degenerate body far behind

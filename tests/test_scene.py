@@ -176,7 +176,7 @@ MALFORMED = {
     "unknown sequence split": (_edit(["sequences", "train", "split"], "val"), "sequences.train.split must be one of"),
     "frames mismatch": (_edit(["sequences", "train", "frames"], 5), "sequences.train.frames is 5 but"),
     "frames type": (_edit(["sequences", "train", "frames"], 2.5), "sequences.train.frames must be an integer"),
-    "garment colour": (_edit(["garment", "color"], [0.2, 1.4, 0.1]), "garment.color must hold 3 numbers in [0, 1]"),
+    "garment color": (_edit(["garment", "color"], [0.2, 1.4, 0.1]), "garment.color must hold 3 numbers in [0, 1]"),
     "body shape": (_edit(["body", "shape"], {"a": 1}), "body.shape must be a shape name or a list"),
     "format": (_edit(["format"], "nerf"), "format must be 'garmentnerf-scene'"),
     "version": (_edit(["version"], 2), "version 2 is newer"),

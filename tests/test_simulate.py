@@ -79,7 +79,7 @@ def test_garment_outside_rest_body_and_clean(body, kind, shape):
     centroids = mesh.triangles_center
     closest, _, _ = trimesh.proximity.closest_point(trimesh.Trimesh(rest, faces, process=False), centroids)
     assert (np.einsum("ij,ij->i", mesh.face_normals, centroids - closest) > 0).mean() > 0.95
-    # uv and colour
+    # uv and color
     assert g.uv.shape == (g.num_vertices, 2) and g.uv.min() >= 0 and g.uv.max() <= 1
     assert np.linalg.norm(g.color - SKIN_TONE) > 0.3
     # pins: skirts at the waistband (the top), the t-shirt at the collar (near the neck)

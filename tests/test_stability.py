@@ -234,7 +234,7 @@ def test_palette_edges(model, frame):
     cam = orbit_camera(30.0, 10.0, 3.0, width=32, height=32)
     for value in (0.0, 1.0):
         out = check_render(model, frame, cam, palette=torch.full((2, 3), value))
-        assert finite(out.recolour(torch.full((2, 3), 1.0 - value)))
+        assert finite(out.recolor(torch.full((2, 3), 1.0 - value)))
     for bad, message in ((torch.tensor([[1.5, 0.0, 0.0], [0.0, 0.0, 0.0]]), "in \\[0, 1\\]"),
                          (torch.tensor([[-0.1, 0.0, 0.0], [0.0, 0.0, 0.0]]), "in \\[0, 1\\]"),
                          (torch.tensor([[float("nan"), 0.0, 0.0], [0.0, 0.0, 0.0]]), "NaN"),
@@ -243,7 +243,7 @@ def test_palette_edges(model, frame):
             check_palette(bad)
     with pytest.raises(ValueError, match="in \\[0, 1\\]"):
         out = check_render(model, frame, cam)
-        out.recolour(torch.tensor([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+        out.recolor(torch.tensor([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
 
 
 def test_half_precision(gl_context, model, frame):

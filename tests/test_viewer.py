@@ -245,7 +245,7 @@ def _headless_scene(ctx, walk, frame, samples):
 
 
 def _flat_maps(H, W, mask=1.0):
-    """Maps of a flat image: radiance 1, palette colour 0 only, no offsets, the given mask."""
+    """Maps of a flat image: radiance 1, palette color 0 only, no offsets, the given mask."""
     from garmentnerf.viewer.palette_layer import pack_maps
 
     weights = np.zeros((2, H, W), np.float32)
@@ -267,7 +267,7 @@ def test_palette_layer_composites_by_depth(gl_context, walk):
         base = scene.render_image(camera, samples=0)
         H, W = 128, 96
         layer.visible, layer.use_depth = True, True
-        layer.set_palette([(0.0, 0.0, 1.0), (1.0, 1.0, 1.0)])  # colour 0: pure blue
+        layer.set_palette([(0.0, 0.0, 1.0), (1.0, 1.0, 1.0)])  # color 0: pure blue
         near = np.full((H, W), 0.5, np.float32)  # in front of the body (the camera is ~3.6 m away)
         layer.submit(_flat_maps(H, W), near, (W, H))
         front = scene.render_image(camera, samples=0)
@@ -714,10 +714,10 @@ def test_neural_viewer_palette_is_a_uniform_and_modes_switch(xvfb, untrained_run
         assert view.mode == "neural" and not viewer.scene.body.visible
         before = viewer.read_framebuffer()
         uploads, renders = layer.uploads, view.renderer.stats.renders
-        view.set_palette_colour(0, (1.0, 0.0, 0.0))
-        recoloured = viewer.read_framebuffer()
+        view.set_palette_color(0, (1.0, 0.0, 0.0))
+        recolored = viewer.read_framebuffer()
         assert layer.uploads == uploads and view.renderer.stats.renders == renders  # no re-render, no upload
-        diff = np.abs(recoloured.astype(int) - before.astype(int))
+        diff = np.abs(recolored.astype(int) - before.astype(int))
         assert diff.max() > 10 and diff[..., 0].sum() > diff[..., 2].sum()  # more red
         view.reset_palette()
         assert np.abs(viewer.read_framebuffer().astype(int) - before.astype(int)).max() <= 1
@@ -773,7 +773,7 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
                            "--snapshot-dir", str(tmp_path / "s")],
                           env=env, capture_output=True, text=True, timeout=500)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "UI while worker busy" in proc.stdout and "recolour latency" in proc.stdout
+    assert "UI while worker busy" in proc.stdout and "recolor latency" in proc.stdout
     data = json.loads(out.read_text())
 
     def finite(x):
@@ -783,7 +783,7 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     for key in ("fps", "frame_ms_median", "frame_ms_p95", "frame_ms_max", "worker_busy_fraction", "seconds"):
         assert finite(ui[key]), (key, ui)
     assert ui["fps"] > 0 and ui["frames"] >= 2 and 1.5 < ui["seconds"] < 60
-    rc = data["recolour"]
+    rc = data["recolor"]
     assert rc["available"] and finite(rc["latency_frames"]) and 1 <= rc["latency_frames"] <= 10, rc
     assert rc["worker_renders"] == 0 and rc["layer_uploads"] == 0, rc  # a uniform, not a re-render
     assert list(data["presets"]) == list(VIEWER_LEVELS)

@@ -93,7 +93,7 @@ def test_job_progress_eta_and_cancel():
 @pytest.fixture(scope="module")
 def run(untrained_run):  # noqa: F811
     """The tiny untrained run, loaded, with its decoder's weights scaled by 5: untrained, its image is
-    one flat colour (mask ~0.51 everywhere), which no comparison could tell from a wrong camera or
+    one flat color (mask ~0.51 everywhere), which no comparison could tell from a wrong camera or
     quality; scaled, the image has structure (per-channel std ~12-31/255, and quality 0.25 differs
     from quality 1 by ~19/255 on average). The app and the headless session share this object."""
     import torch
@@ -136,7 +136,7 @@ def test_neural_snapshot_equals_headless_render(neural_app, headless):
     app.neural_view.quality.set_preset("interactive")  # the preview renders that preset (half resolution); the snapshot must not
     app.set_frame(1)
     app.controller.preset("left")
-    app.neural_view.set_palette_colour(0, (0.9, 0.2, 0.1))
+    app.neural_view.set_palette_color(0, (0.9, 0.2, 0.1))
     frames = app.timer.frames
     job = app.exports.start_snapshot(*SIZE)
     assert job.source == "neural" and job.quality >= 1.0

@@ -8,7 +8,7 @@ never through GL. Sizes are multiples of the font size, so the layout follows th
 from __future__ import annotations
 
 from garmentnerf.viewer.camera import VIEW_DIRECTIONS
-from garmentnerf.viewer.export_panel import ERROR_COLOUR, export_section, snapshot_section
+from garmentnerf.viewer.export_panel import ERROR_COLOR, export_section, snapshot_section
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import GROUND_TRUTH_MODES, VIEW_MODES
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
@@ -134,7 +134,7 @@ def _neural_section(app, em: float) -> None:
                             f"{status['bytes'] / 2**20:.0f} MiB (half precision)")
     error = view.error()
     if error:
-        imgui.text_colored(imgui.ImVec4(*ERROR_COLOUR), "render failed:")
+        imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), "render failed:")
         imgui.text_wrapped(error)
 
 
@@ -153,15 +153,15 @@ def _palette_section(app) -> None:
         return
     if view.palette is None:
         imgui.text_wrapped("No garment model loaded (body only). Open a run with garmentnerf view --run DIR "
-                           "to recolour its neural garment.")
+                           "to recolor its neural garment.")
         return
-    names = ["Garment", "Body / other"] + [f"Colour {i}" for i in range(2, len(view.palette))]
+    names = ["Garment", "Body / other"] + [f"Color {i}" for i in range(2, len(view.palette))]
     flags = imgui.ColorEditFlags_.float | imgui.ColorEditFlags_.display_hex
     for i in range(len(view.palette)):
         changed, col = imgui.color_edit3(names[i], [float(c) for c in view.palette[i]], flags)
         if changed:
-            view.set_palette_colour(i, col[:3])
+            view.set_palette_color(i, col[:3])
     if imgui.button("Reset to learned palette"):
         view.reset_palette()
-    imgui.text_disabled("recolouring only changes a shader uniform")
+    imgui.text_disabled("recoloring only changes a shader uniform")
 

@@ -221,7 +221,7 @@ class ExportJob:
         plan: (body frame, camera) per output frame (see :func:`plan_turntable`).
         path: the wanted file; a taken name gets the next free ``_001`` ... suffix (never replaced).
         source: ``"neural"`` (the run's network, see the module docstring) or ``"body"`` (GL scene).
-        quality: neural render quality; palette: (P, 3) colours in [0, 1] (None: the learned
+        quality: neural render quality; palette: (P, 3) colors in [0, 1] (None: the learned
             palette); background: RGB in [0, 1] (None: the model's); motion: the session's motion.
         fps: video frame rate.
         sequence: the :class:`~garmentnerf.viewer.sequence.BodySequence` (body-only jobs);

@@ -10,7 +10,7 @@ from garmentnerf.viewer.export_jobs import (EXPORT_MODES, MAX_QUALITY, MAX_VIDEO
                                             MIN_SNAPSHOT_QUALITY)
 from garmentnerf.viewer.gui_libs import imgui
 
-ERROR_COLOUR = (1.0, 0.45, 0.4, 1.0)
+ERROR_COLOR = (1.0, 0.45, 0.4, 1.0)
 
 
 def export_progress(job, width: float = -1.0) -> None:
@@ -106,7 +106,7 @@ def export_section(app, em: float) -> None:
             exports.start_video_with_status()
         imgui.end_disabled()
     if job is not None and job.finished and job.state == "failed":
-        imgui.text_colored(imgui.ImVec4(*ERROR_COLOUR), f"{job.label} failed:")
+        imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), f"{job.label} failed:")
         imgui.text_wrapped(job.error)
     if exports.last_export is not None:
         imgui.text_wrapped(f"last: {exports.last_export}")

@@ -114,8 +114,8 @@ class NeuralView:
         self.body_with_neural = bool(on)
         self.set_mode(self.mode)
 
-    def set_palette_colour(self, index: int, rgb) -> None:
-        """Change one palette colour (only the shader's uniform changes; nothing re-renders)."""
+    def set_palette_color(self, index: int, rgb) -> None:
+        """Change one palette color (only the shader's uniform changes; nothing re-renders)."""
         if self.palette is None:
             return
         self.palette[index] = np.clip(np.asarray(rgb, dtype=np.float32)[:3], 0.0, 1.0)

@@ -2,7 +2,7 @@
 
 :class:`PaletteLayer` holds the maps of the newest neural render as textures and composes them with
 the palette in ``shaders/viewer_palette.frag`` (the formula of
-:func:`garmentnerf.model.palette.compose`): recolouring changes a uniform and re-renders nothing.
+:func:`garmentnerf.model.palette.compose`): recoloring changes a uniform and re-renders nothing.
 It also shows the ground truth, their difference and the raw maps (:data:`PALETTE_MODES`).
 
 How it is drawn is decided once per draw, by :meth:`PaletteLayer.composition`: the same
@@ -27,7 +27,7 @@ PALETTE_MODES = {"neural": 0, "ground_truth": 1, "difference": 2, "maps": 3}
 NEEDS_GROUND_TRUTH = ("ground_truth", "difference")
 #: What the ``maps`` mode shows.
 MAP_VIEWS = ("mask", "weights", "radiance")
-#: Most palette colours the shader handles.
+#: Most palette colors the shader handles.
 MAX_PALETTE = 4
 
 
@@ -44,7 +44,7 @@ def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, ma
     mask = np.asarray(mask, dtype=np.float32).reshape(-1, *weights.shape[-2:])[0]
     P, H, W = weights.shape
     if not 1 <= P <= MAX_PALETTE:
-        raise ValueError(f"the viewer's palette shader handles 1..{MAX_PALETTE} colours, got {P}")
+        raise ValueError(f"the viewer's palette shader handles 1..{MAX_PALETTE} colors, got {P}")
     if offsets.shape != (P, 3, H, W) or radiance.shape[1:] != (H, W) or radiance.shape[0] not in (1, 3):
         raise ValueError(f"maps disagree: radiance {radiance.shape}, offsets {offsets.shape}, weights {weights.shape}")
     out = np.zeros((2 + P, H, W, 4), dtype=np.float32)
@@ -111,7 +111,7 @@ class PaletteLayer:
 
     Thread contract: :meth:`submit` / :meth:`submit_ground_truth` from any thread (numpy only),
     uploads in :meth:`prepare` on the GL thread. :meth:`set_palette` only sets a uniform:
-    recolouring costs nothing.
+    recoloring costs nothing.
 
     Attributes:
         mode: key of :data:`PALETTE_MODES`; side_by_side: draw the neural image and the ground truth
@@ -164,7 +164,7 @@ class PaletteLayer:
 
     # ---- inputs (any thread) ---------------------------------------------------------------------
     def set_palette(self, palette) -> None:
-        """(P, 3) colours in [0, 1] (a uniform; takes effect at the next draw)."""
+        """(P, 3) colors in [0, 1] (a uniform; takes effect at the next draw)."""
         pal = np.asarray(palette, dtype=np.float32).reshape(-1, 3)
         if not 1 <= pal.shape[0] <= MAX_PALETTE or not np.all(np.isfinite(pal)):
             raise ValueError(f"palette must be (P, 3) finite with 1 <= P <= {MAX_PALETTE}, got {pal.shape}")

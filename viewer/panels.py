@@ -12,7 +12,7 @@ import math
 import time
 
 from garmentnerf.viewer.control_panel import draw_controls
-from garmentnerf.viewer.export_panel import ERROR_COLOUR, export_progress
+from garmentnerf.viewer.export_panel import ERROR_COLOR, export_progress
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.shortcuts import MOUSE_HELP, help_rows
 from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED
@@ -139,10 +139,10 @@ def _render_bar(app) -> None:
     width, n = hi.x - lo.x, status["frames"]
     top = hi.y + 1.0
     draw = imgui.get_window_draw_list()
-    colour = imgui.get_color_u32(imgui.ImVec4(0.35, 0.75, 0.4, 1.0))
+    color = imgui.get_color_u32(imgui.ImVec4(0.35, 0.75, 0.4, 1.0))
     for first, last in ready_runs(status["ready"]):
         draw.add_rect_filled(imgui.ImVec2(lo.x + width * first / n, top),
-                             imgui.ImVec2(lo.x + width * (last + 1) / n, top + 3.0), colour)
+                             imgui.ImVec2(lo.x + width * (last + 1) / n, top + 3.0), color)
     imgui.dummy(imgui.ImVec2(0.0, 4.0))
 
 
@@ -191,7 +191,7 @@ def _neural_stats(app) -> None:
         else:
             imgui.text_disabled(line)
     if st.last_error:
-        imgui.text_colored(imgui.ImVec4(*ERROR_COLOUR), st.last_error[:120])
+        imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), st.last_error[:120])
 
 
 # ---- help ----------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ import numpy as np
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.shaders import build_program
 
-#: Body colour (display RGB): the ground-truth renderer's skin tone.
+#: Body color (display RGB): the ground-truth renderer's skin tone.
 BODY_COLOR = (0.80, 0.63, 0.53)
 #: The whole view in normalised device coordinates (x0, y0, x1, y1).
 FULL_VIEW = (-1.0, -1.0, 1.0, 1.0)

@@ -2,7 +2,7 @@
 
 Pipeline
     Every view (the window, a GL snapshot, a test's headless reference) is drawn by
-    :meth:`SceneRenderer.render` into a :class:`RenderTarget` (multisampled colour + depth, resolved
+    :meth:`SceneRenderer.render` into a :class:`RenderTarget` (multisampled color + depth, resolved
     into a texture): clear to the background, then one pass per renderable in this order: floor
     (blended over the background, no depth test), body (opaque, depth tested), neural layer
     (:class:`~garmentnerf.viewer.palette_layer.PaletteLayer`: the network's maps composed with the
@@ -54,7 +54,7 @@ def is_software_renderer(name: str) -> bool:
 
 
 class RenderTarget:
-    """Multisampled colour + depth renderbuffers and the single-sample texture they resolve into."""
+    """Multisampled color + depth renderbuffers and the single-sample texture they resolve into."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, samples: int = 4) -> None:
         if width < 1 or height < 1:
@@ -79,7 +79,7 @@ class RenderTarget:
 
 
 def read_image(fbo: moderngl.Framebuffer, width: int, height: int) -> np.ndarray:
-    """(H, W, 3) uint8 of ``fbo``'s first colour attachment (or the window), row 0 at the top."""
+    """(H, W, 3) uint8 of ``fbo``'s first color attachment (or the window), row 0 at the top."""
     data = fbo.read(viewport=(0, 0, width, height), components=3, alignment=1)
     return np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3)[::-1].copy()
 

@@ -129,7 +129,7 @@ def run_info(args: argparse.Namespace) -> int:
         return 0
     print(f"scene      {scene.root}  ({size_bytes / 2**20:.1f} MiB without the image cache)")
     print(f"images     {scene.image_size[0]}x{scene.image_size[1]} at {scene.fps:g} fps")
-    print(f"garment    {scene.garment.get('kind')}  colour {scene.garment.get('color')}")
+    print(f"garment    {scene.garment.get('kind')}  color {scene.garment.get('color')}")
     print(f"body       {scene.body.get('model')}  shape {scene.body.get('shape')}")
     for split, names in summary["cameras"].items():
         print(f"cameras    {split:12s} {len(names):3d}  {' '.join(names)}")

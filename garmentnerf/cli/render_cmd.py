@@ -37,10 +37,10 @@ def register(sub) -> None:
                    help="neural render quality: fraction of the training pixel density, (0, 4] "
                         "(default: the preset's resolution)")
     p.add_argument("--palette", default=None,
-                   help="palette colours '#garment[,#body,...]' as hex (default: the learned palette)")
-    p.add_argument("--body-colour", "--body-color", dest="body_colour", default=None, metavar="HEX",
-                   help="replace the body/other palette colour (palette colour 1)")
-    p.add_argument("--background", default=None, metavar="HEX", help="background colour (default: the model's)")
+                   help="palette colors '#garment[,#body,...]' as hex (default: the learned palette)")
+    p.add_argument("--body-color", "--body-colour", dest="body_color", default=None, metavar="HEX",
+                   help="replace the body/other palette color (palette color 1)")
+    p.add_argument("--background", default=None, metavar="HEX", help="background color (default: the model's)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (made if needed)")
     p.add_argument("--video", action="store_true", help="also write an mp4 of the frames")
     p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the motion's)")
@@ -103,7 +103,7 @@ def run_render(args: argparse.Namespace) -> int:
     size, preset, background = _checked_render_args(args)  # before the model loads
     run_dir, run = _load_render_run(args)
     spec = parse_camera_spec(args.camera, run.scene)
-    palette = build_palette(run.palette(), args.palette, args.body_colour)
+    palette = build_palette(run.palette(), args.palette, args.body_color)
     ctx = create_context(headless=True)
     session = None
     try:
@@ -137,7 +137,7 @@ def run_render(args: argparse.Namespace) -> int:
 
 
 def _checked_render_args(args: argparse.Namespace):
-    """(output size, render preset, background colour or None); everything that can be wrong with
+    """(output size, render preset, background color or None); everything that can be wrong with
     the arguments fails here, before the model loads."""
     from garmentnerf.cli.common import check_output_dir, parse_device
     from garmentnerf.perf.presets import get_render_preset
@@ -153,9 +153,9 @@ def _checked_render_args(args: argparse.Namespace):
     if args.palette is not None:
         for i, item in enumerate(c.strip() for c in args.palette.split(",")):
             if item not in ("", "-"):
-                parse_hex_color(item, f"--palette colour {i}")
-    if args.body_colour is not None:
-        parse_hex_color(args.body_colour, "--body-colour")
+                parse_hex_color(item, f"--palette color {i}")
+    if args.body_color is not None:
+        parse_hex_color(args.body_color, "--body-color")
     background = parse_hex_color(args.background, "--background") if args.background else None
     if args.fps is not None and not args.fps > 0:
         raise ValueError(f"--fps must be > 0, got {args.fps}")

@@ -9,11 +9,11 @@ what the machine can do rather than the display's refresh:
   are superseded and cancelled, as while dragging). Reported: frames per second over the whole
   measurement, median / 95th percentile / worst frame time, and the fraction of UI frames during
   which the worker was rendering. Without a run (body only) the worker part is absent.
-* **Recolour latency** (goal: the next frame): with the view still and the newest neural frame on
+* **Recolor latency** (goal: the next frame): with the view still and the newest neural frame on
   the GPU, each palette entry is set to its complement and the window is read back after every UI
   frame; the latency is the number of frames until the garment's pixels change (1 = the next frame).
   The worker must not render again for it (palette edits are a shader uniform): ``worker_renders``
-  counts the renders that happened during the recolour test (expected 0).
+  counts the renders that happened during the recolor test (expected 0).
 * **Neural frame time per quality level** (:data:`garmentnerf.perf.presets.VIEWER_LEVELS`, render
   presets): with the
   dynamic resolution off, the camera steps a little and the full-quality render of the preset is
@@ -35,9 +35,9 @@ import time
 import numpy as np
 
 #: UI frames read back after a palette change before giving up on seeing it.
-RECOLOUR_MAX_FRAMES = 10
-#: Smallest per-channel change (0..255) that counts as "the garment changed colour".
-RECOLOUR_THRESHOLD = 8
+RECOLOR_MAX_FRAMES = 10
+#: Smallest per-channel change (0..255) that counts as "the garment changed color".
+RECOLOR_THRESHOLD = 8
 #: Camera step per UI frame while measuring the busy frame rate (pixels of mouse drag).
 ORBIT_STEP = 4.0
 
@@ -111,7 +111,7 @@ def measure_busy_fps(app, seconds: float) -> dict:
     return out
 
 
-def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
+def measure_recolor(app, settle_timeout: float = 120.0) -> dict:
     """Frames from a palette change to changed garment pixels, per palette entry (1 = next frame)."""
     view = app.neural_view
     if view.renderer is None or view.palette is None:
@@ -126,15 +126,15 @@ def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
         for index in range(len(view.palette)):
             before = app.read_framebuffer()
             old = view.palette[index].copy()
-            view.set_palette_colour(index, 1.0 - old)
+            view.set_palette_color(index, 1.0 - old)
             latency = None
-            for n in range(1, RECOLOUR_MAX_FRAMES + 1):
+            for n in range(1, RECOLOR_MAX_FRAMES + 1):
                 shot = app.read_framebuffer()
                 changed = shot.shape == before.shape and np.abs(shot.astype(int) - before.astype(int)).max()
-                if changed > RECOLOUR_THRESHOLD:
+                if changed > RECOLOR_THRESHOLD:
                     latency = n
                     break
-            view.set_palette_colour(index, old)
+            view.set_palette_color(index, old)
             app.read_framebuffer()
             per_entry.append(latency)
     finally:
@@ -144,7 +144,7 @@ def measure_recolour(app, settle_timeout: float = 120.0) -> dict:
             "entries_visible": len(seen), "entries": len(per_entry),
             "worker_renders": view.renderer.stats.renders - renders0,
             "layer_uploads": app.scene.palette_layer.uploads - uploads0,
-            "threshold": RECOLOUR_THRESHOLD, "goal_frames": 1,
+            "threshold": RECOLOR_THRESHOLD, "goal_frames": 1,
             "meets_goal": bool(seen) and max(seen) <= 1 and view.renderer.stats.renders == renders0}
 
 
@@ -211,7 +211,7 @@ def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.
         if not ok:
             raise RuntimeError(f"no neural frame within {timeout:.0f} s ({view.error() or 'no error'})")
     result["ui_busy"] = measure_busy_fps(app, seconds)
-    result["recolour"] = measure_recolour(app, timeout)
+    result["recolor"] = measure_recolor(app, timeout)
     result["presets"] = measure_presets(app, repeats, timeout)
     if view.renderer is not None:
         st = view.renderer.stats
@@ -230,14 +230,14 @@ def print_figures(result: dict, file=sys.stdout) -> None:
           f"{ui['frame_ms_median']:.1f} ms median, {ui['frame_ms_p95']:.1f} ms p95, {ui['frame_ms_max']:.1f} ms worst "
           f"(work {ui['work_ms']:.1f} ms, scene {ui['scene_ms']:.1f} ms)"
           f"{busy}", file=file)
-    rc = result["recolour"]
+    rc = result["recolor"]
     if rc.get("available"):
         lat = rc["latency_frames"]
-        print(f"  recolour latency: {lat if lat is not None else 'not seen'} frame(s) (goal 1) over "
+        print(f"  recolor latency: {lat if lat is not None else 'not seen'} frame(s) (goal 1) over "
               f"{rc['entries_visible']}/{rc['entries']} palette entries visible; worker renders meanwhile: "
               f"{rc['worker_renders']}", file=file)
     else:
-        print("  recolour latency: n/a (no run)", file=file)
+        print("  recolor latency: n/a (no run)", file=file)
     for name, p in result.get("presets", {}).items():
         med = p["render_ms_median"]
         size = "x".join(map(str, p["render_size"])) if p["render_size"] else "?"
@@ -252,4 +252,4 @@ def write_json(result: dict, path, overwrite: bool = False) -> None:
         tmp.write_text(json.dumps(_finite(result), indent=1, default=str), encoding="utf-8")
 
 
-__all__ = ["run_bench", "print_figures", "write_json", "measure_busy_fps", "measure_recolour", "measure_presets"]
+__all__ = ["run_bench", "print_figures", "write_json", "measure_busy_fps", "measure_recolor", "measure_presets"]

@@ -58,7 +58,7 @@ def register(sub) -> None:
     bench = view.add_argument_group("benchmark (--bench)")
     bench.add_argument("--bench", action="store_true",
                        help="measure the previewer instead of showing it: UI frame rate while the neural worker "
-                            "renders, recolour latency in frames, neural frame time per quality preset; prints "
+                            "renders, recolor latency in frames, neural frame time per quality preset; prints "
                             "the figures (vsync off; still needs a display, e.g. Xvfb)")
     bench.add_argument("--json", default=None, metavar="PATH", help="with --bench: also write the figures as JSON")
     bench.add_argument("--overwrite", action="store_true", help="with --bench: replace --json if it exists")

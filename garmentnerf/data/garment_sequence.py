@@ -6,7 +6,7 @@ File format (``.npz``, deflate-compressed, written atomically)
                                   sequence's bounding box, ``x = lo + q * (hi - lo) / 65535``
     ``bbox_min``, ``bbox_max``    (3,) float64 ``lo`` and ``hi``
     ``faces``                     (F, 3) int32, counter-clockwise seen from outside
-    ``color``                     (3,) float32 base colour, RGB in [0, 1]
+    ``color``                     (3,) float32 base color, RGB in [0, 1]
     ``kind``, ``name``, ``motion`` strings (garment kind, garment label, motion name)
     ``penetration_max_m``         (T,) float32 per-frame depth of the deepest vertex inside the body
     ``fps``                       float64 frame rate
@@ -62,7 +62,7 @@ class GarmentSequence:
     Attributes:
         vertices: (T, V, 3) float32 positions, world metres (dequantised when loaded).
         faces: (F, 3) int32 triangles.
-        color: (3,) float32 base colour in [0, 1].
+        color: (3,) float32 base color in [0, 1].
         kind: garment kind (``skirt``, ``tshirt``, ``dress``).
         penetration_max_m: (T,) float32 per-frame deepest penetration into the body, metres.
         fps: frames per second.

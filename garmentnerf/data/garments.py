@@ -58,7 +58,7 @@ __all__ = ["GARMENT_KINDS", "GARMENT_COLORS", "MIN_CLEARANCE", "Garment", "Garme
 #: The kinds :func:`make_garment` builds.
 GARMENT_KINDS = ("skirt", "tshirt", "dress")
 
-#: Base colour of each kind (linear-ish display RGB in [0, 1]); all far from the skin tone
+#: Base color of each kind (linear-ish display RGB in [0, 1]); all far from the skin tone
 #: (0.80, 0.63, 0.53) of the ground-truth renderer.
 GARMENT_COLORS = {
     "skirt": (0.05, 0.42, 0.72),   # saturated teal blue
@@ -91,7 +91,7 @@ class Garment:
             not a seamless texture atlas), v from the top (waist or shoulders, 0) down (1); the
             sleeves of the t-shirt use u around the arm and v along it.
         pinned: (P,) int64 indices of the vertices the simulator moves with the body.
-        color: (3,) float32 base colour, RGB in [0, 1].
+        color: (3,) float32 base color, RGB in [0, 1].
         betas: (S,) float32 shape coefficients of the body it was built around.
         layer: (V,) int8 layer of each vertex (0 = innermost; the dress has layers 0 and 1).
         part: (V,) int8 part of each vertex: 0 body of the garment, 1 left sleeve, 2 right sleeve.

@@ -6,7 +6,7 @@ What it does, in order (every step can be re-run; a killed run continues where i
    ``frames`` frames, then cut), and one held-out sequence per ``test_motions`` entry. With
    ``in_place`` (the default) the slow horizontal drift of the root is removed so the character
    stays inside the camera ring (see :func:`remove_drift`).
-2. Writes the scene (cameras, body shape, garment kind and colour, the motions) -- nothing is
+2. Writes the scene (cameras, body shape, garment kind and color, the motions) -- nothing is
    rendered yet: images are rendered on demand from the stored simulation (:mod:`scene`).
 3. Simulates the garment on every sequence with newton's VBD solver
    (:func:`~garmentnerf.data.simulate.simulate`), one *process* per sequence because warp's CPU
@@ -20,7 +20,7 @@ What it does, in order (every step can be re-run; a killed run continues where i
    garment, and the timings each chunk records), so a re-run restores those of a sequence that
    finished in a run killed before it could record them, equal to an uninterrupted make's
    (the timings aside: each chunk's are those of the run that computed it).
-5. Renders a few training views to measure the mean garment and body colours for the palette
+5. Renders a few training views to measure the mean garment and body colors for the palette
    initialisation (``palette_init``).
 
 The chunk folders can be deleted once the scene is complete (``keep_chunks=False``).

@@ -27,10 +27,10 @@ Conventions (what every consumer of these images relies on)
         Per-vertex smooth normals are recomputed every frame on the CPU (area-weighted sums of
         face normals), which is what makes folds and wrinkles visible. Two-sided: a
         back-facing triangle (the inside of the garment, seen at the hem) is lit with its
-        normal flipped toward the viewer and its colour scaled by ``inside`` (default 0.7, an
+        normal flipped toward the viewer and its color scaled by ``inside`` (default 0.7, an
         ambient-occlusion-like darkening). Meshes must wind counter-clockwise seen from outside
         (the body asset's and SMPL's winding); a garment wound the other way is shaded as if
-        seen from inside. Colours are display values in [0, 1] (no gamma handling), clamped.
+        seen from inside. Colors are display values in [0, 1] (no gamma handling), clamped.
     Depth test, no face culling; the body is drawn before the garment (on exactly equal depth the
     body wins, as in one CameraPass draw of body faces followed by garment faces).
     Deterministic: the same inputs give identical bytes (fixed draw order, exact CPU reductions).
@@ -61,7 +61,7 @@ LABEL_BACKGROUND = 0
 LABEL_BODY = 1
 LABEL_GARMENT = 2
 
-#: Default body colour: a light skin tone (display RGB in [0, 1]).
+#: Default body color: a light skin tone (display RGB in [0, 1]).
 SKIN_TONE = (0.80, 0.63, 0.53)
 #: Default background (see the module docstring).
 BACKGROUND = (0.0, 0.0, 0.0)
@@ -112,7 +112,7 @@ class GroundTruthImage:
 
 
 def renderer_settings(supersample: int = 2, background=BACKGROUND, lighting: "Lighting | None" = None) -> dict:
-    """Everything besides geometry, camera and colours that determines a render (cache keys use it).
+    """Everything besides geometry, camera and colors that determines a render (cache keys use it).
 
     :meth:`GroundTruthRenderer.settings` returns this for the renderer's own settings; with the
     defaults it describes a default renderer without needing a GL context.
@@ -200,7 +200,7 @@ class _MeshBuffers:
 
 
 class _Targets:
-    """The supersampled colour+label target with its depth buffer, and the resolved 1x target."""
+    """The supersampled color+label target with its depth buffer, and the resolved 1x target."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, factor: int) -> None:
         big = (width * factor, height * factor)
@@ -255,7 +255,7 @@ class GroundTruthRenderer(GLObjectsOwner):
 
     # ---- settings ---------------------------------------------------------------------------------
     def settings(self) -> dict:
-        """Everything that determines the pixels besides the geometry, camera and colours."""
+        """Everything that determines the pixels besides the geometry, camera and colors."""
         return renderer_settings(self.supersample, self.background, self.lighting)
 
     def _set_lighting(self) -> None:

@@ -64,7 +64,7 @@ class Scene(RigLookup):
         garment: ``{"kind": str, "color": [r, g, b], ...}``.
         rig: the cameras, in file order.
         sequences: name -> :class:`SequenceInfo`, in file order.
-        palette_init: ``{"garment": rgb, "body": rgb}`` (mean ground-truth colours) or None.
+        palette_init: ``{"garment": rgb, "body": rgb}`` (mean ground-truth colors) or None.
         simulation: sequence name -> statistics of its cloth simulation.
         created_with: program version that wrote the file.
         extra: unknown top-level keys, kept as they are.

@@ -4,7 +4,7 @@ Images are not stored with the scene: :class:`SceneImages` renders them with
 :class:`~garmentnerf.data.render_gt.GroundTruthRenderer` and caches them under
 ``<scene>/cache/<sequence>/<camera>/<key>/`` where ``key`` (:meth:`Scene.cache_key
 <garmentnerf.data.scene.Scene.cache_key>`) hashes the renderer's version and settings, the camera,
-the body, the colours and the content of the sequence's files (SHA-256, memoised by the scene on
+the body, the colors and the content of the sequence's files (SHA-256, memoised by the scene on
 size and modification time): any change renders afresh instead of reading a stale image, while a
 copied scene folder keeps its cache. RGB is cached as 8-bit PNG and labels as 8-bit grey PNG (0
 background, 1 body, 2 garment); :meth:`SceneImages.image` returns the *cached* (8-bit quantised)
@@ -257,7 +257,7 @@ def _write_png(path: Path, array: np.ndarray) -> None:
 
 
 def palette_from_images(images: Iterable[tuple[np.ndarray, np.ndarray]], erode: int = 1) -> dict:
-    """Mean garment and body colours (the paper's palette initialisation p*) from ground truth.
+    """Mean garment and body colors (the paper's palette initialisation p*) from ground truth.
 
     Only pixels whose label region survives an ``erode``-pixel erosion count, so anti-aliased
     edges (blended with the background) do not darken the means. Returns

@@ -13,7 +13,7 @@
      "simulation": {"<sequence>": {stats...}},
      "created_with": "garmentnerf 0.1.0"}
 
-Colours are display RGB in [0, 1]. Cameras follow :mod:`garmentnerf.conventions` (OpenCV, world Z
+Colors are display RGB in [0, 1]. Cameras follow :mod:`garmentnerf.conventions` (OpenCV, world Z
 up, metres); every camera has the scene's ``image_size``. Keys other than these are kept as they
 are at the top level, in ``garment``, ``body`` and in each sequence; cameras accept no other keys
 (a distortion model, say, must not be silently ignored).

@@ -74,9 +74,9 @@ def make_rigged_scene(root, *, garment: str = "skirt", motion: str = "walk", fra
         held_out_views: cameras between the training ones (split ``unseen_view``).
         test_motion, test_frames: an optional second sequence ``test`` (split ``unseen_motion``).
         gl_context: moderngl context for ``palette="images"`` (None: a headless one is made).
-        palette: ``"images"``: ``palette_init`` = mean garment/body colours of the training
+        palette: ``"images"``: ``palette_init`` = mean garment/body colors of the training
             views of frame 0 (renders, and caches, those ground-truth images: needs OpenGL);
-            ``"colors"``: the garment and skin base colours (no rendering); ``"none"``: null.
+            ``"colors"``: the garment and skin base colors (no rendering); ``"none"``: null.
     Returns:
         the saved :class:`Scene`.
     """

@@ -361,7 +361,7 @@ class GroundTruthView:
 
     Attributes:
         image: (h, w, 3) float32 in [0, 1], composited over the run's background as the trainer's
-            targets are (area-downsampled colour and coverage when the size is below the scene's).
+            targets are (area-downsampled color and coverage when the size is below the scene's).
         labels: (h, w) uint8 pixel labels (0 background, 1 body, 2 garment;
             :mod:`garmentnerf.data.render_gt`), nearest-resampled when the size differs.
     """

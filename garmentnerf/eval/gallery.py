@@ -11,7 +11,7 @@ Each row has a caption with the view (sequence, camera, frame) and its foregroun
 cropped to the character (the box around the ground truth's and the render's silhouettes, grown by
 :data:`CROP_MARGIN_PX`; the same window in every tile of the row).
 The error image is the per-pixel mean absolute RGB difference, ``|pred - gt|`` averaged over
-channels, mapped through the *inferno* colour map with :data:`ERROR_FULL_SCALE` as white-hot
+channels, mapped through the *inferno* color map with :data:`ERROR_FULL_SCALE` as white-hot
 (black: exact; so errors on the background show too).
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 
 __all__ = ["Gallery", "ERROR_FULL_SCALE", "error_image"]
 
-#: Mean absolute RGB error shown at the top of the colour map (errors above it saturate).
+#: Mean absolute RGB error shown at the top of the color map (errors above it saturate).
 ERROR_FULL_SCALE = 0.25
 
 #: Pixels kept around the character when a row is cropped to it.
@@ -34,7 +34,7 @@ CAPTION_PX = 22
 
 
 def error_image(pred: np.ndarray, target: np.ndarray, full_scale: float = ERROR_FULL_SCALE) -> np.ndarray:
-    """(H, W, 3) uint8 colour-mapped error of two (H, W, 3) images in [0, 1] (see the module docstring)."""
+    """(H, W, 3) uint8 color-mapped error of two (H, W, 3) images in [0, 1] (see the module docstring)."""
     import cv2
 
     err = np.abs(np.asarray(pred, np.float32) - np.asarray(target, np.float32)).mean(axis=-1)

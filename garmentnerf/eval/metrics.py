@@ -6,7 +6,7 @@ Conventions (what every number reported by this project means)
         Metrics are computed over the **full frame** of images that are already composited on a
         background; the project's background is **black** (``(0, 0, 0)``, see
         :mod:`garmentnerf.data.render_gt`, whose RGB is premultiplied by coverage, so it *is* the
-        black composite). :func:`composite_premultiplied` gives the composite on another colour.
+        black composite). :func:`composite_premultiplied` gives the composite on another color.
         Prediction and ground truth must be on the same background. The background is recorded
         in :class:`MetricSummary` because full-frame numbers depend on it: a large black
         border inflates PSNR and SSIM.
@@ -84,10 +84,10 @@ def _image_pair(pred, target) -> tuple[np.ndarray, np.ndarray]:
 
 
 def composite_premultiplied(rgb, alpha, background=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """Composite premultiplied colour over a background: ``rgb + (1 - alpha) * background``.
+    """Composite premultiplied color over a background: ``rgb + (1 - alpha) * background``.
 
     Args:
-        rgb: (H, W, 3) premultiplied colour in [0, 1] (the project's renders on black).
+        rgb: (H, W, 3) premultiplied color in [0, 1] (the project's renders on black).
         alpha: (H, W) or (H, W, 1) coverage in [0, 1].
         background: 3 values in [0, 1].
     Returns:

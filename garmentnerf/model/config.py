@@ -96,7 +96,7 @@ class ModelConfig:
 
     # ---- Palette decoder M_D (``model/palette.py``)
     palette_size: int = 2
-    """P, palette colours (paper: 2, garment p_G and body/other p_B)."""
+    """P, palette colors (paper: 2, garment p_G and body/other p_B)."""
     decoder_upsample_steps: int = 2
     """Nearest x2 upsamplings (paper: 2, 128 -> 512)."""
     decoder_width: int = 64
@@ -108,23 +108,23 @@ class ModelConfig:
     """Full-resolution conv3x3 + LeakyReLU layers after the upsampling (authors' code: 2)."""
     radiance_activation: str = "softplus"
     """``"softplus"`` (default: unbounded above, shifted so the untrained radiance is 1) or ``"sigmoid"``. The
-    palette starts at mean colours, so pixels brighter than the mean need r > 1, which a sigmoid cannot give."""
+    palette starts at mean colors, so pixels brighter than the mean need r > 1, which a sigmoid cannot give."""
     radiance_channels: int = 3
-    """3 (paper: r in R^3) or 1 (grey shading, which cannot absorb hue and so makes recolouring follow the
+    """3 (paper: r in R^3) or 1 (grey shading, which cannot absorb hue and so makes recoloring follow the
     palette more faithfully)."""
     offset_scale: float = 0.5
-    """Offsets are ``offset_scale * tanh(.)`` (small, and bounded so a colour p + o stays near [0, 1])."""
+    """Offsets are ``offset_scale * tanh(.)`` (small, and bounded so a color p + o stays near [0, 1])."""
     blend_weight_floor: float = 0.05
     """Added after the softplus of the blend weights before they are normalised (authors' code: 0.05), so no
-    palette colour's weight reaches exactly 0 and the normalisation never divides by 0."""
+    palette color's weight reaches exactly 0 and the normalisation never divides by 0."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """RGB in [0, 1] the output is composited over (default black, the background of the ground-truth renders
     in ``garmentnerf.data.render_gt``)."""
     garment_label: int = 2
     """Label-map value of garment pixels (0 is background), used to initialise the palette from mean
-    colours."""
+    colors."""
     body_label: int = 1
-    """Label-map value of body pixels (0 is background), used to initialise the palette from mean colours."""
+    """Label-map value of body pixels (0 is background), used to initialise the palette from mean colors."""
 
     # ---- Ablations
     use_dynamic_feature: bool = True
@@ -146,7 +146,7 @@ class ModelConfig:
     w_sparsity: float = 2e-4
     """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
-    """Colour-offset magnitude (paper lambda_4 = 0.03)."""
+    """Color-offset magnitude (paper lambda_4 = 0.03)."""
     w_palette: float = 1e-3
     """Palette drift from its initialisation (paper lambda_5 = 1e-3)."""
     w_opacity: float = 1.0
@@ -156,15 +156,15 @@ class ModelConfig:
     density at its uniform initial box (the decoder learns "features -> background" first); supervising the
     opacity directly carves the body and garment within a few hundred steps."""
     w_segmentation: float = 0.0
-    """L1 between the garment blend weight w_G (palette colour 0) and the ground-truth garment share of each
+    """L1 between the garment blend weight w_G (palette color 0) and the ground-truth garment share of each
     foreground pixel, from the label maps (not in the paper: 0 gives its objective). The paper leaves the
     garment/body split to the sparsity and offset losses alone; at CPU schedules that split comes out wrong (a
     model at NeRF step 400 put w_G = 0.06 on garment pixels and made them blue with a body offset of 0.28),
-    and recolouring the garment then barely changes it. The labels the palette is initialised from already say
+    and recoloring the garment then barely changes it. The labels the palette is initialised from already say
     which pixels are garment."""
     segmentation_start: int = 0
     """NeRF steps done before the segmentation term applies (a curriculum: the garment is first carved and
-    coloured by the image and mask losses, then assigned to its palette entry; the bundled model switched it
+    colored by the image and mask losses, then assigned to its palette entry; the bundled model switched it
     on after 551 steps)."""
     segmentation_head_only: bool = True
     """The segmentation term trains only the decoder's weight head, not the layers it shares with the mask and
@@ -211,7 +211,7 @@ class ModelConfig:
 
     @property
     def decoder_out_channels(self) -> int:
-        """Raw channels of M_D: radiance, 3 offsets and 1 weight per colour, mask (paper: 12 or 13)."""
+        """Raw channels of M_D: radiance, 3 offsets and 1 weight per color, mask (paper: 12 or 13)."""
         return self.radiance_channels + 4 * self.palette_size + 1
 
     # ------------------------------------------------------------------ checks
@@ -290,7 +290,7 @@ class ModelConfig:
         metre untrained, as with the default softplus, but each unit of raw output multiplies the
         density by e), and a 2x larger learning rate (1e-3 decaying to 1e-4). The radiance is grey
         (``radiance_channels=1``): after 1,800 steps an RGB radiance had absorbed the garment's hue
-        (garment pixels blended 71% of the *body* colour, tinted blue by r), so recolouring the
+        (garment pixels blended 71% of the *body* color, tinted blue by r), so recoloring the
         garment entry barely changed the garment. With a grey radiance the blend weights went wrong
         instead (see ``w_segmentation``), so they are supervised with the garment labels
         (``w_segmentation`` 0.5 after 550 NeRF steps).

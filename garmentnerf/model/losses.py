@@ -10,7 +10,7 @@ paper), L_sp the blend-weight sparsity, L_off = |O|^2, L_p = |p - p*|^2 and lamb
 2e-4, 0.03, 1e-3). Plain L1 as in the paper (the authors' code uses a pseudo-Huber).
 
 Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixel values
-(summed over palette colours and channels) averaged over pixels, as in PaletteNeRF whose weights
+(summed over palette colors and channels) averaged over pixels, as in PaletteNeRF whose weights
 the paper adopts; L_p is the sum over the palette's 3P values.
 
 Two optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
@@ -44,7 +44,7 @@ def sparsity_loss(weights: torch.Tensor) -> torch.Tensor:
     """Blend-weight sparsity ``mean(1 / sum_i w_i^2 - 1)`` over pixels; weights (B, P, H, W).
 
     For P = 2 with w_B = 1 - w_G this is the paper's ``1 / (w^2 + (1 - w)^2) - 1``. In general
-    1 / sum w_i^2 is the effective number of colours a pixel mixes (1 for a one-hot pixel, P
+    1 / sum w_i^2 is the effective number of colors a pixel mixes (1 for a one-hot pixel, P
     for a uniform mix), so the loss is 0 exactly at one-hot weights and at most P - 1.
     """
     return (1.0 / weights.square().sum(dim=1) - 1.0).mean()
@@ -77,7 +77,7 @@ def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, targe
     """L1 between the garment blend weight and the garment share of each foreground pixel.
 
     Args:
-        weights: (B, P, H, W) blend weights; colour 0 is the garment.
+        weights: (B, P, H, W) blend weights; color 0 is the garment.
         target_garment: (B, 1, H, W) ground-truth garment coverage in [0, 1].
         target_mask: (B, 1, H, W) ground-truth foreground (body + garment) coverage in [0, 1].
     Returns:

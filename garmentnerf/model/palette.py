@@ -2,7 +2,7 @@
 formula that turns the decomposed maps and a palette into an image.
 
 M_D decodes the volume-rendered feature image F^zeta ``(B, 128, h, w)`` into maps at
-``(4h, 4w)``: radiance r, per-colour offsets o_i, per-colour blend weights w_i and a mask m.
+``(4h, 4w)``: radiance r, per-color offsets o_i, per-color blend weights w_i and a mask m.
 :func:`compose` then forms the image
 
     c = m * clamp(r * sum_i w_i (p_i + o_i), 0, 1) + (1 - m) * background
@@ -11,10 +11,10 @@ which for P = 2 (garment p_G, body/other p_B) and a black background is the pape
 ``c = m r [w (p_G + o_G) + (1 - w)(p_B + o_B)]``.
 
 One formula everywhere
-    Training, rendering and recolouring all call :func:`compose`. The authors' code clips each
+    Training, rendering and recoloring all call :func:`compose`. The authors' code clips each
     palette term ``clip(r (p_i + o_i), 0, 1)`` before the weighted sum while training but clips
     after the sum when editing, so an edited image with the *original* palette differs from
-    the trained one wherever a term leaves [0, 1]: recolouring would change pixels that should
+    the trained one wherever a term leaves [0, 1]: recoloring would change pixels that should
     not change. Clamping once, after the sum, also keeps the formula linear in the palette
     inside [0, 1], so the change of a pixel under a new palette is exactly
     ``m r w_i (p_i' - p_i)`` (what the viewer's shader reproduces from the cached maps).
@@ -23,7 +23,7 @@ One formula everywhere
     [0, 1]. A plain clamp would give no gradient at all to a pixel stuck above 1 (softplus
     radiance is unbounded), so it could never come back.
 
-The foreground is clamped, then alpha-composited: a convex combination of two colours in [0, 1]
+The foreground is clamped, then alpha-composited: a convex combination of two colors in [0, 1]
 needs no second clamp.
 """
 
@@ -106,7 +106,7 @@ def check_palette(palette: torch.Tensor) -> None:
     if not bool(torch.isfinite(palette).all()):
         raise ValueError("palette contains NaN or Inf")
     if bool((palette < 0).any()) or bool((palette > 1).any()):
-        raise ValueError(f"palette colours must lie in [0, 1], got min {float(palette.min()):.4g} "
+        raise ValueError(f"palette colors must lie in [0, 1], got min {float(palette.min()):.4g} "
                          f"max {float(palette.max()):.4g}")
 
 
@@ -130,20 +130,20 @@ def compose(radiance: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor
     check_palette(palette)
     B, P = weights.shape[:2]
     if P != palette.shape[0] or offsets.shape[:3] != (B, P, 3):
-        raise ValueError(f"palette ({palette.shape[0]} colours), offsets {tuple(offsets.shape)} and weights "
+        raise ValueError(f"palette ({palette.shape[0]} colors), offsets {tuple(offsets.shape)} and weights "
                          f"{tuple(weights.shape)} disagree on the palette size")
     bg = torch.as_tensor(background, dtype=radiance.dtype, device=radiance.device)
     if bg.shape != (3,) or bool((bg < 0).any()) or bool((bg > 1).any()):
         raise ValueError(f"background must be 3 values in [0, 1], got {background}")
-    colours = palette.to(radiance.dtype)[None, :, :, None, None] + offsets  # (B, P, 3, H, W)
-    base = (weights.unsqueeze(2) * colours).sum(dim=1)  # (B, 3, H, W)
+    colors = palette.to(radiance.dtype)[None, :, :, None, None] + offsets  # (B, P, 3, H, W)
+    base = (weights.unsqueeze(2) * colors).sum(dim=1)  # (B, 3, H, W)
     foreground = restoring_clamp(radiance * base)
     return mask * foreground + (1.0 - mask) * bg.view(1, 3, 1, 1)
 
 
 @dataclass
 class DecomposedMaps:
-    """Output of M_D; cache it to recolour without re-running any network.
+    """Output of M_D; cache it to recolor without re-running any network.
 
     Attributes:
         radiance: (B, 3 or 1, H, W) r >= 0.
@@ -223,7 +223,7 @@ class PaletteDecoder(nn.Module):
 
     Heads:
         radiance: softplus shifted so raw 0 -> 1 (default; can exceed 1 where the pixel is
-            brighter than its palette colour) or sigmoid.
+            brighter than its palette color) or sigmoid.
         offsets: ``offset_scale * tanh``.
         weights: ``softplus + weight_floor``, normalised to sum 1 over the palette.
         mask: sigmoid.
@@ -309,22 +309,22 @@ class Palette(nn.Module):
         super().__init__()
         check_palette(initial)
         self.register_buffer("initial", initial.detach().clone().float())
-        self.colours = nn.Parameter(initial.detach().clone().float(), requires_grad=learnable)
+        self.colors = nn.Parameter(initial.detach().clone().float(), requires_grad=learnable)
 
     def forward(self) -> torch.Tensor:
         """(P, 3) palette in [0, 1]."""
-        return self.colours.clamp(0.0, 1.0)
+        return self.colors.clamp(0.0, 1.0)
 
 
 def palette_from_labels(images: torch.Tensor, labels: torch.Tensor, classes=(2, 1)) -> torch.Tensor:
-    """Mean colour of each labelled region, the paper's p* (garment first, then body).
+    """Mean color of each labelled region, the paper's p* (garment first, then body).
 
     Args:
         images: (N, 3, H, W) or (N, H, W, 3) RGB in [0, 1] (read as channels-first whenever
             dimension 1 has size 3).
         labels: (N, H, W) integer label maps (ground-truth renders: 0 background, 1 body,
             2 garment).
-        classes: label value of each palette colour, in palette order.
+        classes: label value of each palette color, in palette order.
     Returns:
         (len(classes), 3) palette.
     Raises:
@@ -338,6 +338,6 @@ def palette_from_labels(images: torch.Tensor, labels: torch.Tensor, classes=(2, 
     for c in classes:
         sel = flat == c
         if not bool(sel.any()):
-            raise ValueError(f"no pixel has label {c}; cannot initialise its palette colour")
+            raise ValueError(f"no pixel has label {c}; cannot initialise its palette color")
         out.append(pixels[sel].mean(dim=0))
     return torch.stack(out).clamp(0.0, 1.0)

@@ -123,7 +123,7 @@ class RenderOutput:
     Attributes:
         maps: the decoder's :class:`DecomposedMaps` (batch of 1) at the feature size times
             ``2**decoder_upsample_steps``; with :func:`compose` and any palette they give the
-            image (:attr:`image`, :meth:`recolour`) without re-rendering.
+            image (:attr:`image`, :meth:`recolor`) without re-rendering.
         opacity: (h, w) accumulated opacity per feature-image ray (0 for rays not rendered).
         depth: (h, w) opacity-normalised expected depth along each ray (metres; 0 where opacity 0).
         feature_image: (C_zeta, h, w) F^zeta, the decoder's input.
@@ -157,7 +157,7 @@ class RenderOutput:
         first use, with autograd as the grad mode then says)."""
         return self.maps.compose(self.palette.to(self.maps.mask.device), self.background)[0]
 
-    def recolour(self, palette: torch.Tensor, background=None) -> torch.Tensor:
+    def recolor(self, palette: torch.Tensor, background=None) -> torch.Tensor:
         """(3, H, W) the image with another palette (no network runs)."""
         bg = self.background if background is None else background
         return self.maps.compose(palette.to(self.maps.mask.device), bg)[0]
@@ -183,23 +183,23 @@ class _Stopwatch:
             self.timings[name] = self.timings.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
 
-def palette_initial_colours(init, palette_size: int = 2) -> torch.Tensor:
-    """The palette's starting colours p* ``(P, 3)`` from a scene's ``palette_init`` or a tensor.
+def palette_initial_colors(init, palette_size: int = 2) -> torch.Tensor:
+    """The palette's starting colors p* ``(P, 3)`` from a scene's ``palette_init`` or a tensor.
 
     Args:
         init: ``{"garment": rgb, "body": rgb}`` (``Scene.palette_init``; garment first as in
             :func:`~garmentnerf.model.palette.palette_from_labels`), a ``(P, 3)`` tensor / array in
-            [0, 1], or None (mid grey for every colour, for tests and untrained models).
+            [0, 1], or None (mid grey for every color, for tests and untrained models).
         palette_size: P of the config.
     """
     if init is None:
         return torch.full((palette_size, 3), 0.5)
     if isinstance(init, dict):
         if palette_size != 2:
-            raise ValueError(f"a garment/body palette_init gives 2 colours, the config has palette_size={palette_size}")
+            raise ValueError(f"a garment/body palette_init gives 2 colors, the config has palette_size={palette_size}")
         missing = [k for k in ("garment", "body") if init.get(k) is None]
         if missing:
-            raise ValueError(f"palette_init has no colour for {', '.join(missing)}")
+            raise ValueError(f"palette_init has no color for {', '.join(missing)}")
         out = torch.tensor([init["garment"], init["body"]], dtype=torch.float32)
     else:
         out = torch.as_tensor(np.asarray(init, dtype=np.float32))
@@ -251,7 +251,7 @@ class GarmentAnimationNeRF(nn.Module):
     Args:
         cfg: sizes, switches (ablations, detail selection) and the sampler settings.
         body: the body model (its topology and template; the skin shell is used for projection).
-        palette_init: see :func:`palette_initial_colours` (a scene's ``palette_init``).
+        palette_init: see :func:`palette_initial_colors` (a scene's ``palette_init``).
         freeze_image_generator: start with G_img frozen (its pre-training is a separate stage).
         visibility_tolerance: metres, see :func:`reference_visibility`.
         chunk_points: samples per chunk (see the module docstring).
@@ -280,7 +280,7 @@ class GarmentAnimationNeRF(nn.Module):
         self.detail_encoder = DetailEncoder.from_config(cfg) if cfg.use_detail_feature else None
         self.nerf = GarmentNeRF.from_config(cfg)
         self.decoder = PaletteDecoder.from_config(cfg)
-        self.palette = Palette(palette_initial_colours(palette_init, cfg.palette_size))
+        self.palette = Palette(palette_initial_colors(palette_init, cfg.palette_size))
         self.visibility_tolerance = float(visibility_tolerance)
         self.chunk_points = int(chunk_points)
         self.projector = projector if projector is not None else BodyPointProjector(body)
@@ -292,7 +292,7 @@ class GarmentAnimationNeRF(nn.Module):
     # ------------------------------------------------------------------ modules and state
     @property
     def device(self) -> torch.device:
-        return self.palette.colours.device
+        return self.palette.colors.device
 
     @property
     def image_generator_frozen(self) -> bool:
@@ -611,5 +611,5 @@ class GarmentAnimationNeRF(nn.Module):
 
 
 __all__ = ["GarmentAnimationNeRF", "RenderOutput", "RenderCancelled", "reference_visibility",
-           "palette_initial_colours", "FRAME_STAGES", "RENDER_STAGES", "PRECISIONS", "DEFAULT_CHUNK_POINTS",
+           "palette_initial_colors", "FRAME_STAGES", "RENDER_STAGES", "PRECISIONS", "DEFAULT_CHUNK_POINTS",
            "DEFAULT_VISIBILITY_TOLERANCE"]

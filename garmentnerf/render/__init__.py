@@ -12,5 +12,5 @@ snapshots and video export, so their images agree.
   index, and the ``--camera`` argument.
 * :mod:`~garmentnerf.render.video` -- PNG frames written atomically (never overwriting) and mp4
   through imageio-ffmpeg.
-* :mod:`~garmentnerf.render.colors` -- hex colour and palette parsing.
+* :mod:`~garmentnerf.render.colors` -- hex color and palette parsing.
 """

@@ -1,7 +1,7 @@
-"""Colours on the command line and in the viewer: ``#rrggbb`` / ``#rgb`` hex, and palettes.
+"""Colors on the command line and in the viewer: ``#rrggbb`` / ``#rgb`` hex, and palettes.
 
-Palette order is the model's: colour 0 is the garment (p_G), colour 1 the body/other (p_B)
-(:func:`garmentnerf.model.pipeline.palette_initial_colours`).
+Palette order is the model's: color 0 is the garment (p_G), color 1 the body/other (p_B)
+(:func:`garmentnerf.model.pipeline.palette_initial_colors`).
 """
 
 from __future__ import annotations
@@ -14,12 +14,12 @@ import torch
 _HEX = re.compile(r"^#?([0-9a-fA-F]{6}|[0-9a-fA-F]{3})$")
 
 
-def parse_hex_color(text: str, what: str = "colour") -> tuple[float, float, float]:
+def parse_hex_color(text: str, what: str = "color") -> tuple[float, float, float]:
     """``'#c03030'`` (or ``c03030``, ``#c33``) -> RGB in [0, 1]; ValueError with a one-line message."""
     t = str(text).strip()
     m = _HEX.match(t)
     if not m:
-        raise ValueError(f"{what} '{text}' is not a hex colour; use #rrggbb (e.g. #c03030)")
+        raise ValueError(f"{what} '{text}' is not a hex color; use #rrggbb (e.g. #c03030)")
     h = m.group(1)
     if len(h) == 3:
         h = "".join(c * 2 for c in h)
@@ -33,30 +33,30 @@ def to_hex(rgb) -> str:
 
 
 def build_palette(learned: torch.Tensor, colors: str | None = None, body: str | None = None) -> torch.Tensor:
-    """The palette to compose with: the learned one, with colours replaced.
+    """The palette to compose with: the learned one, with colors replaced.
 
     Args:
         learned: (P, 3) learned palette.
-        colors: ``'#garment'`` or ``'#c0,#c1,...'`` replacing colours 0, 1, ... (``-`` or an empty
-            item keeps that learned colour); None keeps them all.
-        body: replaces colour 1 (the body/other colour).
+        colors: ``'#garment'`` or ``'#c0,#c1,...'`` replacing colors 0, 1, ... (``-`` or an empty
+            item keeps that learned color); None keeps them all.
+        body: replaces color 1 (the body/other color).
     """
     pal = learned.detach().to("cpu", torch.float32).clone()
     P = pal.shape[0]
     if colors is not None and str(colors).strip():
         items = [c.strip() for c in str(colors).split(",")]
         if all(item in ("", "-") for item in items):
-            raise ValueError(f"--palette {colors!r} names no colour (give '#rrggbb' items; '-' keeps one)")
+            raise ValueError(f"--palette {colors!r} names no color (give '#rrggbb' items; '-' keeps one)")
         if len(items) > P:
-            raise ValueError(f"--palette has {len(items)} colours but the model's palette has {P}")
+            raise ValueError(f"--palette has {len(items)} colors but the model's palette has {P}")
         for i, item in enumerate(items):
             if item in ("", "-"):
                 continue
-            pal[i] = torch.tensor(parse_hex_color(item, f"palette colour {i}"))
+            pal[i] = torch.tensor(parse_hex_color(item, f"palette color {i}"))
     if body is not None:
         if P < 2:
-            raise ValueError("the model's palette has no body colour (palette size 1)")
-        pal[1] = torch.tensor(parse_hex_color(body, "body colour"))
+            raise ValueError("the model's palette has no body color (palette size 1)")
+        pal[1] = torch.tensor(parse_hex_color(body, "body color"))
     return pal
 
 

@@ -4,7 +4,7 @@ holds the decomposed maps of one view and composes them with any palette.
 What the network outputs (and why there is no body-only fallback)
     The model is trained on ground-truth images of the body *and* the garment over a black
     background (``garmentnerf.data.render_gt``), with the mask covering both; the palette has a
-    garment colour p_0 and a body/other colour p_1. So the neural image already shows the body,
+    garment color p_0 and a body/other color p_1. So the neural image already shows the body,
     and where the mask is 0 there is nothing but background: :meth:`NeuralFrame.composite` is
     ``compose(maps, palette, background)`` and nothing else. (The viewer's "body only" mode draws
     the rasterised body instead of the network; the two are never mixed per pixel.)

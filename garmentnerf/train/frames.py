@@ -11,7 +11,7 @@
   the scene's image (:class:`~garmentnerf.data.scene.SceneImages`, rendered and cached on disk on
   first use) area-downsampled, and the target mask. The model's mask ``m`` says where the
   *foreground* (body or garment) covers the pixel -- :func:`~garmentnerf.model.palette.compose`
-  puts the background colour where it is 0 -- so the target mask is ``labels != 0``,
+  puts the background color where it is 0 -- so the target mask is ``labels != 0``,
   area-downsampled to a coverage in [0, 1]. The ground truth is rendered on black (premultiplied
   by coverage), so the target image is ``rgb + (1 - mask) * cfg.background``: the same
   compositing as the model's.

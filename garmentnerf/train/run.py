@@ -18,7 +18,7 @@ temporary, which :func:`remove_run_temporaries` deletes when the run is resumed.
      "scene": "../scenes/skirt"       (relative to the run folder when possible, else absolute),
      "body": {"model": "anny", "shape": "average" | [betas...]},
      "model_config": ModelConfig.to_dict(),
-     "palette_init": [[r, g, b], ...]  (p*, the palette's starting colours, (P, 3)),
+     "palette_init": [[r, g, b], ...]  (p*, the palette's starting colors, (P, 3)),
      "perceptual": "stlpips_alex" | "vgg19:<file>" | "none" | "untrained",
      "step": 1234                     (global step of model.safetensors, see below),
      "created_with": "garmentnerf 0.1.0",
@@ -237,6 +237,10 @@ def remove_run_temporaries(run_dir) -> list[Path]:
     return removed
 
 
+#: Weight names of older runs (the bundled one included) -> today's: read under the new name.
+RENAMED_WEIGHTS = {"palette.colours": "palette.colors"}
+
+
 def save_weights(path, model: torch.nn.Module, metadata: dict | None = None) -> Path:
     """Model weights to a ``.safetensors`` file, atomically (:func:`write_file_atomic`).
 
@@ -291,6 +295,9 @@ def load_weights(path, model: torch.nn.Module) -> None:
         state = load_file(str(path), device="cpu")
     except Exception as exc:  # safetensors raises its own error types for damaged files
         raise ValueError(f"{path}: not a readable safetensors file ({type(exc).__name__}: {exc})") from exc
+    for old, new in RENAMED_WEIGHTS.items():
+        if old in state and new not in state:
+            state[new] = state.pop(old)
     own = model.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))

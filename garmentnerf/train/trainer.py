@@ -505,7 +505,7 @@ class Trainer:
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame))
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
-        terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colours, pal.initial,
+        terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
                                self.cfg, self.perceptual, opacity=out.opacity[None],
                                target_garment=garment[None] if segment else None)
         return terms, {"pred": out.image, "target": image}
