@@ -37,6 +37,7 @@ from garmentnerf.viewer.panels import StatusLine
 from garmentnerf.viewer.camera import MouseGestures, OrbitController
 from garmentnerf.viewer.export_jobs import ExportJob, check_size
 from garmentnerf.viewer.exporting import Exports
+from garmentnerf.lifecycle import Closeable
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import NeuralView
 from garmentnerf.viewer.renderables import FULL_VIEW
@@ -58,7 +59,7 @@ NEURAL_WAIT_SECONDS = 180.0
 MAX_STEP_SECONDS = 0.25
 
 
-class App:
+class App(Closeable):
     """The previewer.
 
     Args:
@@ -403,12 +404,6 @@ class App:
             self.window.make_current()
             self.scene.release()
         self.window.close()
-
-    def __enter__(self) -> "App":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def _env_frames() -> int | None:

@@ -69,6 +69,7 @@ import numpy as np
 import torch
 
 from garmentnerf.conventions import Camera
+from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
 from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
@@ -173,7 +174,7 @@ def resolve_motion(motion, body, betas, scene=None):
     return load_motion(name, body, betas=betas, fps=fps), None
 
 
-class RenderSession:
+class RenderSession(Closeable):
     """Renders views of a run's model for a motion (see the module docstring).
 
     Args:
@@ -411,12 +412,6 @@ class RenderSession:
         if self.builder is not None:
             self.builder.release()
             self.builder = None
-
-    def __enter__(self) -> "RenderSession":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def padded_render_camera(camera: Camera, scale: float, upsample: int) -> tuple[Camera, tuple[int, int], tuple[int, int]]:

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from garmentnerf.conventions import Camera
+from garmentnerf.lifecycle import Closeable
 
 __all__ = ["SceneFrames", "SceneFramesFactory", "area_resize"]
 
@@ -50,7 +51,7 @@ def area_resize(image: np.ndarray | torch.Tensor, size: int | tuple[int, int]) -
     return x[0].contiguous()
 
 
-class SceneFrames:
+class SceneFrames(Closeable):
     """Cached inputs and targets of a scene for one model config (see the module docstring).
 
     Args:
@@ -179,12 +180,6 @@ class SceneFrames:
         if self._own_ctx is not None:
             self._own_ctx.release()
             self._own_ctx = None
-
-    def __enter__(self) -> "SceneFrames":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 class SceneFramesFactory:

@@ -83,6 +83,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, generator_losses
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
@@ -121,7 +122,7 @@ def _seed_of(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0] >> 1)
 
 
-class Trainer:
+class Trainer(Closeable):
     """One training run (see the module docstring). Use :meth:`train`, then :meth:`close`.
 
     Args:
@@ -604,12 +605,6 @@ class Trainer:
         if getattr(self, "data", None) is not None:
             self.data.close()
         self.dist.close()
-
-    def __enter__(self) -> "Trainer":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def train(tc: TrainConfig, gl_context=None) -> TrainResult:
