@@ -590,31 +590,9 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
             session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])))
         if gallery is not None:
             gallery.plan(views.total)
-        for index, (seq, frame, cam) in enumerate(views):
-            size = views.size(cam)
-            target = gt.view(seq, cam, frame, size)
-            shown: dict[str, np.ndarray] = {}
-            character = target.labels != 0
-            if scores is not None:
-                if session.sequence != seq:
-                    session.set_motion(seq)
-                nf = session.render(frame, views.camera(cam), quality=render_preset.resolution_scale,
-                                    preset=render_preset)
-                shown["render"] = nf.composite(None, background)
-                silhouette = nf.mask() > 0.5
-                character = character | silhouette
-                row = scores.add(seq, cam, frame, shown["render"], target, pred_silhouette=silhouette)
-            if base_scores is not None:
-                near = nearest[cam]["camera"]
-                if views.size(near) != size:
-                    raise ValueError(f"nearest-view baseline: camera '{near}' has another image size than '{cam}'")
-                near_view = gt.view(seq, near, frame, size)
-                shown["nearest view"] = near_view.image
-                base_row = base_scores.add(seq, cam, frame, near_view.image, target,
-                                           pred_silhouette=near_view.labels != 0)
-                row = row if scores is not None else base_row
-            if gallery is not None and gallery.wants(index):
-                gallery.add(f"{seq} {cam} frame {frame}", target.image, shown, row, character)
+        methods = _Methods(session, scores, base_scores, nearest, render_preset, background)
+        for index, view in enumerate(views):
+            methods.score(index, *view, views=views, gt=gt, gallery=gallery)
             if bar is not None:
                 bar.update(1)
     finally:
@@ -625,6 +603,50 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
             own_ctx.release()
     return _encode_float(_result(run, split, sel, views, render_preset, background, unavailable, scores,
                                  base_scores, nearest, tof, time.perf_counter() - t_start))
+
+
+@dataclass
+class _Methods:
+    """What an evaluation scores: the model through its render session and/or the nearest view."""
+
+    session: Any
+    """The :class:`~garmentnerf.render.session.RenderSession` (None: the model is not scored)."""
+    scores: _Scores | None
+    base_scores: _Scores | None
+    nearest: dict
+    """Evaluated camera -> ``{"camera": nearest training camera, "angle_deg": ...}``."""
+    preset: Any
+    """The :class:`~garmentnerf.perf.presets.RenderPreset` the model renders with."""
+    background: tuple[float, float, float]
+
+    def score(self, index: int, sequence: str, frame: int, camera: str, *, views: "_ViewPlan",
+              gt: _GroundTruth, gallery: "Gallery | None") -> None:
+        """Score view number ``index`` with every method, and offer it to the gallery."""
+        size = views.size(camera)
+        target = gt.view(sequence, camera, frame, size)
+        shown: dict[str, np.ndarray] = {}
+        character = target.labels != 0
+        row = None
+        if self.scores is not None:
+            if self.session.sequence != sequence:
+                self.session.set_motion(sequence)
+            nf = self.session.render(frame, views.camera(camera), quality=self.preset.resolution_scale,
+                                     preset=self.preset)
+            shown["render"] = nf.composite(None, self.background)
+            silhouette = nf.mask() > 0.5
+            character = character | silhouette
+            row = self.scores.add(sequence, camera, frame, shown["render"], target, pred_silhouette=silhouette)
+        if self.base_scores is not None:
+            near = self.nearest[camera]["camera"]
+            if views.size(near) != size:
+                raise ValueError(f"nearest-view baseline: camera '{near}' has another image size than '{camera}'")
+            near_view = gt.view(sequence, near, frame, size)
+            shown["nearest view"] = near_view.image
+            base_row = self.base_scores.add(sequence, camera, frame, near_view.image, target,
+                                            pred_silhouette=near_view.labels != 0)
+            row = row if row is not None else base_row
+        if gallery is not None and gallery.wants(index):
+            gallery.add(f"{sequence} {camera} frame {frame}", target.image, shown, row, character)
 
 
 def _check_request(split: str, baseline: bool, model: bool, resolution: str) -> None:
