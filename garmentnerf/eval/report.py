@@ -300,6 +300,20 @@ def render_markdown(meta: dict, variants: list[Variant], results: dict[str, dict
     """
     all_results = [r for per in results.values() for r in per.values()] + ([baseline] if baseline else [])
     perceptual = _perceptual_metric(all_results)
+    out = _md_intro(meta, perceptual, all_results)
+    out += _md_split_notes(results, baseline, splits)
+    out += _md_comparison(results, baseline, splits, perceptual)
+    out += _md_features(results, splits, perceptual)
+    out += _md_views(meta, variants, results, splits, perceptual)
+    out += _md_history(meta, variants, results, splits, perceptual)
+    out += _md_runs(meta, variants, results)
+    out += ["", f"Made in {meta.get('seconds', 0.0):.0f} s by `garmentnerf report`.", ""]
+    return "\n".join(out)
+
+
+def _md_intro(meta: dict, perceptual: tuple[str, str], all_results: list[dict]) -> list[str]:
+    """The title, the run settings and how the numbers are made (with the note on the
+    perceptual column when it is shift-tolerant LPIPS), as markdown lines."""
     out = ["# Garment Animation NeRF: ablation report", ""]
     out.append(f"Scene `{meta['scene']}`, preset `{meta['preset']}`, {meta['iterations']} NeRF + "
                f"{meta['generator_iterations']} G_img pre-training steps per variant (none without the detail "
@@ -315,12 +329,18 @@ def render_markdown(meta: dict, variants: list[Variant], results: dict[str, dict
         out.append("")
         out.append("**The perceptual column is shift-tolerant LPIPS (AlexNet-like, stlpips-pytorch weights), not "
                    "the paper's LPIPS**" + (f": LPIPS is unavailable ({reason})." if reason else "."))
-    out.append("")
+    return out
+
+
+def _md_split_notes(results: dict[str, dict[str, dict]], baseline: dict | None, splits: list[str]) -> list[str]:
+    """The lines saying what each split holds, then one note per split whose tOF is unavailable
+    (the first variant's reason)."""
+    out = [""]
     out.append("Splits: " + "; ".join(_split_text(s, results, baseline) for s in splits) + ". The paper's "
                "\"seen motion\" columns are on held-out views of the training motion, i.e. `unseen view` here.")
     notes = []
     for s in splits:
-        for name, per in results.items():
+        for per in results.values():
             r = per.get(s)
             if r and "tof" in r.get("unavailable", {}):
                 notes.append(f"tOF unavailable on {_SPLIT_TITLE[s]}: {r['unavailable']['tof']}")
@@ -328,55 +348,73 @@ def render_markdown(meta: dict, variants: list[Variant], results: dict[str, dict
     for n in dict.fromkeys(notes):
         out.append("")
         out.append(f"Note: {n}.")
+    return out
 
-    def row(name: str) -> dict:
-        return results.get(name, {})
 
-    # Table 1: comparison
-    out += ["", "## Comparison with the nearest training view (paper Table 1)", ""]
+def _md_comparison(results: dict[str, dict[str, dict]], baseline: dict | None, splits: list[str],
+                   perceptual: tuple[str, str]) -> list[str]:
+    """The comparison table (paper Table 1): the nearest-view baseline and ``full``, with the
+    baseline's explanation when there is one."""
+    out = ["", "## Comparison with the nearest training view (paper Table 1)", ""]
     rows = []
     if baseline is not None:
         rows.append((["nearest view"], {"unseen_view": baseline}))
     if "full" in results:
-        rows.append((["ours (full)"], row("full")))
+        rows.append((["ours (full)"], results["full"]))
     out += _table(["method"], rows, splits, perceptual)
     if baseline is not None:
         out += ["", "The nearest-view baseline is the ground-truth image of the training camera nearest in "
                     "optical-axis angle at the same frame, not reprojected (nearest: "
                 + ", ".join(f"{c} -> {n}" for c, n in baseline.get("nearest_camera", {}).items())
                 + "); it is defined on unseen views only."]
+    return out
 
-    # Table 2: features
+
+def _md_features(results: dict[str, dict[str, dict]], splits: list[str], perceptual: tuple[str, str]) -> list[str]:
+    """The input-features table (paper Table 2) with detail / dynamic check marks; no lines
+    unless at least two of its variants were evaluated."""
     feat = [("no_features", "", ""), ("no_detail", "", "✓"), ("no_dynamic", "✓", ""), ("full", "✓", "✓")]
-    rows = [([d, s], row(n)) for n, d, s in feat if n in results]
-    if len(rows) > 1:
-        out += ["", "## Input features (paper Table 2)", ""]
-        out += _table(["detail feature", "dynamic feature"], rows, splits, perceptual)
+    rows = [([d, s], results[n]) for n, d, s in feat if n in results]
+    if len(rows) <= 1:
+        return []
+    return ["", "## Input features (paper Table 2)", ""] + _table(["detail feature", "dynamic feature"], rows,
+                                                                  splits, perceptual)
 
-    # Table 3: views
-    view_rows = []
-    for v in variants:
-        if v.name.startswith("views_") and v.name in results:
-            view_rows.append((v.views, [str(v.views)], row(v.name)))
-    if view_rows and "full" in results:
-        view_rows.append((meta["train_cameras"], [f"{meta['train_cameras']} (full)"], row("full")))
-        view_rows.sort(key=lambda t: t[0])
-        out += ["", "## Number of training views (paper Table 3)", ""]
-        out += _table(["# views"], [(lab, r) for _, lab, r in view_rows], splits, perceptual)
 
-    # Table 4: history
-    k_rows = []
-    for v in variants:
-        if v.name in results and "history" in v.changes and len(v.changes) == 1:
-            k_rows.append((v.changes["history"], [str(v.changes["history"])], row(v.name)))
-    if k_rows and "full" in results:
-        k_rows.append((meta["history"], [f"{meta['history']} (full)"], row("full")))
-        k_rows.sort(key=lambda t: t[0])
-        out += ["", "## History frames k (paper Table 4)", ""]
-        out += _table(["k"], [(lab, r) for _, lab, r in k_rows], splits, perceptual)
+def _md_views(meta: dict, variants: list[Variant], results: dict[str, dict[str, dict]], splits: list[str],
+              perceptual: tuple[str, str]) -> list[str]:
+    """The number-of-training-views table (paper Table 3): the evaluated ``views_N`` variants and
+    ``full`` (at the scene's camera count), by count."""
+    rows = [(v.views, [str(v.views)], results[v.name]) for v in variants
+            if v.name.startswith("views_") and v.name in results]
+    return _md_sorted_table("## Number of training views (paper Table 3)", "# views", rows,
+                            meta["train_cameras"], results, splits, perceptual)
 
-    # runs
-    out += ["", "## Runs", "", "| variant | changes | training cameras | step | status |", "|---|---|---|---|---|"]
+
+def _md_history(meta: dict, variants: list[Variant], results: dict[str, dict[str, dict]], splits: list[str],
+                perceptual: tuple[str, str]) -> list[str]:
+    """The history-frames table (paper Table 4): the evaluated ``k<N>`` variants and ``full``
+    (at the preset's k), by k."""
+    rows = [(v.changes["history"], [str(v.changes["history"])], results[v.name]) for v in variants
+            if v.name in results and "history" in v.changes and len(v.changes) == 1]
+    return _md_sorted_table("## History frames k (paper Table 4)", "k", rows, meta["history"], results, splits,
+                            perceptual)
+
+
+def _md_sorted_table(title: str, column: str, rows: list[tuple[int, list[str], dict]], full_key: int,
+                     results: dict[str, dict[str, dict]], splits: list[str], perceptual: tuple[str, str]) -> list[str]:
+    """A table of (sort key, labels, per-split results) rows plus ``full`` labelled
+    ``<full_key> (full)``, sorted by key (stably); no lines without such rows or without ``full``."""
+    if not rows or "full" not in results:
+        return []
+    rows = sorted(rows + [(full_key, [f"{full_key} (full)"], results["full"])], key=lambda t: t[0])
+    return ["", title, ""] + _table([column], [(lab, r) for _, lab, r in rows], splits, perceptual)
+
+
+def _md_runs(meta: dict, variants: list[Variant], results: dict[str, dict[str, dict]]) -> list[str]:
+    """The runs table: per variant its changes, training cameras, step and status (or why it
+    was skipped)."""
+    out = ["", "## Runs", "", "| variant | changes | training cameras | step | status |", "|---|---|---|---|---|"]
     for v in variants:
         changes = ", ".join(f"{k}={val}" for k, val in v.changes.items()) or ("-" if v.views is None else
                                                                                 f"{v.views} views")
@@ -388,8 +426,7 @@ def render_markdown(meta: dict, variants: list[Variant], results: dict[str, dict
         step = next((r.get("step") for r in per.values()), "-")
         status = meta.get("status", {}).get(v.name, "")
         out.append(f"| {v.name} | {changes} | {cams} | {step} | {status} |")
-    out += ["", f"Made in {meta.get('seconds', 0.0):.0f} s by `garmentnerf report`.", ""]
-    return "\n".join(out)
+    return out
 
 
 def _split_text(split: str, results: dict, baseline: dict | None) -> str:
@@ -452,90 +489,30 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
         the report's path.
     """
     from garmentnerf.gl.context import create_context
-    from garmentnerf.train.run import load_run, load_scene
-    from garmentnerf.train.settings import MODEL_PRESETS, model_config_for
+    from garmentnerf.train.run import load_scene
+    from garmentnerf.train.settings import model_config_for
 
     t0 = time.perf_counter()
     say = log or (lambda m: print(f"garmentnerf report: {m}", file=sys.stderr))
-    if preset not in MODEL_PRESETS:
-        raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
-    if iterations is not None and iterations < 1:
-        raise ValueError(f"iterations must be >= 1, got {iterations}")
-    if generator_iterations is not None and generator_iterations < 0:
-        raise ValueError(f"generator iterations must be >= 0, got {generator_iterations}")
-    scene_path = Path(scene)
-    if not (scene_path / "scene.json").is_file():
-        raise FileNotFoundError(f"{scene_path / 'scene.json'}: missing (--scene must be a scene folder)")
+    _check_schedule(preset, iterations, generator_iterations)
+    scene_path = _scene_folder(scene)
     scene_obj = load_scene(scene_path)
-    out = Path(out)
-    if out.is_dir():
-        raise IsADirectoryError(f"{out}: is a folder (the report is a markdown file)")
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    out = _report_file(out, overwrite)
     runs_dir = Path(runs_dir) if runs_dir is not None else out.with_name(out.stem + "_runs")
     base_cfg = model_config_for(preset)
-    have = _available_splits(scene_obj)
-    if splits is None:
-        splits = have
-    else:
-        for s in splits:
-            if s not in SPLITS:
-                raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
-            if s not in have:
-                raise ValueError(f"{scene_obj.scene_file}: the scene has nothing to evaluate for split '{s}'")
-    if not splits:
-        raise ValueError(f"{scene_obj.scene_file}: no split to evaluate (no training sequence or camera)")
+    splits = _chosen_splits(scene_obj, splits)
     variant_list = default_variants(scene_obj, base_cfg.history, variants, tuple(views), tuple(histories))
     _, gen_full, _ = _expected(base_cfg, iterations, generator_iterations)
     n_iter = iterations if iterations is not None else base_cfg.iterations
     from garmentnerf.eval.perceptual import lpips_available
-
     # an evaluation is reused only for the same frame selection and the same metric set
     request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0]),
                "resolution": REPORT_RESOLUTION}
-
-    results: dict[str, dict[str, dict]] = {}
-    status: dict[str, str] = {}
-    baseline = None
     ctx = create_context(headless=True)
     try:
-        for v in variant_list:
-            if v.note is not None:
-                say(f"{v.name}: skipped ({v.note})")
-                continue
-            run_dir = runs_dir / v.name
-            cfg = base_cfg.replace(**v.changes) if v.changes else base_cfg
-            say(f"{v.name}: training into {run_dir}")
-            status[v.name] = train_variant(scene_path, run_dir, cfg, v.cameras, iterations=iterations,
-                                           generator_iterations=generator_iterations, perceptual=perceptual,
-                                           device=device, seed=seed, progress=progress, gl_context=ctx, log=say)
-            say(f"{v.name}: {status[v.name]}")
-            run = None
-            per: dict[str, dict] = {}
-            from garmentnerf.train.run import read_run_info
-
-            step = int(read_run_info(run_dir)["step"])
-            for split in splits:
-                def compute(split=split):
-                    nonlocal run
-                    if run is None:
-                        run = load_run(run_dir, device=device, scene=scene_path)
-                    return evaluate_run(run, split, frames=frames, progress=progress, gl_context=ctx,
-                                        resolution=REPORT_RESOLUTION)
-
-                say(f"{v.name}: evaluating {split}")
-                per[split] = _cached_eval(run_dir / "eval" / f"{split}.json", request, step, compute)
-            results[v.name] = per
-            if v.name == "full" and "unseen_view" in splits:
-                def compute_baseline():
-                    r = load_run(run_dir, device=device, scene=scene_path)
-                    return evaluate_run(r, "unseen_view", frames=frames, progress=progress, gl_context=ctx,
-                                        model=False, baseline=True, resolution=REPORT_RESOLUTION)
-
-                say("nearest-view baseline: evaluating unseen_view")
-                baseline = _cached_eval(runs_dir / "baseline_unseen_view.json", request, step,
-                                        compute_baseline)
-            del run
+        job = _ReportJob(scene_path, runs_dir, base_cfg, list(splits), frames, request, iterations,
+                         generator_iterations, perceptual, device, seed, progress, ctx, say)
+        results, status, baseline = job.run_all(variant_list)
     finally:
         ctx.release()
     meta = {"scene": str(scene_path), "preset": preset, "iterations": n_iter, "generator_iterations": gen_full,
@@ -546,6 +523,137 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
         tmp.write_text(text, encoding="utf-8")
     say(f"wrote {out}")
     return out
+
+
+def _check_schedule(preset: str, iterations: int | None, generator_iterations: int | None) -> None:
+    """Raise ValueError for an unknown preset or a step count out of range (NeRF >= 1, G_img >= 0)."""
+    from garmentnerf.train.settings import MODEL_PRESETS
+
+    if preset not in MODEL_PRESETS:
+        raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
+    if iterations is not None and iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if generator_iterations is not None and generator_iterations < 0:
+        raise ValueError(f"generator iterations must be >= 0, got {generator_iterations}")
+
+
+def _scene_folder(scene) -> Path:
+    """The scene folder as a Path; FileNotFoundError when it holds no ``scene.json``."""
+    scene_path = Path(scene)
+    if not (scene_path / "scene.json").is_file():
+        raise FileNotFoundError(f"{scene_path / 'scene.json'}: missing (--scene must be a scene folder)")
+    return scene_path
+
+
+def _report_file(out, overwrite: bool) -> Path:
+    """The report's path; IsADirectoryError for a folder, FileExistsError for an existing file
+    unless ``overwrite``."""
+    out = Path(out)
+    if out.is_dir():
+        raise IsADirectoryError(f"{out}: is a folder (the report is a markdown file)")
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    return out
+
+
+def _chosen_splits(scene, splits: list[str] | None) -> list[str]:
+    """The splits to evaluate: the asked ones (each must be known and present in the scene) or
+    every split the scene has; ValueError when none is left."""
+    have = _available_splits(scene)
+    if splits is None:
+        splits = have
+    else:
+        for s in splits:
+            if s not in SPLITS:
+                raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
+            if s not in have:
+                raise ValueError(f"{scene.scene_file}: the scene has nothing to evaluate for split '{s}'")
+    if not splits:
+        raise ValueError(f"{scene.scene_file}: no split to evaluate (no training sequence or camera)")
+    return splits
+
+
+@dataclass
+class _ReportJob:
+    """What training and evaluating the report's variants share: where the scene and the runs
+    are, the preset's model config, the splits, the frame selection and cache request (see
+    :func:`_cached_eval`), the training schedule and options, the GL context and the logger."""
+
+    scene_path: Path
+    runs_dir: Path
+    base_cfg: Any
+    splits: list[str]
+    frames: Any
+    request: dict
+    iterations: int | None
+    generator_iterations: int | None
+    perceptual: str
+    device: str
+    seed: int
+    progress: bool
+    ctx: Any
+    say: Callable[[str], None]
+
+    def run_all(self, variants: list[Variant]) -> tuple[dict[str, dict[str, dict]], dict[str, str], dict | None]:
+        """Train and evaluate every variant that is not skipped; returns (variant -> split ->
+        result, variant -> training status, the nearest-view baseline or None)."""
+        results: dict[str, dict[str, dict]] = {}
+        status: dict[str, str] = {}
+        baseline = None
+        for v in variants:
+            if v.note is not None:
+                self.say(f"{v.name}: skipped ({v.note})")
+                continue
+            status[v.name] = self.train(v)
+            results[v.name], step = self.evaluate(v)
+            if v.name == "full" and "unseen_view" in self.splits:
+                baseline = self.baseline(step)
+        return results, status, baseline
+
+    def train(self, v: Variant) -> str:
+        """Train (or resume, or reuse) one variant's run; returns its :func:`train_variant` status."""
+        run_dir = self.runs_dir / v.name
+        cfg = self.base_cfg.replace(**v.changes) if v.changes else self.base_cfg
+        self.say(f"{v.name}: training into {run_dir}")
+        result = train_variant(self.scene_path, run_dir, cfg, v.cameras, iterations=self.iterations,
+                               generator_iterations=self.generator_iterations, perceptual=self.perceptual,
+                               device=self.device, seed=self.seed, progress=self.progress, gl_context=self.ctx,
+                               log=self.say)
+        self.say(f"{v.name}: {result}")
+        return result
+
+    def evaluate(self, v: Variant) -> tuple[dict[str, dict], int]:
+        """One variant's results on every split (cached; the run is loaded once, only when a
+        split must be computed) and its run's step."""
+        from garmentnerf.train.run import load_run, read_run_info
+
+        run_dir = self.runs_dir / v.name
+        run = None
+        per: dict[str, dict] = {}
+        step = int(read_run_info(run_dir)["step"])
+        for split in self.splits:
+            def compute(split=split):
+                nonlocal run
+                if run is None:
+                    run = load_run(run_dir, device=self.device, scene=self.scene_path)
+                return evaluate_run(run, split, frames=self.frames, progress=self.progress, gl_context=self.ctx,
+                                    resolution=REPORT_RESOLUTION)
+
+            self.say(f"{v.name}: evaluating {split}")
+            per[split] = _cached_eval(run_dir / "eval" / f"{split}.json", self.request, step, compute)
+        return per, step
+
+    def baseline(self, step: int) -> dict:
+        """The nearest-view baseline on ``unseen_view`` (cached with the ``full`` run's step)."""
+        from garmentnerf.train.run import load_run
+
+        def compute_baseline():
+            r = load_run(self.runs_dir / "full", device=self.device, scene=self.scene_path)
+            return evaluate_run(r, "unseen_view", frames=self.frames, progress=self.progress, gl_context=self.ctx,
+                                model=False, baseline=True, resolution=REPORT_RESOLUTION)
+
+        self.say("nearest-view baseline: evaluating unseen_view")
+        return _cached_eval(self.runs_dir / "baseline_unseen_view.json", self.request, step, compute_baseline)
 
 
 def report_summary(results: dict[str, dict[str, dict]]) -> dict[str, Any]:
