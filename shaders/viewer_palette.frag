@@ -1,7 +1,7 @@
 #version 330 core
 // The neural layer's palette composition (garmentnerf.viewer.palette_layer.PaletteLayer): the decomposed
 // maps of a neural render, cached as textures, composed with the palette per fragment. This is
-// THE SAME formula as garmentnerf.model.palette.compose (tests/test_render.py compares them):
+// THE SAME formula as garmentnerf.model.palette.compose (tests/render/test_render.py compares them):
 //
 //     fg = clamp(r * sum_i w_i (p_i + o_i), 0, 1)
 //     c  = m * fg + (1 - m) * background

@@ -35,7 +35,7 @@ from garmentnerf.gl.shaders import build_program
 from garmentnerf.viewer.palette_layer import PaletteLayer, pack_maps
 from garmentnerf.viewer.renderables import FULL_VIEW, BodyMesh, FloorGrid, PassState, ViewParams
 
-# The renderables' names, for callers that know the scene by this module (tests/test_render.py).
+# The renderables' names, for callers that know the scene by this module (tests/render/test_render.py).
 __all__ = ["SceneRenderer", "RenderTarget", "SceneStats", "read_image", "scene_state", "state_token",
            "is_software_renderer", "BACKGROUND", "BodyMesh", "FloorGrid", "PaletteLayer", "ViewParams", "pack_maps"]
 

@@ -15,27 +15,9 @@ from garmentnerf.data.cameras import circle_rig, held_out_rig, ring_camera
 from garmentnerf.data.render_gt import (LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer, Lighting, renderer_settings,
                                         vertex_normals)
 from garmentnerf.gl.camera_pass import CameraPass
+from support.scenes import make_skirt
 
 GARMENT_COLOR = (0.2, 0.4, 0.8)
-
-
-def make_skirt(waist_z: float = 1.0, hem_z: float = 0.5, r_top: float = 0.17, r_bottom: float = 0.36,
-               n_around: int = 96, n_down: int = 24, folds: int = 9, amp: float = 0.025):
-    """An open truncated cone with sinusoidal folds around the z axis; faces wound counter-clockwise
-    seen from outside. Sized for the anny body (hips at about z = 1)."""
-    th = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
-    rings = []
-    for i in range(n_down + 1):
-        a = i / n_down
-        z = waist_z + (hem_z - waist_z) * a
-        r = r_top + (r_bottom - r_top) * a + amp * a * np.sin(folds * th)
-        rings.append(np.stack([r * np.cos(th), r * np.sin(th), np.full_like(th, z)], 1))
-    faces = []
-    for i in range(n_down):
-        for j in range(n_around):
-            a, b = i * n_around + j, i * n_around + (j + 1) % n_around
-            faces += [[a, a + n_around, b], [b, a + n_around, b + n_around]]
-    return np.concatenate(rings).astype(np.float32), np.array(faces, dtype=np.int64)
 
 
 @pytest.fixture(scope="module")

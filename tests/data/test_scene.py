@@ -19,40 +19,12 @@ from garmentnerf.data.render_gt import GroundTruthRenderer, to_uint8
 from garmentnerf.data.scene import Scene, SceneError
 from garmentnerf.data.scene_images import GarmentArrays, SceneImages, palette_from_images
 from garmentnerf.motion.motion import Motion
-from test_render_gt import make_skirt
-
-SIZE = 48
-FPS = 30.0
-
-
-def _motion(name: str, frames: int) -> Motion:
-    rot = torch.zeros(frames, 1, 3)
-    rot[:, 0, 2] = torch.linspace(0.0, 0.3, frames)  # the root turns a little
-    return Motion(name, ["root"], rot, torch.zeros(frames, 3), FPS, "anny")
-
-
-def _write_garment(path, frames: int, sway: float = 0.0) -> None:
-    v, f = make_skirt(n_around=32, n_down=6)
-    verts = np.stack([v + np.array([sway * t, 0.0, 0.0], dtype=np.float32) for t in range(frames)])
-    np.savez(path, vertices=verts, faces=f)
+from support.scenes import SIZE, _motion, _write_garment, build_scene
 
 
 def _read_garment(path) -> GarmentArrays:
     with np.load(path) as npz:
         return GarmentArrays(npz["vertices"], npz["faces"])
-
-
-def build_scene(root, train_frames: int = 3) -> Scene:
-    cams = default_rig(count=8, held_out=2, width=SIZE, height_px=SIZE)
-    scene = Scene.create(root, cams, fps=FPS, garment_kind="skirt", garment_color=(0.2, 0.4, 0.8))
-    for name, split, n, desc in (("train", "train", train_frames, "walk,dance_a"),
-                                 ("test_run", "unseen_motion", 2, "run")):
-        scene.add_sequence(name, _motion(name, n), split, description=desc)
-        _write_garment(scene.root / "sequences" / name / "garment.npz", n, sway=0.01)
-    scene.simulation = {"train": {"max_penetration_m": 0.002, "seconds_per_frame": 2.1}}
-    scene.palette_init = {"garment": [0.1, 0.2, 0.5], "body": [0.6, 0.5, 0.4]}
-    scene.save()
-    return scene
 
 
 # ---- rigs -----------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import numpy as np
 from garmentnerf.cli.main import main
 from garmentnerf.data.scene import Scene
 from garmentnerf.data.scene_images import SceneImages
-from test_scene import build_scene
+from support.scenes import build_scene
 
 
 def test_info_render_preview(tmp_path, capsys):

@@ -3,8 +3,8 @@ exporter's thread through the headless command's path, compared with
 :meth:`garmentnerf.render.session.RenderSession.render_image` on a headless EGL context; cancel,
 never-overwrite, and the window drawing on meanwhile. Pure planning/progress logic first.
 
-Window tests use the Xvfb server and the tiny untrained run of ``test_viewer.py`` (its fixtures are
-imported below). Sizes are tiny (48 x 32, 3 video frames) so each test takes seconds on one core.
+Window tests use the Xvfb server and the tiny untrained run that ``test_viewer.py`` uses too (fixtures of
+this folder's ``conftest.py``). Sizes are tiny (48 x 32, 3 video frames) so each test takes seconds on one core.
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ from garmentnerf.render.video import count_video_frames, to_uint8  # noqa: E402
 from garmentnerf.viewer.camera import OrbitController  # noqa: E402
 from garmentnerf.viewer.export_jobs import (ExportJob, ExportSettings, format_seconds, plan_range,  # noqa: E402
                                             plan_turntable, video_name)
-from test_viewer import untrained_run, xvfb  # noqa: E402,F401  (shared fixtures: Xvfb and the tiny run)
 
 SIZE = (48, 32)
 

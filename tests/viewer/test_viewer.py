@@ -317,48 +317,6 @@ def test_palette_layer_side_by_side_fits_the_free_area(gl_context, walk):
 
 
 # ==== the real window under Xvfb =============================================================================
-@pytest.fixture(scope="session")
-def xvfb():
-    exe = shutil.which("Xvfb")
-    if exe is None:
-        pytest.skip("Xvfb is not installed (apt-get install xvfb; .ci/run installs it)")
-    read_fd, write_fd = os.pipe()
-    proc = subprocess.Popen([exe, "-displayfd", str(write_fd), "-screen", "0", "1280x1024x24", "-nolisten", "tcp",
-                             "-noreset"], pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.close(write_fd)
-    number = b""
-    deadline = time.monotonic() + 20
-    try:
-        import select
-
-        while not number.endswith(b"\n") and time.monotonic() < deadline:
-            ready, _, _ = select.select([read_fd], [], [], 0.5)
-            if ready:
-                chunk = os.read(read_fd, 16)
-                if not chunk:
-                    break
-                number += chunk
-        if not number.strip():
-            raise RuntimeError("Xvfb did not report its display number")
-        display = f":{number.decode().strip()}"
-        old = {k: os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY")}
-        os.environ["DISPLAY"] = display
-        os.environ.pop("WAYLAND_DISPLAY", None)
-        yield display
-    finally:
-        os.close(read_fd)
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        for k, v in locals().get("old", {}).items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 @pytest.fixture(scope="module")
 def app(xvfb, body, walk, tmp_path_factory):
     from garmentnerf.viewer.app import App
@@ -683,14 +641,6 @@ def test_quality_controller_moving_still_floor_and_hysteresis():
 
 
 # ==== the neural layer in the window (untrained run on the tiny scene) ========================================
-@pytest.fixture(scope="module")
-def untrained_run(tiny_scene, tmp_path_factory):
-    from garmentnerf.train.run import create_untrained_run
-    from garmentnerf.train.settings import tiny_config
-
-    return create_untrained_run(tmp_path_factory.mktemp("viewer_run") / "run", tiny_scene.root, tiny_config())
-
-
 def _settle(app, seconds=60.0):
     """Step until the worker is idle, the view is still and the newest result is on the GPU (the first
     step sends the request for a view just changed)."""
