@@ -349,13 +349,15 @@ def test_report_tiny(scene, tmp_path):
         assert all((tmp_path / "runs" / v / "eval" / f"{s}.json").is_file() for s in SPLITS)
     stamp = (tmp_path / "runs" / "full" / "eval" / "seen.json").stat().st_mtime_ns
     messages = []
-    build_report(scene.root, out, **{**kw, "log": messages.append})
+    with pytest.raises(FileExistsError, match="already exists"):  # the report itself is never replaced unasked
+        build_report(scene.root, out, **kw)
+    build_report(scene.root, out, **{**kw, "log": messages.append, "overwrite": True})
     assert "full: skipped" in messages and "no_detail: skipped" in messages
     assert (tmp_path / "runs" / "full" / "eval" / "seen.json").stat().st_mtime_ns == stamp
     assert "| full | - | all | 3 | skipped |" in out.read_text()
     # other settings in the same runs folder: refused
     with pytest.raises(ValueError, match="other settings"):
-        build_report(scene.root, out, **{**kw, "iterations": 3})
+        build_report(scene.root, out, **{**kw, "iterations": 3, "overwrite": True})
 
 
 def test_train_variant_resumes_and_skips(scene, gl_context, tmp_path):
