@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-__all__ = ["PAPER_STAGES", "preset_benchmark", "playback_benchmark"]
+__all__ = ["PAPER_STAGES", "preset_benchmark", "playback_benchmark", "previewer_view_benchmark"]
 
 #: Paper-like stages of one frame -> the pipeline's timing keys that make them up.
 PAPER_STAGES = {
@@ -111,13 +111,14 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
                                                               if row["psnr"] is not None else ""))
         _add_reference_ratios(results)
         playback = playback_benchmark(session, cams[0].camera, chosen, playback_frames, log=log)
+        previewer = previewer_view_benchmark(session, frame_ids[0], log=log)
         return {"kind": "preset_benchmark", "run": str(run_dir), "step": run.step, "created": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)}, "torch_threads": torch.get_num_threads(),
                 "model": {k: getattr(cfg, k) for k in ("image_resolution", "feature_image_resolution", "samples_per_ray",
                                                           "mlp_depth", "mlp_width", "appearance_dim")},
                 "motion": motion.name, "sequence": seq, "frames": frame_ids, "cameras": [c.name for c in cams],
                 "camera_split": split, "ground_truth": images is not None, "height_range": band.to_dict(),
-                "presets": results, "playback": playback}
+                "presets": results, "playback": playback, "previewer_view": previewer}
     finally:
         if images is not None:
             images.close()
@@ -278,3 +279,45 @@ def playback_benchmark(session, camera, presets, frames: int = 24, log=print) ->
         + (f"{scrub_cold:.0f} ms" if scrub_cold is not None else "n/a") + " (full preset)")
     return {"frames": window, "precomputed": done, "precompute_ms_per_frame": precompute_ms, "presets": rows,
             "scrub_ready_ms": scrub_ready, "scrub_cold_ms": scrub_cold}
+
+
+def previewer_view_benchmark(session, frame: int, size: tuple[int, int] = (1280, 800),
+                             distances: tuple[float, ...] = (3.6, 2.2), repeats: int = 3, log=print) -> dict:
+    """The ``full`` preset in a previewer-sized orbit view (the default distance and a closer one),
+    three ways, measured side by side on one cached frame: the whole frame at the window's density
+    (what the previewer did before the character's rectangle), the character's rectangle at that
+    density, and the rectangle at the character's training density (what it does now).
+
+    Returns:
+        ``{"size": [W, H], "frame": f, "views": [{"distance", "rows": {way: {"ms", "rendered",
+        "rays", "rays_frame", "points", "scale"}}}]}`` (``ms``: median of ``repeats`` after one warm-up).
+    """
+    import dataclasses
+
+    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.cameras import orbit_view
+
+    full = get_render_preset("full")
+    whole_frame = dataclasses.replace(full, name="full_whole_frame", character_rect=False)
+    views = []
+    for distance in distances:
+        camera = orbit_view(25.0, width=size[0], height=size[1], radius=distance)
+        window_scale = session.render_scale(camera, full.resolution_scale)
+        rows = {}
+        for way, preset, scale in (("whole frame, window density", whole_frame, window_scale),
+                                   ("character rectangle, window density", full, window_scale),
+                                   ("character rectangle, character density", full, None)):
+            session.render(frame, camera, preset=preset, scale=scale)
+            times = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                nf = session.render(frame, camera, preset=preset, scale=scale)
+                times.append((time.perf_counter() - t0) * 1e3)
+            rows[way] = {"ms": _median(times), "rendered": list(nf.render_size), "rays": nf.counts["rays_total"],
+                         "rays_frame": nf.counts["rays_frame"], "points": nf.counts["points_evaluated"],
+                         "scale": nf.scale}
+            log(f"  view {size[0]}x{size[1]} at {distance:.1f} m, {way:38s} {rows[way]['ms']:7.1f} ms  rendered "
+                f"{nf.render_size[0]}x{nf.render_size[1]}  rays {nf.counts['rays_total']:,} of "
+                f"{nf.counts['rays_frame']:,}")
+        views.append({"distance": distance, "rows": rows})
+    return {"size": list(size), "frame": int(frame), "views": views}

@@ -257,6 +257,17 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
     bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
                              log=lambda *a: None)
     row = next(r for r in bench["presets"] if r["preset"] == "interactive")
+    # the previewer-view figures: the whole frame casts every ray, the rectangle only some, with the
+    # same samples at the same density; the character density is the session's rule
+    for view in bench["previewer_view"]["views"]:
+        whole, rect, char = (view["rows"][k] for k in ("whole frame, window density",
+                                                       "character rectangle, window density",
+                                                       "character rectangle, character density"))
+        assert whole["rays"] == whole["rays_frame"] == rect["rays_frame"] and 0 < rect["rays"] < whole["rays"]
+        assert rect["points"] == whole["points"] and rect["rendered"] == whole["rendered"]
+        cam = orbit_view(25.0, width=1280, height=800, radius=view["distance"])
+        features, _ = session.frame_features(bench["previewer_view"]["frame"])
+        assert char["scale"] == pytest.approx(session.render_scale(cam, 1.0, features))
     entry = row["views"][0]
     frame, cam_name = entry["frame"], entry["camera"]
     cam = session.scene.camera(cam_name).camera
