@@ -74,7 +74,9 @@ class RenderPreset:
     box, aligned to the decoder's feature grid, plus :data:`CHARACTER_RECT_MARGIN` feature
     cells); outside it the maps are empty (background). Rays outside that box meet no sample, so
     this changes nothing but the decoder's output in empty space
-    (:mod:`garmentnerf.render.screen_rect`)."""
+    (:mod:`garmentnerf.render.screen_rect`). Such a preset's ``resolution_scale`` is also measured
+    on the character, not the window (:class:`~garmentnerf.render.session.RenderSession`,
+    "Resolution")."""
     description: str = ""
     """One line for listings."""
 
