@@ -31,7 +31,7 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its newest readable checkpoint with the run's settings "
                         "(run.json); --preset, --seed, --frames, --iterations, --generator-iterations or "
-                        "--init-generator that differ from the run's are refused; --stop-after, --ckpt-every, "
+                        "--init-generator, --init-weights or --training-crop-density that differ from the run's are refused; --stop-after, --ckpt-every, "
                         "--log-every, --image-every, --perceptual, --vgg19-weights, --loss-weight and --scene "
                         "apply from the resumed step on and are recorded in run.json's overrides")
     p.add_argument("--seed", type=int, default=None,
@@ -57,6 +57,13 @@ def register(sub) -> None:
     p.add_argument("--init-generator", default=None, metavar="SAFETENSORS",
                    help="start a new run from the pre-trained G_img in this weights file (a run's "
                         "model.safetensors or checkpoint) and skip G_img pre-training (a new run only)")
+    p.add_argument("--init-weights", default=None, metavar="SAFETENSORS",
+                   help="start a new run from all the weights of this file (a run's model.safetensors or "
+                        "checkpoint; same model sizes) at the NeRF stage: fine-tuning (a new run only)")
+    p.add_argument("--training-crop-density", type=float, default=None, metavar="D",
+                   help="train on windows of the model's image size placed on the character, at D pixels per "
+                        "scene pixel (1: the scene's own resolution); 0: whole frames (default: the preset's, 0; "
+                        "a new run only)")
     p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
                    help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
                         "--resume it applies from the resumed step on and is recorded in run.json")
@@ -123,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
                      ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames, args.scene),
                      perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, threads=args.threads,
                      progress=not args.no_progress, init_generator=args.init_generator,
+                     init_weights=args.init_weights, training_crop_density=args.training_crop_density,
                      loss_weights=_loss_weights(args.loss_weight))
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")

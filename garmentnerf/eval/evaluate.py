@@ -22,8 +22,10 @@ Resolution (``resolution``)
     ``native`` (default): the scene camera's own image size (512 x 512 for the bundled demo), so
     that a model's blur shows: the model renders at its trained pixel density and its maps are
     resampled (bilinear) to that size, as the previewer shows them. ``model``: the camera resized
-    to the model's image resolution (longer side ``cfg.image_resolution``, the other side
-    proportional), the size of the trainer's targets.
+    to the pixel density the model was trained at (:func:`eval_size`: longer side
+    ``cfg.image_resolution``, the other side proportional, for whole-frame training; the scene's
+    size times ``cfg.training_crop_density`` for character windows), the size of the trainer's
+    targets.
 
 How an image is made (identical to training, the viewer and ``garmentnerf render``)
     Prediction: :class:`~garmentnerf.render.session.RenderSession` (the one render path) renders
@@ -311,13 +313,14 @@ def nearest_camera(scene, camera: str, candidates: Sequence[str]) -> tuple[str, 
 
 
 def eval_size(config, camera, resolution: str = "model") -> tuple[int, int]:
-    """(w, h) of the evaluation images: the camera's own size for ``native``; for ``model`` the
-    longer side ``config.image_resolution``, aspect kept."""
+    """(w, h) of the evaluation images: the (scene) camera's own size for ``native``; for ``model``
+    its size at the density the model was trained at
+    (:meth:`~garmentnerf.model.config.ModelConfig.training_scale`: the longer side
+    ``config.image_resolution`` for whole-frame training), aspect kept."""
     if resolution == "native":
         return int(camera.width), int(camera.height)
-    R = int(config.image_resolution)
     W, H = int(camera.width), int(camera.height)
-    s = R / max(W, H)
+    s = config.training_scale(W, H)
     return max(1, round(W * s)), max(1, round(H * s))
 
 

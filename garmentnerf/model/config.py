@@ -38,6 +38,13 @@ class ModelConfig:
     feature_image_resolution: int = 128
     """Side of the volume-rendered appearance feature image F^zeta_t, i.e. rays per image side (paper: 128 =
     image / 4). Must be image_resolution divided by 2 ** decoder_upsample_steps."""
+    training_crop_density: float = 0.0
+    """What one training step renders. 0 (the paper): the whole training camera, resized to ``image_resolution``
+    squared. > 0: a window of ``image_resolution`` squared pixels at this many pixels per pixel of the scene's
+    camera (1: the scene's own density, e.g. its 512 x 512 images), placed where the character is (its centre
+    drawn inside the screen rectangle of the sampling box; see ``train/frames.py``). The same rays per step then
+    land on the character at a finer density instead of on background. The renderer reads it back:
+    :meth:`training_scale` is the density the model was trained at, which ``quality = 1`` reproduces."""
 
     # ---- Features
     dynamic_feature_dim: int = 8
@@ -214,6 +221,14 @@ class ModelConfig:
         """Raw channels of M_D: radiance, 3 offsets and 1 weight per color, mask (paper: 12 or 13)."""
         return self.radiance_channels + 4 * self.palette_size + 1
 
+    def training_scale(self, width: int, height: int) -> float:
+        """Pixels the model was trained at per pixel of a scene camera of ``width x height`` (the scene's
+        image size): ``image_resolution / max(width, height)`` for whole-frame training, else
+        ``training_crop_density``."""
+        if self.training_crop_density > 0:
+            return float(self.training_crop_density)
+        return self.image_resolution / max(int(width), int(height))
+
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:
         """Raise ValueError on inconsistent or out-of-range settings."""
@@ -260,6 +275,8 @@ class ModelConfig:
             if size % 2 ** self.encoder_depth or size // 2 ** self.encoder_depth < 2:
                 raise ValueError(f"ModelConfig.{name} ({size}) must be divisible by 2^encoder_depth "
                                  f"({2 ** self.encoder_depth}) with a bottleneck of at least 2x2")
+        if not (self.training_crop_density >= 0 and self.training_crop_density < float("inf")):
+            raise ValueError(f"ModelConfig.training_crop_density must be a number >= 0, got {self.training_crop_density}")
         if self.lr_final > self.lr:
             raise ValueError(f"ModelConfig.lr_final ({self.lr_final}) must not exceed lr ({self.lr})")
         if self.garment_label == self.body_label:

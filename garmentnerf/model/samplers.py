@@ -199,6 +199,13 @@ def stratified_intervals(t_near: torch.Tensor, t_far: torch.Tensor, num_samples:
     return t, t_starts, t_ends
 
 
+def padded_box(aabb: torch.Tensor, padding: float) -> torch.Tensor:
+    """(2, 3) the body box ``aabb`` [min, max] grown by ``padding`` metres on every side: the box
+    the samplers place samples in (no sample of a frame lies outside it)."""
+    pad = torch.tensor([[-float(padding)], [float(padding)]], dtype=aabb.dtype, device=aabb.device)
+    return aabb + pad
+
+
 class BoxStratifiedSampler:
     """The paper's sampler: S stratified samples inside the padded body box.
 
@@ -223,8 +230,7 @@ class BoxStratifiedSampler:
 
     def padded_box(self, aabb: torch.Tensor) -> torch.Tensor:
         """(2, 3) the body box ``aabb`` grown by :attr:`padding` on every side."""
-        pad = torch.tensor([[-self.padding], [self.padding]], dtype=aabb.dtype, device=aabb.device)
-        return aabb + pad
+        return padded_box(aabb, self.padding)
 
     def bind(self, frame: "FrameFeatures", camera: Camera) -> "BoundBoxSampler":
         return BoundBoxSampler(self, frame.aabb, camera)
@@ -262,4 +268,4 @@ class BoundBoxSampler:
 
 
 __all__ = ["RaySamples", "Sampler", "BoundSampler", "SampleFilter", "BoxStratifiedSampler", "BoundBoxSampler", "pixel_rays",
-           "body_aabb", "ray_aabb_intersect", "stratified_intervals"]
+           "padded_box", "body_aabb", "ray_aabb_intersect", "stratified_intervals"]

@@ -47,7 +47,7 @@ from garmentnerf.conventions import Camera
 from garmentnerf.geometry.winding import point_in_shell
 from garmentnerf.gl.shell_raster import ShellBounds, ShellRaster, inflate_surface
 from garmentnerf.model.height_band import HeightRange
-from garmentnerf.model.samplers import RaySamples, pixel_rays, ray_aabb_intersect, stratified_intervals
+from garmentnerf.model.samplers import RaySamples, padded_box, pixel_rays, ray_aabb_intersect, stratified_intervals
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.model.frame_context import FrameFeatures
@@ -149,8 +149,7 @@ class BoundShellSampler:
         origins, directions = pixel_rays(self.camera, pixels)
         R, dev, dt = origins.shape[0], origins.device, origins.dtype
         aabb = self.aabb.to(dt)
-        pad = torch.tensor([[-sampler.padding], [sampler.padding]], dtype=dt, device=aabb.device)
-        tb0, tb1, box_hit = ray_aabb_intersect(origins, directions, aabb + pad, 0.0)
+        tb0, tb1, box_hit = ray_aabb_intersect(origins, directions, padded_box(aabb, sampler.padding), 0.0)
         idx = pixels.to("cpu").long()
         b = self.bounds
         near, far, hit = (b.near.reshape(-1)[idx].to(dev, dt), b.far.reshape(-1)[idx].to(dev, dt),

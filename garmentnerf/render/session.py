@@ -28,11 +28,13 @@ Resolution
     the preset's ``resolution_scale``. The density is measured on the character for the presets
     that render only its rectangle (``character_rect``): ``scale = quality * e_train / e_view``
     with ``e`` the projected size of the frame's sampling box in the median training camera (at
-    ``cfg.image_resolution``) and in this view, so a character filling a 1280 x 800 window is
+    the density the model was trained at, :meth:`~garmentnerf.model.config.ModelConfig.training_scale`)
+    and in this view, so a character filling a 1280 x 800 window is
     rendered as sharp as the model can make it, in about a training view's rays, and a distant
     one costs little (capped at one rendered pixel per output pixel, or the frame density when
     that is higher). The ``reference`` preset, and any view where the box's projection is
-    unbounded, use the frame: ``scale = quality * cfg.image_resolution / max(W, H)``. The rendered size is padded to a multiple of the decoder's upsampling
+    unbounded, use the frame: ``scale = quality * S / max(W, H)`` with ``S`` the longer side of a
+    training camera at the trained density (``cfg.image_resolution`` for whole-frame training). The rendered size is padded to a multiple of the decoder's upsampling
     factor (:func:`padded_render_camera`) and the maps cropped back
     (:meth:`~garmentnerf.model.palette.DecomposedMaps.cropped`). The :class:`NeuralFrame` keeps
     the maps at the *rendered* size; :meth:`NeuralFrame.maps_at` resamples them
@@ -314,34 +316,42 @@ class RenderSession(Closeable):
         :class:`FrameFeatures`) are given and the run's training cameras are known, else the frame's."""
         if not (np.isfinite(quality) and quality > 0):
             raise ValueError(f"quality must be a number > 0, got {quality!r}")
-        frame_scale = float(quality) * self.config.image_resolution / max(camera.width, camera.height)
-        if features is None or not self.training_views:
+        views = self.training_views
+        trained_side = max(views[0].width, views[0].height) if views else self.config.image_resolution
+        frame_scale = float(quality) * trained_side / max(camera.width, camera.height)
+        if features is None or not views:
             return frame_scale
         box = self.sampling_box(features)
         seen = box_extent(camera, box)
-        trained = [e for e in (box_extent(c, box) for c in self.training_views) if e is not None]
+        trained = [e for e in (box_extent(c, box) for c in views) if e is not None]
         if seen is None or seen <= 0 or not trained:
             return frame_scale
         return min(float(quality) * float(np.median(trained)) / seen, max(1.0, frame_scale))
 
     @functools.cached_property
     def training_views(self) -> list[Camera]:
-        """The run's training cameras at the size the model was trained at (``image_resolution``
-        squared, as the trainer renders them); empty without a scene."""
+        """The run's training cameras at the pixel density the model was trained at
+        (:meth:`~garmentnerf.model.config.ModelConfig.training_scale`: ``image_resolution``
+        squared for whole-frame training, the scene's size times ``training_crop_density`` for
+        character windows); empty without a scene."""
         if self.scene is None:
             return []
         recorded = ((getattr(self.run, "info", None) or {}).get("train") or {}).get("cameras")
         names = [c for c in (recorded or []) if c in set(self.scene.camera_names())]
         names = names or self.scene.camera_names("train")
-        R = int(self.config.image_resolution)
-        return [self.scene.camera(n).camera.resized(R, R) for n in names]
+        views = []
+        for name in names:
+            native = self.scene.camera(name).camera
+            s = self.config.training_scale(native.width, native.height)
+            views.append(native.resized(max(1, round(native.width * s)), max(1, round(native.height * s))))
+        return views
 
     def sampling_box(self, features) -> torch.Tensor:
         """(2, 3) float64 the frame's sampling box: the body box padded by ``cfg.bbox_padding``, as
         both samplers pad it; no sample of the frame lies outside it."""
-        box = features.aabb.detach().to("cpu", torch.float64)
-        pad = float(self.config.bbox_padding)
-        return box + torch.tensor([[-pad], [pad]], dtype=torch.float64)
+        from garmentnerf.model.samplers import padded_box
+
+        return padded_box(features.aabb.detach().to("cpu", torch.float64), self.config.bbox_padding)
 
     def render(self, frame: int, camera: Camera, quality: float | None = None, *, preset=DEFAULT_PRESET,
                scale: float | None = None, should_cancel: Callable[[], bool] | None = None) -> NeuralFrame:

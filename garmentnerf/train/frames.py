@@ -19,6 +19,10 @@
   ``cfg.reference_resolution`` (G_img's pre-training targets), composited the same way.
 * :meth:`SceneFrames.camera` -- a scene camera resized to the training image size (the model
   resizes it again to the feature-image size for its rays).
+* :meth:`SceneFrames.training_view` -- what one step renders of a camera: the whole camera at
+  ``cfg.image_resolution`` squared, or (``cfg.training_crop_density`` > 0) a window of that many
+  pixels at the crop density, placed on the character by :func:`character_window`;
+  :meth:`SceneFrames.target` takes the same window of the ground truth.
 
 Targets are kept in a byte-bounded LRU cache (``cache_bytes``, float32 CHW); evicted ones are
 read again from the scene's PNG cache.
@@ -34,8 +38,9 @@ import torch.nn.functional as F
 
 from garmentnerf.conventions import Camera
 from garmentnerf.lifecycle import Closeable
+from garmentnerf.render.screen_rect import PixelRect, box_rect
 
-__all__ = ["SceneFrames", "SceneFramesFactory", "area_resize"]
+__all__ = ["SceneFrames", "SceneFramesFactory", "area_resize", "character_window"]
 
 
 def area_resize(image: np.ndarray | torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
@@ -49,6 +54,29 @@ def area_resize(image: np.ndarray | torch.Tensor, size: int | tuple[int, int]) -
     if x.shape[-2:] != (h, w):
         x = F.interpolate(x, size=(h, w), mode="area")
     return x[0].contiguous()
+
+
+def character_window(character: PixelRect | None, image_size: tuple[int, int], side: int,
+                     where: tuple[float, float]) -> PixelRect:
+    """The ``side x side`` training window of an image of ``image_size`` (w, h) pixels, centred on
+    the point at fractions ``where`` (in [0, 1)^2, drawn uniformly by the trainer) of the
+    ``character`` rectangle (the whole image when None, e.g. the box out of view), then moved the
+    least that puts it inside the image.
+
+    Raises:
+        ValueError: the window is larger than the image.
+    """
+    W, H = int(image_size[0]), int(image_size[1])
+    side = int(side)
+    if side > W or side > H:
+        raise ValueError(f"a {side} x {side} training window does not fit a {W} x {H} image "
+                         f"(lower training_crop_density's window or raise the density)")
+    rect = character if character is not None else PixelRect(0, 0, W, H)
+    cx = rect.x0 + float(where[0]) * rect.width
+    cy = rect.y0 + float(where[1]) * rect.height
+    x0 = min(max(int(np.floor(cx - side / 2 + 0.5)), 0), W - side)
+    y0 = min(max(int(np.floor(cy - side / 2 + 0.5)), 0), H - side)
+    return PixelRect(x0, y0, side, side)
 
 
 class SceneFrames(Closeable):
@@ -120,9 +148,33 @@ class SceneFrames(Closeable):
 
     # ---- cameras and targets ----------------------------------------------------------------------------
     def camera(self, name: str) -> Camera:
-        """The scene camera resized to the training image (``cfg.image_resolution`` squared)."""
-        R = self.cfg.image_resolution
-        return self.scene.camera(name).camera.resized(R, R)
+        """The scene camera at the density the model trains at (:meth:`ModelConfig.training_scale`):
+        ``cfg.image_resolution`` squared for whole-frame training, else the scene's image scaled by
+        ``cfg.training_crop_density`` (of which each step renders a window)."""
+        native = self.scene.camera(name).camera
+        if self.cfg.training_crop_density <= 0:
+            R = self.cfg.image_resolution
+            return native.resized(R, R)
+        s = self.cfg.training_scale(native.width, native.height)
+        return native.resized(max(1, round(native.width * s)), max(1, round(native.height * s)))
+
+    def training_view(self, name: str, box: torch.Tensor, generator: torch.Generator | None = None
+                      ) -> tuple[Camera, PixelRect | None]:
+        """What one step renders of camera ``name``: (the camera it renders, the window of
+        :meth:`camera`'s image it covers, or None for the whole image).
+
+        Args:
+            box: (2, 3) the frame's sampling box (the padded body box): the window's centre is drawn
+                inside its screen rectangle (whole-frame training ignores it).
+            generator: draws the centre (the step's generator, so a resume repeats it).
+        """
+        camera = self.camera(name)
+        if self.cfg.training_crop_density <= 0:
+            return camera, None
+        where = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
+        rect = box_rect(camera, box.detach().to("cpu", torch.float64))
+        window = character_window(rect, (camera.width, camera.height), self.cfg.image_resolution, where)
+        return camera.cropped(window.x0, window.y0, window.width, window.height), window
 
     def _cached(self, key, make):
         hit = self._targets.get(key)
@@ -138,7 +190,7 @@ class SceneFrames(Closeable):
             self._target_bytes -= sum(t.numel() * t.element_size() for t in old)
         return value
 
-    def _composite(self, sequence: str, camera: str, frame: int, size: int
+    def _composite(self, sequence: str, camera: str, frame: int, size: int | tuple[int, int]
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         rgb, labels = self.images.image(sequence, camera, frame)
         image = area_resize(rgb, size)
@@ -149,14 +201,20 @@ class SceneFrames(Closeable):
             image = image + (1.0 - mask) * bg
         return image.clamp(0.0, 1.0), mask, garment
 
-    def target(self, sequence: str, camera: str, frame: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Ground truth of a view at the training size: image (3, R, R) in [0, 1] on
-        ``cfg.background``, mask (1, R, R) foreground coverage in [0, 1] and garment (1, R, R)
-        garment coverage in [0, 1] (CPU)."""
+    def target(self, sequence: str, camera: str, frame: int, window: PixelRect | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Ground truth of a view at the training density (:meth:`camera`'s size), or of the
+        ``window`` of it a step renders: image (3, h, w) in [0, 1] on ``cfg.background``, mask
+        (1, h, w) foreground coverage in [0, 1] and garment (1, h, w) garment coverage in [0, 1] (CPU)."""
         frame = self.scene.check_frame(sequence, frame)
-        R = self.cfg.image_resolution
-        return self._cached(("view", sequence, camera, frame, R),
-                            lambda: self._composite(sequence, camera, frame, R))
+        cam = self.camera(camera)
+        size = (cam.width, cam.height)
+        whole = self._cached(("view", sequence, camera, frame, size),
+                             lambda: self._composite(sequence, camera, frame, size))
+        if window is None:
+            return whole
+        rows, cols = window.slices()
+        return tuple(t[:, rows, cols] for t in whole)
 
     def reference_targets(self, sequence: str, frame: int) -> torch.Tensor:
         """(2, 3, S, S) ground-truth front and back reference images at ``cfg.reference_resolution``."""

@@ -23,7 +23,7 @@ TRAIN_DEFAULTS = MappingProxyType({"preset": "cpu_small", "seed": 0, "log_every"
                                    "ckpt_every": 1000, "keep_checkpoints": 2, "perceptual": "auto"})
 #: :class:`TrainConfig` fields that define the run: a resume with another value is refused.
 RUN_SETTINGS = ("preset", "seed", "iterations", "generator_iterations", "sequences", "frames", "cameras",
-                "init_generator")
+                "init_generator", "init_weights")
 #: :class:`TrainConfig` fields a resume may change (from the resumed step on; recorded in ``overrides``).
 OVERRIDABLE_SETTINGS = ("log_every", "image_every", "ckpt_every", "keep_checkpoints", "perceptual", "vgg19_weights")
 
@@ -121,6 +121,13 @@ class TrainConfig:
     init_generator: str | Path | None = None
     """*run*; a weights file (a run's ``model.safetensors`` or a checkpoint) whose pre-trained G_img (with its
     neural texture) a new run starts from, skipping stage 1; the model configs must agree on G_img's shapes."""
+    init_weights: str | Path | None = None
+    """*run*; a weights file (a run's ``model.safetensors`` or a checkpoint) a new run takes *all* its weights
+    from, starting at the NeRF stage with a fresh optimiser and the full lr schedule (fine-tuning, e.g. with
+    another ``training_crop_density``); the model configs must agree on every shape."""
+    training_crop_density: float | None = None
+    """Sets the model config's ``training_crop_density`` for a new run (None: the preset's; 0: whole frames; > 0:
+    character windows at that many pixels per scene pixel). A resume keeps the run's and refuses another."""
     loss_weights: dict[str, float] | None = None
     """Overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a resume they apply from the
     resumed step on (a curriculum: e.g. add a term once the geometry is there); each change is logged and kept
@@ -149,6 +156,10 @@ class TrainConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.generator_iterations is not None and self.generator_iterations < 0:
             raise ValueError(f"generator_iterations must be >= 0, got {self.generator_iterations}")
+        if self.init_weights is not None and self.init_generator is not None:
+            raise ValueError("init_weights and init_generator exclude each other (init_weights holds G_img too)")
+        if self.training_crop_density is not None and not (0 <= self.training_crop_density < math.inf):
+            raise ValueError(f"training_crop_density must be a number >= 0, got {self.training_crop_density}")
         if self.stop_after is not None and self.stop_after < 0:
             raise ValueError(f"stop_after must be >= 0, got {self.stop_after}")
 
@@ -165,13 +176,14 @@ class TrainConfig:
 
 # ---- run settings on resume ------------------------------------------------------------------------
 def _architecture(cfg: ModelConfig) -> dict:
-    """``cfg`` without what a run may set apart from its preset (iterations, loss weights)."""
-    names = {"iterations", "generator_iterations", *loss_weight_names()}
+    """``cfg`` without what a run may set apart from its preset (iterations, loss weights, the
+    training crop)."""
+    names = {"iterations", "generator_iterations", "training_crop_density", *loss_weight_names()}
     return {k: v for k, v in cfg.to_dict().items() if k not in names}
 
 
 def _preset_of(cfg: ModelConfig) -> str | None:
-    """The preset ``cfg`` is (apart from iterations and loss weights), or None."""
+    """The preset ``cfg`` is (apart from iterations, loss weights and the training crop), or None."""
     arch = _architecture(cfg)
     return next((p for p in MODEL_PRESETS if _architecture(model_config_for(p)) == arch), None)
 

@@ -14,7 +14,9 @@ Stage 2 -- the NeRF (``cfg.iterations`` steps). E, G_en, M_NeRF, M_D and the pal
     :func:`garmentnerf.model.losses.garment_losses` (weights from the config: L1 image + L1
     mask 1, perceptual 0.1, sparsity 2e-4, offsets 0.03, palette 1e-3). One (frame, training
     camera) per step, rendered as the full feature image (``cfg.feature_image_resolution``
-    squared rays, decoded to ``cfg.image_resolution``): what the pipeline renders. Adam with
+    squared rays, decoded to ``cfg.image_resolution``): what the pipeline renders. The image is the
+    whole camera, or with ``cfg.training_crop_density`` a window of the camera at that density
+    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). Adam with
     ``lr`` decaying exponentially to ``lr_final`` over ``cfg.iterations``
     (``lr_n = lr * (lr_final / lr) ** (n / iterations)``), gradients clipped by value
     (``cfg.grad_clip_value``).
@@ -86,6 +88,7 @@ import torch
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, generator_losses
+from garmentnerf.model.samplers import padded_box
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
@@ -259,6 +262,11 @@ class Trainer(Closeable):
         if tc.generator_iterations:
             # 0 (skip pre-training) is allowed here although ModelConfig wants > 0: kept apart.
             changes["generator_iterations"] = int(tc.generator_iterations)
+        if tc.training_crop_density is not None and float(tc.training_crop_density) != cfg.training_crop_density:
+            if resume_info is not None:
+                raise ValueError(f"--training-crop-density {tc.training_crop_density:g}: the run in {self.out} was "
+                                 f"trained with {cfg.training_crop_density:g}; --resume continues a run as it is")
+            changes["training_crop_density"] = float(tc.training_crop_density)
         weight_changes = {k: float(v) for k, v in (tc.loss_weights or {}).items() if getattr(cfg, k) != float(v)}
         changes.update(weight_changes)
         cfg = cfg.replace(**changes) if changes else cfg
@@ -343,6 +351,12 @@ class Trainer(Closeable):
                 self.loss_weight_changes.append(record)
                 self.log("loss weights from step " + str(self.step) + ": " +
                          ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
+        elif tc.init_weights is not None:
+            load_weights(tc.init_weights, self.model)
+            self.step = self.generator_iterations
+            self._enter_stage(self._stage_of(self.step))
+            self.log(f"all weights from {tc.init_weights}: G_img pre-training skipped, the NeRF stage starts at "
+                     f"step {self.step}")
         elif tc.init_generator is not None and self.generator_iterations:
             load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations
@@ -502,8 +516,10 @@ class Trainer(Closeable):
         inputs = self._nerf_inputs(seq, frame)
         feats = self.model.prepare_frame(inputs)
         gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
-        out = self.model.render(feats, self.data.frames.camera(cam), training=True, generator=gen)
-        image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame))
+        box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
+        camera, window = self.data.frames.training_view(cam, box, gen)
+        out = self.model.render(feats, camera, training=True, generator=gen)
+        image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
         terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colors, pal.initial,

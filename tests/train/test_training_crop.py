@@ -1,0 +1,169 @@
+"""Training on character windows (``ModelConfig.training_crop_density``) and fine-tuning from a
+whole model (``--init-weights``): the window's placement, its camera and target against OpenCV and
+the scene's own pixels, the density the renderer and the evaluation read back, and the run records."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from garmentnerf.conventions import project_points
+from garmentnerf.render.screen_rect import PixelRect
+from garmentnerf.train.frames import SceneFrames, character_window
+from garmentnerf.train.run import load_run
+from garmentnerf.train.settings import TrainConfig, tiny_config
+from garmentnerf.train.trainer import Trainer
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def crop_config(density: float = 1.0):
+    """The tiny model on 32 x 32 windows (8 x 8 rays) of the tiny scene's 64 x 64 images."""
+    return tiny_config().replace(image_resolution=32, feature_image_resolution=8, training_crop_density=density)
+
+
+# ---------------------------------------------------------------------------------------- placement
+def test_character_window_centres_on_the_drawn_point_and_stays_inside():
+    rect = PixelRect(100, 40, 200, 400)
+    # inside: the centre is the point at the fractions of the rectangle, rounded to a pixel
+    assert character_window(rect, (512, 512), 256, (0.5, 0.5)) == PixelRect(200 - 128, 240 - 128, 256, 256)
+    assert character_window(rect, (512, 512), 64, (0.25, 0.75)) == PixelRect(150 - 32, 340 - 32, 64, 64)
+    # at the image's edges it moves the least that keeps it inside
+    assert character_window(rect, (512, 512), 256, (0.0, 0.0)) == PixelRect(0, 0, 256, 256)
+    assert character_window(rect, (512, 512), 256, (0.999, 0.999)) == PixelRect(300 - 128, 512 - 256, 256, 256)
+    # no rectangle (the box out of view): anywhere in the image
+    assert character_window(None, (300, 200), 100, (0.5, 0.5)) == PixelRect(100, 50, 100, 100)
+    # the whole image
+    assert character_window(rect, (256, 256), 256, (0.3, 0.9)) == PixelRect(0, 0, 256, 256)
+    with pytest.raises(ValueError, match="does not fit"):
+        character_window(rect, (512, 200), 256, (0.5, 0.5))
+
+
+# ---------------------------------------------------------------------------------------- camera and target
+def test_window_camera_and_target_are_the_scene_pixels(tiny_scene, gl_context):
+    from garmentnerf.data.scene import SceneImages
+
+    cfg = crop_config(1.0)
+    with SceneFrames(tiny_scene, cfg, gl_context) as frames:
+        native = tiny_scene.camera("cam01").camera
+        cam = frames.camera("cam01")
+        assert (cam.width, cam.height) == (native.width, native.height) == (64, 64)
+        box = torch.tensor([[-0.4, -0.3, 0.0], [0.4, 0.3, 1.7]], dtype=torch.float64)
+        draws = []
+        for seed in range(6):
+            view, window = frames.training_view("cam01", box, torch.Generator().manual_seed(seed))
+            assert (view.width, view.height) == (window.width, window.height) == (32, 32)
+            assert 0 <= window.x0 <= 32 and 0 <= window.y0 <= 32
+            draws.append((window.x0, window.y0))
+            # the window camera sees a world point at its full-camera pixel minus the window's corner (OpenCV)
+            pts = np.array([[0.1, -0.2, 1.1], [-0.3, 0.2, 0.4], [0.0, 0.0, 1.6]])
+            rvec, _ = cv2.Rodrigues(np.asarray(native.R, np.float64))
+            want, _ = cv2.projectPoints(pts, rvec, np.asarray(native.t, np.float64), np.asarray(native.K, np.float64),
+                                        None)
+            got, _ = project_points(view, torch.as_tensor(pts))
+            np.testing.assert_allclose(got.numpy(), want[:, 0] - [window.x0, window.y0], atol=1e-6)
+            # the target is the scene's own pixels of the window (density 1: no resampling)
+            image, mask, garment = frames.target("train", "cam01", 1, window)
+            with SceneImages(tiny_scene) as images:
+                rgb, labels = images.image("train", "cam01", 1)
+            rows, cols = window.slices()
+            np.testing.assert_array_equal(image.permute(1, 2, 0).numpy(), rgb[rows, cols])
+            np.testing.assert_array_equal(mask[0].numpy(), (labels[rows, cols] != 0).astype(np.float32))
+            np.testing.assert_array_equal(garment[0].numpy(), (labels[rows, cols] == 2).astype(np.float32))
+        assert len(set(draws)) > 1  # the generator moves the window
+        # the same generator seed, the same window (an exact resume repeats it)
+        a = frames.training_view("cam01", box, torch.Generator().manual_seed(3))[1]
+        assert a == frames.training_view("cam01", box, torch.Generator().manual_seed(3))[1]
+
+
+def test_half_density_target_is_the_area_downsampled_scene_image(tiny_scene, gl_context):
+    from garmentnerf.data.scene import SceneImages
+
+    cfg = tiny_config().replace(image_resolution=16, feature_image_resolution=4, training_crop_density=0.5)
+    with SceneFrames(tiny_scene, cfg, gl_context) as frames:
+        assert (frames.camera("cam00").width, frames.camera("cam00").height) == (32, 32)
+        box = torch.tensor([[-0.4, -0.3, 0.0], [0.4, 0.3, 1.7]], dtype=torch.float64)
+        _, window = frames.training_view("cam00", box, torch.Generator().manual_seed(0))
+        image, _, _ = frames.target("train", "cam00", 0, window)
+    with SceneImages(tiny_scene) as images:
+        rgb, _ = images.image("train", "cam00", 0)
+    half = cv2.resize(rgb, (32, 32), interpolation=cv2.INTER_AREA)
+    rows, cols = window.slices()
+    np.testing.assert_allclose(image.permute(1, 2, 0).numpy(), half[rows, cols], atol=1e-6)
+
+
+def test_whole_frame_training_is_unchanged(tiny_scene, gl_context):
+    cfg = tiny_config()
+    with SceneFrames(tiny_scene, cfg, gl_context) as frames:
+        box = torch.tensor([[-0.4, -0.3, 0.0], [0.4, 0.3, 1.7]], dtype=torch.float64)
+        gen = torch.Generator().manual_seed(0)
+        state = gen.get_state()
+        view, window = frames.training_view("cam02", box, gen)
+        assert window is None and torch.equal(gen.get_state(), state)  # draws nothing: old runs resume the same
+        R = cfg.image_resolution
+        np.testing.assert_allclose(view.K, tiny_scene.camera("cam02").camera.resized(R, R).K)
+
+
+# ---------------------------------------------------------------------------------------- runs
+def _tc(scene, out, **kw) -> TrainConfig:
+    base = dict(scene=scene.root, out=out, model_config=tiny_config(), iterations=2, generator_iterations=1,
+                perceptual="none", progress=False, log_every=1, image_every=0, ckpt_every=100)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_crop_run_is_recorded_read_back_and_kept_on_resume(tiny_scene, gl_context, tmp_path):
+    from garmentnerf.eval.evaluate import eval_size
+    from garmentnerf.render.session import RenderSession
+
+    out = tmp_path / "crop"
+    tc = _tc(tiny_scene, out, model_config=crop_config(0.0), training_crop_density=1.0)
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        result = tr.train()
+    assert result.finished and all(np.isfinite(h["total"]) for h in result.history)
+    info = json.loads((out / "run.json").read_text())
+    assert info["model_config"]["training_crop_density"] == 1.0
+    assert info["train"]["preset"] is None  # 32 x 32 images: no preset's sizes
+    run = load_run(out)
+    native = tiny_scene.camera("held00").camera
+    # the model was trained at the scene's own density: quality 1 renders a scene camera 1:1 ...
+    assert eval_size(run.config, native, "model") == (64, 64)
+    session = RenderSession(run, gl_context)
+    try:
+        assert session.render_scale(native, 1.0) == pytest.approx(1.0)
+        assert session.render_scale(native.resized(128, 128), 0.5) == pytest.approx(0.25)
+    finally:
+        session.close()
+    # ... where a whole-frame model of the same image size renders it at 32 / 64
+    assert eval_size(tiny_config().replace(image_resolution=32, feature_image_resolution=8), native,
+                     "model") == (32, 32)
+    with pytest.raises(ValueError, match="--training-crop-density 0.5: the run .* was trained with 1"):
+        Trainer(_tc(tiny_scene, out, model_config=None, iterations=None, generator_iterations=None, resume=True,
+                    training_crop_density=0.5), gl_context, log=lambda m: None)
+
+
+def test_init_weights_starts_the_nerf_stage_from_every_weight(tiny_scene, gl_context, tmp_path):
+    from safetensors.torch import load_file
+
+    donor_run = tmp_path / "donor"
+    with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:
+        tr.train()
+    donor = load_file(str(donor_run / "model.safetensors"))
+    out = tmp_path / "tuned"
+    messages = []
+    tc = _tc(tiny_scene, out, init_weights=donor_run / "model.safetensors", seed=7, iterations=1)
+    with Trainer(tc, gl_context, log=messages.append) as tr:
+        assert tr.step == 1 and tr.stage == "nerf"
+        state = tr.model.state_dict()
+        assert all(torch.equal(state[k], v) for k, v in donor.items())  # every weight, not only G_img
+        result = tr.train()
+    assert result.finished and load_run(out).step == 2
+    assert any("all weights from" in m for m in messages)
+    with pytest.raises(ValueError, match="exclude each other"):
+        _tc(tiny_scene, tmp_path / "x", init_weights="a", init_generator="b").validate()
+    with pytest.raises(ValueError, match="training_crop_density"):
+        _tc(tiny_scene, tmp_path / "x", training_crop_density=-1.0).validate()
