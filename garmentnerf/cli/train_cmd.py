@@ -30,9 +30,9 @@ def register(sub) -> None:
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its newest readable checkpoint with the run's settings "
-                        "(run.json); --preset, --seed, --frames, --iterations, --generator-iterations or "
-                        "--init-generator, --init-weights or --training-crop-density that differ from the run's are refused; --stop-after, --ckpt-every, "
-                        "--log-every, --image-every, --perceptual, --vgg19-weights, --loss-weight and --scene "
+                        "(run.json); --preset, --seed, --frames, --iterations, --generator-iterations, "
+                        "--init-generator, --init-weights or --training-crop-density that differ from the run's "
+                        "are refused; --stop-after, --ckpt-every, --log-every, --image-every, --perceptual, --vgg19-weights, --loss-weight and --scene "
                         "apply from the resumed step on and are recorded in run.json's overrides")
     p.add_argument("--seed", type=int, default=None,
                    help="random seed (default: 0; on --resume: the run's, another one is refused)")

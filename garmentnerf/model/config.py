@@ -276,7 +276,8 @@ class ModelConfig:
                 raise ValueError(f"ModelConfig.{name} ({size}) must be divisible by 2^encoder_depth "
                                  f"({2 ** self.encoder_depth}) with a bottleneck of at least 2x2")
         if not (self.training_crop_density >= 0 and self.training_crop_density < float("inf")):
-            raise ValueError(f"ModelConfig.training_crop_density must be a number >= 0, got {self.training_crop_density}")
+            raise ValueError(f"ModelConfig.training_crop_density must be a number >= 0, "
+                             f"got {self.training_crop_density}")
         if self.lr_final > self.lr:
             raise ValueError(f"ModelConfig.lr_final ({self.lr_final}) must not exceed lr ({self.lr})")
         if self.garment_label == self.body_label:

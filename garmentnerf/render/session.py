@@ -28,13 +28,14 @@ Resolution
     the preset's ``resolution_scale``. The density is measured on the character for the presets
     that render only its rectangle (``character_rect``): ``scale = quality * e_train / e_view``
     with ``e`` the projected size of the frame's sampling box in the median training camera (at
-    the density the model was trained at, :meth:`~garmentnerf.model.config.ModelConfig.training_scale`)
-    and in this view, so a character filling a 1280 x 800 window is
-    rendered as sharp as the model can make it, in about a training view's rays, and a distant
-    one costs little (capped at one rendered pixel per output pixel, or the frame density when
-    that is higher). The ``reference`` preset, and any view where the box's projection is
-    unbounded, use the frame: ``scale = quality * S / max(W, H)`` with ``S`` the longer side of a
-    training camera at the trained density (``cfg.image_resolution`` for whole-frame training). The rendered size is padded to a multiple of the decoder's upsampling
+    the density the model was trained at,
+    :meth:`~garmentnerf.model.config.ModelConfig.training_scale`) and in this view, so a character
+    filling a 1280 x 800 window is rendered as sharp as the model can make it, in about a training
+    view's rays, and a distant one costs little (capped at one rendered pixel per output pixel, or
+    the frame density when that is higher). The ``reference`` preset, and any view where the box's
+    projection is unbounded, use the frame: ``scale = quality * S / max(W, H)`` with ``S`` the
+    longer side of a training camera at the trained density (``cfg.image_resolution`` for
+    whole-frame training). The rendered size is padded to a multiple of the decoder's upsampling
     factor (:func:`padded_render_camera`) and the maps cropped back
     (:meth:`~garmentnerf.model.palette.DecomposedMaps.cropped`). The :class:`NeuralFrame` keeps
     the maps at the *rendered* size; :meth:`NeuralFrame.maps_at` resamples them
