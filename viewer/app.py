@@ -40,8 +40,9 @@ from garmentnerf.viewer.exporting import Exports
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import NeuralView
+from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.renderables import FULL_VIEW
-from garmentnerf.viewer.scene_gl import SceneRenderer, read_image
+from garmentnerf.viewer.scene_gl import SceneRenderer, read_image, state_token
 from garmentnerf.viewer.sequence import BodySequence, MotionMenu, body_and_shape
 from garmentnerf.viewer.shortcuts import SHORTCUTS, action_for_key, pressed_actions, resolve
 from garmentnerf.viewer.timeline import FrameTimer, PlaybackMeter, Timeline
@@ -81,6 +82,9 @@ class App(Closeable):
         run: a run folder or :class:`~garmentnerf.train.run.LoadedRun` whose neural garment to show
             (None: body only). ``motion`` None then means the run scene's first training sequence;
             body and shape come from the run.
+        dynamic_scene: while the view moves, draw the scene at the scale that fits
+            :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
+            once more at ``render_scale`` when it is still); False: always at ``render_scale``.
     Raises:
         NoDisplayError: no display / GLFW cannot initialise.
         GLUnavailableError: the window has no OpenGL >= 3.3 core context.
@@ -91,7 +95,8 @@ class App(Closeable):
                  visible: bool = True, snapshot_dir: str | Path = "snapshots",
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
-                 title: str = "garmentnerf view", clock=time.perf_counter, run=None) -> None:
+                 title: str = "garmentnerf view", clock=time.perf_counter, run=None,
+                 dynamic_scene: bool = True) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -118,6 +123,8 @@ class App(Closeable):
         self.fixed_dt, self.clock = fixed_dt, clock
         self.max_frames = max_frames if max_frames is not None else _env_frames()
         self.timer = FrameTimer()
+        self.scene_scale = SceneScale(dynamic=dynamic_scene)  # the scene drawn smaller while the view moves
+        self.scene_draw_scale = 1.0  # the last frame's, of the render size (overlay)
         self.closed = False
         self.free_area = FULL_VIEW  # NDC part of the window the panels leave free (side by side)
         self.gestures = MouseGestures()
@@ -269,9 +276,16 @@ class App(Closeable):
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
         self.neural_view.update(camera, self.timeline.frame, self.playback_meter if self.timeline.playing else None)
-        target = self.scene.window_target(rw, rh)
+        # while the view moves the scene is drawn smaller (SceneScale); the neural request is not
+        now = self.clock()
+        self.scene_scale.view_changed((state_token((camera.K, camera.R, camera.t)), self.timeline.frame), now)
+        scale = self.scene_draw_scale = self.scene_scale.scale(now)
+        drawn = camera if scale == 1.0 else camera.resized(max(1, round(rw * scale)), max(1, round(rh * scale)))
+        target = self.scene.window_target(drawn.width, drawn.height)
         side_by_side = self.neural_view.mode == "side_by_side"
-        self.scene.render(target, camera, free_area=self.free_area if side_by_side else FULL_VIEW)
+        start = self.clock()
+        if self.scene.render(target, drawn, free_area=self.free_area if side_by_side else FULL_VIEW):
+            self.scene_scale.observe(scale, (self.clock() - start) * 1e3)
         self.scene.present(target, self.window.ctx.screen, fb_w, fb_h)
 
     def _sync_scene(self) -> None:

@@ -100,6 +100,10 @@ def _display_section(app) -> None:
     changed, scale = imgui.slider_float("Render scale", app.scene.render_scale, MIN_RENDER_SCALE, 1.0, "%.2f")
     if changed:
         app.scene.set_render_scale(scale)
+    _, app.scene_scale.dynamic = imgui.checkbox("Smaller while moving", app.scene_scale.dynamic)
+    if imgui.is_item_hovered():
+        imgui.set_tooltip(f"draw the scene at the scale that fits {app.scene_scale.target_ms:.0f} ms while the "
+                          f"view moves, then sharp once it is still")
 
 
 def _neural_section(app, em: float) -> None:

@@ -158,7 +158,7 @@ def draw_stats(app) -> None:
     fps = t.fps
     imgui.text(f"UI {fps:5.1f} fps ({t.interval_ms:5.1f} ms/frame)" if math.isfinite(fps) and fps > 0
                else "UI -- fps")
-    imgui.text_disabled(f"work {t.work_ms:5.1f} ms, scene {t.scene_ms:5.1f} ms")
+    imgui.text_disabled(f"work {t.work_ms:5.1f} ms, scene {t.scene_ms:5.1f} ms at x{app.scene_draw_scale:.2f}")
     w, h = app.window.framebuffer_size
     imgui.text_disabled(f"{w}x{h} px, {app.scene.samples}x MSAA, scale {app.window.content_scale:g}")
     imgui.text_disabled(app.window.gl_renderer)

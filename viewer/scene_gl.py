@@ -24,6 +24,7 @@ Redraws
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import moderngl
@@ -43,6 +44,9 @@ __all__ = ["SceneRenderer", "RenderTarget", "SceneStats", "read_image", "scene_s
 BACKGROUND = (0.155, 0.165, 0.185)
 #: Lowest render scale of the window's scene (fraction of the framebuffer size).
 MIN_RENDER_SCALE = 0.25
+#: Window targets kept (one per size): the still view's and the moving view's
+#: (:class:`~garmentnerf.viewer.quality.SceneScale`), so switching between them reallocates nothing.
+WINDOW_TARGETS = 2
 #: Renderer names (substrings, lower case) of software rasterisers, where MSAA costs too much.
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software", "swiftshader")
 
@@ -153,7 +157,7 @@ class SceneRenderer:
             self.present_vao = ctx.vertex_array(self.present_program, [])
         self.renderables = [self.floor, self.body, self.palette_layer]
         self.stats = SceneStats()
-        self._window_target: RenderTarget | None = None
+        self._window_targets: OrderedDict[tuple[int, int], RenderTarget] = OrderedDict()
         self._released = False
 
     # ---- state updates (cheap; uploads happen in render) ---------------------------------------
@@ -185,14 +189,18 @@ class SceneRenderer:
         return max(1, round(w * self.render_scale)), max(1, round(h * self.render_scale))
 
     def window_target(self, width: int, height: int) -> RenderTarget:
-        """The window's render target (``samples``) at this size: kept while the size stays, remade
-        when it changes, freed with the renderer."""
-        if self._window_target is None or self._window_target.size != (width, height):
-            if self._window_target is not None:
-                with current(self.ctx):
-                    self._window_target.release()
-            self._window_target = self.make_target(width, height)
-        return self._window_target
+        """The window's render target (``samples``) at this size: the last :data:`WINDOW_TARGETS`
+        sizes are kept (the still and the moving scale), older ones freed; all freed with the
+        renderer."""
+        target = self._window_targets.pop((width, height), None)
+        if target is None:
+            target = self.make_target(width, height)
+        self._window_targets[(width, height)] = target  # the newest last
+        while len(self._window_targets) > WINDOW_TARGETS:
+            _, old = self._window_targets.popitem(last=False)
+            with current(self.ctx):
+                old.release()
+        return target
 
     def render(self, target: RenderTarget, camera: Camera, force: bool = False, free_area=FULL_VIEW) -> bool:
         """Draw the scene as seen by ``camera`` into ``target`` (sizes must agree) and resolve it.
@@ -277,8 +285,9 @@ class SceneRenderer:
         if is_released(self.ctx):
             return
         with current(self.ctx):
-            if self._window_target is not None:
-                self._window_target.release()
+            for target in self._window_targets.values():
+                target.release()
+            self._window_targets.clear()
             for r in self.renderables:
                 r.release()
             self.present_vao.release()

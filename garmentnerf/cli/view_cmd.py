@@ -53,6 +53,9 @@ def register(sub) -> None:
     view.add_argument("--render-scale", type=float, default=1.0,
                       help="render the scene at this fraction of the window's pixels (0.25..1; lower is faster "
                            "on a software rasteriser; default: 1)")
+    view.add_argument("--fixed-scene-scale", action="store_true",
+                      help="draw the scene at --render-scale even while the view moves (default: smaller while "
+                           "it moves, to keep the UI at 30 fps on a software rasteriser)")
     view.add_argument("--paused", action="store_true", help="start paused")
     view.add_argument("--no-vsync", action="store_true", help="do not wait for the display refresh")
     bench = view.add_argument_group("benchmark (--bench)")
@@ -141,6 +144,7 @@ def run_view(args: argparse.Namespace) -> int:
         app = app_module.App(motion=args.motion if run is not None else (args.motion or "walk"), body=body,
                              betas=betas, run=run, size=size, samples=args.msaa,
                              render_scale=args.render_scale, vsync=not (args.no_vsync or bench),
+                             dynamic_scene=not args.fixed_scene_scale,
                              snapshot_dir=args.snapshot_dir, snapshot_size=snapshot_size,
                              playing=not args.paused and not bench)
     except app_module.NoDisplayError:

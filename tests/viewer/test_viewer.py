@@ -322,8 +322,10 @@ def app(xvfb, body, walk, tmp_path_factory):
     from garmentnerf.viewer.app import App
 
     snapshots = tmp_path_factory.mktemp("snapshots")
+    # the scene at full size in every frame (the tests compare a frame right after a change with a
+    # headless render); the smaller scene while moving has its own test, which switches it on
     viewer = App(sequence=walk, motion="walk", body=body, size=WINDOW, samples=0, vsync=False, playing=False,
-                 snapshot_dir=snapshots, snapshot_size=(320, 240))
+                 snapshot_dir=snapshots, snapshot_size=(320, 240), dynamic_scene=False)
     for _ in range(3):
         viewer.step()
     yield viewer
@@ -820,6 +822,66 @@ def test_the_scene_is_redrawn_only_when_something_it_shows_changes(app):
     assert redraws_after(lambda: setattr(floor, "show_lines", not floor.show_lines)) == 1
     assert np.abs(changed.astype(int) - before.astype(int)).max() > 0
     np.testing.assert_array_equal(scene_image(), before)
+
+
+def test_the_scene_is_drawn_smaller_while_the_view_moves_and_sharp_once_still(app):
+    """While the camera moves the scene is drawn at the scale whose measured cost fits the budget
+    and stretched to the window (what OpenCV's bilinear upsampling of a headless half-size render
+    shows); once still it is drawn again at full size, the image a fixed-scale window shows."""
+    import cv2
+
+    clock = [1000.0]
+    app.clock = lambda: clock[0]
+    app.show_ui = False
+    scale = app.scene_scale
+    scale.dynamic = True
+    scale.forget()
+    try:
+        for _ in range(2):
+            clock[0] += 1.0
+            app.step()
+        assert app.scene_draw_scale == 1.0  # still: full size
+        scale.unit_ms = 4.0 * scale.target_ms  # a scene that costs 4x the budget at full size
+        app.controller.orbit(5.0, 0.0)
+        clock[0] += 0.01
+        moving = app.read_framebuffer()
+        assert app.scene_draw_scale == 0.5  # sqrt(1 / 4)
+        W, H = app.window.framebuffer_size
+        camera = app.controller.camera(W, H)
+        half = app.scene.render_image(camera.resized(W // 2, H // 2))
+        stretched = cv2.resize(half, (W, H), interpolation=cv2.INTER_LINEAR).astype(int)
+        full = app.scene.render_image(camera).astype(int)
+        assert np.abs(moving.astype(int) - stretched).mean() < 0.5 * np.abs(moving.astype(int) - full).mean()
+        clock[0] += 0.01 + scale.settle_seconds
+        sharp = app.read_framebuffer()
+        assert app.scene_draw_scale == 1.0
+        np.testing.assert_array_equal(sharp, full.astype(np.uint8))
+        scale.dynamic = False  # a window that never scales shows the same
+        clock[0] += 1.0
+        np.testing.assert_array_equal(app.read_framebuffer(), sharp)
+    finally:
+        app.clock = time.perf_counter
+        app.show_ui = True
+        scale.dynamic = False
+
+
+def test_scene_scale_fits_the_budget_while_moving():
+    from garmentnerf.viewer.quality import SceneScale
+
+    s = SceneScale(target_ms=10.0, floor=0.35, settle_seconds=0.2)
+    assert s.scale(0.0) == 1.0  # nothing shown yet: still
+    s.view_changed("a", 1.0)
+    assert s.scale(1.1) == 0.5  # moving, nothing measured: half
+    s.observe(0.5, 22.5)  # 22.5 ms at half size: 90 ms at full, sqrt(10 / 90) = 1/3 -> the floor 0.35,
+    s.view_changed("b", 1.15)  # quantised to 6/16
+    assert s.moving(1.3) and s.scale(1.3) == 6 / 16
+    assert not s.moving(1.36) and s.scale(1.36) == 1.0  # still for settle_seconds: full size
+    s.forget()
+    s.observe(1.0, 12.0)  # 12 ms at full size: 0.91 -> quantised to 15/16
+    s.view_changed("c", 2.0)
+    assert s.scale(2.05) == 15 / 16
+    s.dynamic = False
+    assert s.scale(2.05) == 1.0
 
 
 def test_playback_meter_counts_shown_and_neural_frames_per_second():
