@@ -691,6 +691,37 @@ def test_neural_viewer_palette_is_a_uniform_and_modes_switch(xvfb, untrained_run
         assert stats["renders"] >= 2 and stats["errors"] == 0 and stats["timings"]["render_total"] > 0
 
 
+def test_ui_frames_do_not_wait_for_a_slow_neural_render(xvfb, untrained_run, tmp_path, monkeypatch):
+    """Every neural render takes at least 0.6 s (slowed on purpose) while the camera orbits every
+    UI frame: the UI thread never waits for it, so its frame time stays far below a render's
+    (measured here; bound loose for a loaded CI machine)."""
+    from garmentnerf.render.session import RenderSession
+    from garmentnerf.viewer.app import App
+
+    slow_render = RenderSession.render
+
+    def render(self, *args, **kwargs):
+        time.sleep(0.6)  # the worker thread sleeps: a UI frame that waited for it would take as long
+        return slow_render(self, *args, **kwargs)
+
+    monkeypatch.setattr(RenderSession, "render", render)
+    with App(motion=None, run=untrained_run, size=(320, 240), samples=0, vsync=False, playing=False,
+             snapshot_dir=tmp_path) as viewer:
+        assert viewer.wait_for_neural(180), viewer.neural_view.error()
+        renders = viewer.neural_view.renderer.stats.renders
+        intervals = []
+        start = last = time.perf_counter()
+        while time.perf_counter() - start < 2.5:
+            viewer.controller.orbit(2.0, 0.0)  # a new view every frame: the worker is never idle
+            viewer.step()
+            now = time.perf_counter()
+            intervals.append(now - last)
+            last = now
+        busy = viewer.neural_view.renderer.stats.renders - renders
+    assert busy <= 5  # the renders really were slow (at most 2.5 s / 0.6 s of them finished) ...
+    assert len(intervals) >= 10 and float(np.median(intervals)) < 0.25, np.median(intervals)  # ... the UI was not
+
+
 def test_view_command_with_run_renders_a_neural_frame(xvfb, untrained_run, tmp_path):
     import json
     import sys
