@@ -8,7 +8,9 @@ what the machine can do rather than the display's refresh:
   orbits a little every UI frame, so the neural worker always has a newer view to render (renders
   are superseded and cancelled, as while dragging). Reported: frames per second over the whole
   measurement, median / 95th percentile / worst frame time, and the fraction of UI frames during
-  which the worker was rendering. Without a run (body only) the worker part is absent.
+  which the worker was rendering, and the scale the scene was drawn at while the view moved
+  (:class:`~garmentnerf.viewer.quality.SceneScale`; 1 with ``--fixed-scene-scale``). Without a
+  run (body only) the worker part is absent.
 * **Recolor latency** (goal: the next frame): with the view still and the newest neural frame on
   the GPU, each palette entry is set to its complement and the window is read back after every UI
   frame; the latency is the number of frames until the garment's pixels change (1 = the next frame).
@@ -81,6 +83,7 @@ def measure_busy_fps(app, seconds: float) -> dict:
     intervals: list[float] = []
     busy = 0
     frames = 0
+    scene_scales: list[float] = []
     renderer = app.neural_view.renderer
     renders0 = renderer.stats.renders if renderer is not None else 0
     dropped0 = renderer.stats.dropped if renderer is not None else 0
@@ -93,6 +96,7 @@ def measure_busy_fps(app, seconds: float) -> dict:
         intervals.append(now - last)
         last = now
         frames += 1
+        scene_scales.append(app.scene_draw_scale)
         if renderer is not None and not renderer.worker.idle():
             busy += 1
     elapsed = time.perf_counter() - start
@@ -102,7 +106,9 @@ def measure_busy_fps(app, seconds: float) -> dict:
            "frame_ms_median": _percentile(ms, 50), "frame_ms_p95": _percentile(ms, 95),
            "frame_ms_max": max(ms) if ms else float("nan"), "goal_fps": 30.0,
            # the App's own split of the last frames: time inside a frame before the swap, and the scene's share
-           "work_ms": app.timer.work_ms, "scene_ms": app.timer.scene_ms}
+           "work_ms": app.timer.work_ms, "scene_ms": app.timer.scene_ms,
+           # the scene's draw scale while the view moved (SceneScale; 1 with --fixed-scene-scale)
+           "scene_scale_median": _percentile(scene_scales, 50), "scene_scale_dynamic": app.scene_scale.dynamic}
     if renderer is not None:
         out["worker_busy_fraction"] = busy / frames if frames else float("nan")
         out["worker_renders"] = renderer.stats.renders - renders0
@@ -228,7 +234,8 @@ def print_figures(result: dict, file=sys.stdout) -> None:
     print(f"view bench: {w}x{h} on {result['gl_renderer']}", file=file)
     print(f"  UI while worker busy: {ui['fps']:.1f} fps (goal >= 30) over {ui['frames']} frames; frame "
           f"{ui['frame_ms_median']:.1f} ms median, {ui['frame_ms_p95']:.1f} ms p95, {ui['frame_ms_max']:.1f} ms worst "
-          f"(work {ui['work_ms']:.1f} ms, scene {ui['scene_ms']:.1f} ms)"
+          f"(work {ui['work_ms']:.1f} ms, scene {ui['scene_ms']:.1f} ms drawn at x{ui['scene_scale_median']:.2f}"
+          f"{'' if ui['scene_scale_dynamic'] else ', --fixed-scene-scale'})"
           f"{busy}", file=file)
     rc = result["recolor"]
     if rc.get("available"):
