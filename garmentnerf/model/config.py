@@ -229,6 +229,15 @@ class ModelConfig:
             return float(self.training_crop_density)
         return self.image_resolution / max(int(width), int(height))
 
+    def training_camera(self, camera):
+        """A scene camera (:class:`~garmentnerf.conventions.Camera`) at the density the model trains
+        at: resized to ``image_resolution`` squared for whole-frame training (what the trainer has
+        always rendered), else scaled by ``training_crop_density`` (each step renders a window of it)."""
+        if self.training_crop_density <= 0:
+            return camera.resized(self.image_resolution, self.image_resolution)
+        s = float(self.training_crop_density)
+        return camera.resized(max(1, round(camera.width * s)), max(1, round(camera.height * s)))
+
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:
         """Raise ValueError on inconsistent or out-of-range settings."""

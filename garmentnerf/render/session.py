@@ -332,7 +332,7 @@ class RenderSession(Closeable):
     @functools.cached_property
     def training_views(self) -> list[Camera]:
         """The run's training cameras at the pixel density the model was trained at
-        (:meth:`~garmentnerf.model.config.ModelConfig.training_scale`: ``image_resolution``
+        (:meth:`~garmentnerf.model.config.ModelConfig.training_camera`: ``image_resolution``
         squared for whole-frame training, the scene's size times ``training_crop_density`` for
         character windows); empty without a scene."""
         if self.scene is None:
@@ -340,12 +340,7 @@ class RenderSession(Closeable):
         recorded = ((getattr(self.run, "info", None) or {}).get("train") or {}).get("cameras")
         names = [c for c in (recorded or []) if c in set(self.scene.camera_names())]
         names = names or self.scene.camera_names("train")
-        views = []
-        for name in names:
-            native = self.scene.camera(name).camera
-            s = self.config.training_scale(native.width, native.height)
-            views.append(native.resized(max(1, round(native.width * s)), max(1, round(native.height * s))))
-        return views
+        return [self.config.training_camera(self.scene.camera(n).camera) for n in names]
 
     def sampling_box(self, features) -> torch.Tensor:
         """(2, 3) float64 the frame's sampling box: the body box padded by ``cfg.bbox_padding``, as

@@ -148,15 +148,10 @@ class SceneFrames(Closeable):
 
     # ---- cameras and targets ----------------------------------------------------------------------------
     def camera(self, name: str) -> Camera:
-        """The scene camera at the density the model trains at (:meth:`ModelConfig.training_scale`):
+        """The scene camera at the density the model trains at (:meth:`ModelConfig.training_camera`):
         ``cfg.image_resolution`` squared for whole-frame training, else the scene's image scaled by
         ``cfg.training_crop_density`` (of which each step renders a window)."""
-        native = self.scene.camera(name).camera
-        if self.cfg.training_crop_density <= 0:
-            R = self.cfg.image_resolution
-            return native.resized(R, R)
-        s = self.cfg.training_scale(native.width, native.height)
-        return native.resized(max(1, round(native.width * s)), max(1, round(native.height * s)))
+        return self.cfg.training_camera(self.scene.camera(name).camera)
 
     def training_view(self, name: str, box: torch.Tensor, generator: torch.Generator | None = None
                       ) -> tuple[Camera, PixelRect | None]:
