@@ -21,6 +21,9 @@ def register(sub) -> None:
     # run's value (one given explicitly is checked against the run's; see Trainer).
     p.add_argument("--preset", default=None, choices=("paper", "cpu_small", "tiny"),
                    help="model size (default: cpu_small; on --resume: the run's, another one is refused)")
+    p.add_argument("--model-config", default=None, metavar="JSON",
+                   help="train this model config instead of a preset's: a JSON file of ModelConfig fields, or a "
+                        "run's run.json (its model_config: the same recipe again); a new run only")
     p.add_argument("--iterations", type=int, default=None, metavar="N",
                    help="NeRF training steps (default: the preset's; the lr decays over them; on --resume: the "
                         "run's, another number is refused)")
@@ -124,7 +127,15 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{flag} must be at least {least}, got {value}")
     # Options not given are None: a new run takes the defaults, --resume the run's own settings
     # (given ones are checked against the run's or recorded as overrides: Trainer).
+    model_config = None
+    if args.model_config is not None:
+        if args.preset is not None:
+            raise ValueError("--model-config and --preset exclude each other (the config holds every size)")
+        if args.resume:
+            raise ValueError("--model-config: a resume trains the run's own config (leave it out)")
+        model_config = read_model_config(args.model_config)
     tc = TrainConfig(scene=args.scene, out=args.out, preset=args.preset, device=args.device, seed=args.seed,
+                     model_config=model_config,
                      iterations=args.iterations, generator_iterations=args.generator_iterations,
                      stop_after=args.stop_after, log_every=args.log_every, image_every=args.image_every,
                      ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames, args.scene),
@@ -142,6 +153,31 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 130 if result.interrupted else 0
+
+
+def read_model_config(path):
+    """The :class:`~garmentnerf.model.config.ModelConfig` in a JSON file: a dict of its fields, or a
+    run's ``run.json`` (its ``model_config``). ValueError naming the file when it is not one."""
+    import json
+    from pathlib import Path
+
+    from garmentnerf.model.config import ModelConfig
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: missing (--model-config)") from None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable JSON file ({exc})") from None
+    if isinstance(data, dict) and isinstance(data.get("model_config"), dict):
+        data = data["model_config"]
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: not a model config (a JSON object of ModelConfig fields, or a run.json)")
+    try:
+        return ModelConfig.from_dict(dict(data))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: not a valid model config: {' '.join(str(exc).split())}") from None
 
 
 def _interrupt(signum, frame) -> None:

@@ -167,3 +167,32 @@ def test_init_weights_starts_the_nerf_stage_from_every_weight(tiny_scene, gl_con
         _tc(tiny_scene, tmp_path / "x", init_weights="a", init_generator="b").validate()
     with pytest.raises(ValueError, match="training_crop_density"):
         _tc(tiny_scene, tmp_path / "x", training_crop_density=-1.0).validate()
+
+
+def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_path, capsys):
+    from garmentnerf.cli.main import main
+
+    cfg = crop_config(1.0).replace(lr=3e-4, lr_final=1e-4, segmentation_start=0)
+    config_file = tmp_path / "config.json"
+    config_file.write_text(json.dumps(cfg.to_dict()))
+    common = ["--scene", str(tiny_scene.root), "--generator-iterations", "1", "--no-progress", "--threads", "1",
+              "--perceptual", "none"]
+    first = tmp_path / "first"
+    assert main(["train", "--out", str(first), "--model-config", str(config_file), "--iterations", "1", *common]) == 0
+    recorded = json.loads((first / "run.json").read_text())["model_config"]
+    assert recorded == {**cfg.to_dict(), "iterations": 1, "generator_iterations": 1}
+    # the same recipe again from the run's run.json, fine-tuning the first run's weights
+    second = tmp_path / "second"
+    assert main(["train", "--out", str(second), "--model-config", str(first / "run.json"), "--iterations", "2",
+                 "--init-weights", str(first / "model.safetensors"), *common]) == 0
+    again = json.loads((second / "run.json").read_text())
+    assert again["model_config"] == {**recorded, "iterations": 2} and again["step"] == 3
+    capsys.readouterr()
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"image_resolution": 32, "no_such_field": 1}')
+    for args in (["--model-config", str(bad)], ["--model-config", str(tmp_path / "absent.json")],
+                 ["--model-config", str(config_file), "--preset", "tiny"]):
+        assert main(["train", "--out", str(tmp_path / "third"), "--iterations", "1", *args, *common]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "third").exists()
