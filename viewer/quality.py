@@ -121,7 +121,8 @@ class AdaptiveScale:
 class QualityController(AdaptiveScale):
     """See the module docstring: the neural render's quality (fraction of the training density).
 
-    Attributes (besides :class:`AdaptiveScale`'s):
+    Attributes (besides :class:`AdaptiveScale`'s; ``floor`` 0.25: below it a full-body view
+    renders so few rays that the character all but vanishes while the view moves):
         preset: the quality level, a render preset name of :data:`VIEWER_LEVELS`.
         dynamic: lower the quality while moving (False: always the preset's).
     """

@@ -35,8 +35,9 @@ def register(sub) -> None:
                    help="continue the run in --out from its newest readable checkpoint with the run's settings "
                         "(run.json); --preset, --seed, --frames, --iterations, --generator-iterations, "
                         "--init-generator, --init-weights or --training-crop-density that differ from the run's "
-                        "are refused; --stop-after, --ckpt-every, --log-every, --image-every, --perceptual, --vgg19-weights, --loss-weight and --scene "
-                        "apply from the resumed step on and are recorded in run.json's overrides")
+                        "are refused; --stop-after, --ckpt-every, --log-every, --image-every, --perceptual, "
+                        "--vgg19-weights, --loss-weight and --scene apply from the resumed step on and are "
+                        "recorded in run.json's overrides")
     p.add_argument("--seed", type=int, default=None,
                    help="random seed (default: 0; on --resume: the run's, another one is refused)")
     p.add_argument("--stop-after", type=int, default=None, metavar="STEP",
