@@ -70,7 +70,7 @@ def character_window(character: PixelRect | None, image_size: tuple[int, int], s
     side = int(side)
     if side > W or side > H:
         raise ValueError(f"a {side} x {side} training window does not fit a {W} x {H} image "
-                         f"(lower training_crop_density's window or raise the density)")
+                         f"(raise training_crop_density or lower image_resolution)")
     rect = character if character is not None else PixelRect(0, 0, W, H)
     cx = rect.x0 + float(where[0]) * rect.width
     cy = rect.y0 + float(where[1]) * rect.height
@@ -167,7 +167,7 @@ class SceneFrames(Closeable):
         if self.cfg.training_crop_density <= 0:
             return camera, None
         where = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
-        rect = box_rect(camera, box.detach().to("cpu", torch.float64))
+        rect = box_rect(camera, box)
         window = character_window(rect, (camera.width, camera.height), self.cfg.image_resolution, where)
         return camera.cropped(window.x0, window.y0, window.width, window.height), window
 
