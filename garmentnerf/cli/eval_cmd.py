@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from garmentnerf.cli.common import add_device_arg, add_scene_override_arg
@@ -46,6 +47,10 @@ def register(sub) -> None:
     p.add_argument("--preset", default="reference", metavar="NAME",
                    help="render preset: reference (the paper's sampling, default), full, balanced or interactive "
                         "(the rows of 'garmentnerf bench --run')")
+    p.add_argument("--quality", type=float, default=None, metavar="Q",
+                   help="render at Q times the pixel density the model was trained at (default: the preset's, "
+                        "1 for reference); 0.5 on a model trained on character windows at the scene's density "
+                        "casts the rays of one trained on whole frames: an equal-cost comparison")
     add_device_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_eval)
@@ -102,6 +107,8 @@ def run_eval(args: argparse.Namespace) -> int:
         get_render_preset(args.preset)
     except ValueError as e:
         raise ValueError(f"--preset: {e}") from None
+    if args.quality is not None and not (math.isfinite(args.quality) and args.quality > 0):
+        raise ValueError(f"--quality must be a number > 0, got {args.quality}")
     if args.resolution not in RESOLUTIONS:
         raise ValueError(f"--resolution: unknown resolution '{args.resolution}' (known: {', '.join(RESOLUTIONS)})")
     if args.gallery_views < 1:
@@ -126,7 +133,8 @@ def run_eval(args: argparse.Namespace) -> int:
                          f"pass --scene DIR")
     gallery = Gallery(args.gallery_views) if args.gallery is not None else None
     result = evaluate_run(run, args.split, frames=frames, cameras=args.cameras, progress=not args.no_progress,
-                          baseline=args.baseline, preset=args.preset, resolution=args.resolution, gallery=gallery)
+                          baseline=args.baseline, preset=args.preset, quality=args.quality,
+                          resolution=args.resolution, gallery=gallery)
     print(format_result_table(result))
     if gallery is not None:
         gallery.write(args.gallery, overwrite=args.overwrite)

@@ -31,7 +31,7 @@ How an image is made (identical to training, the viewer and ``garmentnerf render
     Prediction: :class:`~garmentnerf.render.session.RenderSession` (the one render path) renders
     the evaluation camera with a render preset (default ``reference``: the paper's sampling at
     quality 1, the pixel density the model was trained with; another preset renders at its own
-    quality) and :meth:`NeuralFrame.composite` composes the decomposed maps with the run's
+    quality, and ``quality`` overrides either) and :meth:`NeuralFrame.composite` composes the decomposed maps with the run's
     learned palette over ``cfg.background`` at the evaluation size.
     Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene.SceneImages`)
     area-downsampled to the evaluation size when it is smaller and composited over
@@ -530,7 +530,7 @@ def _consecutive(frames: list[int]) -> bool:
 def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = True, *, baseline: bool = False,
                  model: bool = True, gl_context=None, scene=None, device: str = "cpu",
                  lpips_backbone: str | None = None, tof: bool = True, preset: str = "reference",
-                 resolution: str = "native", gallery: "Gallery | None" = None) -> dict:
+                 quality: float | None = None, resolution: str = "native", gallery: "Gallery | None" = None) -> dict:
     """Render and score a run on one split (see the module docstring for every convention).
 
     Args:
@@ -550,6 +550,9 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         tof: compute tOF.
         preset: the render preset (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`; default
             ``reference``, the paper's sampling), rendered at its quality (resolution scale).
+        quality: render at this multiple of the pixel density the model was trained at instead of
+            the preset's (a model trained at twice the density, rendered at 0.5, casts the rays of
+            one trained at 1: an equal-cost comparison).
         resolution: ``native`` (the scene's image size, default) or ``model`` (the model's
             image resolution), see :data:`RESOLUTIONS`.
         gallery: a :class:`~garmentnerf.eval.gallery.Gallery` that keeps a few views' images.
@@ -563,6 +566,10 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
 
     t_start = time.perf_counter()
     render_preset = get_render_preset(preset)
+    if quality is None:
+        quality = render_preset.resolution_scale
+    elif not (np.isfinite(quality) and quality > 0):
+        raise ValueError(f"quality must be a number > 0, got {quality!r}")
     _check_request(split, baseline, model, resolution)
     run = _loaded(run, device, scene)
     scene_obj, cfg = run.scene, run.config
@@ -593,7 +600,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
             session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])))
         if gallery is not None:
             gallery.plan(views.total)
-        methods = _Methods(session, scores, base_scores, nearest, render_preset, background)
+        methods = _Methods(session, scores, base_scores, nearest, render_preset, float(quality), background)
         for index, view in enumerate(views):
             methods.score(index, *view, views=views, gt=gt, gallery=gallery)
             if bar is not None:
@@ -604,8 +611,8 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
                 closable.close()
         if own_ctx is not None:
             own_ctx.release()
-    return _encode_float(_result(run, split, sel, views, render_preset, background, unavailable, scores,
-                                 base_scores, nearest, tof, time.perf_counter() - t_start))
+    return _encode_float(_result(run, split, sel, views, render_preset, float(quality), background, unavailable,
+                                 scores, base_scores, nearest, tof, time.perf_counter() - t_start))
 
 
 @dataclass
@@ -620,6 +627,8 @@ class _Methods:
     """Evaluated camera -> ``{"camera": nearest training camera, "angle_deg": ...}``."""
     preset: Any
     """The :class:`~garmentnerf.perf.presets.RenderPreset` the model renders with."""
+    quality: float
+    """The pixel density it renders at, as a multiple of the trained density."""
     background: tuple[float, float, float]
 
     def score(self, index: int, sequence: str, frame: int, camera: str, *, views: "_ViewPlan",
@@ -633,8 +642,7 @@ class _Methods:
         if self.scores is not None:
             if self.session.sequence != sequence:
                 self.session.set_motion(sequence)
-            nf = self.session.render(frame, views.camera(camera), quality=self.preset.resolution_scale,
-                                     preset=self.preset)
+            nf = self.session.render(frame, views.camera(camera), quality=self.quality, preset=self.preset)
             shown["render"] = nf.composite(None, self.background)
             silhouette = nf.mask() > 0.5
             character = character | silhouette
@@ -709,14 +717,14 @@ class _ViewPlan:
         return int(camera.width), int(camera.height)
 
 
-def _result(run, split: str, sel, views: _ViewPlan, render_preset, background, unavailable, scores, base_scores, nearest,
-            tof: bool, seconds: float) -> dict:
+def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: float, background, unavailable, scores,
+            base_scores, nearest, tof: bool, seconds: float) -> dict:
     """The result dict of :func:`evaluate_run` (layout in the module docstring)."""
     consecutive = {s: _consecutive(f) for s, f in sel["sequences"].items()}
     common = {
         "format": EVAL_FORMAT, "version": EVAL_VERSION,
         "run": str(run.root), "step": int(run.step), "scene": str(run.scene.root), "split": split,
-        "preset": render_preset.name, "resolution": views.resolution,
+        "preset": render_preset.name, "quality": quality, "resolution": views.resolution,
         "sequences": {s: list(f) for s, f in sel["sequences"].items()}, "cameras": list(sel["cameras"]),
         "train_cameras": list(sel["train_cameras"]), "subsampled": bool(sel["subsampled"]),
         "selection": sel["selection"], "resolution_wh": list(views.size(sel["cameras"][0])),

@@ -141,6 +141,32 @@ def test_evaluate_matches_render_path(loaded, scene, gl_context, unseen_view_res
     assert row["psnr"] == pytest.approx(ref, abs=1e-4)
 
 
+def test_quality_renders_at_that_density(loaded, scene, gl_context):
+    """``quality`` replaces the preset's resolution: the evaluated image is the render at that
+    quality (PSNR recomputed with scikit-image), and it differs from the default quality's."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.render.session import RenderSession
+
+    half = evaluate_run(loaded, "unseen_view", frames="3:4", progress=False, gl_context=gl_context, quality=0.5,
+                        tof=False)
+    full = evaluate_run(loaded, "unseen_view", frames="3:4", progress=False, gl_context=gl_context, tof=False)
+    assert half["quality"] == 0.5 and full["quality"] == 1.0
+    with RenderSession(loaded, gl_context, "train") as s:
+        pred = s.render_image(3, scene.camera("held00").camera, quality=0.5, preset="reference")
+    images = SceneImages(scene)
+    try:
+        gt, _ = images.image("train", "held00", 3)
+    finally:
+        images.close()
+    ref = peak_signal_noise_ratio(gt.astype(np.float64), pred.astype(np.float64), data_range=1.0)
+    assert half["per_frame"][0]["psnr"] == pytest.approx(ref, abs=1e-4)
+    assert half["per_frame"][0]["psnr"] != pytest.approx(full["per_frame"][0]["psnr"], abs=1e-3)
+    with pytest.raises(ValueError, match="quality"):
+        evaluate_run(loaded, "unseen_view", frames="3:4", progress=False, gl_context=gl_context, quality=0.0)
+
+
 def test_nearest_view_baseline_matches_skimage(unseen_view_result, scene):
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
@@ -292,6 +318,7 @@ def test_cli_eval_gallery(run_dir, scene, tmp_path, capsys):
     _one_line_error(capsys, argv[:-3] + ["--gallery-views", "0"], "--gallery-views")
     _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--resolution", "huge"],
                     "--resolution")
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--quality", "0"], "--quality")
 
 
 def test_cli_eval_json(run_dir, tmp_path, capsys):
