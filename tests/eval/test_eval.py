@@ -124,43 +124,37 @@ def test_evaluate_run_untrained(unseen_view_result, scene):
 
 def test_evaluate_matches_render_path(loaded, scene, gl_context, unseen_view_result):
     """The evaluated prediction is the RenderSession image: recompute one frame's PSNR directly."""
+    ref = _direct_psnr(loaded, scene, gl_context, 3, "held00", preset="reference")  # eval's default
+    row = next(f for f in unseen_view_result["per_frame"] if f["frame"] == 3)
+    assert row["psnr"] == pytest.approx(ref, abs=1e-4)
+
+
+def _direct_psnr(loaded, scene, gl_context, frame: int, camera: str, **render_kwargs) -> float:
+    """PSNR (scikit-image) of the RenderSession image of the training motion against the scene's
+    ground truth, computed without the evaluation code."""
+    from skimage.metrics import peak_signal_noise_ratio
+
     from garmentnerf.data.scene import SceneImages
     from garmentnerf.render.session import RenderSession
 
     with RenderSession(loaded, gl_context, "train") as s:
-        pred = s.render_image(3, scene.camera("held00").camera, preset="reference")  # eval's default
+        pred = s.render_image(frame, scene.camera(camera).camera, **render_kwargs)
     images = SceneImages(scene)
     try:
-        gt, _ = images.image("train", "held00", 3)
+        gt, _ = images.image("train", camera, frame)
     finally:
         images.close()
-    from skimage.metrics import peak_signal_noise_ratio
-
-    ref = peak_signal_noise_ratio(gt.astype(np.float64), pred.astype(np.float64), data_range=1.0)
-    row = next(f for f in unseen_view_result["per_frame"] if f["frame"] == 3)
-    assert row["psnr"] == pytest.approx(ref, abs=1e-4)
+    return peak_signal_noise_ratio(gt.astype(np.float64), pred.astype(np.float64), data_range=1.0)
 
 
 def test_quality_renders_at_that_density(loaded, scene, gl_context):
     """``quality`` replaces the preset's resolution: the evaluated image is the render at that
     quality (PSNR recomputed with scikit-image), and it differs from the default quality's."""
-    from skimage.metrics import peak_signal_noise_ratio
-
-    from garmentnerf.data.scene import SceneImages
-    from garmentnerf.render.session import RenderSession
-
     half = evaluate_run(loaded, "unseen_view", frames="3:4", progress=False, gl_context=gl_context, quality=0.5,
                         tof=False)
     full = evaluate_run(loaded, "unseen_view", frames="3:4", progress=False, gl_context=gl_context, tof=False)
     assert half["quality"] == 0.5 and full["quality"] == 1.0
-    with RenderSession(loaded, gl_context, "train") as s:
-        pred = s.render_image(3, scene.camera("held00").camera, quality=0.5, preset="reference")
-    images = SceneImages(scene)
-    try:
-        gt, _ = images.image("train", "held00", 3)
-    finally:
-        images.close()
-    ref = peak_signal_noise_ratio(gt.astype(np.float64), pred.astype(np.float64), data_range=1.0)
+    ref = _direct_psnr(loaded, scene, gl_context, 3, "held00", quality=0.5, preset="reference")
     assert half["per_frame"][0]["psnr"] == pytest.approx(ref, abs=1e-4)
     assert half["per_frame"][0]["psnr"] != pytest.approx(full["per_frame"][0]["psnr"], abs=1e-3)
     with pytest.raises(ValueError, match="quality"):
