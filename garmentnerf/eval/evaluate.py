@@ -31,8 +31,8 @@ How an image is made (identical to training, the viewer and ``garmentnerf render
     Prediction: :class:`~garmentnerf.render.session.RenderSession` (the one render path) renders
     the evaluation camera with a render preset (default ``reference``: the paper's sampling at
     quality 1, the pixel density the model was trained with; another preset renders at its own
-    quality, and ``quality`` overrides either) and :meth:`NeuralFrame.composite` composes the decomposed maps with the run's
-    learned palette over ``cfg.background`` at the evaluation size.
+    quality, and ``quality`` overrides either) and :meth:`NeuralFrame.composite` composes the
+    decomposed maps with the run's learned palette over ``cfg.background`` at the evaluation size.
     Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene.SceneImages`)
     area-downsampled to the evaluation size when it is smaller and composited over
     ``cfg.background`` with the area-downsampled foreground coverage -- at the model's
@@ -77,7 +77,7 @@ Result (:func:`evaluate_run`): a strict-JSON-serialisable dict (non-finite float
 ``"inf"``/``"nan"``, see :class:`~garmentnerf.eval.metrics.MetricSummary`)::
 
     {"format": "garmentnerf-eval", "version": 2, "method": "model",
-     "run": "...", "step": N, "scene": "...", "split": "unseen_view",
+     "run": "...", "step": N, "scene": "...", "split": "unseen_view", "preset": "reference", "quality": 1.0,
      "sequences": {"train": [frames...]}, "cameras": [...], "subsampled": false,
      "selection": "how frames/cameras were chosen", "resolution": "native", "resolution_wh": [W, H],
      "background": [r, g, b], "psnr_cap_db": 100.0, "palette": [[r, g, b], ...],
