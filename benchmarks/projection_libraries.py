@@ -115,7 +115,10 @@ def main(argv=None) -> int:
     for key, value in results.items():
         print(f"{key:40s} {value:.4g}" if isinstance(value, float) else f"{key:40s} {value}")
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
+        from garmentnerf.io_utils import atomic_write_path
+
+        with atomic_write_path(args.json, overwrite=False) as tmp:
+            tmp.write_text(json.dumps(results, indent=2) + "\n")
     return 0
 
 
