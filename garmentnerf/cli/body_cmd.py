@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, load_body, load_motion_arg,
-                                    refuse_existing)
+from garmentnerf.cli.common import (add_body_args, add_motion_args, add_scene_override_arg, check_frame, load_body,
+                                    load_motion_arg, refuse_existing)
 
 
 def register(sub) -> None:
@@ -36,6 +36,22 @@ def register(sub) -> None:
     bake.add_argument("--components", type=int, default=24, help="maximum number of shape coefficients")
     bake.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     bake.set_defaults(func=run_bake)
+
+    fit = body_sub.add_parser(
+        "fit-appearance", help="learn the rasterised body's appearance for a run (the raster_body composition)",
+        description="Fit the body's albedo texture and shading to the run's training images (training cameras, "
+                    "training sequences) and write it into the run folder as body_appearance.safetensors, which "
+                    "makes render, eval and the previewer draw the body rasterised (composition raster_body).")
+    fit.add_argument("--run", required=True, metavar="DIR", help="run folder (run.json + model.safetensors)")
+    add_scene_override_arg(fit)
+    fit.add_argument("--frame-stride", type=int, default=5, metavar="N",
+                     help="use every N-th frame of the training sequences (default: 5)")
+    fit.add_argument("--steps", type=int, default=3000, metavar="N", help="optimisation steps (default: 3000)")
+    fit.add_argument("--out", default=None, metavar="FILE",
+                     help="output file (default: DIR/body_appearance.safetensors, where runs look for it)")
+    fit.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
+    fit.add_argument("--no-progress", action="store_true", help="no progress bars")
+    fit.set_defaults(func=run_fit_appearance)
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -83,4 +99,42 @@ def run_bake(args: argparse.Namespace) -> int:
     asset, stats = bake_anny(num_samples=args.samples, max_components=args.components)
     asset.save(out)
     print(f"wrote {out}: {json.dumps(stats)}")
+    return 0
+
+
+def run_fit_appearance(args: argparse.Namespace) -> int:
+    from garmentnerf.cli.common import check_output_file
+    from garmentnerf.eval.evaluate import run_train_cameras
+    from garmentnerf.gl.context import create_context
+    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, save_body_appearance
+    from garmentnerf.train.body_appearance import collect_body_samples, fit_body_appearance
+    from garmentnerf.train.run import load_run
+
+    if args.frame_stride < 1:
+        raise ValueError(f"--frame-stride must be at least 1, got {args.frame_stride}")
+    if args.steps < 1:
+        raise ValueError(f"--steps must be at least 1, got {args.steps}")
+    run_dir = Path(args.run)
+    if not (run_dir / "run.json").is_file():
+        raise FileNotFoundError(f"--run {run_dir}: no run.json")
+    out = check_output_file(args.out if args.out is not None else run_dir / BODY_APPEARANCE_FILE,
+                            "--out", args.overwrite)
+    if args.scene is not None and not (Path(args.scene) / "scene.json").is_file():
+        raise FileNotFoundError(f"--scene {args.scene}: no scene.json")
+    run = load_run(run_dir, scene=args.scene)
+    if run.scene is None:
+        raise ValueError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
+                         f"pass --scene DIR")
+    ctx = create_context(headless=True)
+    try:
+        samples = collect_body_samples(run.scene, run.model.body, run.betas, run_train_cameras(run, run.scene), ctx,
+                                       frame_stride=args.frame_stride, progress=not args.no_progress)
+    finally:
+        ctx.release()
+    appearance, summary = fit_body_appearance(samples, run.palette()[-1], steps=args.steps,
+                                              progress=not args.no_progress)
+    save_body_appearance(out, appearance)
+    print(f"wrote {out}: {summary['views']} training views, {summary['samples']} body pixels, "
+          f"PSNR over them {summary['psnr']:.2f} dB (palette colour alone: {summary['psnr_start']:.2f} dB), "
+          f"{summary['seconds']:.0f} s")
     return 0

@@ -51,6 +51,10 @@ def register(sub) -> None:
                    help="render at Q times the pixel density the model was trained at (default: the preset's, "
                         "1 for reference); 0.5 on a model trained on character windows at the scene's density "
                         "casts the rays of one trained on whole frames: an equal-cost comparison")
+    p.add_argument("--composition", default="auto", metavar="HOW",
+                   help="raster_body (the body rasterised with the run's learned appearance, the garment from "
+                        "the network), nerf (the paper's: the network draws both) or auto (default: raster_body "
+                        "when the run has body_appearance.safetensors)")
     add_device_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_eval)
@@ -121,6 +125,10 @@ def run_eval(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from None
     parse_device(args.device)
+    from garmentnerf.render.session import COMPOSITIONS, resolve_composition
+
+    if args.composition not in COMPOSITIONS:
+        raise ValueError(f"--composition: unknown composition '{args.composition}' (known: {', '.join(COMPOSITIONS)})")
     if args.json is not None:
         check_output_file(args.json, "--json", args.overwrite)
     if args.gallery is not None:
@@ -131,10 +139,11 @@ def run_eval(args: argparse.Namespace) -> int:
     if run.scene is None:
         raise ValueError(f"{args.run}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
                          f"pass --scene DIR")
+    resolve_composition(args.composition, run)  # raster_body without a body appearance fails here, not mid-way
     gallery = Gallery(args.gallery_views) if args.gallery is not None else None
     result = evaluate_run(run, args.split, frames=frames, cameras=args.cameras, progress=not args.no_progress,
                           baseline=args.baseline, preset=args.preset, quality=args.quality,
-                          resolution=args.resolution, gallery=gallery)
+                          resolution=args.resolution, gallery=gallery, composition=args.composition)
     print(format_result_table(result))
     if gallery is not None:
         gallery.write(args.gallery, overwrite=args.overwrite)

@@ -68,6 +68,10 @@ def register(sub) -> None:
                    help="train on windows of the model's image size placed on the character, at D pixels per "
                         "scene pixel (1: the scene's own resolution); 0: whole frames (default: the preset's, 0; "
                         "a new run only)")
+    p.add_argument("--body-appearance", default=None, metavar="SAFETENSORS",
+                   help="compose every NeRF step's image with the body rasterised and drawn with this appearance "
+                        "('garmentnerf body fit-appearance'), so the network learns the garment and its "
+                        "visibility; copied into the run folder (a new run only)")
     p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
                    help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
                         "--resume it applies from the resumed step on and is recorded in run.json")
@@ -143,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
                      perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, threads=args.threads,
                      progress=not args.no_progress, init_generator=args.init_generator,
                      init_weights=args.init_weights, training_crop_density=args.training_crop_density,
+                     body_appearance=args.body_appearance,
                      loss_weights=_loss_weights(args.loss_weight))
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")

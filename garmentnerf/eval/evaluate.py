@@ -211,7 +211,7 @@ def _middle_window(n: int, count: int | None) -> list[int]:
     return list(range(start, start + count))
 
 
-def _run_train_cameras(run, scene) -> list[str]:
+def run_train_cameras(run, scene) -> list[str]:
     """The cameras the run was trained on (``run.json`` ``train.cameras``), else the scene's train split."""
     recorded = ((getattr(run, "info", None) or {}).get("train") or {}).get("cameras")
     names = set(scene.camera_names())
@@ -235,7 +235,7 @@ def select_views(run, scene, split: str, frames=None, cameras=None) -> dict[str,
     if split not in SPLITS:
         raise ValueError(f"unknown split '{split}' (known: {', '.join(SPLITS)})")
     max_frames, max_cams = DEFAULT_LIMITS[split]
-    train_cams = _run_train_cameras(run, scene)
+    train_cams = run_train_cameras(run, scene)
     if split == "seen":
         seqs = scene.sequence_names("train")
         pool = train_cams
@@ -530,7 +530,8 @@ def _consecutive(frames: list[int]) -> bool:
 def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = True, *, baseline: bool = False,
                  model: bool = True, gl_context=None, scene=None, device: str = "cpu",
                  lpips_backbone: str | None = None, tof: bool = True, preset: str = "reference",
-                 quality: float | None = None, resolution: str = "native", gallery: "Gallery | None" = None) -> dict:
+                 quality: float | None = None, resolution: str = "native", gallery: "Gallery | None" = None,
+                 composition: str = "auto") -> dict:
     """Render and score a run on one split (see the module docstring for every convention).
 
     Args:
@@ -556,6 +557,9 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         resolution: ``native`` (the scene's image size, default) or ``model`` (the model's
             image resolution), see :data:`RESOLUTIONS`.
         gallery: a :class:`~garmentnerf.eval.gallery.Gallery` that keeps a few views' images.
+        composition: how the model's views are composed
+            (:data:`~garmentnerf.render.session.COMPOSITIONS`; ``auto``: with the rasterised body
+            when the run has a body appearance).
     Returns:
         A strict-JSON-serialisable dict (layout in the module docstring).
     Raises:
@@ -572,6 +576,9 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         raise ValueError(f"quality must be a number > 0, got {quality!r}")
     _check_request(split, baseline, model, resolution)
     run = _loaded(run, device, scene)
+    from garmentnerf.render.session import resolve_composition
+
+    composition = resolve_composition(composition, run)
     scene_obj, cfg = run.scene, run.config
     sel = select_views(run, scene_obj, split, frames, cameras)
     background = tuple(float(c) for c in cfg.background)
@@ -597,7 +604,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         if model:
             from garmentnerf.render.session import RenderSession
 
-            session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])))
+            session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])), composition=composition)
         if gallery is not None:
             gallery.plan(views.total)
         methods = _Methods(session, scores, base_scores, nearest, render_preset, float(quality), background)
@@ -611,8 +618,11 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
                 closable.close()
         if own_ctx is not None:
             own_ctx.release()
-    return _encode_float(_result(run, split, sel, views, render_preset, float(quality), background, unavailable,
-                                 scores, base_scores, nearest, tof, time.perf_counter() - t_start))
+    result = _result(run, split, sel, views, render_preset, float(quality), background, unavailable,
+                     scores, base_scores, nearest, tof, time.perf_counter() - t_start)
+    if model:
+        result["composition"] = composition
+    return _encode_float(result)
 
 
 @dataclass
@@ -644,7 +654,7 @@ class _Methods:
                 self.session.set_motion(sequence)
             nf = self.session.render(frame, views.camera(camera), quality=self.quality, preset=self.preset)
             shown["render"] = nf.composite(None, self.background)
-            silhouette = nf.mask() > 0.5
+            silhouette = nf.alpha() > 0.5
             character = character | silhouette
             row = self.scores.add(sequence, camera, frame, shown["render"], target, pred_silhouette=silhouette)
         if self.base_scores is not None:

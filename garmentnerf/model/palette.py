@@ -25,6 +25,21 @@ One formula everywhere
 
 The foreground is clamped, then alpha-composited: a convex combination of two colors in [0, 1]
 needs no second clamp.
+
+The hybrid composition (a rasterised body layer)
+    With a body layer (``body_color``: the rasterised body's untinted colour ``a`` premultiplied by
+    its coverage ``alpha_b``, :mod:`garmentnerf.render.body_layer`) the body is drawn, not decoded,
+    and the network contributes the garment and its visibility only. The body is the palette's
+    last color p_B (garment first, as :func:`palette_from_labels`); the garment is the rest:
+
+        m_G = m (1 - w_B)                                   (the garment's visibility)
+        c_G = clamp(r * sum_{i != B} w_i (p_i + o_i) / (1 - w_B), 0, 1)
+        c   = m_G c_G + (1 - m_G) (clamp(p_B a, 0, 1) + (1 - alpha_b) background)
+
+    which for P = 2 is ``c_G = clamp(r (p_G + o_G))``. A forearm in front of the skirt has a low
+    garment weight (the NeRF's body density occludes the garment there), so the rasterised
+    forearm shows; the skirt in front of the legs has m_G ~ 1 and hides them. Still linear in
+    every palette color inside [0, 1], so recoloring stays exact.
 """
 
 from __future__ import annotations
@@ -111,8 +126,8 @@ def check_palette(palette: torch.Tensor) -> None:
 
 
 def compose(radiance: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, mask: torch.Tensor,
-            palette: torch.Tensor, background: torch.Tensor | tuple[float, float, float] = (0.0, 0.0, 0.0)
-            ) -> torch.Tensor:
+            palette: torch.Tensor, background: torch.Tensor | tuple[float, float, float] = (0.0, 0.0, 0.0),
+            body_color: torch.Tensor | None = None, body_coverage: torch.Tensor | None = None) -> torch.Tensor:
     """The image from decomposed maps and a palette (see the module docstring).
 
     Args:
@@ -122,6 +137,8 @@ def compose(radiance: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor
         mask: (B, 1, H, W) m in [0, 1].
         palette: (P, 3) p_i in [0, 1].
         background: RGB in [0, 1], tuple or (3,) tensor.
+        body_color, body_coverage: (B, 3, H, W) and (B, 1, H, W), the rasterised body layer of the
+            hybrid composition (module docstring); None: the network draws the body.
     Returns:
         (B, 3, H, W) image in [0, 1].
     Raises:
@@ -136,9 +153,33 @@ def compose(radiance: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor
     if bg.shape != (3,) or bool((bg < 0).any()) or bool((bg > 1).any()):
         raise ValueError(f"background must be 3 values in [0, 1], got {background}")
     colors = palette.to(radiance.dtype)[None, :, :, None, None] + offsets  # (B, P, 3, H, W)
-    base = (weights.unsqueeze(2) * colors).sum(dim=1)  # (B, 3, H, W)
-    foreground = restoring_clamp(radiance * base)
-    return mask * foreground + (1.0 - mask) * bg.view(1, 3, 1, 1)
+    if (body_color is None) != (body_coverage is None):
+        raise ValueError("give both body_color and body_coverage, or neither")
+    if body_color is None:
+        base = (weights.unsqueeze(2) * colors).sum(dim=1)  # (B, 3, H, W)
+        foreground = restoring_clamp(radiance * base)
+        return mask * foreground + (1.0 - mask) * bg.view(1, 3, 1, 1)
+    if P < 2:
+        raise ValueError("the hybrid composition needs a garment and a body palette color (P >= 2)")
+    if body_color.shape != (B, 3, *mask.shape[-2:]) or body_coverage.shape != mask.shape:
+        raise ValueError(f"body layer {tuple(body_color.shape)} / {tuple(body_coverage.shape)} does not match "
+                         f"the maps {tuple(mask.shape)}")
+    garment_share = 1.0 - weights[:, -1:]  # (B, 1, H, W)
+    garment_base = (weights[:, :-1].unsqueeze(2) * colors[:, :-1]).sum(dim=1) / garment_share.clamp_min(1e-6)
+    garment = restoring_clamp(radiance * garment_base)
+    visible = mask * garment_share
+    body = restoring_clamp(palette.to(radiance.dtype)[-1].view(1, 3, 1, 1) * body_color)
+    behind = body + (1.0 - body_coverage) * bg.view(1, 3, 1, 1)
+    return visible * garment + (1.0 - visible) * behind
+
+
+def composite_alpha(mask: torch.Tensor, weights: torch.Tensor, body_coverage: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, 1, H, W) how much of each pixel :func:`compose` takes from the character rather than
+    the background: ``m`` alone, or ``m_G + (1 - m_G) alpha_b`` with a body layer."""
+    if body_coverage is None:
+        return mask
+    visible = mask * (1.0 - weights[:, -1:])
+    return visible + (1.0 - visible) * body_coverage
 
 
 @dataclass
@@ -153,6 +194,9 @@ class DecomposedMaps:
         weights_head_only: (B, P, H, W) the same values as ``weights`` whose gradient reaches only
             the decoder's weight head, not the layers shared with the mask and radiance (set by
             :class:`PaletteDecoder` in training; what the label supervision of the weights uses).
+        body_color: (B, 3, H, W) the rasterised body layer of the hybrid composition (untinted,
+            premultiplied by coverage), or None when the network draws the body.
+        body_coverage: (B, 1, H, W) its coverage, or None.
     """
 
     radiance: torch.Tensor
@@ -160,14 +204,38 @@ class DecomposedMaps:
     weights: torch.Tensor
     mask: torch.Tensor
     weights_head_only: torch.Tensor | None = None
+    body_color: torch.Tensor | None = None
+    body_coverage: torch.Tensor | None = None
 
     def compose(self, palette: torch.Tensor, background=(0.0, 0.0, 0.0)) -> torch.Tensor:
-        """:func:`compose` with these maps."""
-        return compose(self.radiance, self.offsets, self.weights, self.mask, palette, background)
+        """:func:`compose` with these maps (and their body layer, when they have one)."""
+        return compose(self.radiance, self.offsets, self.weights, self.mask, palette, background,
+                       self.body_color, self.body_coverage)
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        """(B, 1, H, W) :func:`composite_alpha`: the character's coverage in the composed image."""
+        return composite_alpha(self.mask, self.weights, self.body_coverage)
+
+    def _map(self, fn, body_fn=None) -> "DecomposedMaps":
+        """These maps with ``fn`` applied to the decoder's four maps and ``body_fn`` (default
+        ``fn``) to the body layer (the head-only weights, a training-time view, are dropped)."""
+        body_fn = fn if body_fn is None else body_fn
+        body = (None, None) if self.body_color is None else (body_fn(self.body_color), body_fn(self.body_coverage))
+        return DecomposedMaps(fn(self.radiance), fn(self.offsets), fn(self.weights), fn(self.mask), None, *body)
+
+    def with_body(self, color: torch.Tensor | None, coverage: torch.Tensor | None) -> "DecomposedMaps":
+        """These maps with the body layer ``color`` (B, 3, H, W), ``coverage`` (B, 1, H, W)
+        (None, None: without one)."""
+        return DecomposedMaps(self.radiance, self.offsets, self.weights, self.mask, self.weights_head_only,
+                              color, coverage)
 
     def detach(self) -> "DecomposedMaps":
-        return DecomposedMaps(self.radiance.detach(), self.offsets.detach(), self.weights.detach(),
-                              self.mask.detach())
+        return self._map(torch.Tensor.detach)
+
+    def to(self, *args, **kwargs) -> "DecomposedMaps":
+        """Every map through ``Tensor.to(*args, **kwargs)``."""
+        return self._map(lambda x: x.to(*args, **kwargs))
 
     @property
     def size(self) -> tuple[int, int]:
@@ -176,12 +244,12 @@ class DecomposedMaps:
 
     def cropped(self, width: int, height: int) -> "DecomposedMaps":
         """The top-left ``width x height`` of every map (undoes padding on the right and bottom)."""
-        return DecomposedMaps(*(x[..., :height, :width] for x in (self.radiance, self.offsets, self.weights, self.mask)))
+        return self._map(lambda x: x[..., :height, :width])
 
     def placed(self, x0: int, y0: int, width: int, height: int) -> "DecomposedMaps":
         """These maps put at ``(x0, y0)`` in maps of ``width x height`` that are empty elsewhere
         (mask 0, so :func:`compose` gives the background there; radiance and offsets 0, weights
-        uniform)."""
+        uniform; no body)."""
         h, w = self.mask.shape[-2:]
         if (x0, y0, w, h) == (0, 0, int(width), int(height)):
             return self
@@ -192,13 +260,15 @@ class DecomposedMaps:
             return out
 
         P = self.weights.shape[1]
+        body = (None, None) if self.body_color is None else (canvas(self.body_color, 0.0),
+                                                               canvas(self.body_coverage, 0.0))
         return DecomposedMaps(canvas(self.radiance, 0.0), canvas(self.offsets, 0.0), canvas(self.weights, 1.0 / P),
-                              canvas(self.mask, 0.0))
+                              canvas(self.mask, 0.0), None, *body)
 
     def resized(self, width: int, height: int) -> "DecomposedMaps":
         """Every map resampled to ``width x height`` (bilinear, antialiased; a convex combination,
-        so the weights still sum to 1 after renormalising, the mask stays in [0, 1] and the
-        radiance >= 0). The maps themselves when the size is already that."""
+        so the weights still sum to 1 after renormalising, the mask and coverage stay in [0, 1]
+        and the radiance >= 0). The maps themselves when the size is already that."""
         if (int(width), int(height)) == self.size:
             return self
 
@@ -211,7 +281,10 @@ class DecomposedMaps:
 
         weights = rs(self.weights)
         weights = weights / weights.sum(dim=1, keepdim=True)  # antialias filters are not exactly convex
-        return DecomposedMaps(rs(self.radiance).clamp_min(0.0), rs(self.offsets), weights, rs(self.mask).clamp(0.0, 1.0))
+        body = (None, None) if self.body_color is None else (rs(self.body_color).clamp_min(0.0),
+                                                               rs(self.body_coverage).clamp(0.0, 1.0))
+        return DecomposedMaps(rs(self.radiance).clamp_min(0.0), rs(self.offsets), weights,
+                              rs(self.mask).clamp(0.0, 1.0), None, *body)
 
 
 class PaletteDecoder(nn.Module):

@@ -1,13 +1,18 @@
 """The one render path: :class:`RenderSession` renders views of a run's model; :class:`NeuralFrame`
 holds the decomposed maps of one view and composes them with any palette.
 
-What the network outputs (and why there is no body-only fallback)
+What the network outputs, and the two compositions
     The model is trained on ground-truth images of the body *and* the garment over a black
     background (``garmentnerf.data.render_gt``), with the mask covering both; the palette has a
-    garment color p_0 and a body/other color p_1. So the neural image already shows the body,
-    and where the mask is 0 there is nothing but background: :meth:`NeuralFrame.composite` is
-    ``compose(maps, palette, background)`` and nothing else. (The viewer's "body only" mode draws
-    the rasterised body instead of the network; the two are never mixed per pixel.)
+    garment color p_0 and a body/other color p_1. So the neural image already shows the body
+    (composition ``nerf``, the paper's). When the run has a learned body appearance
+    (``body_appearance.safetensors``, made by ``garmentnerf body fit-appearance``), composition
+    ``raster_body`` draws the body instead: the posed body rasterised and shaded by that
+    appearance (:mod:`garmentnerf.render.body_layer`), with the network's garment in front of it
+    where its garment visibility says so (:func:`~garmentnerf.model.palette.compose`, "The hybrid
+    composition"). ``auto`` (the default) is ``raster_body`` when the run has a body appearance,
+    else ``nerf``. Either way :meth:`NeuralFrame.composite` is ``maps.compose(palette,
+    background)`` and nothing else.
 
 The camera-to-maps entry point
     :meth:`RenderSession.render` is the only place a camera becomes decomposed maps: the viewer,
@@ -73,9 +78,32 @@ import torch
 
 from garmentnerf.conventions import Camera
 from garmentnerf.lifecycle import Closeable
-from garmentnerf.model.palette import DecomposedMaps, check_palette, compose
+from garmentnerf.model.palette import check_palette
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
 from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
+
+#: How a view is composed (module docstring, "the two compositions").
+COMPOSITIONS = ("auto", "nerf", "raster_body")
+
+
+def resolve_composition(composition: str, run) -> str:
+    """``nerf`` or ``raster_body`` for ``composition`` and a run (``auto``: ``raster_body`` when the
+    run has a body appearance).
+
+    Raises:
+        ValueError: an unknown composition, or ``raster_body`` for a run without a body appearance.
+    """
+    if composition not in COMPOSITIONS:
+        raise ValueError(f"unknown composition {composition!r} (choose from {', '.join(COMPOSITIONS)})")
+    has_body = getattr(run, "body_appearance", None) is not None
+    if composition == "auto":
+        return "raster_body" if has_body else "nerf"
+    if composition == "raster_body" and not has_body:
+        root = getattr(run, "root", "the run")
+        raise ValueError(f"{root}: composition raster_body needs a body appearance; make one with "
+                         f"'garmentnerf body fit-appearance --run {root}'")
+    return composition
+
 
 #: The render preset used when none is named (``garmentnerf render``, snapshots, exports): ``full``,
 #: the reference's samples minus those the culls prove empty (the same PSNR to 0.01 dB on the
@@ -139,13 +167,14 @@ class NeuralFrame:
         w, h = size if size is not None else self.output_size
         maps = self.maps_at(w, h)
         with torch.no_grad():
-            image = compose(maps.radiance, maps.offsets, maps.weights, maps.mask, pal.float(), bg)[0]
+            image = maps.compose(pal.float(), bg)[0]
         return image.permute(1, 2, 0).contiguous().numpy().astype(np.float32, copy=False)
 
-    def mask(self, size: tuple[int, int] | None = None) -> np.ndarray:
-        """(H, W) float32 mask m."""
+    def alpha(self, size: tuple[int, int] | None = None) -> np.ndarray:
+        """(H, W) float32 the character's coverage in :meth:`composite` (the mask m, or with a
+        body layer the garment's visibility over the body's coverage)."""
         w, h = size if size is not None else self.output_size
-        return self.maps_at(w, h).mask[0, 0].numpy()
+        return self.maps_at(w, h).alpha[0, 0].numpy()
 
     def weights(self, size: tuple[int, int] | None = None) -> np.ndarray:
         """(P, H, W) float32 blend weights."""
@@ -188,13 +217,17 @@ class RenderSession(Closeable):
         motion: None, a scene sequence name, a motion name, or a Motion (see :func:`resolve_motion`).
         cache_mb: memory bound of the frame cache (:class:`~garmentnerf.render.frame_cache.FrameCache`).
         cache_half: keep cached feature maps in float16 (the previewer; default: as computed).
+        composition: one of :data:`COMPOSITIONS` (module docstring).
     """
 
     def __init__(self, run, gl_ctx, motion=None, *, cache_mb: float = DEFAULT_CACHE_MB,
-                 cache_half: bool = False) -> None:
+                 cache_half: bool = False, composition: str = "auto") -> None:
         from garmentnerf.data.cameras import reference_cameras
         from garmentnerf.model.frame_context import FrameInputBuilder
 
+        self.composition = resolve_composition(composition, run)
+        self.body_appearance = run.body_appearance if self.composition == "raster_body" else None
+        self._body_pass = None  # the CameraPass of the body layer, made on first use
         self.run = run
         self.model = run.model.eval()
         self.config = run.config
@@ -379,13 +412,20 @@ class RenderSession(Closeable):
             out = self.model.render(feats, view, feature_size=(rect.width // up, rect.height // up),
                                     should_cancel=should_cancel, **plan.render_kwargs())
         placed = out.maps.detach().placed(rect.x0, rect.y0, padded.width, padded.height).cropped(wr, hr)
-        maps = DecomposedMaps(*(x.to("cpu", torch.float32).contiguous()
-                                for x in (placed.radiance, placed.offsets, placed.weights, placed.mask)))
+        maps = placed.to("cpu", torch.float32)
+        body_ms = None
+        if self.body_appearance is not None:
+            t_body = time.perf_counter()
+            with torch.no_grad():
+                maps = maps.with_body(*self.body_layer(frame, padded.cropped(0, 0, wr, hr)))
+            body_ms = (time.perf_counter() - t_body) * 1e3
         depth = np.zeros((fh, fw), np.float32)
         depth[rect.y0 // up:rect.y1 // up, rect.x0 // up:rect.x1 // up] = _camera_depth(
             out.depth.detach().cpu(), out.opacity.detach().cpu(), view.resized(rect.width // up, rect.height // up))
         depth = np.repeat(np.repeat(depth, up, axis=0), up, axis=1)[:hr, :wr]
         timings = dict(out.timings)
+        if body_ms is not None:
+            timings["body_layer"] = body_ms
         timings["total"] = (time.perf_counter() - t0) * 1e3
         counts = {k: int(getattr(out, k)) for k in ("points_evaluated", "points_projected", "samples_placed",
                                                       "rays_evaluated", "rays_total", "rays_terminated")}
@@ -393,6 +433,19 @@ class RenderSession(Closeable):
         return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
                            timings, cached, plan.preset.name, counts)
+
+    def body_layer(self, frame: int, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rasterised body layer of ``frame`` seen by ``camera`` at its size
+        (:func:`~garmentnerf.render.body_layer.render_body_layer`; needs a body appearance)."""
+        from garmentnerf.gl.camera_pass import CameraPass
+        from garmentnerf.render.body_layer import render_body_layer
+
+        if self.body_appearance is None:
+            raise ValueError("this session composes without a body layer (composition 'nerf')")
+        if self._body_pass is None:
+            self._body_pass = CameraPass(self.gl_ctx)
+        return render_body_layer(self._body_pass, self.body, self.posed.vertices[self.check_frame(frame)].detach(),
+                                 camera, self.body_appearance)
 
     def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
         """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which
@@ -418,6 +471,9 @@ class RenderSession(Closeable):
         if self.builder is not None:
             self.builder.release()
             self.builder = None
+        if self._body_pass is not None:
+            self._body_pass.release()
+            self._body_pass = None
 
 
 def padded_render_camera(camera: Camera, scale: float, upsample: int) -> tuple[Camera, tuple[int, int], tuple[int, int]]:
@@ -448,4 +504,5 @@ def _camera_depth(distance: torch.Tensor, opacity: torch.Tensor, camera: Camera,
     return z.float().numpy()
 
 
-__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "padded_render_camera", "DEFAULT_PRESET"]
+__all__ = ["RenderSession", "NeuralFrame", "resolve_motion", "resolve_composition", "padded_render_camera",
+           "DEFAULT_PRESET", "COMPOSITIONS"]

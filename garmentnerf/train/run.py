@@ -78,6 +78,9 @@ class LoadedRun:
         step: global training step of the weights (``run.json`` ``step``).
         info: the ``run.json`` contents.
         betas: (S,) body shape the run was trained with (pose motions with it).
+        body_appearance: the rasterised body's learned appearance
+            (:class:`~garmentnerf.model.body_appearance.BodyAppearance`, from the run folder's
+            ``body_appearance.safetensors``), or None when the run has none.
     """
 
     root: Path
@@ -87,6 +90,7 @@ class LoadedRun:
     step: int
     info: dict
     betas: torch.Tensor | None = field(default=None)
+    body_appearance: "BodyAppearance | None" = field(default=None)  # noqa: F821
 
     def palette(self) -> torch.Tensor:
         """(P, 3) the learned palette as the model composes with it (its parameter clamped to [0, 1])."""
@@ -403,7 +407,10 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
         raise ValueError(f"{file}: {exc}") from exc
     load_weights(run_dir / MODEL_FILE, model)
     model = model.to(device).eval()
-    return LoadedRun(run_dir, model, config, loaded_scene, int(info["step"]), info, betas)
+    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance
+
+    appearance = load_body_appearance(run_dir / BODY_APPEARANCE_FILE) if (run_dir / BODY_APPEARANCE_FILE).is_file() else None
+    return LoadedRun(run_dir, model, config, loaded_scene, int(info["step"]), info, betas, appearance)
 
 
 def create_untrained_run(run_dir, scene_path, config: ModelConfig, seed: int = 0) -> Path:

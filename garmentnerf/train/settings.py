@@ -23,7 +23,7 @@ TRAIN_DEFAULTS = MappingProxyType({"preset": "cpu_small", "seed": 0, "log_every"
                                    "ckpt_every": 1000, "keep_checkpoints": 2, "perceptual": "auto"})
 #: :class:`TrainConfig` fields that define the run: a resume with another value is refused.
 RUN_SETTINGS = ("preset", "seed", "iterations", "generator_iterations", "sequences", "frames", "cameras",
-                "init_generator", "init_weights")
+                "init_generator", "init_weights", "body_appearance")
 #: :class:`TrainConfig` fields a resume may change (from the resumed step on; recorded in ``overrides``).
 OVERRIDABLE_SETTINGS = ("log_every", "image_every", "ckpt_every", "keep_checkpoints", "perceptual", "vgg19_weights")
 
@@ -128,6 +128,11 @@ class TrainConfig:
     training_crop_density: float | None = None
     """Sets the model config's ``training_crop_density`` for a new run (None: the preset's; 0: whole frames; > 0:
     character windows at that many pixels per scene pixel). A resume keeps the run's and refuses another."""
+    body_appearance: str | Path | None = None
+    """*run*; a body appearance file (``garmentnerf body fit-appearance``): every NeRF step composes its image
+    with the body rasterised and drawn with it (frozen), so the network learns the garment and its visibility
+    (the ``raster_body`` composition). Copied into the run folder, where renders find it; a resume uses that
+    copy (None: the paper's composition, the network draws the body; on a resume: the run's)."""
     loss_weights: dict[str, float] | None = None
     """Overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a resume they apply from the
     resumed step on (a curriculum: e.g. add a term once the geometry is there); each change is logged and kept

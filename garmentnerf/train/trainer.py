@@ -326,12 +326,39 @@ class Trainer(Closeable):
             self.log(f"note: the run was trained with perceptual '{resume_info.get('perceptual')}', "
                      f"continuing with '{self.perceptual_name}'")
         self.data = SceneFramesFactory(self.scene, cfg, gl_context, self.model.body, tc.cache_bytes)
+        self.body_appearance = self._body_appearance(resume_info)
+        self._body_pass = None  # the CameraPass of the body layer, made on first use
         self.step = 0
         self.optimizer = None
         self.stage = None
         self.writer = None
         self.last_checkpoint = None
         self.last_checkpoint_step = None
+
+    def _body_appearance(self, resume_info: dict | None):
+        """The frozen body appearance the NeRF steps compose with (:attr:`TrainConfig.body_appearance`),
+        or None; a new run reads the given file (and copies it into the run folder with its first
+        checkpoint, where renders find it), a resume reads that copy."""
+        from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance
+
+        if self.tc.body_appearance is None:
+            return None
+        copy = self.out / BODY_APPEARANCE_FILE
+        if resume_info is not None:
+            if not copy.is_file():
+                raise FileNotFoundError(f"{copy}: the run composes with a rasterised body but its appearance is gone")
+            return load_body_appearance(copy).requires_grad_(False)
+        source = Path(self.tc.body_appearance)
+        if not source.is_file():
+            raise FileNotFoundError(f"--body-appearance {source}: no such file")
+        return load_body_appearance(source).requires_grad_(False)
+
+    def _save_body_appearance(self) -> None:
+        """The run's copy of its body appearance, written with its first checkpoint (before ``run.json``)."""
+        from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, save_body_appearance
+
+        if self.body_appearance is not None and not (self.out / BODY_APPEARANCE_FILE).is_file():
+            save_body_appearance(self.out / BODY_APPEARANCE_FILE, self.body_appearance)
 
     def _start_position(self, ckpts: list[tuple[int, Path, Path]], resume_info: dict | None, setting_changes: dict,
                         weight_changes: dict[str, float]) -> None:
@@ -427,6 +454,7 @@ class Trainer(Closeable):
             writing = state_file
             write_file_atomic(state_file, buffer.getvalue())
             complete, writing = True, self.out
+            self._save_body_appearance()
             save_run_model(self.out, self.model, self.cfg, self.scene_path, step, self._run_extra())
         except BaseException as exc:
             if not complete:  # no half checkpoint: weights without their state would never be resumed
@@ -519,13 +547,28 @@ class Trainer(Closeable):
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
         out = self.model.render(feats, camera, training=True, generator=gen)
+        pred = out.image if self.body_appearance is None else self._with_body(out, inputs.posed_vertices, camera)
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
-        terms = garment_losses(out.image[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
+        terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
                                self.cfg, self.perceptual, opacity=out.opacity[None],
                                target_garment=garment[None] if segment else None)
-        return terms, {"pred": out.image, "target": image}
+        return terms, {"pred": pred, "target": image}
+
+    def _with_body(self, out, posed_vertices: torch.Tensor, camera) -> torch.Tensor:
+        """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the body
+        rasterised in ``camera`` and drawn with the frozen body appearance."""
+        from garmentnerf.gl.camera_pass import CameraPass
+        from garmentnerf.render.body_layer import render_body_layer
+
+        if self._body_pass is None:
+            self._body_pass = CameraPass(self.data.frames.ctx)
+        with torch.no_grad():
+            color, coverage = render_body_layer(self._body_pass, self.model.body, posed_vertices.detach().cpu(),
+                                                camera, self.body_appearance)
+        maps = out.maps.with_body(color.to(self.device), coverage.to(self.device))
+        return maps.compose(out.palette, out.background)[0]
 
     def _writer(self):
         if self.writer is None and self.dist.main:
@@ -618,6 +661,9 @@ class Trainer(Closeable):
         if self.writer is not None:
             self.writer.close()
             self.writer = None
+        if getattr(self, "_body_pass", None) is not None:
+            self._body_pass.release()
+            self._body_pass = None
         if getattr(self, "data", None) is not None:
             self.data.close()
         self.dist.close()

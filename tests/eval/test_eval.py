@@ -208,7 +208,7 @@ def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context
 
     with RenderSession(loaded, gl_context, "train") as s:
         nf = s.render(2, scene.camera("held00").camera, preset="reference")
-        pred, pred_sil = nf.composite().astype(np.float64), nf.mask() > 0.5
+        pred, pred_sil = nf.composite().astype(np.float64), nf.alpha() > 0.5
     images = SceneImages(scene)
     try:
         gt, labels = images.image("train", "held00", 2)
@@ -271,6 +271,37 @@ def test_cli_errors(run_dir, tmp_path, capsys, scene):
                     "scene.json")
     _one_line_error(capsys, ["report", "--scene", str(scene.root), "--out", str(tmp_path / "r.md"),
                              "--variants", "bogus"], "unknown variant")
+
+
+def test_raster_body_composition(run_dir, scene, gl_context, tmp_path, capsys, unseen_view_result):
+    """``garmentnerf body fit-appearance`` on a copy of the run, then both compositions: the rasterised
+    body wins over the (untrained) network's by far on the body, ``auto`` picks it, and ``nerf`` on the
+    copy scores exactly what the run without an appearance does."""
+    import shutil
+
+    from garmentnerf.train.run import load_run
+
+    copy = tmp_path / "with_body"
+    shutil.copytree(run_dir, copy)
+    argv = ["body", "fit-appearance", "--run", str(copy), "--scene", str(scene.root), "--steps", "200",
+            "--frame-stride", "2", "--no-progress"]
+    assert main(argv) == 0
+    assert "PSNR over them" in capsys.readouterr().out
+    assert (copy / "body_appearance.safetensors").is_file()
+    _one_line_error(capsys, argv, "already exists")
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--composition", "raster_body"],
+                    "fit-appearance")
+    _one_line_error(capsys, ["eval", "--run", str(run_dir), "--split", "seen", "--composition", "x"],
+                    "unknown composition")
+    loaded = load_run(copy, scene=scene.root)
+    assert loaded.body_appearance is not None
+    hybrid = evaluate_run(loaded, "unseen_view", progress=False, baseline=True, gl_context=gl_context)
+    plain = evaluate_run(loaded, "unseen_view", progress=False, baseline=True, gl_context=gl_context,
+                         composition="nerf")
+    assert hybrid["composition"] == "raster_body" and plain["composition"] == "nerf"
+    assert hybrid["means"]["body_psnr"] > plain["means"]["body_psnr"] + 5
+    assert hybrid["means"]["silhouette_iou"] > plain["means"]["silhouette_iou"]
+    assert plain["means"] == unseen_view_result["means"]
 
 
 def test_cli_eval_gallery(run_dir, scene, tmp_path, capsys):

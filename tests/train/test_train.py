@@ -295,3 +295,42 @@ def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, 
         make_tc(tiny_scene, out, resume=True, loss_weights={"w_bogus": 1.0}).validate()
     with pytest.raises(ValueError, match="must be a finite number >= 0"):
         make_tc(tiny_scene, out, resume=True, loss_weights={"w_mask": -1.0}).validate()
+
+
+def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_path):
+    """--body-appearance: a step's image is the hybrid composition (with the garment made invisible it is
+    the rasterised body in its palette color, where the plain composition would be empty), the
+    appearance is copied into the run folder, where load_run finds it, and a resume keeps it."""
+    from garmentnerf.model.body_appearance import BodyAppearance, save_body_appearance
+
+    source = save_body_appearance(tmp_path / "body.safetensors", BodyAppearance(texture_size=8))
+    out = tmp_path / "run"
+    tc = make_tc(tiny_scene, out, iterations=3, generator_iterations=0, stop_after=1, body_appearance=source)
+    probe = make_tc(tiny_scene, tmp_path / "probe", iterations=3, generator_iterations=0, body_appearance=source)
+    with Trainer(probe, gl_context, log=lambda m: None) as tr:
+        with torch.no_grad():  # the decoder's mask -> 0: no garment anywhere
+            tr.model.decoder.head.bias[-1] = -40.0
+        _, shown = tr._nerf_step(tr.generator_iterations)
+        pred, target = shown["pred"].detach(), shown["target"]
+        body_color = tr.model.palette().detach()[-1].view(3, 1, 1)
+        tr.body_appearance = None
+        _, plain = tr._nerf_step(tr.generator_iterations)
+    assert float(plain["pred"].abs().max()) < 1e-6  # the network alone draws nothing
+    drawn = pred.sum(dim=0) > 1e-3
+    character = target.sum(dim=0) > 1e-3
+    assert drawn.sum() > 20 and (drawn & character).sum() >= 0.9 * drawn.sum()
+    assert bool((pred <= body_color + 1e-5).all())  # coverage x p_body, nothing brighter
+    inside = pred[:, drawn & (pred.sum(dim=0) >= 0.999 * float(body_color.sum()))]
+    assert inside.shape[1] > 0 and torch.allclose(inside, body_color.view(3, 1).expand_as(inside), atol=1e-5)
+
+    first, _ = run(tc, gl_context)
+    assert first.step == 1 and (out / "body_appearance.safetensors").is_file()
+    assert load_run(out).body_appearance is not None
+    info = json.loads((out / "run.json").read_text())
+    assert info["train"]["body_appearance"] == str(source)
+    rest, _ = run(make_tc(tiny_scene, out, iterations=3, generator_iterations=0, resume=True), gl_context)
+    assert rest.step == 3
+    other = save_body_appearance(tmp_path / "other.safetensors", BodyAppearance(texture_size=8))
+    with pytest.raises(ValueError, match="--body-appearance"):
+        run(make_tc(tiny_scene, out, iterations=3, generator_iterations=0, resume=True, body_appearance=other),
+            gl_context)
