@@ -6,6 +6,12 @@
 //     fg = clamp(r * sum_i w_i (p_i + o_i), 0, 1)
 //     c  = m * fg + (1 - m) * background
 //
+// or, with a body layer (u_has_body = 1, the raster_body composition; B = the last palette color),
+//
+//     m_G = m (1 - w_B),  c_G = clamp(r * sum_{i != B} w_i (p_i + o_i) / (1 - w_B), 0, 1)
+//     c   = m_G c_G + (1 - m_G) (clamp(p_B a, 0, 1) + (1 - alpha_b) background)
+//
+// Both are written premultiplied, (P, A) with c = P + (1 - A) background.
 // The layer outputs premultiplied (m * fg, m); blended with (ONE, ONE_MINUS_SRC_ALPHA) over the
 // scene that is exactly c with the scene as the background. With u_opaque = 1 it outputs c over
 // u_background itself (opaque), as compose() does with that background.
@@ -14,6 +20,8 @@
 //   layer 0: radiance r (rgb; a grey radiance is uploaded to all three) and mask m (a)
 //   layer 1: blend weights w_0..w_3
 //   layer 2 + i: offset o_i (rgb) of palette color i
+//   layer 2 + P (with u_has_body): the rasterised body's color a premultiplied by its coverage (rgb),
+//     and the coverage alpha_b (a)
 // Changing a color only changes u_palette: recoloring never re-runs the network.
 //
 // Modes (u_mode): 0 neural, 1 ground truth (u_gt), 2 difference |neural over u_background - gt| x
@@ -30,6 +38,7 @@ uniform sampler2D u_gt;
 uniform sampler2D u_depth;
 uniform vec3 u_palette[MAX_PALETTE];
 uniform int u_palette_size;
+uniform int u_has_body;
 uniform vec3 u_background;
 uniform int u_opaque;
 uniform int u_mode;
@@ -48,19 +57,30 @@ layout(location = 0) out vec4 out_color;
 const vec3 MAP_COLORS[MAX_PALETTE] = vec3[](vec3(1.0, 0.25, 0.2), vec3(0.2, 0.55, 1.0),
                                              vec3(0.3, 0.9, 0.3), vec3(0.95, 0.85, 0.2));
 
-vec3 foreground(vec2 uv, out float mask) {
+// The character premultiplied by its coverage (returned in alpha): c = result + (1 - alpha) background.
+vec3 premultiplied(vec2 uv, out float alpha) {
     vec4 rm = texture(u_maps, vec3(uv, 0.0));
     vec4 w = texture(u_maps, vec3(uv, 1.0));
+    int garment_colors = u_has_body == 1 ? u_palette_size - 1 : u_palette_size;
     vec3 base = vec3(0.0);
     for (int i = 0; i < MAX_PALETTE; ++i) {
-        if (i >= u_palette_size) {
+        if (i >= garment_colors) {
             break;
         }
         vec3 o = texture(u_maps, vec3(uv, 2.0 + float(i))).rgb;
         base += w[i] * (u_palette[i] + o);
     }
-    mask = rm.a;
-    return clamp(rm.rgb * base, 0.0, 1.0);
+    if (u_has_body == 0) {
+        alpha = rm.a;
+        return rm.a * clamp(rm.rgb * base, 0.0, 1.0);
+    }
+    float share = 1.0 - w[u_palette_size - 1];
+    float visible = rm.a * share;
+    vec3 garment = clamp(rm.rgb * base / max(share, 1e-6), 0.0, 1.0);
+    vec4 body = texture(u_maps, vec3(uv, 2.0 + float(u_palette_size)));
+    vec3 body_color = clamp(u_palette[u_palette_size - 1] * body.rgb, 0.0, 1.0);
+    alpha = visible + (1.0 - visible) * body.a;
+    return visible * garment + (1.0 - visible) * body_color;
 }
 
 float ndc_depth(float z) {
@@ -75,8 +95,8 @@ void main() {
     if (u_mode == 1) {
         result = vec4(texture(u_gt, uv).rgb, 1.0);
     } else if (u_mode == 2) {
-        vec3 fg = foreground(uv, m);
-        vec3 c = m * fg + (1.0 - m) * u_background;
+        vec3 fg = premultiplied(uv, m);
+        vec3 c = fg + (1.0 - m) * u_background;
         result = vec4(clamp(abs(c - texture(u_gt, uv).rgb) * u_diff_gain, 0.0, 1.0), 1.0);
     } else if (u_mode == 3) {
         vec4 rm = texture(u_maps, vec3(uv, 0.0));
@@ -97,8 +117,8 @@ void main() {
         }
         result = vec4(c, 1.0);
     } else {
-        vec3 fg = foreground(uv, m);
-        result = u_opaque == 1 ? vec4(m * fg + (1.0 - m) * u_background, 1.0) : vec4(m * fg, m);
+        vec3 fg = premultiplied(uv, m);
+        result = u_opaque == 1 ? vec4(fg + (1.0 - m) * u_background, 1.0) : vec4(fg, m);
     }
     result *= u_opacity;
     if (u_use_depth == 1) {

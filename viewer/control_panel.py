@@ -115,6 +115,13 @@ def _neural_section(app, em: float) -> None:
     _combo(em, "View (V)", list(VIEW_MODES), view.mode, view.set_mode, labels=list(VIEW_MODES.values()))
     if view.mode == "maps":
         _combo(em, "Map", list(MAP_VIEWS), app.scene.palette_layer.map_view, view.set_map_view)
+    if view.can_rasterise_body:
+        changed, on = imgui.checkbox("Body from its learned texture", view.composition == "raster_body")
+        if changed:
+            view.set_composition("raster_body" if on else "nerf")
+        if imgui.is_item_hovered():
+            imgui.set_tooltip("on: the posed body rasterised with the run's learned appearance, the network's "
+                              "garment over it; off: the network draws the body too (the paper's composition)")
     if view.mode == "neural":
         changed, on = imgui.checkbox("Rasterised body too (by depth)", view.body_with_neural)
         if changed:

@@ -49,6 +49,8 @@ class NeuralView:
         self.mode = "neural" if run is not None else "body"
         self.quality = QualityController()
         self.body_with_neural = False
+        # the run's body appearance draws the body rasterised (raster_body); without one the network does
+        self.composition = "raster_body" if getattr(run, "body_appearance", None) is not None else "nerf"
         self.learned_palette: np.ndarray | None = None  # (P, 3) in [0, 1]
         self.palette: np.ndarray | None = None          # (P, 3): what the shader composes with
         self.gt_camera: str | None = None
@@ -77,7 +79,8 @@ class NeuralView:
     def _sink(self, result, request) -> None:
         """Worker thread: hand the maps to the layer (thread-safe) and queue the result for the UI."""
         layer = self.scene.palette_layer
-        layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality))
+        layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
+                     has_body=result.has_body)
         if result.ground_truth is not None:
             layer.submit_ground_truth(result.ground_truth)
         self.results.append(result)
@@ -113,6 +116,18 @@ class NeuralView:
         """Draw the rasterised body too, composited with the network's image by depth."""
         self.body_with_neural = bool(on)
         self.set_mode(self.mode)
+
+    @property
+    def can_rasterise_body(self) -> bool:
+        """Whether the run has a body appearance (so both compositions can be shown)."""
+        return getattr(self.run, "body_appearance", None) is not None
+
+    def set_composition(self, composition: str) -> None:
+        """``raster_body`` (the body rasterised with the run's appearance) or ``nerf`` (the network's
+        body); the view re-renders."""
+        if composition not in ("raster_body", "nerf") or (composition == "raster_body" and not self.can_rasterise_body):
+            raise ValueError(f"composition {composition!r} is not available for this run")
+        self.composition = composition
 
     def set_palette_color(self, index: int, rgb) -> None:
         """Change one palette color (only the shader's uniform changes; nothing re-renders)."""
@@ -172,12 +187,13 @@ class NeuralView:
                self._clip_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
-        request_key = (key, q, gt, self.quality.preset)
+        request_key = (key, q, gt, self.quality.preset, self.composition)
         if request_key != self._last_request:
             from garmentnerf.viewer.worker import NeuralRequest
 
             self._last_request = request_key
-            self.renderer.request(NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset))
+            self.renderer.request(NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset,
+                                                self.composition))
 
     def busy(self) -> bool:
         """Whether the worker renders, a result waits to be drained, or the view is still moving."""

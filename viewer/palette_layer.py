@@ -31,12 +31,15 @@ MAP_VIEWS = ("mask", "weights", "radiance")
 MAX_PALETTE = 4
 
 
-def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Decomposed maps (batch dimension dropped, rows top-first) -> (2 + P, H, W, 4) float32 layers
-    for ``shaders/viewer_palette.frag``: [radiance rgb + mask], [weights], [offset_i rgb + 0] ...
+def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, mask: np.ndarray,
+              body_color: np.ndarray | None = None, body_coverage: np.ndarray | None = None) -> np.ndarray:
+    """Decomposed maps (batch dimension dropped, rows top-first) -> (2 + P [+ 1], H, W, 4) float32
+    layers for ``shaders/viewer_palette.frag``: [radiance rgb + mask], [weights], [offset_i rgb + 0]
+    ..., and with a body layer (the ``raster_body`` composition) [body color rgb + coverage] last.
 
     Args:
-        radiance: (3 or 1, H, W); offsets: (P, 3, H, W); weights: (P, H, W); mask: (1, H, W) or (H, W).
+        radiance: (3 or 1, H, W); offsets: (P, 3, H, W); weights: (P, H, W); mask: (1, H, W) or (H, W);
+        body_color: (3, H, W) and body_coverage: (1, H, W) or (H, W), or None.
     """
     radiance = np.asarray(radiance, dtype=np.float32)
     offsets = np.asarray(offsets, dtype=np.float32)
@@ -47,12 +50,30 @@ def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, ma
         raise ValueError(f"the viewer's palette shader handles 1..{MAX_PALETTE} colors, got {P}")
     if offsets.shape != (P, 3, H, W) or radiance.shape[1:] != (H, W) or radiance.shape[0] not in (1, 3):
         raise ValueError(f"maps disagree: radiance {radiance.shape}, offsets {offsets.shape}, weights {weights.shape}")
-    out = np.zeros((2 + P, H, W, 4), dtype=np.float32)
+    if (body_color is None) != (body_coverage is None):
+        raise ValueError("give both body_color and body_coverage, or neither")
+    has_body = body_color is not None
+    out = np.zeros((2 + P + int(has_body), H, W, 4), dtype=np.float32)
     out[0, ..., :3] = np.broadcast_to(radiance, (3, H, W)).transpose(1, 2, 0)
     out[0, ..., 3] = mask
     out[1, ..., :P] = weights.transpose(1, 2, 0)
-    out[2:, ..., :3] = offsets.transpose(0, 2, 3, 1)
+    out[2:2 + P, ..., :3] = offsets.transpose(0, 2, 3, 1)
+    if has_body:
+        color = np.asarray(body_color, dtype=np.float32)
+        if color.shape != (3, H, W):
+            raise ValueError(f"body layer {color.shape} does not match the maps ({H}, {W})")
+        out[-1, ..., :3] = color.transpose(1, 2, 0)
+        out[-1, ..., 3] = np.asarray(body_coverage, dtype=np.float32).reshape(H, W)
     return out
+
+
+def pack_frame(maps) -> tuple[np.ndarray, bool]:
+    """:func:`pack_maps` of a :class:`~garmentnerf.model.palette.DecomposedMaps` (batch 1, CPU), and
+    whether it has a body layer."""
+    body = maps.body_color is not None
+    extra = (maps.body_color[0].numpy(), maps.body_coverage[0].numpy()) if body else ()
+    return pack_maps(maps.radiance[0].numpy(), maps.offsets[0].numpy(), maps.weights[0].numpy(),
+                     maps.mask[0].numpy(), *extra), body
 
 
 def fit_rect(area: tuple[float, float, float, float], vw: float, vh: float,
@@ -91,10 +112,11 @@ class Composition:
 
 @dataclass
 class _PaletteMaps:
-    layers: np.ndarray          # (2 + P, h, w, 4) float32, see pack_maps
+    layers: np.ndarray          # (2 + P [+ 1], h, w, 4) float32, see pack_maps
     depth: np.ndarray           # (h, w) float32 camera-space z, 0 where empty
     image_size: tuple[int, int]  # (W, H) of the camera the maps belong to (its aspect is kept)
     tag: object = None
+    has_body: bool = False      # the last layer is the rasterised body's (the raster_body composition)
 
 
 def _texture(ctx: moderngl.Context, size: tuple[int, int], components: int, dtype: str, filter_: int,
@@ -144,6 +166,7 @@ class PaletteLayer:
         self.gt_tex: moderngl.Texture | None = None
         self.image_size: tuple[int, int] | None = None
         self.tag: object = None
+        self.has_body = False
         self.uploads = 0
         self._lock = threading.Lock()
         self._pending: _PaletteMaps | None = None
@@ -160,7 +183,7 @@ class PaletteLayer:
 
     @property
     def palette_size(self) -> int:
-        return 0 if self.maps_tex is None else self.maps_tex.layers - 2
+        return 0 if self.maps_tex is None else self.maps_tex.layers - 2 - int(self.has_body)
 
     # ---- inputs (any thread) ---------------------------------------------------------------------
     def set_palette(self, palette) -> None:
@@ -170,14 +193,18 @@ class PaletteLayer:
             raise ValueError(f"palette must be (P, 3) finite with 1 <= P <= {MAX_PALETTE}, got {pal.shape}")
         self.palette = np.clip(pal, 0.0, 1.0)
 
-    def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None) -> None:
-        """Queue maps packed by :func:`pack_maps` with their depth (h, w) and the output size (W, H)."""
+    def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None,
+               has_body: bool = False) -> None:
+        """Queue maps packed by :func:`pack_maps` with their depth (h, w) and the output size (W, H);
+        ``has_body``: they end with a body layer."""
         layers = np.ascontiguousarray(layers, dtype=np.float32)
         depth = np.ascontiguousarray(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0))
         if layers.ndim != 4 or layers.shape[-1] != 4 or layers.shape[0] < 3 or depth.shape != layers.shape[1:3]:
             raise ValueError(f"palette layer needs (2 + P, h, w, 4) maps and (h, w) depth, got {layers.shape} "
                              f"and {depth.shape}")
-        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag)
+        if has_body and layers.shape[0] < 4:
+            raise ValueError(f"maps with a body layer need a garment and a body color, got {layers.shape[0]} layers")
+        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, bool(has_body))
         with self._lock:
             self._pending = item
 
@@ -218,6 +245,7 @@ class PaletteLayer:
         self.depth_tex.write(item.depth)
         self.image_size = item.image_size
         self.tag = item.tag
+        self.has_body = item.has_body
         self.uploads += 1
 
     def composition(self) -> Composition:
@@ -258,6 +286,7 @@ class PaletteLayer:
         pal[:n] = self.palette[:n]
         p["u_palette"].write(pal.tobytes())
         p["u_palette_size"].value = int(min(n, self.palette_size))
+        p["u_has_body"].value = int(self.has_body)
         p["u_background"].value = tuple(float(c) for c in self.background)
         p["u_opaque"].value = int(how.opaque)
         p["u_mode"].value = PALETTE_MODES[mode]

@@ -165,8 +165,9 @@ class RenderWorker:
 @dataclass(frozen=True)
 class NeuralRequest:
     """What to render: body ``frame`` of ``motion`` (a scene sequence or motion name) seen by ``camera``
-    with render ``preset`` at ``quality`` (None: the preset's own resolution); ``gt_camera`` names the
-    scene camera whose ground truth to load (or None)."""
+    with render ``preset`` at ``quality`` (None: the preset's own resolution), composed as
+    ``composition`` (:data:`~garmentnerf.render.session.COMPOSITIONS`); ``gt_camera`` names the scene
+    camera whose ground truth to load (or None)."""
 
     frame: int
     camera: Any
@@ -174,6 +175,7 @@ class NeuralRequest:
     motion: Any = None
     gt_camera: str | None = None
     preset: str = VIEWER_LEVELS[-1]
+    composition: str = "auto"
 
 
 @dataclass
@@ -181,12 +183,13 @@ class NeuralResult:
     """One finished neural frame, as numpy for the GL thread.
 
     Attributes:
-        layers: (2 + P, h, w, 4) float32 maps packed by :func:`~garmentnerf.viewer.palette_layer.pack_maps`.
+        layers: (2 + P [+ 1], h, w, 4) float32 maps packed by :func:`~garmentnerf.viewer.palette_layer.pack_maps`.
         depth: (h, w) float32 camera-space z, 0 where empty.
         image_size: (W, H) of the requested camera; render_size: (w, h) actually rendered.
         quality, preset: what was rendered; frame: the clip frame (clamped to the clip).
         timings: stage -> ms (``RenderSession.render``'s); cached_frame: the frame's features were cached.
         ground_truth: (H, W, 3) of the request's scene camera, or None; counts: sample counts.
+        has_body: the last layer is the rasterised body (the ``raster_body`` composition).
     """
 
     layers: Any
@@ -200,6 +203,7 @@ class NeuralResult:
     ground_truth: Any = None
     preset: str = ""
     counts: dict | None = None
+    has_body: bool = False
 
 
 class NeuralRenderer:
@@ -259,20 +263,21 @@ class NeuralRenderer:
         if request is _CLOSE:
             self._thread_session.close()
             return None
-        from garmentnerf.viewer.palette_layer import pack_maps
+        from garmentnerf.viewer.palette_layer import pack_frame
 
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
         frame = min(max(0, int(request.frame)), session.num_frames - 1)
         session.frames.set_playhead(frame)
+        session.set_composition(request.composition)
         try:
             nf = session.render(frame, request.camera, request.quality, preset=request.preset,
                                 should_cancel=lambda: self.worker.should_cancel(generation))
         except RenderCancelled:
             return None
-        m = nf.maps
-        layers = pack_maps(m.radiance[0].numpy(), m.offsets[0].numpy(), m.weights[0].numpy(), m.mask[0].numpy())
+        layers, has_body = pack_frame(nf.maps)
         return NeuralResult(layers, nf.depth, nf.output_size, nf.render_size, nf.quality, frame, nf.timings,
-                            nf.cached_frame, self._ground_truth(session, request), nf.preset, dict(nf.counts))
+                            nf.cached_frame, self._ground_truth(session, request), nf.preset, dict(nf.counts),
+                            has_body)
 
     def _precompute(self) -> bool:
         """Idle work: the next frame of the clip nearest to the playhead (see

@@ -225,10 +225,9 @@ class RenderSession(Closeable):
         from garmentnerf.data.cameras import reference_cameras
         from garmentnerf.model.frame_context import FrameInputBuilder
 
-        self.composition = resolve_composition(composition, run)
-        self.body_appearance = run.body_appearance if self.composition == "raster_body" else None
-        self._body_pass = None  # the CameraPass of the body layer, made on first use
         self.run = run
+        self._body_pass = None  # the CameraPass of the body layer, made on first use
+        self.set_composition(composition)
         self.model = run.model.eval()
         self.config = run.config
         self.scene = getattr(run, "scene", None)
@@ -251,6 +250,12 @@ class RenderSession(Closeable):
         self.sequence: str | None = None
         self.posed = None
         self.set_motion(motion)
+
+    def set_composition(self, composition: str) -> None:
+        """Compose the next renders as ``composition`` (:data:`COMPOSITIONS`; see
+        :func:`resolve_composition`); :attr:`composition` is then ``nerf`` or ``raster_body``."""
+        self.composition = resolve_composition(composition, self.run)
+        self.body_appearance = self.run.body_appearance if self.composition == "raster_body" else None
 
     # ---- motion -----------------------------------------------------------------------------------
     def set_motion(self, motion) -> None:

@@ -323,14 +323,16 @@ def _gl_compose(ctx, maps, palette, background):
     from garmentnerf.gl.context import current
 
     B, P, H, W = maps["weights"].shape
+    body = maps.get("body_color") is not None
+    extra = (maps["body_color"][0].numpy(), maps["body_coverage"][0].numpy()) if body else ()
     layers = scene_gl.pack_maps(maps["radiance"][0].numpy(), maps["offsets"][0].numpy(),
-                                maps["weights"][0].numpy(), maps["mask"][0].numpy())
+                                maps["weights"][0].numpy(), maps["mask"][0].numpy(), *extra)
     with current(ctx):
         layer = scene_gl.PaletteLayer(ctx)
         tex = ctx.texture((W, H), 4, dtype="f4")
         fbo = ctx.framebuffer(color_attachments=[tex])
         try:
-            layer.submit(layers, np.zeros((H, W), np.float32), (W, H))
+            layer.submit(layers, np.zeros((H, W), np.float32), (W, H), has_body=body)
             layer.prepare()
             layer.set_palette(palette.numpy())
             layer.opaque = True
@@ -369,6 +371,29 @@ def test_palette_shader_matches_compose(gl_context, radiance_channels):
     ref2 = compose(maps["radiance"], maps["offsets"], maps["weights"], maps["mask"], new, background)[0]
     got2 = _gl_compose(gl_context, maps, new, background)
     assert np.abs(got2 - ref2.permute(1, 2, 0).numpy()).max() < 2 / 255
+
+
+@pytest.mark.parametrize("P", [2, 3])
+def test_palette_shader_matches_compose_with_a_body_layer(gl_context, P):
+    """The raster_body composition: the shader against compose() with the same body layer, and a new
+    body color (only the uniform changes)."""
+    g = torch.Generator().manual_seed(1)
+    H, W = 24, 40
+    coverage = torch.rand(1, 1, H, W, generator=g)
+    coverage[..., :, :6] = 0.0  # no body in some columns
+    coverage[..., :, 30:] = 1.0
+    maps = {"radiance": torch.rand(1, 3, H, W, generator=g) * 1.6,
+            "offsets": (torch.rand(1, P, 3, H, W, generator=g) - 0.5) * 0.6,
+            "weights": torch.softmax(torch.randn(1, P, H, W, generator=g) * 2, dim=1),
+            "mask": torch.rand(1, 1, H, W, generator=g),
+            "body_color": torch.rand(1, 3, H, W, generator=g) * 1.3 * coverage, "body_coverage": coverage}
+    palette = torch.tensor([[0.75, 0.19, 0.19], [0.2, 0.5, 0.3], [0.8, 0.63, 0.53]])[-P:]
+    background = (0.1, 0.2, 0.3)
+    for pal in (palette, torch.cat([palette[:-1], torch.tensor([[0.3, 0.9, 0.1]])])):
+        ref = compose(maps["radiance"], maps["offsets"], maps["weights"], maps["mask"], pal, background,
+                      maps["body_color"], maps["body_coverage"])[0].permute(1, 2, 0).numpy()
+        got = _gl_compose(gl_context, maps, pal, background)
+        assert np.abs(got - ref).max() < 2 / 255
 
 
 def test_palette_shader_matches_session_composite(gl_context, session):

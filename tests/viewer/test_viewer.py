@@ -16,6 +16,7 @@ import subprocess
 import time
 
 import numpy as np
+import torch
 import pytest
 
 from garmentnerf.cli.view_cmd import NO_DISPLAY_MESSAGE, import_viewer, register
@@ -932,3 +933,44 @@ def test_playback_meter_counts_shown_and_neural_frames_per_second():
     meter.frame_shown(3, 5.0)
     meter.reset()
     assert meter.rates(5.0) == (0.0, 0.0)
+
+
+def test_neural_viewer_draws_the_rasterised_body_and_switches_composition(xvfb, untrained_run, tiny_scene, tmp_path):
+    """A run with a body appearance: the viewer's maps carry the body layer, the window shows the body
+    where the untrained network alone shows almost nothing, and switching the composition off
+    re-renders without it."""
+    import shutil
+
+    from garmentnerf.model.body_appearance import BodyAppearance, save_body_appearance
+    from garmentnerf.train.run import load_run
+    from garmentnerf.viewer.app import App
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(untrained_run, run_dir)
+    green = BodyAppearance(texture_size=8)
+    with torch.no_grad():
+        green.albedo[0] = 0.0  # a green body: albedo (0, 3, 0) x the body's palette color
+        green.albedo[1] = 3.0
+        green.albedo[2] = 0.0
+    save_body_appearance(run_dir / "body_appearance.safetensors", green)
+    run = load_run(run_dir, scene=tiny_scene.root)
+    with App(motion=None, run=run, size=(320, 240), samples=0, vsync=False, playing=False,
+             snapshot_dir=tmp_path) as viewer:
+        view, layer = viewer.neural_view, viewer.scene.palette_layer
+        assert view.can_rasterise_body and view.composition == "raster_body"
+        assert viewer.wait_for_neural(180), view.error()
+        _settle(viewer)
+        viewer.show_ui = False
+        assert layer.has_body and layer.palette_size == 2
+        with_body = viewer.read_framebuffer().astype(int)
+        uploads = layer.uploads
+        view.set_composition("nerf")
+        _settle(viewer)
+        assert layer.uploads > uploads and not layer.has_body
+        without = viewer.read_framebuffer().astype(int)
+        def green_pixels(image):
+            return int(((image[..., 1] > image[..., 0] + 40) & (image[..., 1] > image[..., 2] + 40)).sum())
+
+        assert green_pixels(with_body) > 300 and green_pixels(without) == 0
+        with pytest.raises(ValueError, match="not available"):
+            view.set_composition("bogus")
