@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from garmentnerf.cli.common import (add_body_args, add_motion_args, add_scene_override_arg, check_frame, load_body,
@@ -47,6 +48,9 @@ def register(sub) -> None:
     fit.add_argument("--frame-stride", type=int, default=5, metavar="N",
                      help="use every N-th frame of the training sequences (default: 5)")
     fit.add_argument("--steps", type=int, default=3000, metavar="N", help="optimisation steps (default: 3000)")
+    fit.add_argument("--albedo-prior", type=float, default=None, metavar="W",
+                     help="weight of the texture's pull towards 1, which settles the scale texture and shading "
+                          "could trade (default: 0.01; 0: none)")
     fit.add_argument("--out", default=None, metavar="FILE",
                      help="output file (default: DIR/body_appearance.safetensors, where runs look for it)")
     fit.add_argument("--overwrite", action="store_true", help="replace the output if it exists")
@@ -114,6 +118,8 @@ def run_fit_appearance(args: argparse.Namespace) -> int:
         raise ValueError(f"--frame-stride must be at least 1, got {args.frame_stride}")
     if args.steps < 1:
         raise ValueError(f"--steps must be at least 1, got {args.steps}")
+    if args.albedo_prior is not None and not (math.isfinite(args.albedo_prior) and args.albedo_prior >= 0):
+        raise ValueError(f"--albedo-prior must be a number >= 0, got {args.albedo_prior}")
     run_dir = Path(args.run)
     if not (run_dir / "run.json").is_file():
         raise FileNotFoundError(f"--run {run_dir}: no run.json")
@@ -131,8 +137,9 @@ def run_fit_appearance(args: argparse.Namespace) -> int:
                                        frame_stride=args.frame_stride, progress=not args.no_progress)
     finally:
         ctx.release()
+    prior = {} if args.albedo_prior is None else {"albedo_prior": args.albedo_prior}
     appearance, summary = fit_body_appearance(samples, run.palette()[-1], steps=args.steps,
-                                              progress=not args.no_progress)
+                                              progress=not args.no_progress, **prior)
     save_body_appearance(out, appearance)
     print(f"wrote {out}: {summary['views']} training views, {summary['samples']} body pixels, "
           f"PSNR over them {summary['psnr']:.2f} dB (palette colour alone: {summary['psnr_start']:.2f} dB), "

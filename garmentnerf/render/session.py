@@ -232,11 +232,11 @@ class RenderSession(Closeable):
         self.config = run.config
         self.scene = getattr(run, "scene", None)
         self.body = self.model.body
-        betas = getattr(run, "betas", None)
-        if betas is None:
-            shape = self.scene.body.get("shape", "average") if self.scene is not None else "average"
-            betas = self.body.betas(shape)
-        self.betas = betas
+        # the body the frames are posed with: the scene's (a scene of a held-out body shape is rendered
+        # with that shape, as its ground truth is), else the one the run was trained with
+        shape = self.scene.body.get("shape") if self.scene is not None else None
+        betas = self.body.betas(shape) if shape is not None else getattr(run, "betas", None)
+        self.betas = betas if betas is not None else self.body.betas("average")
         refs = self.scene if self.scene is not None else reference_cameras()
         self.gl_ctx = gl_ctx
         self.builder = FrameInputBuilder(gl_ctx, self.body, refs, self.config)

@@ -112,6 +112,24 @@ def test_session_caches_frames_and_scales(session):
         session.render(99, cam)
 
 
+def test_a_scene_of_another_body_shape_is_posed_with_that_shape(run_dir, gl_context):
+    """Scoring a run on a scene of a held-out body shape: the session poses the scene's shape (what its
+    ground truth shows), not the one the run was trained on."""
+    from garmentnerf.render.session import RenderSession
+    from garmentnerf.train.run import load_run
+
+    run = load_run(run_dir)
+    body = run.model.body
+    assert run.scene.body["shape"] == "average"
+    with RenderSession(run, gl_context) as same:
+        assert torch.equal(same.betas, body.betas("average"))
+        average = same.posed.vertices[0].clone()
+    run.scene.body = {**run.scene.body, "shape": "thin"}
+    with RenderSession(run, gl_context) as thin:
+        assert torch.equal(thin.betas, body.betas("thin"))
+        assert float((thin.posed.vertices[0] - average).norm(dim=-1).max()) > 0.01  # posed with it
+
+
 def test_culled_presets_render_the_character_at_its_training_density(session):
     """Near or far, the character's sampling box spans as many rendered pixels as it spans in the
     median training view at the model's resolution (measured here with trimesh-free geometry:
