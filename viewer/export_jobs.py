@@ -222,7 +222,9 @@ class ExportJob:
         path: the wanted file; a taken name gets the next free ``_001`` ... suffix (never replaced).
         source: ``"neural"`` (the run's network, see the module docstring) or ``"body"`` (GL scene).
         quality: neural render quality; palette: (P, 3) colors in [0, 1] (None: the learned
-            palette); background: RGB in [0, 1] (None: the model's); motion: the session's motion.
+            palette); background: RGB in [0, 1] (None: the model's); motion: the session's motion;
+            composition: how neural frames are composed (what the window shows,
+            :data:`~garmentnerf.render.session.COMPOSITIONS`).
         fps: video frame rate.
         sequence: the :class:`~garmentnerf.viewer.sequence.BodySequence` (body-only jobs);
             scene_options: ``{"floor": bool, "grid": bool, "body": bool, "samples": int}`` for them.
@@ -230,7 +232,8 @@ class ExportJob:
 
     def __init__(self, kind: str, plan: Plan, path: str | Path, *, source: str = "neural", quality: float = 1.0,
                  palette=None, background=None, motion=None, fps: float = 30.0, sequence=None,
-                 scene_options: dict | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 scene_options: dict | None = None, clock: Callable[[], float] = time.monotonic,
+                 composition: str = "auto") -> None:
         if kind not in ("snapshot", "video"):
             raise ValueError(f"unknown export kind '{kind}'")
         if source not in ("neural", "body"):
@@ -242,6 +245,7 @@ class ExportJob:
         self.palette = None if palette is None else np.array(palette, dtype=np.float32).reshape(-1, 3)
         self.background = background
         self.motion = motion
+        self.composition = composition
         self.fps = float(fps)
         self.sequence = sequence
         self.scene_options = dict(scene_options or {})

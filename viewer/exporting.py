@@ -160,6 +160,7 @@ class Exporter:
         from garmentnerf.render.video import to_uint8
 
         session = self._thread_session.session(job.motion)
+        session.set_composition(job.composition)
 
         def render(frame: int, camera) -> np.ndarray:
             # the headless command's path: RenderSession.render + NeuralFrame.composite, then to_uint8
@@ -282,7 +283,7 @@ class Exports:
         quality = min(MAX_QUALITY, max(MIN_SNAPSHOT_QUALITY, self.snapshot_quality))
         view, path = self.neural_view, directory / snapshot_name(clip.name, frame)
         job = ExportJob("snapshot", [(frame, self.controller.camera(w, h))], path, source="neural", quality=quality,
-                        palette=view.palette.copy(), motion=view.motion, fps=clip.fps)
+                        palette=view.palette.copy(), motion=view.motion, fps=clip.fps, composition=view.composition)
         return self._submit(job)
 
     def snapshot_with_status(self) -> None:
@@ -322,7 +323,8 @@ class Exports:
                    "body": self.scene.body.visible, "samples": self.scene.snapshot_samples}
         job = ExportJob("video", plan, directory / video_name(clip.name, label), source=self.source(),
                         quality=s.quality, palette=None if view.palette is None else view.palette.copy(),
-                        motion=view.motion, fps=clip.fps, sequence=clip, scene_options=options)
+                        motion=view.motion, fps=clip.fps, sequence=clip, scene_options=options,
+                        composition=view.composition)
         return self._submit(job)
 
     def start_video_with_status(self) -> None:

@@ -972,5 +972,15 @@ def test_neural_viewer_draws_the_rasterised_body_and_switches_composition(xvfb, 
             return int(((image[..., 1] > image[..., 0] + 40) & (image[..., 1] > image[..., 2] + 40)).sum())
 
         assert green_pixels(with_body) > 300 and green_pixels(without) == 0
+        # a snapshot is composed as the window shows it
+        from PIL import Image
+
+        shots = []
+        for composition in ("nerf", "raster_body"):
+            view.set_composition(composition)
+            job = viewer.exports.start_snapshot(96, 72)
+            assert job.composition == composition
+            shots.append(np.asarray(Image.open(viewer.wait_export(job, timeout=300)).convert("RGB")).astype(int))
+        assert green_pixels(shots[0]) == 0 and green_pixels(shots[1]) > 20
         with pytest.raises(ValueError, match="not available"):
             view.set_composition("bogus")
