@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from garmentnerf.model.body_appearance import BodyAppearance
 
@@ -73,12 +74,8 @@ def collect_body_samples(scene, body, betas, cameras: list[str], gl_ctx, *, fram
     images = SceneImages(scene, body_model=body)
     camera_pass = CameraPass(gl_ctx)
     jobs = [(seq, f) for seq in scene.sequence_names("train") for f in range(0, scene.num_frames(seq), frame_stride)]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs) * len(cameras), desc="body samples", unit="view", file=sys.stderr,
-                   dynamic_ncols=True)
+    bar = tqdm(total=len(jobs) * len(cameras), desc="body samples", unit="view", file=sys.stderr,
+               dynamic_ncols=True, disable=not progress)
     uvs, normals, colors = [], [], []
     views = 0
     try:
@@ -102,11 +99,9 @@ def collect_body_samples(scene, body, betas, cameras: list[str], gl_ctx, *, fram
                 normals.append(px.normals[index])
                 colors.append(torch.from_numpy(np.ascontiguousarray(rgb, dtype=np.float32)).reshape(-1, 3)[flat])
                 views += 1
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
         camera_pass.release()
         images.close()
     if not colors or sum(len(c) for c in colors) == 0:
@@ -145,12 +140,8 @@ def fit_body_appearance(samples: BodySamples, body_color: torch.Tensor, *, steps
         return float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
 
     start = psnr_all()
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc="fit body appearance", unit="step", file=sys.stderr, dynamic_ncols=True)
-    try:
+    with tqdm(total=steps, desc="fit body appearance", unit="step", file=sys.stderr, dynamic_ncols=True,
+              disable=not progress) as bar:
         for _ in range(steps):
             if should_cancel is not None and should_cancel():
                 raise KeyboardInterrupt
@@ -164,11 +155,7 @@ def fit_body_appearance(samples: BodySamples, body_color: torch.Tensor, *, steps
             loss.backward()
             opt.step()
             sched.step()
-            if bar is not None:
-                bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
+            bar.update(1)
     model.eval()
     summary = {"psnr": psnr_all(), "psnr_start": start, "samples": len(samples), "views": samples.views,
                "steps": int(steps), "seconds": time.perf_counter() - t0}
