@@ -217,11 +217,10 @@ class DecomposedMaps:
         """(B, 1, H, W) :func:`composite_alpha`: the character's coverage in the composed image."""
         return composite_alpha(self.mask, self.weights, self.body_coverage)
 
-    def _map(self, fn, body_fn=None) -> "DecomposedMaps":
-        """These maps with ``fn`` applied to the decoder's four maps and ``body_fn`` (default
-        ``fn``) to the body layer (the head-only weights, a training-time view, are dropped)."""
-        body_fn = fn if body_fn is None else body_fn
-        body = (None, None) if self.body_color is None else (body_fn(self.body_color), body_fn(self.body_coverage))
+    def _map(self, fn) -> "DecomposedMaps":
+        """These maps with ``fn`` applied to every map and to the body layer (the head-only weights,
+        a training-time view, are dropped)."""
+        body = (None, None) if self.body_color is None else (fn(self.body_color), fn(self.body_coverage))
         return DecomposedMaps(fn(self.radiance), fn(self.offsets), fn(self.weights), fn(self.mask), None, *body)
 
     def with_body(self, color: torch.Tensor | None, coverage: torch.Tensor | None) -> "DecomposedMaps":
@@ -234,8 +233,8 @@ class DecomposedMaps:
         return self._map(torch.Tensor.detach)
 
     def to(self, *args, **kwargs) -> "DecomposedMaps":
-        """Every map through ``Tensor.to(*args, **kwargs)``."""
-        return self._map(lambda x: x.to(*args, **kwargs))
+        """Every map through ``Tensor.to(*args, **kwargs)``, made contiguous."""
+        return self._map(lambda x: x.to(*args, **kwargs).contiguous())
 
     @property
     def size(self) -> tuple[int, int]:
@@ -249,7 +248,7 @@ class DecomposedMaps:
     def placed(self, x0: int, y0: int, width: int, height: int) -> "DecomposedMaps":
         """These maps put at ``(x0, y0)`` in maps of ``width x height`` that are empty elsewhere
         (mask 0, so :func:`compose` gives the background there; radiance and offsets 0, weights
-        uniform; no body)."""
+        uniform; body coverage 0)."""
         h, w = self.mask.shape[-2:]
         if (x0, y0, w, h) == (0, 0, int(width), int(height)):
             return self
