@@ -133,7 +133,7 @@ def run_fit_appearance(args: argparse.Namespace) -> int:
                          f"pass --scene DIR")
     ctx = create_context(headless=True)
     try:
-        samples = collect_body_samples(run.scene, run.model.body, run.betas, run_train_cameras(run, run.scene), ctx,
+        samples = collect_body_samples(run.scene, run.model.body, run_train_cameras(run, run.scene), ctx,
                                        frame_stride=args.frame_stride, progress=not args.no_progress)
     finally:
         ctx.release()

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from garmentnerf.body.surface import vertex_normals
 from garmentnerf.conventions import Camera
+from garmentnerf.geometry.triangles import interpolate
 
 #: Subsamples per pixel side of the body layer (the ground truth's renderer uses 2).
 BODY_LAYER_SUPERSAMPLE = 2
@@ -45,19 +46,16 @@ def body_surface(camera_pass, vertices: torch.Tensor, faces: torch.Tensor, uv: t
     vertex normals."""
     vertices = torch.as_tensor(vertices, dtype=torch.float32).cpu()
     faces = torch.as_tensor(faces, dtype=torch.long).cpu()
-    if normals is None:
-        normals = vertex_normals(vertices, faces)
+    normals = vertex_normals(vertices, faces) if normals is None else normals.to("cpu", torch.float32)
     g = camera_pass.render(vertices, faces, camera, uv, uv_faces)
-    face = g.face_id[g.mask]
-    corners = faces[face]  # (N, 3)
-    bary = g.bary[g.mask]  # (N, 3)
-    n = (normals[corners] * bary.unsqueeze(-1)).sum(dim=1)
+    n = interpolate(normals, faces, g.face_id[g.mask], g.bary[g.mask])
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return BodySurfacePixels(g.mask, g.uv[g.mask], n)
 
 
 def render_body_layer(camera_pass, body, vertices: torch.Tensor, camera: Camera, appearance,
-                      supersample: int = BODY_LAYER_SUPERSAMPLE) -> tuple[torch.Tensor, torch.Tensor]:
+                      supersample: int = BODY_LAYER_SUPERSAMPLE, normals: torch.Tensor | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """The body layer of ``camera`` at its size.
 
     Args:
@@ -66,13 +64,15 @@ def render_body_layer(camera_pass, body, vertices: torch.Tensor, camera: Camera,
         vertices: (V, 3) the posed body.
         appearance: the :class:`~garmentnerf.model.body_appearance.BodyAppearance`.
         supersample: subsamples per pixel side.
+        normals: (V, 3) the posed body's vertex normals when already known (a frame's
+            :class:`~garmentnerf.model.frame_context.FrameFeatures` has them); None computes them.
     Returns:
         ``color`` (1, 3, H, W) ``a(uv, n)`` premultiplied by coverage (untinted: compose multiplies
         it by the body's palette colour) and ``coverage`` (1, 1, H, W) in [0, 1].
     """
     s = max(1, int(supersample))
     fine = camera if s == 1 else camera.resized(camera.width * s, camera.height * s)
-    pixels = body_surface(camera_pass, vertices, body.faces, body.uv, body.uv_faces, fine)
+    pixels = body_surface(camera_pass, vertices, body.faces, body.uv, body.uv_faces, fine, normals)
     H, W = pixels.mask.shape
     color = torch.zeros(3, H * W, dtype=torch.float32)
     flat = pixels.mask.reshape(-1)

@@ -422,7 +422,7 @@ class RenderSession(Closeable):
         if self.body_appearance is not None:
             t_body = time.perf_counter()
             with torch.no_grad():
-                maps = maps.with_body(*self.body_layer(frame, padded.cropped(0, 0, wr, hr)))
+                maps = maps.with_body(*self.body_layer(feats, padded.cropped(0, 0, wr, hr)))
             body_ms = (time.perf_counter() - t_body) * 1e3
         depth = np.zeros((fh, fw), np.float32)
         depth[rect.y0 // up:rect.y1 // up, rect.x0 // up:rect.x1 // up] = _camera_depth(
@@ -439,8 +439,9 @@ class RenderSession(Closeable):
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
                            timings, cached, plan.preset.name, counts)
 
-    def body_layer(self, frame: int, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
-        """The rasterised body layer of ``frame`` seen by ``camera`` at its size
+    def body_layer(self, features, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rasterised body layer of a frame (its :class:`~garmentnerf.model.frame_context.FrameFeatures`:
+        the posed body and its vertex normals) seen by ``camera`` at its size
         (:func:`~garmentnerf.render.body_layer.render_body_layer`; needs a body appearance)."""
         from garmentnerf.gl.camera_pass import CameraPass
         from garmentnerf.render.body_layer import render_body_layer
@@ -449,8 +450,8 @@ class RenderSession(Closeable):
             raise ValueError("this session composes without a body layer (composition 'nerf')")
         if self._body_pass is None:
             self._body_pass = CameraPass(self.gl_ctx)
-        return render_body_layer(self._body_pass, self.body, self.posed.vertices[self.check_frame(frame)].detach(),
-                                 camera, self.body_appearance)
+        return render_body_layer(self._body_pass, self.body, features.posed_vertices, camera, self.body_appearance,
+                                 normals=features.vertex_normals)
 
     def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
         """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which

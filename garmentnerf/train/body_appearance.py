@@ -59,10 +59,11 @@ def interior_body_pixels(labels: np.ndarray, raster_mask: np.ndarray, body_label
     return cv2.erode(both, np.ones((3, 3), np.uint8), borderValue=0).astype(bool)
 
 
-def collect_body_samples(scene, body, betas, cameras: list[str], gl_ctx, *, frame_stride: int = 5,
+def collect_body_samples(scene, body, cameras: list[str], gl_ctx, *, frame_stride: int = 5,
                          per_view: int = 20000, seed: int = 0, progress: bool = True) -> BodySamples:
     """Body samples (see the module docstring) from ``cameras`` at every ``frame_stride``-th frame
-    of the scene's training sequences, at most ``per_view`` random ones per image."""
+    of the scene's training sequences, at most ``per_view`` random ones per image; the body is
+    posed with the scene's shape, as its images show it."""
     from garmentnerf.body.surface import vertex_normals
     from garmentnerf.data.scene import SceneImages
     from garmentnerf.gl.camera_pass import CameraPass
@@ -79,6 +80,7 @@ def collect_body_samples(scene, body, betas, cameras: list[str], gl_ctx, *, fram
     uvs, normals, colors = [], [], []
     views = 0
     try:
+        betas = body.betas(scene.body.get("shape", "average"))
         posed_clips = {seq: scene.load_motion(seq).pose(body, betas) for seq in scene.sequence_names("train")}
         for seq, frame in jobs:
             with torch.no_grad():

@@ -547,7 +547,7 @@ class Trainer(Closeable):
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
         out = self.model.render(feats, camera, training=True, generator=gen)
-        pred = out.image if self.body_appearance is None else self._with_body(out, inputs.posed_vertices, camera)
+        pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
@@ -556,17 +556,18 @@ class Trainer(Closeable):
                                target_garment=garment[None] if segment else None)
         return terms, {"pred": pred, "target": image}
 
-    def _with_body(self, out, posed_vertices: torch.Tensor, camera) -> torch.Tensor:
-        """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the body
-        rasterised in ``camera`` and drawn with the frozen body appearance."""
+    def _with_body(self, out, feats, camera) -> torch.Tensor:
+        """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
+        frame's body (``feats``: posed vertices and normals) rasterised in ``camera`` and drawn with
+        the frozen body appearance."""
         from garmentnerf.gl.camera_pass import CameraPass
         from garmentnerf.render.body_layer import render_body_layer
 
         if self._body_pass is None:
             self._body_pass = CameraPass(self.data.frames.ctx)
         with torch.no_grad():
-            color, coverage = render_body_layer(self._body_pass, self.model.body, posed_vertices.detach().cpu(),
-                                                camera, self.body_appearance)
+            color, coverage = render_body_layer(self._body_pass, self.model.body, feats.posed_vertices.detach(),
+                                                camera, self.body_appearance, normals=feats.vertex_normals.detach())
         maps = out.maps.with_body(color.to(self.device), coverage.to(self.device))
         return maps.compose(out.palette, out.background)[0]
 
