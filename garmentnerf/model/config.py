@@ -94,6 +94,18 @@ class ModelConfig:
     """Metres from the body surface at which the density prior of ``body_prior_strength`` crosses 0."""
     positional_encoding_freqs: int = 0
     """NeRF frequencies applied to b_o (paper: 0, none)."""
+    atlas_feature_channels: int = 0
+    """Channels of a learned feature texture on the body's UV atlas, read at each sample's atlas UV (the UV of
+    b_o) and given to the MLP as one more input f^a (``model/nerf_mlp.py``). 0 (default): none, the paper's
+    ``[b_o, h, f^d, f^s]``. The MLP alone learns fine appearance slowly from four smooth coordinates; a texture
+    holds a free vector per texel (DNG's neural texture, here per 3D sample instead of per pixel)."""
+    atlas_feature_levels: int = 4
+    """Pyramid levels of the atlas feature texture, each half the previous side; their reads are summed."""
+    atlas_feature_resolution: int = 256
+    """Side of the atlas feature texture's finest level."""
+    atlas_feature_lr_scale: float = 10.0
+    """The atlas branch (texture and the MLP's weights on f^a) learns at ``lr`` times this: a texel is seen by
+    few samples per step, and grids train at about 100x an MLP's rate in instant-ngp."""
 
     # ---- Sampling (``model/samplers.py``, ``model/volume_rendering.py``)
     samples_per_ray: int = 64
@@ -212,7 +224,7 @@ class ModelConfig:
 
     @property
     def mlp_input_dim(self) -> int:
-        """Width of the MLP input [b_o, h, f^d, f^s] (paper: 4 + 8 + 8 = 20)."""
+        """Width of the MLP input [b_o, h, f^d, f^s] (paper: 4 + 8 + 8 = 20); f^a enters beside it."""
         return (self.geometry_dim + self.detail_feature_dim * self.use_detail_feature
                 + self.dynamic_feature_dim * self.use_dynamic_feature)
 
@@ -252,16 +264,19 @@ class ModelConfig:
                  "neural_texture_resolution", "generator_width_scale", "mlp_depth", "mlp_width",
                  "samples_per_ray", "palette_size", "decoder_width", "decoder_min_width", "offset_scale",
                  "lr", "lr_final", "iterations", "batch_size", "grad_clip_value", "generator_lr",
-                 "generator_iterations")
+                 "generator_iterations", "atlas_feature_levels", "atlas_feature_resolution", "atlas_feature_lr_scale")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
         if self.segmentation_start < 0:
             raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
-        for name in ("positional_encoding_freqs", "decoder_upsample_steps", "decoder_extra_layers", "bbox_padding",
+        for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps", "decoder_extra_layers", "bbox_padding",
                      "blend_weight_floor", "w_image", "w_mask", "w_perceptual", "w_sparsity", "w_offset", "w_palette",
                      "w_opacity", "w_segmentation"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:
+            raise ValueError(f"ModelConfig.atlas_feature_levels ({self.atlas_feature_levels}) do not fit a "
+                             f"{self.atlas_feature_resolution} texture")
         if self.density_activation not in DENSITY_ACTIVATIONS:
             raise ValueError(f"ModelConfig.density_activation must be one of {DENSITY_ACTIVATIONS}, "
                              f"got {self.density_activation!r}")

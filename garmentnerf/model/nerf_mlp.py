@@ -14,6 +14,14 @@ Density activation
 
 zeta is left linear: it is an intermediate feature decoded by M_D, and a bounded activation
 would only saturate.
+
+Atlas feature f^a (optional, ``atlas_dim > 0``)
+    A learned texture's read at the sample's atlas UV (``ModelConfig.atlas_feature_channels``).
+    It enters the first hidden layer through its own weights, ``atlas_input``, added to the first
+    layer's pre-activation and initialised to zero: a network built with it computes exactly what
+    the same network without it computes, so the branch can be added to a trained model and
+    fine-tuned from that model's output (:func:`garmentnerf.train.run.load_weights` with
+    ``may_be_missing``).
 """
 
 from __future__ import annotations
@@ -88,12 +96,16 @@ class GarmentNeRF(nn.Module):
         density_activation: ``"softplus"`` or ``"trunc_exp"``.
         density_bias: added to the raw density before the activation.
         positional_encoding_freqs: frequencies applied to b_o (paper: 0).
+        atlas_dim: width of f^a (0: none, the paper's inputs).
     """
+
+    #: Parameters that start at zero so that adding them leaves the network's output unchanged.
+    ZERO_START = ("atlas_input.",)
 
     def __init__(self, detail_dim: int = 8, dynamic_dim: int = 8, appearance_dim: int = 128, depth: int = 6,
                  width: int = 256, density_activation: str = "softplus", density_bias: float = -1.0,
                  positional_encoding_freqs: int = 0, density_scale: float = 1.0,
-                 body_prior_strength: float = 0.0, body_prior_width: float = 0.15):
+                 body_prior_strength: float = 0.0, body_prior_width: float = 0.15, atlas_dim: int = 0):
         super().__init__()
         if density_activation not in ("softplus", "trunc_exp"):
             raise ValueError(f"unknown density activation {density_activation!r}")
@@ -106,11 +118,16 @@ class GarmentNeRF(nn.Module):
         self.body_prior_strength = float(body_prior_strength)
         self.body_prior_width = float(body_prior_width)
         self.num_freqs = positional_encoding_freqs
+        self.atlas_dim = atlas_dim
         self.input_dim = 3 * (1 + 2 * positional_encoding_freqs) + 1 + detail_dim + dynamic_dim
         layers: list[nn.Module] = []
         for i in range(depth):
             layers += [nn.Linear(self.input_dim if i == 0 else width, width), nn.ReLU(inplace=True)]
         self.trunk = nn.Sequential(*layers)
+        self.atlas_input = None
+        if atlas_dim:
+            self.atlas_input = nn.Linear(atlas_dim, width, bias=False)
+            nn.init.zeros_(self.atlas_input.weight)
         self.density_head = nn.Linear(width, 1)
         self.appearance_head = nn.Linear(width, appearance_dim)
 
@@ -120,7 +137,7 @@ class GarmentNeRF(nn.Module):
                    cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0,
                    cfg.appearance_dim, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
                    cfg.positional_encoding_freqs, cfg.density_scale, cfg.body_prior_strength,
-                   cfg.body_prior_width)
+                   cfg.body_prior_width, cfg.atlas_feature_channels)
 
     def _check(self, name: str, value: torch.Tensor | None, dim: int, n: int) -> None:
         if dim == 0:
@@ -133,7 +150,8 @@ class GarmentNeRF(nn.Module):
             raise ValueError(f"{name} feature must be ({n}, {dim}), got {tuple(value.shape)}")
 
     def forward(self, canonical: torch.Tensor, distance: torch.Tensor, detail: torch.Tensor | None = None,
-                dynamic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                dynamic: torch.Tensor | None = None, atlas: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Evaluate N samples.
 
         Args:
@@ -141,6 +159,7 @@ class GarmentNeRF(nn.Module):
             distance: (N,) h, signed distance to the posed body (positive outside).
             detail: (N, detail_dim) f^d, or None when built with detail_dim = 0.
             dynamic: (N, dynamic_dim) f^s, or None when built with dynamic_dim = 0.
+            atlas: (N, atlas_dim) f^a, or None when built with atlas_dim = 0.
         Returns:
             sigma (N,) density >= 0 in 1/metre, zeta (N, appearance_dim).
         """
@@ -150,9 +169,13 @@ class GarmentNeRF(nn.Module):
                              f"and {tuple(distance.shape)}")
         self._check("detail", detail, self.detail_dim, n)
         self._check("dynamic", dynamic, self.dynamic_dim, n)
+        self._check("atlas", atlas, self.atlas_dim, n)
         parts = [positional_encoding(canonical, self.num_freqs), distance.unsqueeze(-1)]
         parts += [f for f in (detail, dynamic) if f is not None]
-        hidden = self.trunk(torch.cat(parts, dim=-1))
+        first = self.trunk[0](torch.cat(parts, dim=-1))
+        if atlas is not None:
+            first = first + self.atlas_input(atlas)
+        hidden = self.trunk[1:](first)
         raw = self.density_head(hidden).squeeze(-1)
         if self.body_prior_strength:
             raw = raw + body_density_prior(distance, self.body_prior_strength, self.body_prior_width)

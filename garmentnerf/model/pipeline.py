@@ -19,7 +19,8 @@ Two levels, so that a viewer can cache what the camera does not change:
    distance h, the canonical point b_o and its atlas UV; a sample filter passed in (e.g. the
    garment's height band) may drop the sample here; f^s = F^s_t read bilinearly at
    the UV; f^d = F^d_t read bilinearly where b_t projects into each reference camera, front or
-   back chosen per ``cfg.detail_selection``; M_NeRF -> (sigma, zeta); packed volume rendering,
+   back chosen per ``cfg.detail_selection``; with ``cfg.atlas_feature_channels``, f^a = the
+   learned atlas feature texture read at the UV; M_NeRF -> (sigma, zeta); packed volume rendering,
    segment by segment with optional early ray termination
    (:func:`~garmentnerf.model.volume_rendering.render_packed_segmented`) -> F^zeta (C_zeta, h, w);
    M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at ``2**decoder_upsample_steps``
@@ -88,7 +89,7 @@ from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import sample_image_features, select_detail_features
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
-from garmentnerf.model.image_generator import ImageGenerator, freeze
+from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
 from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
@@ -278,6 +279,10 @@ class GarmentAnimationNeRF(nn.Module):
         self.encoder = DynamicFeatureEncoder.from_config(cfg) if cfg.use_dynamic_feature else None
         self.image_generator = ImageGenerator.from_config(cfg) if cfg.use_detail_feature else None
         self.detail_encoder = DetailEncoder.from_config(cfg) if cfg.use_detail_feature else None
+        self.atlas_features = None
+        if cfg.atlas_feature_channels:
+            self.atlas_features = NeuralTexture(cfg.atlas_feature_channels, cfg.atlas_feature_levels,
+                                                cfg.atlas_feature_resolution)
         self.nerf = GarmentNeRF.from_config(cfg)
         self.decoder = PaletteDecoder.from_config(cfg)
         self.palette = Palette(palette_initial_colors(palette_init, cfg.palette_size))
@@ -320,12 +325,25 @@ class GarmentAnimationNeRF(nn.Module):
 
     def trainable_modules(self) -> dict[str, nn.Module]:
         """The modules the NeRF training updates: ``encoder``, ``detail_encoder``, ``nerf``,
-        ``decoder``, ``palette`` (ablated ones left out), plus ``image_generator`` when unfrozen."""
+        ``decoder``, ``palette``, ``atlas_features`` (ablated ones left out), plus
+        ``image_generator`` when unfrozen."""
         mods = {"encoder": self.encoder, "detail_encoder": self.detail_encoder, "nerf": self.nerf,
-                "decoder": self.decoder, "palette": self.palette}
+                "decoder": self.decoder, "palette": self.palette, "atlas_features": self.atlas_features}
         if not self._image_generator_frozen:
             mods["image_generator"] = self.image_generator
         return {k: m for k, m in mods.items() if m is not None}
+
+    def zero_start_prefixes(self) -> tuple[str, ...]:
+        """State-dict prefixes of the parameters that may be missing from weights trained without
+        them: the atlas branch, whose MLP weights start at zero, so the model computes what the
+        weights' own model computes until training moves them."""
+        if self.atlas_features is None:
+            return ()
+        return ("atlas_features.",) + tuple("nerf." + p for p in GarmentNeRF.ZERO_START)
+
+    def atlas_feature(self, uv: torch.Tensor) -> torch.Tensor:
+        """f^a ``(N, atlas_feature_channels)``: the atlas feature texture read at atlas UVs (N, 2)."""
+        return self.atlas_features(uv.view(1, 1, -1, 2))[0, :, 0].T
 
     # ------------------------------------------------------------------ per frame
     def prepare_frame(self, inputs: FrameInputs) -> FrameFeatures:
@@ -446,8 +464,10 @@ class GarmentAnimationNeRF(nn.Module):
             if cfg.use_detail_feature:
                 normal = self.surface_normals(frame, points) if cfg.detail_selection == "soft_normal" else None
                 detail, _ = self.detail_features(frame, points.closest, normal)
+            atlas = self.atlas_feature(points.uv.to(dev)) if self.atlas_features is not None else None
         with sw("mlp"), _autocast(precision, dev):
-            sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic)
+            sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic,
+                                    atlas)
         sigma, zeta = sigma.float(), zeta.float()
         if kept is not None and kept.shape[0] < n:
             rows = kept.to(dev)

@@ -283,9 +283,15 @@ def load_module_weights(path, model: torch.nn.Module, prefix: str) -> None:
             v.copy_(state[k].to(v.dtype))
 
 
-def load_weights(path, model: torch.nn.Module) -> None:
+def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] = ()) -> list[str]:
     """Load a ``.safetensors`` written by :func:`save_weights` into ``model`` (strict).
 
+    Args:
+        may_be_missing: state-dict key prefixes the file may lack; those parameters keep their
+            values in ``model`` (for a branch added to a trained model that starts as a no-op,
+            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.zero_start_prefixes`).
+    Returns:
+        The keys that kept the model's values, sorted.
     Raises:
         FileNotFoundError: missing file; ValueError: unreadable file or keys/shapes that do not
         match the model (both name the file).
@@ -303,7 +309,8 @@ def load_weights(path, model: torch.nn.Module) -> None:
         if old in state and new not in state:
             state[new] = state.pop(old)
     own = model.state_dict()
-    missing = sorted(set(own) - set(state))
+    kept = sorted(k for k in set(own) - set(state) if k.startswith(tuple(may_be_missing)))
+    missing = sorted(set(own) - set(state) - set(kept))
     unexpected = sorted(set(state) - set(own))
     if missing or unexpected:
         parts = []
@@ -317,7 +324,8 @@ def load_weights(path, model: torch.nn.Module) -> None:
             raise ValueError(f"{path}: {key} has shape {tuple(value.shape)}, the model config expects "
                              f"{tuple(own[key].shape)}")
     with torch.no_grad():
-        model.load_state_dict(state, strict=True)
+        model.load_state_dict({**{k: own[k] for k in kept}, **state}, strict=True)
+    return kept
 
 
 # ---- the API ---------------------------------------------------------------------------------------

@@ -125,6 +125,17 @@ def _seed_of(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0] >> 1)
 
 
+def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> list[dict]:
+    """Adam parameter groups of ``params``, each with an ``lr_scale`` the schedule multiplies:
+    the atlas branch (``model.zero_start_prefixes()``: its texture and the MLP's weights on f^a) at
+    ``cfg.atlas_feature_lr_scale``, everything else at 1. Groups left empty are dropped."""
+    prefixes = model.zero_start_prefixes()
+    atlas_ids = {id(p) for name, p in model.named_parameters() if name.startswith(prefixes)} if prefixes else set()
+    groups = [{"params": [p for p in params if id(p) not in atlas_ids], "lr_scale": 1.0},
+              {"params": [p for p in params if id(p) in atlas_ids], "lr_scale": float(cfg.atlas_feature_lr_scale)}]
+    return [g for g in groups if g["params"]]
+
+
 class Trainer(Closeable):
     """One training run (see the module docstring). Use :meth:`train`, then :meth:`close`.
 
@@ -379,11 +390,14 @@ class Trainer(Closeable):
                 self.log("loss weights from step " + str(self.step) + ": " +
                          ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_weights is not None:
-            load_weights(tc.init_weights, self.model)
+            new = load_weights(tc.init_weights, self.model, self.model.zero_start_prefixes())
             self.step = self.generator_iterations
             self._enter_stage(self._stage_of(self.step))
             self.log(f"all weights from {tc.init_weights}: G_img pre-training skipped, the NeRF stage starts at "
                      f"step {self.step}")
+            if new:
+                self.log(f"new in this config, starting from their initialisation (the model's output is "
+                         f"unchanged until they train): {', '.join(new)}")
         elif tc.init_generator is not None and self.generator_iterations:
             load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations
@@ -408,7 +422,7 @@ class Trainer(Closeable):
             lr = self.cfg.lr
         m.train()
         self.params = params
-        self.optimizer = torch.optim.Adam(params, lr=lr)
+        self.optimizer = torch.optim.Adam(param_groups(m, params, self.cfg), lr=lr)
         self.stage = stage
 
     def lr_at(self, step: int) -> float:
@@ -614,7 +628,7 @@ class Trainer(Closeable):
                         self._enter_stage(stage)
                     lr = self.lr_at(step)
                     for group in self.optimizer.param_groups:
-                        group["lr"] = lr
+                        group["lr"] = lr * group.get("lr_scale", 1.0)
                     self.optimizer.zero_grad(set_to_none=True)
                     terms, images = self._generator_step(step) if stage == "generator" else self._nerf_step(step)
                     terms["total"].backward()

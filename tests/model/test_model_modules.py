@@ -128,6 +128,38 @@ def test_mlp_ablations_and_positional_encoding():
     assert positional_encoding(torch.zeros(2, 3), 2).shape == (2, 15)
 
 
+def test_atlas_branch_starts_as_a_no_op_and_equals_extra_input_columns():
+    """f^a enters through its own zero-started weights: at the start the network is the one
+    without it; trained, it is the plain network with f^a as extra first-layer columns."""
+    torch.manual_seed(0)
+    cfg = ModelConfig.cpu_small()
+    plain = GarmentNeRF.from_config(cfg)
+    with_atlas = GarmentNeRF.from_config(cfg.replace(atlas_feature_channels=4))
+    missing = with_atlas.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert missing == ["atlas_input.weight"] and all(k.startswith(GarmentNeRF.ZERO_START) for k in missing)
+    n = 64
+    args = (torch.randn(n, 3), torch.randn(n), torch.randn(n, 8), torch.randn(n, 8))
+    atlas = torch.randn(n, 4)
+    for got, want in zip(with_atlas(*args, atlas), plain(*args)):
+        assert torch.equal(got, want)
+    with torch.no_grad():
+        with_atlas.atlas_input.weight.normal_()
+    # the reference: the same trunk built wider, f^a appended to f^s, the branch's weights as columns
+    wide = GarmentNeRF.from_config(cfg.replace(dynamic_feature_dim=12))
+    state = dict(plain.state_dict())
+    state["trunk.0.weight"] = torch.cat([state["trunk.0.weight"], with_atlas.atlas_input.weight], dim=1)
+    wide.load_state_dict(state)
+    sigma, zeta = with_atlas(*args, atlas)
+    ref_sigma, ref_zeta = wide(*args[:3], torch.cat([args[3], atlas], dim=1))
+    torch.testing.assert_close(sigma, ref_sigma)
+    torch.testing.assert_close(zeta, ref_zeta)
+    assert not torch.allclose(zeta, plain(*args)[1])
+    with pytest.raises(ValueError, match="needs the atlas"):
+        with_atlas(*args)
+    with pytest.raises(ValueError, match="without the atlas"):
+        plain(*args, atlas)
+
+
 # ---------------------------------------------------------------------------------------- config
 def test_config_round_trip_and_unknown_keys():
     for cfg in (ModelConfig.paper(), ModelConfig.cpu_small(), ModelConfig(detail_selection="soft_normal")):

@@ -292,3 +292,40 @@ def test_ablations_and_modes(body, projector, walk_inputs, changes):
     out.image.mean().backward()
     for name, module in model.trainable_modules().items():
         assert sum(float(p.grad.abs().sum()) for p in module.parameters()) > 0, name
+
+
+def test_atlas_feature_reads_every_level_bilinearly(body, projector, walk_inputs):
+    """The pipeline's f^a against OpenCV's bilinear remap of each level, summed."""
+    import cv2
+
+    model = make_model(body, projector, seed=1, atlas_feature_channels=3, atlas_feature_levels=3,
+                       atlas_feature_resolution=32)
+    with torch.no_grad():
+        for tex in model.atlas_features.textures:
+            tex.normal_()
+    uv = torch.rand(200, 2) * 0.9 + 0.05
+    got = model.atlas_feature(uv)
+    want = torch.zeros(200, 3)
+    for tex in model.atlas_features.textures:
+        image = tex[0].detach().permute(1, 2, 0).numpy()  # (R, R, C); row 0 is v = 0
+        side = image.shape[0]
+        map_x = (uv[:, 0].numpy() * side - 0.5).astype(np.float32).reshape(1, -1)
+        map_y = (uv[:, 1].numpy() * side - 0.5).astype(np.float32).reshape(1, -1)
+        read = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        want += torch.from_numpy(read.reshape(200, 3))
+    torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-3)  # OpenCV's 5-bit interpolation weights
+    assert model.zero_start_prefixes() == ("atlas_features.", "nerf.atlas_input.")
+    assert make_model(body, projector).zero_start_prefixes() == ()
+    # trained, the branch takes gradient like every other module; untrained, it renders as without it
+    plain = make_model(body, projector, seed=1)
+    model.load_state_dict(plain.state_dict(), strict=False)
+    with torch.no_grad():
+        frame = model.prepare_frame(walk_inputs)
+        torch.testing.assert_close(model.render(frame, CAMERA).image,
+                                   plain.render(plain.prepare_frame(walk_inputs), CAMERA).image)
+        model.nerf.atlas_input.weight.normal_(0.0, 0.1)
+    model.train()
+    model.render(model.prepare_frame(walk_inputs), CAMERA).image.mean().backward()
+    assert "atlas_features" in model.trainable_modules()
+    for tex in model.atlas_features.textures:
+        assert tex.grad is not None and tex.grad.abs().sum() > 0

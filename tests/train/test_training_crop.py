@@ -169,6 +169,41 @@ def test_init_weights_starts_the_nerf_stage_from_every_weight(tiny_scene, gl_con
         _tc(tiny_scene, tmp_path / "x", training_crop_density=-1.0).validate()
 
 
+def test_init_weights_without_the_atlas_branch_adds_it_as_a_no_op(tiny_scene, gl_context, tmp_path):
+    """A config with ``atlas_feature_channels`` fine-tunes weights trained without it: the branch
+    starts at its initialisation (its MLP weights zero) and learns at ``atlas_feature_lr_scale``."""
+    from safetensors.torch import load_file
+
+    donor_run = tmp_path / "donor"
+    with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:
+        tr.train()
+    donor = load_file(str(donor_run / "model.safetensors"))
+    cfg = tiny_config().replace(atlas_feature_channels=2, atlas_feature_resolution=16, atlas_feature_lr_scale=5.0)
+    messages = []
+    tc = _tc(tiny_scene, tmp_path / "atlas", model_config=cfg, init_weights=donor_run / "model.safetensors",
+             iterations=1)
+    with Trainer(tc, gl_context, log=messages.append) as tr:
+        state = tr.model.state_dict()
+        assert all(torch.equal(state[k], v) for k, v in donor.items())
+        assert not state["nerf.atlas_input.weight"].any()
+        new = [k for k in state if k not in donor]
+        assert new and all(k.startswith(("atlas_features.", "nerf.atlas_input.")) for k in new)
+        assert any("new in this config" in m and "nerf.atlas_input.weight" in m for m in messages)
+        result = tr.train()
+        scales = sorted(g["lr_scale"] for g in tr.optimizer.param_groups)
+        lrs = sorted(g["lr"] for g in tr.optimizer.param_groups)
+        branch = {id(p) for g in tr.optimizer.param_groups if g["lr_scale"] == 5.0 for p in g["params"]}
+        assert branch == {id(p) for name, p in tr.model.named_parameters() if name.startswith(tuple(new))}
+    assert result.finished and scales == [1.0, 5.0] and lrs[1] == pytest.approx(5.0 * lrs[0])
+    trained = load_file(str(tmp_path / "atlas" / "model.safetensors"))
+    assert trained["nerf.atlas_input.weight"].abs().sum() > 0  # one step moved the branch off zero
+    # weights missing anything else still fail, naming the file
+    with pytest.raises(ValueError, match="donor.*missing"):
+        with Trainer(_tc(tiny_scene, tmp_path / "wider", model_config=tiny_config().replace(mlp_depth=3),
+                         init_weights=donor_run / "model.safetensors"), gl_context, log=lambda m: None):
+            pass
+
+
 def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_path, capsys):
     from garmentnerf.cli.main import main
 
