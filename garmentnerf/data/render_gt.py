@@ -242,7 +242,7 @@ class GroundTruthRenderer(GLObjectsOwner):
         self.max_sizes = max(1, int(max_sizes))
         with current(ctx):
             self.program = build_program(ctx, "gt_shaded.vert", "gt_shaded.frag")
-            self.resolve_program = build_program(ctx, "gt_resolve.vert", "gt_resolve.frag")
+            self.resolve_program = build_program(ctx, "fullscreen_triangle.vert", "gt_resolve.frag")
             self.resolve_program["u_factor"].value = self.supersample
             self.resolve_program["u_source"].value = 0
             self.resolve_vao = ctx.vertex_array(self.resolve_program, [])

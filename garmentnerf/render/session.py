@@ -226,7 +226,7 @@ class RenderSession(Closeable):
         from garmentnerf.model.frame_context import FrameInputBuilder
 
         self.run = run
-        self._body_pass = None  # the CameraPass of the body layer, made on first use
+        self._body_pass = None  # the BodyLayerPass, made on first use
         self.set_composition(composition)
         self.model = run.model.eval()
         self.config = run.config
@@ -442,16 +442,18 @@ class RenderSession(Closeable):
     def body_layer(self, features, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
         """The rasterised body layer of a frame (its :class:`~garmentnerf.model.frame_context.FrameFeatures`:
         the posed body and its vertex normals) seen by ``camera`` at its size
-        (:func:`~garmentnerf.render.body_layer.render_body_layer`; needs a body appearance)."""
-        from garmentnerf.gl.camera_pass import CameraPass
-        from garmentnerf.render.body_layer import render_body_layer
+        (drawn and shaded by :class:`~garmentnerf.gl.body_layer_pass.BodyLayerPass`, the GL side of
+        :func:`~garmentnerf.render.body_layer.render_body_layer`; needs a body appearance)."""
+        from garmentnerf.gl.body_layer_pass import BodyLayerPass
+        from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
 
         if self.body_appearance is None:
             raise ValueError("this session composes without a body layer (composition 'nerf')")
         if self._body_pass is None:
-            self._body_pass = CameraPass(self.gl_ctx)
-        return render_body_layer(self._body_pass, self.body, features.posed_vertices, camera, self.body_appearance,
-                                 normals=features.vertex_normals)
+            self._body_pass = BodyLayerPass(self.gl_ctx)
+        body = self.body
+        return self._body_pass.render(features.posed_vertices, features.vertex_normals, body.faces, body.uv,
+                                      body.uv_faces, camera, self.body_appearance, BODY_LAYER_SUPERSAMPLE)
 
     def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
         """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which

@@ -103,3 +103,34 @@ def test_fitted_appearance_reproduces_a_held_out_view(camera_pass, body, posed, 
     assert held_out_psnr(fitted) > 35.0
     assert flat < 20.0
     assert held_out_psnr(loose) < held_out_psnr(fitted) - 5.0
+
+
+@pytest.mark.parametrize("degree", [4, 2])
+def test_gl_body_layer_is_the_torch_reference(gl_context, camera_pass, body, posed, degree):
+    """:class:`BodyLayerPass` (rasterised and shaded by GL) against :func:`render_body_layer` (the
+    camera pass's G-buffer shaded in torch) with a random texture and shading: the same subsamples
+    are covered, and the colour agrees to texture-filtering precision."""
+    from garmentnerf.body.surface import vertex_normals
+    from garmentnerf.gl.body_layer_pass import BodyLayerPass
+
+    verts, cams = posed
+    normals = vertex_normals(verts, body.faces)
+    appearance = BodyAppearance(texture_size=32, degree=degree)
+    g = torch.Generator().manual_seed(degree)
+    with torch.no_grad():
+        appearance.albedo.uniform_(0.2, 1.5, generator=g)
+        appearance.shading.normal_(0.0, 0.4, generator=g)
+        appearance.shading[0] += 0.8
+    with BodyLayerPass(gl_context) as gl_pass:
+        for cam in (cams[0], cams[3].resized(71, 53)):
+            for supersample in (2, 1):
+                ref_color, ref_coverage = render_body_layer(camera_pass, body, verts, cam, appearance,
+                                                            supersample, normals=normals)
+                color, coverage = gl_pass.render(verts, normals, body.faces, body.uv, body.uv_faces, cam,
+                                                 appearance, supersample)
+                assert color.shape == (1, 3, cam.height, cam.width) and coverage.shape == (1, 1, cam.height,
+                                                                                            cam.width)
+                assert coverage.sum() > 50 and torch.equal(coverage, ref_coverage)
+                diff = (color - ref_color.detach()).abs()
+                assert ref_color.amax() > 0.5 and ref_color.std() > 0.05  # a layer worth comparing
+                assert diff.max() < 2e-3 and diff.mean() < 1e-5

@@ -1,5 +1,6 @@
 #version 330 core
-// Full-screen triangle for the supersampling resolve of garmentnerf.data.render_gt (no buffers).
+// A full-screen triangle without buffers (the supersampling resolves of garmentnerf.data.render_gt
+// and garmentnerf.gl.body_layer_pass).
 void main() {
     vec2 p = vec2(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0);
     gl_Position = vec4(p, 0.0, 1.0);

@@ -1,0 +1,187 @@
+"""The body layer of the hybrid composition, drawn and shaded by GL in two passes.
+
+:func:`garmentnerf.render.body_layer.render_body_layer` is the plain reference: it rasterises the
+body's G-buffer with the camera pass, reads it back, interpolates the normals and evaluates the
+:class:`~garmentnerf.model.body_appearance.BodyAppearance` in torch, then box-filters the
+subsamples. :class:`BodyLayerPass` computes the same layer on the GL side:
+
+1. ``shaders/body_layer.{vert,frag}`` draw the posed body at ``supersample`` times the camera's size
+   (the camera pass's non-indexed triangles, projection and depth test, so the same subsamples are
+   covered) and shade each subsample with the appearance: the albedo texture read at the
+   interpolated UV, times the shading polynomial of the normalised interpolated normal; an RGBA32F
+   target cleared to 0 holds ``(a, 1)`` where the body is.
+2. ``shaders/box_resolve.frag`` averages each ``supersample x supersample`` block: ``a`` premultiplied
+   by coverage, and the coverage. Only this image is read back.
+
+What it saves: the G-buffer's read-back at the supersampled size, its unpacking, the normal
+interpolation, the appearance and the pooling on the CPU (measured by ``garmentnerf bench``'s
+``body_layer`` row). ``tests/render/test_body_layer.py`` holds the two to each other.
+"""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+import torch
+
+from garmentnerf.conventions import Camera
+from garmentnerf.gl.context import current
+from garmentnerf.gl.mesh_arrays import as_numpy, check_mesh_arrays
+from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
+from garmentnerf.gl.shaders import build_program
+from garmentnerf.model.body_appearance import monomial_exponents
+
+
+def shading_sum_glsl(degree: int) -> str:
+    """GLSL of ``S(n)``, the sum ``u_shading[k] * monomial_k(n)`` over
+    :func:`~garmentnerf.model.body_appearance.monomial_exponents`, written out term by term (a
+    macro body for ``shaders/body_layer.frag``)."""
+    terms = []
+    for k, exponents in enumerate(monomial_exponents(degree)):
+        factors = [f"n.{axis}" for axis, e in zip("xyz", exponents) for _ in range(e)]
+        terms.append(f"u_shading[{k}]" + "".join(f" * {f}" for f in factors))
+    return "(" + " + ".join(terms) + ")"
+
+
+class _Targets:
+    """The supersampled target (with its depth buffer) and the resolved one, for one output size."""
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, supersample: int) -> None:
+        fine = (width * supersample, height * supersample)
+        self.fine = ctx.texture(fine, 4, dtype="f4")
+        self.fine.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.depth = ctx.depth_renderbuffer(fine)
+        self.fine_fbo = ctx.framebuffer(color_attachments=[self.fine], depth_attachment=self.depth)
+        self.resolved = ctx.texture((width, height), 4, dtype="f4")
+        self.resolved_fbo = ctx.framebuffer(color_attachments=[self.resolved])
+
+    def release(self) -> None:
+        for obj in (self.fine_fbo, self.resolved_fbo, self.fine, self.depth, self.resolved):
+            obj.release()
+
+
+class BodyLayerPass(GLObjectsOwner):
+    """Renders :func:`~garmentnerf.render.body_layer.render_body_layer`'s layer on one moderngl
+    context (see the module docstring). Call :meth:`release` (or use ``with``) to free it.
+
+    Args:
+        ctx: the moderngl context (made current by every method, and left current).
+        max_sizes: output sizes whose targets are kept.
+    """
+
+    def __init__(self, ctx: moderngl.Context, max_sizes: int = 4) -> None:
+        self.ctx = ctx
+        with current(ctx):
+            self.resolve = build_program(ctx, "fullscreen_triangle.vert", "box_resolve.frag")
+            self.resolve_vao = ctx.vertex_array(self.resolve, [])
+        self.resolve["u_source"].value = 0
+        self._programs: dict[int, moderngl.Program] = {}  # by shading degree
+        self.program: moderngl.Program | None = None  # the program of the last render
+        self._buffer: moderngl.Buffer | None = None
+        self._vao: moderngl.VertexArray | None = None
+        self._albedo: moderngl.Texture | None = None
+        self._targets: TargetCache[_Targets] = TargetCache(lambda key: _Targets(ctx, *key), max(1, int(max_sizes)))
+        self._released = False
+
+    def _use_program(self, degree: int) -> None:
+        """Make the program of ``degree`` current (built on first use; the vertex array follows it)."""
+        program = self._programs.get(degree)
+        if program is None:
+            defines = {"SHADING_TERMS": len(monomial_exponents(degree)), "SHADING_SUM(n)": shading_sum_glsl(degree)}
+            program = build_program(self.ctx, "body_layer.vert", "body_layer.frag", defines)
+            program["u_albedo"].value = 0
+            self._programs[degree] = program
+        if program is not self.program:
+            self.program = program
+            if self._vao is not None:
+                self._vao.release()
+                self._vao = None
+
+    def _upload_mesh(self, vertices, normals, faces, uv, uv_faces) -> int:
+        """Interleave position, normal and UV per corner; returns the vertex count."""
+        verts, tris = check_mesh_arrays(vertices, faces)
+        normals = as_numpy(normals, np.float32)
+        uv = as_numpy(uv, np.float32)
+        uv_tris = as_numpy(uv_faces, np.int64)
+        if normals.shape != verts.shape:
+            raise ValueError(f"normals must have the shape of vertices {verts.shape}, got {normals.shape}")
+        if uv.ndim != 2 or uv.shape[1] != 2 or uv_tris.shape != tris.shape:
+            raise ValueError(f"uv must be (Nuv, 2) and uv_faces {tris.shape}, got {uv.shape} and {uv_tris.shape}")
+        corners = np.concatenate([verts[tris.reshape(-1)], normals[tris.reshape(-1)], uv[uv_tris.reshape(-1)]],
+                                 axis=1)
+        data = np.ascontiguousarray(corners, dtype=np.float32)
+        if self._buffer is None or self._buffer.size < data.nbytes:
+            if self._vao is not None:
+                self._vao.release()
+                self._vao = None
+            if self._buffer is not None:
+                self._buffer.release()
+            self._buffer = self.ctx.buffer(reserve=max(2 * data.nbytes, 64), dynamic=True)
+        if self._vao is None:
+            self._vao = self.ctx.vertex_array(self.program, [(self._buffer, "3f 3f 2f", "in_position", "in_normal",
+                                                              "in_uv")])
+        self._buffer.write(data)
+        return len(data)
+
+    def _upload_appearance(self, appearance) -> None:
+        albedo = appearance.albedo.detach().to("cpu", torch.float32)  # (3, T, T), row 0 is v = 0
+        texels = np.ascontiguousarray(albedo.permute(1, 2, 0).numpy())
+        size = (texels.shape[1], texels.shape[0])
+        if self._albedo is None or self._albedo.size != size:
+            if self._albedo is not None:
+                self._albedo.release()
+            self._albedo = self.ctx.texture(size, 3, dtype="f4")
+            self._albedo.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self._albedo.repeat_x = self._albedo.repeat_y = False
+        self._albedo.write(texels)
+        shading = appearance.shading.detach().to("cpu", torch.float32).numpy()
+        self.program["u_shading"].write(np.ascontiguousarray(shading).tobytes())
+
+    def render(self, vertices, normals, faces, uv, uv_faces, camera: Camera, appearance,
+               supersample: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+        """The body layer of ``camera`` at its size.
+
+        Args:
+            vertices, normals: (V, 3) the posed body and its unit vertex normals.
+            faces: (F, 3); uv: (Nuv, 2) the atlas; uv_faces: (F, 3) indices into it.
+            camera: the view.
+            appearance: the :class:`~garmentnerf.model.body_appearance.BodyAppearance`.
+            supersample: subsamples per pixel side.
+        Returns:
+            As :func:`~garmentnerf.render.body_layer.render_body_layer`: ``color`` (1, 3, H, W)
+            premultiplied by ``coverage`` (1, 1, H, W).
+        """
+        self._check_not_released()
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be a conventions.Camera, got {type(camera).__name__}")
+        s = max(1, int(supersample))
+        W, H = camera.width, camera.height
+        with current(self.ctx):
+            self._use_program(int(appearance.degree))
+            count = self._upload_mesh(vertices, normals, faces, uv, uv_faces)
+            self._upload_appearance(appearance)
+            fine = camera.resized(W * s, H * s) if s > 1 else camera
+            self.program["u_view"].write(fine.world_to_camera().T.astype(np.float32).tobytes())
+            self.program["u_proj"].write(fine.gl_projection().T.astype(np.float32).tobytes())
+            targets = self._targets.get((W, H, s))
+            with self.ctx.scope(targets.fine_fbo, enable_only=moderngl.DEPTH_TEST):
+                targets.fine_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                self._albedo.use(location=0)
+                self._vao.render(moderngl.TRIANGLES, vertices=count)
+            with self.ctx.scope(targets.resolved_fbo, enable_only=moderngl.NOTHING):
+                targets.fine.use(location=0)
+                self.resolve["u_factor"].value = s
+                self.resolve_vao.render(moderngl.TRIANGLES, vertices=3)
+            out = np.empty((H, W, 4), dtype=np.float32)
+            targets.resolved_fbo.read_into(out, components=4, dtype="f4")
+        layer = torch.from_numpy(out).permute(2, 0, 1).unsqueeze(0)  # (1, 4, H, W), row 0 at the top
+        return layer[:, :3].contiguous(), layer[:, 3:].contiguous()
+
+    def _release_objects(self) -> None:
+        self._targets.release()
+        for obj in (self._vao, self._buffer, self._albedo, self.resolve_vao, self.resolve, *self._programs.values()):
+            if obj is not None:
+                obj.release()
+
+
+__all__ = ["BodyLayerPass", "shading_sum_glsl"]
