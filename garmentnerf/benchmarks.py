@@ -78,6 +78,19 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
     with CameraPass(ctx) as cam_pass:
         results["camera_pass_512_ms"] = median_ms(lambda: cam_pass.render(verts, body.faces, camera, body.uv, body.uv_faces), runs)
         results["depth_range_512_ms"] = median_ms(lambda: cam_pass.render_depth_range(verts, body.faces, camera), runs)
+        # the raster_body composition's body layer, 2 x 2 supersampled: GL-shaded against the plain
+        # reference (camera pass + torch), side by side on a random appearance
+        from garmentnerf.gl.body_layer_pass import BodyLayerPass
+        from garmentnerf.model.body_appearance import BodyAppearance
+        from garmentnerf.render.body_layer import render_body_layer
+
+        appearance = BodyAppearance()
+        normals = vertex_normals(verts, body.faces)
+        with torch.no_grad(), BodyLayerPass(ctx) as layer_pass:
+            results["body_layer_gl_512_ms"] = median_ms(lambda: layer_pass.render(
+                verts, normals, body.faces, body.uv, body.uv_faces, camera, appearance), runs)
+            results["body_layer_reference_512_ms"] = median_ms(lambda: render_body_layer(
+                cam_pass, body, verts, camera, appearance, normals=normals), runs)
 
     projector = BodyPointProjector(body)  # closest point, signed h, b_o and uv
     normals = vertex_normals(verts, body.faces)

@@ -20,6 +20,8 @@ ROWS = [
     ("info_maps_total_ms_per_frame", "info maps total (paper: 130 ms)", "ms/frame"),
     ("camera_pass_512_ms", "camera pass 512x512 (depth, face, bary, uv)", "ms"),
     ("depth_range_512_ms", "ray bounds 512x512 (near + far depth)", "ms"),
+    ("body_layer_gl_512_ms", "body layer 512x512, 2x2 supersampled: GL-shaded", "ms"),
+    ("body_layer_reference_512_ms", "body layer: the reference (camera pass + torch)", "ms"),
     ("projection_ms", "body projection of 262,144 points (b_t, h, b_o, uv)", "ms"),
     ("projection_points_per_s", "surface projection throughput", "points/s"),
 ]

@@ -338,7 +338,7 @@ class Trainer(Closeable):
                      f"continuing with '{self.perceptual_name}'")
         self.data = SceneFramesFactory(self.scene, cfg, gl_context, self.model.body, tc.cache_bytes)
         self.body_appearance = self._body_appearance(resume_info)
-        self._body_pass = None  # the CameraPass of the body layer, made on first use
+        self._body_pass = None  # the BodyLayerPass of the body layer, made on first use
         self.step = 0
         self.optimizer = None
         self.stage = None
@@ -574,14 +574,16 @@ class Trainer(Closeable):
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
         frame's body (``feats``: posed vertices and normals) rasterised in ``camera`` and drawn with
         the frozen body appearance."""
-        from garmentnerf.gl.camera_pass import CameraPass
-        from garmentnerf.render.body_layer import render_body_layer
+        from garmentnerf.gl.body_layer_pass import BodyLayerPass
+        from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
 
         if self._body_pass is None:
-            self._body_pass = CameraPass(self.data.frames.ctx)
+            self._body_pass = BodyLayerPass(self.data.frames.ctx)
+        body = self.model.body
         with torch.no_grad():
-            color, coverage = render_body_layer(self._body_pass, self.model.body, feats.posed_vertices.detach(),
-                                                camera, self.body_appearance, normals=feats.vertex_normals.detach())
+            color, coverage = self._body_pass.render(feats.posed_vertices, feats.vertex_normals, body.faces, body.uv,
+                                                     body.uv_faces, camera, self.body_appearance,
+                                                     BODY_LAYER_SUPERSAMPLE)
         maps = out.maps.with_body(color.to(self.device), coverage.to(self.device))
         return maps.compose(out.palette, out.background)[0]
 
