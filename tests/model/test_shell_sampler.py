@@ -35,8 +35,8 @@ class Banded(torch.nn.Module):
         super().__init__()
         self.inner, self.band, self.scale = inner, band, scale
 
-    def forward(self, canonical, distance, detail=None, dynamic=None):
-        sigma, zeta = self.inner(canonical, distance, detail, dynamic)
+    def forward(self, canonical, distance, detail=None, dynamic=None, atlas=None):
+        sigma, zeta = self.inner(canonical, distance, detail, dynamic, atlas)
         inside = (distance >= self.band.h_min) & (distance <= self.band.h_max)
         return sigma * inside.to(sigma.dtype) * self.scale, zeta
 

@@ -38,8 +38,8 @@ class ForcedDensity(torch.nn.Module):
         super().__init__()
         self.inner, self.value = inner, value
 
-    def forward(self, canonical, distance, detail=None, dynamic=None):
-        sigma, zeta = self.inner(canonical, distance, detail, dynamic)
+    def forward(self, canonical, distance, detail=None, dynamic=None, atlas=None):
+        sigma, zeta = self.inner(canonical, distance, detail, dynamic, atlas)
         return sigma * 0.0 + self.value, zeta
 
 
