@@ -204,6 +204,29 @@ def test_init_weights_without_the_atlas_branch_adds_it_as_a_no_op(tiny_scene, gl
             pass
 
 
+def test_atlas_branch_resumes_exactly(tiny_scene, gl_context, tmp_path):
+    """Stopped and resumed, a run with the atlas branch ends with the uninterrupted run's weights:
+    the optimiser's two parameter groups and their learning-rate scales come back from the checkpoint."""
+    from safetensors.torch import load_file
+
+    cfg = tiny_config().replace(atlas_feature_channels=2, atlas_feature_resolution=16, atlas_feature_lr_scale=5.0)
+    with Trainer(_tc(tiny_scene, tmp_path / "whole", model_config=cfg, iterations=3), gl_context,
+                 log=lambda m: None) as tr:
+        tr.train()
+    with Trainer(_tc(tiny_scene, tmp_path / "split", model_config=cfg, iterations=3, stop_after=2, ckpt_every=1),
+                 gl_context, log=lambda m: None) as tr:
+        assert not tr.train().finished
+    with Trainer(_tc(tiny_scene, tmp_path / "split", model_config=None, iterations=None, generator_iterations=None,
+                     resume=True), gl_context, log=lambda m: None) as tr:
+        assert tr.train().finished
+        assert sorted(g["lr_scale"] for g in tr.optimizer.param_groups) == [1.0, 5.0]
+    whole = load_file(str(tmp_path / "whole" / "model.safetensors"))
+    split = load_file(str(tmp_path / "split" / "model.safetensors"))
+    assert whole.keys() == split.keys() and any(k.startswith("atlas_features.") for k in whole)
+    for key, value in whole.items():
+        torch.testing.assert_close(split[key], value, atol=1e-6, rtol=0, msg=key)
+
+
 def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_path, capsys):
     from garmentnerf.cli.main import main
 
