@@ -20,8 +20,9 @@
 //   layer 0: radiance r (rgb; a grey radiance is uploaded to all three) and mask m (a)
 //   layer 1: blend weights w_0..w_3
 //   layer 2 + i: offset o_i (rgb) of palette color i
-//   layer 2 + P (with u_has_body): the rasterised body's color a premultiplied by its coverage (rgb),
-//     and the coverage alpha_b (a)
+// u_body (sampler2D, RGBA32F, with u_has_body; drawn by garmentnerf.gl.body_layer_pass at the size
+//   the layer is shown at, rows as u_maps): the rasterised body's color a premultiplied by its
+//   coverage (rgb), and the coverage alpha_b (a)
 // Changing a color only changes u_palette: recoloring never re-runs the network.
 //
 // Modes (u_mode): 0 neural, 1 ground truth (u_gt), 2 difference |neural over u_background - gt| x
@@ -36,6 +37,7 @@
 uniform sampler2DArray u_maps;
 uniform sampler2D u_gt;
 uniform sampler2D u_depth;
+uniform sampler2D u_body;
 uniform vec3 u_palette[MAX_PALETTE];
 uniform int u_palette_size;
 uniform int u_has_body;
@@ -77,7 +79,7 @@ vec3 premultiplied(vec2 uv, out float alpha) {
     float share = 1.0 - w[u_palette_size - 1];
     float visible = rm.a * share;
     vec3 garment = clamp(rm.rgb * base / max(share, 1e-6), 0.0, 1.0);
-    vec4 body = texture(u_maps, vec3(uv, 2.0 + float(u_palette_size)));
+    vec4 body = texture(u_body, uv);
     vec3 body_color = clamp(u_palette[u_palette_size - 1] * body.rgb, 0.0, 1.0);
     alpha = visible + (1.0 - visible) * body.a;
     return visible * garment + (1.0 - visible) * body_color;

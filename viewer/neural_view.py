@@ -70,6 +70,8 @@ class NeuralView:
         self.palette = self.learned_palette.copy()
         layer.set_palette(self.palette)
         layer.background = tuple(float(c) for c in run.config.background)
+        if self.can_rasterise_body:
+            layer.set_body_model(run.model.body, run.body_appearance)
         if run.scene is not None:
             names = run.scene.camera_names("train") or run.scene.camera_names()
             self.gt_camera = names[0] if names else None
@@ -80,7 +82,7 @@ class NeuralView:
         """Worker thread: hand the maps to the layer (thread-safe) and queue the result for the UI."""
         layer = self.scene.palette_layer
         layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
-                     has_body=result.has_body)
+                     body=result.body)
         if result.ground_truth is not None:
             layer.submit_ground_truth(result.ground_truth)
         self.results.append(result)

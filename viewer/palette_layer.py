@@ -8,6 +8,12 @@ It also shows the ground truth, their difference and the raw maps (:data:`PALETT
 How it is drawn is decided once per draw, by :meth:`PaletteLayer.composition`: the same
 :class:`Composition` gives the GL state of its pass (blended by its mask over the scene, optionally
 depth tested against the body; or opaque) and the shader's uniforms, so the two cannot disagree.
+
+The body layer (the ``raster_body`` composition) is not uploaded with the maps: a result brings
+the posed body (:class:`BodyView`) and :meth:`PaletteLayer.prepare` draws it with the run's body
+appearance (:class:`~garmentnerf.gl.body_layer_pass.BodyLayerPass`, 2 x 2 supersampled) at the
+size the layer is shown at, in the result's camera. So the body is as sharp as the view, costs the
+render worker nothing, and is redrawn only when a result or the shown size changes.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
+from garmentnerf.conventions import Camera
 from garmentnerf.gl.shaders import build_program
 from garmentnerf.viewer.renderables import PassState, ViewParams
 
@@ -31,15 +38,23 @@ MAP_VIEWS = ("mask", "weights", "radiance")
 MAX_PALETTE = 4
 
 
-def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, mask: np.ndarray,
-              body_color: np.ndarray | None = None, body_coverage: np.ndarray | None = None) -> np.ndarray:
-    """Decomposed maps (batch dimension dropped, rows top-first) -> (2 + P [+ 1], H, W, 4) float32
-    layers for ``shaders/viewer_palette.frag``: [radiance rgb + mask], [weights], [offset_i rgb + 0]
-    ..., and with a body layer (the ``raster_body`` composition) [body color rgb + coverage] last.
+@dataclass(frozen=True)
+class BodyView:
+    """The body of one neural result, for the layer to draw: ``vertices`` and unit vertex
+    ``normals`` (V, 3) float32 of the posed body, seen by ``camera`` (the result's; the layer draws
+    it resized to the size it is shown at)."""
+
+    vertices: np.ndarray
+    normals: np.ndarray
+    camera: Camera
+
+
+def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Decomposed maps (batch dimension dropped, rows top-first) -> (2 + P, H, W, 4) float32
+    layers for ``shaders/viewer_palette.frag``: [radiance rgb + mask], [weights], [offset_i rgb + 0] ...
 
     Args:
-        radiance: (3 or 1, H, W); offsets: (P, 3, H, W); weights: (P, H, W); mask: (1, H, W) or (H, W);
-        body_color: (3, H, W) and body_coverage: (1, H, W) or (H, W), or None.
+        radiance: (3 or 1, H, W); offsets: (P, 3, H, W); weights: (P, H, W); mask: (1, H, W) or (H, W).
     """
     radiance = np.asarray(radiance, dtype=np.float32)
     offsets = np.asarray(offsets, dtype=np.float32)
@@ -50,30 +65,19 @@ def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, ma
         raise ValueError(f"the viewer's palette shader handles 1..{MAX_PALETTE} colors, got {P}")
     if offsets.shape != (P, 3, H, W) or radiance.shape[1:] != (H, W) or radiance.shape[0] not in (1, 3):
         raise ValueError(f"maps disagree: radiance {radiance.shape}, offsets {offsets.shape}, weights {weights.shape}")
-    if (body_color is None) != (body_coverage is None):
-        raise ValueError("give both body_color and body_coverage, or neither")
-    has_body = body_color is not None
-    out = np.zeros((2 + P + int(has_body), H, W, 4), dtype=np.float32)
+    out = np.zeros((2 + P, H, W, 4), dtype=np.float32)
     out[0, ..., :3] = np.broadcast_to(radiance, (3, H, W)).transpose(1, 2, 0)
     out[0, ..., 3] = mask
     out[1, ..., :P] = weights.transpose(1, 2, 0)
     out[2:2 + P, ..., :3] = offsets.transpose(0, 2, 3, 1)
-    if has_body:
-        color = np.asarray(body_color, dtype=np.float32)
-        if color.shape != (3, H, W):
-            raise ValueError(f"body layer {color.shape} does not match the maps ({H}, {W})")
-        out[-1, ..., :3] = color.transpose(1, 2, 0)
-        out[-1, ..., 3] = np.asarray(body_coverage, dtype=np.float32).reshape(H, W)
     return out
 
 
-def pack_frame(maps) -> tuple[np.ndarray, bool]:
-    """:func:`pack_maps` of a :class:`~garmentnerf.model.palette.DecomposedMaps` (batch 1, CPU), and
-    whether it has a body layer."""
-    body = maps.body_color is not None
-    extra = (maps.body_color[0].numpy(), maps.body_coverage[0].numpy()) if body else ()
+def pack_frame(maps) -> np.ndarray:
+    """:func:`pack_maps` of a :class:`~garmentnerf.model.palette.DecomposedMaps` (batch 1, CPU;
+    a body layer attached to it is not packed: the layer draws its own, :class:`BodyView`)."""
     return pack_maps(maps.radiance[0].numpy(), maps.offsets[0].numpy(), maps.weights[0].numpy(),
-                     maps.mask[0].numpy(), *extra), body
+                     maps.mask[0].numpy())
 
 
 def fit_rect(area: tuple[float, float, float, float], vw: float, vh: float,
@@ -112,11 +116,11 @@ class Composition:
 
 @dataclass
 class _PaletteMaps:
-    layers: np.ndarray          # (2 + P [+ 1], h, w, 4) float32, see pack_maps
+    layers: np.ndarray          # (2 + P, h, w, 4) float32, see pack_maps
     depth: np.ndarray           # (h, w) float32 camera-space z, 0 where empty
     image_size: tuple[int, int]  # (W, H) of the camera the maps belong to (its aspect is kept)
     tag: object = None
-    has_body: bool = False      # the last layer is the rasterised body's (the raster_body composition)
+    body: BodyView | None = None  # the body to draw under the garment (the raster_body composition)
 
 
 def _texture(ctx: moderngl.Context, size: tuple[int, int], components: int, dtype: str, filter_: int,
@@ -132,8 +136,8 @@ class PaletteLayer:
     """The neural render as decomposed maps, composed with the palette in a fragment shader.
 
     Thread contract: :meth:`submit` / :meth:`submit_ground_truth` from any thread (numpy only),
-    uploads in :meth:`prepare` on the GL thread. :meth:`set_palette` only sets a uniform:
-    recoloring costs nothing.
+    uploads (and the body layer's draw) in :meth:`prepare` on the GL thread. :meth:`set_palette`
+    only sets a uniform: recoloring costs nothing.
 
     Attributes:
         mode: key of :data:`PALETTE_MODES`; side_by_side: draw the neural image and the ground truth
@@ -158,7 +162,7 @@ class PaletteLayer:
         self.diff_gain = 4.0
         self.palette = np.full((1, 3), 0.5, dtype=np.float32)
         self.program = build_program(ctx, "viewer_palette.vert", "viewer_palette.frag")
-        for name, unit in (("u_maps", 0), ("u_gt", 1), ("u_depth", 2)):
+        for name, unit in (("u_maps", 0), ("u_gt", 1), ("u_depth", 2), ("u_body", 3)):
             self.program[name].value = unit
         self.vao = ctx.vertex_array(self.program, [])
         self.maps_tex: moderngl.TextureArray | None = None
@@ -166,7 +170,12 @@ class PaletteLayer:
         self.gt_tex: moderngl.Texture | None = None
         self.image_size: tuple[int, int] | None = None
         self.tag: object = None
-        self.has_body = False
+        self.body: BodyView | None = None     # the shown result's body (None: no body layer)
+        self.body_draws = 0                   # body layers drawn so far (tests: a still view draws none)
+        self._body_model = None               # (faces, uv, uv_faces, appearance) of set_body_model
+        self._body_pass = None                # the BodyLayerPass, made at the first body
+        self._body_tex: moderngl.Texture | None = None  # the pass's texture of the shown body
+        self._body_key: object = None         # (body, size) the texture holds
         self.uploads = 0
         self._lock = threading.Lock()
         self._pending: _PaletteMaps | None = None
@@ -182,8 +191,13 @@ class PaletteLayer:
         return self.gt_tex is not None
 
     @property
+    def has_body(self) -> bool:
+        """Whether the shown result composes over a drawn body layer."""
+        return self.body is not None
+
+    @property
     def palette_size(self) -> int:
-        return 0 if self.maps_tex is None else self.maps_tex.layers - 2 - int(self.has_body)
+        return 0 if self.maps_tex is None else self.maps_tex.layers - 2
 
     # ---- inputs (any thread) ---------------------------------------------------------------------
     def set_palette(self, palette) -> None:
@@ -193,18 +207,25 @@ class PaletteLayer:
             raise ValueError(f"palette must be (P, 3) finite with 1 <= P <= {MAX_PALETTE}, got {pal.shape}")
         self.palette = np.clip(pal, 0.0, 1.0)
 
+    def set_body_model(self, body, appearance) -> None:
+        """The body a :class:`BodyView` poses (its ``faces``, atlas ``uv`` and ``uv_faces``) and the
+        run's :class:`~garmentnerf.model.body_appearance.BodyAppearance`, read on the GL thread."""
+        self._body_model = (np.asarray(body.faces), np.asarray(body.uv, dtype=np.float32),
+                            np.asarray(body.uv_faces), appearance)
+        self._body_key = None
+
     def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None,
-               has_body: bool = False) -> None:
+               body: BodyView | None = None) -> None:
         """Queue maps packed by :func:`pack_maps` with their depth (h, w) and the output size (W, H);
-        ``has_body``: they end with a body layer."""
+        ``body``: the result's body, drawn under the garment (needs :meth:`set_body_model`)."""
         layers = np.ascontiguousarray(layers, dtype=np.float32)
         depth = np.ascontiguousarray(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0))
         if layers.ndim != 4 or layers.shape[-1] != 4 or layers.shape[0] < 3 or depth.shape != layers.shape[1:3]:
             raise ValueError(f"palette layer needs (2 + P, h, w, 4) maps and (h, w) depth, got {layers.shape} "
                              f"and {depth.shape}")
-        if has_body and layers.shape[0] < 4:
-            raise ValueError(f"maps with a body layer need a garment and a body color, got {layers.shape[0]} layers")
-        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, bool(has_body))
+        if body is not None and (layers.shape[0] < 4 or self._body_model is None):
+            raise ValueError("a body layer needs a garment and a body color and set_body_model() first")
+        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, body)
         with self._lock:
             self._pending = item
 
@@ -220,7 +241,14 @@ class PaletteLayer:
             self._clear_gt = image is None
 
     # ---- GL thread -------------------------------------------------------------------------------
-    def prepare(self) -> None:
+    def prepare(self, view: ViewParams | None = None) -> None:
+        """Upload what was submitted; with ``view``, draw the body layer at the size the layer is
+        shown at in it (when that or the body changed)."""
+        self._upload()
+        if view is not None and self.visible and self.body is not None and self.maps_tex is not None:
+            self._draw_body(view)
+
+    def _upload(self) -> None:
         with self._lock:
             item, self._pending = self._pending, None
             gt, self._pending_gt = self._pending_gt, None
@@ -245,8 +273,26 @@ class PaletteLayer:
         self.depth_tex.write(item.depth)
         self.image_size = item.image_size
         self.tag = item.tag
-        self.has_body = item.has_body
+        self.body = item.body
         self.uploads += 1
+
+    def _draw_body(self, view: ViewParams) -> None:
+        from garmentnerf.gl.body_layer_pass import BodyLayerPass
+
+        x0, y0, x1, y1 = self._rects(view, self.composition())[0][1]
+        size = (max(1, round((x1 - x0) * 0.5 * view.camera.width)), max(1, round((y1 - y0) * 0.5 * view.camera.height)))
+        key = (id(self.body), size)
+        if key == self._body_key:
+            return
+        if self._body_pass is None:
+            self._body_pass = BodyLayerPass(self.ctx, max_sizes=2)
+        faces, uv, uv_faces, appearance = self._body_model
+        self._body_tex = self._body_pass.draw(self.body.vertices, self.body.normals, faces, uv, uv_faces,
+                                              self.body.camera.resized(*size), appearance)
+        self._body_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self._body_tex.repeat_x = self._body_tex.repeat_y = False
+        self._body_key = key
+        self.body_draws += 1
 
     def composition(self) -> Composition:
         """How to draw now: the requested mode, or the network's image while a mode that needs the
@@ -269,15 +315,21 @@ class PaletteLayer:
         if self.gt_tex is not None:
             self.gt_tex.use(location=1)
         self.depth_tex.use(location=2)
+        if self.has_body:
+            self._body_tex.use(location=3)
+        for mode, rect in self._rects(view, how):
+            self._draw_rect(view, how, mode, rect)
+
+    def _rects(self, view: ViewParams, how: Composition) -> list[tuple[str, tuple[float, float, float, float]]]:
+        """(mode, NDC rect) of each image drawn: the neural one first."""
         vw, vh = float(view.camera.width), float(view.camera.height)
         if how.side_by_side:
             x0, y0, x1, y1 = view.free_area
             middle = 0.5 * (x0 + x1)
             left = "neural" if how.mode == "ground_truth" else how.mode
-            self._draw_rect(view, how, left, fit_rect((x0, y0, middle, y1), vw, vh, self.image_size))
-            self._draw_rect(view, how, "ground_truth", fit_rect((middle, y0, x1, y1), vw, vh, self.image_size))
-        else:
-            self._draw_rect(view, how, how.mode, fit_rect((-1.0, -1.0, 1.0, 1.0), vw, vh, self.image_size))
+            return [(left, fit_rect((x0, y0, middle, y1), vw, vh, self.image_size)),
+                    ("ground_truth", fit_rect((middle, y0, x1, y1), vw, vh, self.image_size))]
+        return [(how.mode, fit_rect((-1.0, -1.0, 1.0, 1.0), vw, vh, self.image_size))]
 
     def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect) -> None:
         p = self.program
@@ -308,6 +360,9 @@ class PaletteLayer:
 
     def release(self) -> None:
         self._release_maps()
+        if self._body_pass is not None:
+            self._body_pass.release()
+            self._body_pass = self._body_tex = None
         if self.gt_tex is not None:
             self.gt_tex.release()
             self.gt_tex = None

@@ -12,7 +12,8 @@ Orientation (read this before touching projections)
 
 A renderable's lifecycle (as aitviewer's scene nodes)
     It builds its GL objects in ``__init__`` on the renderer's context, uploads lazily in
-    ``prepare()`` when something is pending, declares the GL state of its pass in ``pass_state()``
+    ``prepare(view)`` when something is pending (and may draw into its own targets there: the
+    renderer binds its framebuffer after every ``prepare``), declares the GL state of its pass in ``pass_state()``
     (the renderer sets exactly that state before ``draw()``; a renderable never touches GL flags
     itself), draws in ``draw(view)``, frees everything in ``release()``, and draws its own panel
     rows in ``gui(imgui)`` (the imgui module is handed in: this module imports no window library).
@@ -166,7 +167,7 @@ class BodyMesh:
         self.key = key
         return True
 
-    def prepare(self) -> None:
+    def prepare(self, view: ViewParams | None = None) -> None:
         if self._pending_faces is not None:
             self._release_buffers()
             self.vbo = self.ctx.buffer(reserve=max(self.num_vertices * 24, 24), dynamic=True)
@@ -232,7 +233,7 @@ class FloorGrid:
         self.program = build_program(ctx, "viewer_floor.vert", "viewer_floor.frag")
         self.vao = ctx.vertex_array(self.program, [])
 
-    def prepare(self) -> None:
+    def prepare(self, view: ViewParams | None = None) -> None:
         pass  # nothing to upload: the quad is made in the vertex shader
 
     def pass_state(self) -> PassState:

@@ -222,7 +222,7 @@ class SceneRenderer:
         ctx = self.ctx
         with current(ctx):
             for r in self.renderables:
-                r.prepare()
+                r.prepare(view)
             target.fbo.use()
             ctx.viewport = (0, 0, *target.size)
             ctx.scissor = None

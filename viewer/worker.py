@@ -183,13 +183,14 @@ class NeuralResult:
     """One finished neural frame, as numpy for the GL thread.
 
     Attributes:
-        layers: (2 + P [+ 1], h, w, 4) float32 maps packed by :func:`~garmentnerf.viewer.palette_layer.pack_maps`.
+        layers: (2 + P, h, w, 4) float32 maps packed by :func:`~garmentnerf.viewer.palette_layer.pack_maps`.
         depth: (h, w) float32 camera-space z, 0 where empty.
         image_size: (W, H) of the requested camera; render_size: (w, h) actually rendered.
         quality, preset: what was rendered; frame: the clip frame (clamped to the clip).
         timings: stage -> ms (``RenderSession.render``'s); cached_frame: the frame's features were cached.
         ground_truth: (H, W, 3) of the request's scene camera, or None; counts: sample counts.
-        has_body: the last layer is the rasterised body (the ``raster_body`` composition).
+        body: the posed body the palette layer draws under the garment
+            (:class:`~garmentnerf.viewer.palette_layer.BodyView`; the ``raster_body`` composition), or None.
     """
 
     layers: Any
@@ -203,7 +204,7 @@ class NeuralResult:
     ground_truth: Any = None
     preset: str = ""
     counts: dict | None = None
-    has_body: bool = False
+    body: Any = None
 
 
 class NeuralRenderer:
@@ -263,7 +264,7 @@ class NeuralRenderer:
         if request is _CLOSE:
             self._thread_session.close()
             return None
-        from garmentnerf.viewer.palette_layer import pack_frame
+        from garmentnerf.viewer.palette_layer import BodyView, pack_frame
 
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
         frame = min(max(0, int(request.frame)), session.num_frames - 1)
@@ -271,13 +272,15 @@ class NeuralRenderer:
         session.set_composition(request.composition)
         try:
             nf = session.render(frame, request.camera, request.quality, preset=request.preset,
-                                should_cancel=lambda: self.worker.should_cancel(generation))
+                                should_cancel=lambda: self.worker.should_cancel(generation), body_layer=False)
         except RenderCancelled:
             return None
-        layers, has_body = pack_frame(nf.maps)
-        return NeuralResult(layers, nf.depth, nf.output_size, nf.render_size, nf.quality, frame, nf.timings,
-                            nf.cached_frame, self._ground_truth(session, request), nf.preset, dict(nf.counts),
-                            has_body)
+        body = None
+        if nf.body is not None:  # the window draws the body layer at the size it shows it
+            body = BodyView(nf.body[0].numpy(), nf.body[1].numpy(), nf.camera)
+        return NeuralResult(pack_frame(nf.maps), nf.depth, nf.output_size, nf.render_size, nf.quality, frame,
+                            nf.timings, nf.cached_frame, self._ground_truth(session, request), nf.preset,
+                            dict(nf.counts), body)
 
     def _precompute(self) -> bool:
         """Idle work: the next frame of the clip nearest to the playhead (see

@@ -81,6 +81,7 @@ class BodyLayerPass(GLObjectsOwner):
         self._vao: moderngl.VertexArray | None = None
         self._albedo: moderngl.Texture | None = None
         self._targets: TargetCache[_Targets] = TargetCache(lambda key: _Targets(ctx, *key), max(1, int(max_sizes)))
+        self._last: _Targets | None = None  # the targets of the last draw
         self._released = False
 
     def _use_program(self, degree: int) -> None:
@@ -137,20 +138,13 @@ class BodyLayerPass(GLObjectsOwner):
         shading = appearance.shading.detach().to("cpu", torch.float32).numpy()
         self.program["u_shading"].write(np.ascontiguousarray(shading).tobytes())
 
-    def render(self, vertices, normals, faces, uv, uv_faces, camera: Camera, appearance,
-               supersample: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
-        """The body layer of ``camera`` at its size.
-
-        Args:
-            vertices, normals: (V, 3) the posed body and its unit vertex normals.
-            faces: (F, 3); uv: (Nuv, 2) the atlas; uv_faces: (F, 3) indices into it.
-            camera: the view.
-            appearance: the :class:`~garmentnerf.model.body_appearance.BodyAppearance`.
-            supersample: subsamples per pixel side.
-        Returns:
-            As :func:`~garmentnerf.render.body_layer.render_body_layer`: ``color`` (1, 3, H, W)
-            premultiplied by ``coverage`` (1, 1, H, W).
-        """
+    def draw(self, vertices, normals, faces, uv, uv_faces, camera: Camera, appearance,
+             supersample: int = 2) -> moderngl.Texture:
+        """Draw the body layer of ``camera`` into the pass's RGBA32F texture of the camera's size
+        (rgb: ``a`` premultiplied by coverage, a: coverage; row 0 is image row 0) and return it, for
+        a caller that samples it on the GPU. The texture belongs to the pass: it is overwritten by
+        the next draw of the same size and freed with the pass. Leaves the pass's framebuffer bound;
+        the caller sets its own state after. Arguments as :meth:`render`."""
         self._check_not_released()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a conventions.Camera, got {type(camera).__name__}")
@@ -172,8 +166,27 @@ class BodyLayerPass(GLObjectsOwner):
                 targets.fine.use(location=0)
                 self.resolve["u_factor"].value = s
                 self.resolve_vao.render(moderngl.TRIANGLES, vertices=3)
-            out = np.empty((H, W, 4), dtype=np.float32)
-            targets.resolved_fbo.read_into(out, components=4, dtype="f4")
+        self._last = targets
+        return targets.resolved
+
+    def render(self, vertices, normals, faces, uv, uv_faces, camera: Camera, appearance,
+               supersample: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+        """The body layer of ``camera`` at its size, read back.
+
+        Args:
+            vertices, normals: (V, 3) the posed body and its unit vertex normals.
+            faces: (F, 3); uv: (Nuv, 2) the atlas; uv_faces: (F, 3) indices into it.
+            camera: the view.
+            appearance: the :class:`~garmentnerf.model.body_appearance.BodyAppearance`.
+            supersample: subsamples per pixel side.
+        Returns:
+            As :func:`~garmentnerf.render.body_layer.render_body_layer`: ``color`` (1, 3, H, W)
+            premultiplied by ``coverage`` (1, 1, H, W).
+        """
+        self.draw(vertices, normals, faces, uv, uv_faces, camera, appearance, supersample)
+        out = np.empty((camera.height, camera.width, 4), dtype=np.float32)
+        with current(self.ctx):
+            self._last.resolved_fbo.read_into(out, components=4, dtype="f4")
         layer = torch.from_numpy(out).permute(2, 0, 1).unsqueeze(0)  # (1, 4, H, W), row 0 at the top
         return layer[:, :3].contiguous(), layer[:, 3:].contiguous()
 

@@ -131,6 +131,8 @@ class NeuralFrame:
         counts: ``points_evaluated``, ``points_projected``, ``samples_placed``, ``rays_evaluated``,
             ``rays_total`` (cast: the character's rectangle for presets that crop to it),
             ``rays_terminated`` of the render, and ``rays_frame`` (the whole frame's).
+        body: in the ``raster_body`` composition, the frame's posed body vertices and unit vertex
+            normals ((V, 3) each, CPU float32), to draw the body layer with; else None.
     """
 
     maps: DecomposedMaps
@@ -146,6 +148,7 @@ class NeuralFrame:
     cached_frame: bool = False
     preset: str = DEFAULT_PRESET
     counts: dict[str, int] = field(default_factory=dict)
+    body: tuple[torch.Tensor, torch.Tensor] | None = None
 
     @property
     def output_size(self) -> tuple[int, int]:
@@ -388,7 +391,8 @@ class RenderSession(Closeable):
         return padded_box(features.aabb.detach().to("cpu", torch.float64), self.config.bbox_padding)
 
     def render(self, frame: int, camera: Camera, quality: float | None = None, *, preset=DEFAULT_PRESET,
-               scale: float | None = None, should_cancel: Callable[[], bool] | None = None) -> NeuralFrame:
+               scale: float | None = None, should_cancel: Callable[[], bool] | None = None,
+               body_layer: bool = True) -> NeuralFrame:
         """Render body frame ``frame`` seen by ``camera``.
 
         Args:
@@ -397,6 +401,10 @@ class RenderSession(Closeable):
             preset: render preset name (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`).
             scale: rendered pixels per output pixel (overrides ``quality``).
             should_cancel: polled between chunks; True raises RenderCancelled.
+            body_layer: in the ``raster_body`` composition, attach the body layer to the maps at
+                their size; False leaves it to the caller, who draws it from
+                :attr:`NeuralFrame.body` (the previewer draws it on its own GL context at the
+                resolution it shows the frame).
         """
         t0 = time.perf_counter()
         plan = self.sampling(preset)
@@ -419,7 +427,7 @@ class RenderSession(Closeable):
         placed = out.maps.detach().placed(rect.x0, rect.y0, padded.width, padded.height).cropped(wr, hr)
         maps = placed.to("cpu", torch.float32)
         body_ms = None
-        if self.body_appearance is not None:
+        if self.body_appearance is not None and body_layer:
             t_body = time.perf_counter()
             with torch.no_grad():
                 maps = maps.with_body(*self.body_layer(feats, padded.cropped(0, 0, wr, hr)))
@@ -437,7 +445,8 @@ class RenderSession(Closeable):
         counts["rays_frame"] = fw * fh
         return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
-                           timings, cached, plan.preset.name, counts)
+                           timings, cached, plan.preset.name, counts,
+                           (feats.posed_vertices, feats.vertex_normals) if self.body_appearance is not None else None)
 
     def body_layer(self, features, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
         """The rasterised body layer of a frame (its :class:`~garmentnerf.model.frame_context.FrameFeatures`:

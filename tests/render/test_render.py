@@ -332,26 +332,34 @@ def test_render_command_errors_are_one_line(run_dir, tmp_path, capsys, args, mes
 
 
 # ---- the viewer's palette shader == compose() -----------------------------------------------------
-def _gl_compose(ctx, maps, palette, background):
+def _gl_compose(ctx, maps, palette, background, body=None, camera=None):
+    """The palette layer's image of ``maps`` (W x H, drawn over a whole W x H view); ``body``:
+    (body model, appearance, vertices, normals) of a body layer it draws itself, seen by ``camera``."""
     import moderngl
 
     from garmentnerf.cli.view_cmd import import_viewer
 
     scene_gl = import_viewer("scene_gl")
+    palette_layer = import_viewer("palette_layer")
     from garmentnerf.gl.context import current
 
     B, P, H, W = maps["weights"].shape
-    body = maps.get("body_color") is not None
-    extra = (maps["body_color"][0].numpy(), maps["body_coverage"][0].numpy()) if body else ()
     layers = scene_gl.pack_maps(maps["radiance"][0].numpy(), maps["offsets"][0].numpy(),
-                                maps["weights"][0].numpy(), maps["mask"][0].numpy(), *extra)
+                                maps["weights"][0].numpy(), maps["mask"][0].numpy())
+    view = scene_gl.ViewParams.of(camera if camera is not None else orbit_view(0.0, width=W, height=H))
     with current(ctx):
         layer = scene_gl.PaletteLayer(ctx)
         tex = ctx.texture((W, H), 4, dtype="f4")
         fbo = ctx.framebuffer(color_attachments=[tex])
         try:
-            layer.submit(layers, np.zeros((H, W), np.float32), (W, H), has_body=body)
-            layer.prepare()
+            body_view = None
+            if body is not None:
+                body_model, appearance, vertices, normals = body
+                layer.set_body_model(body_model, appearance)
+                body_view = palette_layer.BodyView(vertices.numpy(), normals.numpy(), camera)
+            layer.submit(layers, np.zeros((H, W), np.float32), (W, H), body=body_view)
+            layer.prepare(view)
+            assert layer.has_body == (body is not None)
             layer.set_palette(palette.numpy())
             layer.opaque = True
             layer.background = background
@@ -359,7 +367,7 @@ def _gl_compose(ctx, maps, palette, background):
             ctx.viewport = (0, 0, W, H)
             ctx.enable_only(moderngl.NOTHING)
             fbo.clear(0.0, 0.0, 0.0, 0.0)
-            layer.draw(scene_gl.ViewParams.of(orbit_view(0.0, width=W, height=H)))
+            layer.draw(view)
             data = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype=np.float32).reshape(H, W, 4)
             return data[::-1, :, :3].copy()  # GL rows bottom-first -> image rows top-first
         finally:
@@ -392,25 +400,39 @@ def test_palette_shader_matches_compose(gl_context, radiance_channels):
 
 
 @pytest.mark.parametrize("P", [2, 3])
-def test_palette_shader_matches_compose_with_a_body_layer(gl_context, P):
-    """The raster_body composition: the shader against compose() with the same body layer, and a new
-    body color (only the uniform changes)."""
+def test_palette_shader_matches_compose_with_a_body_layer(gl_context, body, walk_clip, P):
+    """The raster_body composition: the layer draws the body itself (GL-shaded, at the size it is
+    shown at); against compose() with the torch reference's body layer of the same camera, and with
+    a new body color (only the uniform changes)."""
+    from garmentnerf.body.surface import vertex_normals
+    from garmentnerf.data.cameras import ring_camera
+    from garmentnerf.gl.camera_pass import CameraPass
+    from garmentnerf.model.body_appearance import BodyAppearance
+    from garmentnerf.render.body_layer import render_body_layer
+
     g = torch.Generator().manual_seed(1)
-    H, W = 24, 40
-    coverage = torch.rand(1, 1, H, W, generator=g)
-    coverage[..., :, :6] = 0.0  # no body in some columns
-    coverage[..., :, 30:] = 1.0
+    H, W = 36, 40
+    vertices = walk_clip[0].vertices[0].detach().float()
+    normals = vertex_normals(vertices, body.faces)
+    centre = vertices.double().mean(dim=0).numpy()
+    camera = ring_camera(20.0, 2.4, float(centre[2]), centre, W, H)
+    appearance = BodyAppearance(texture_size=16)
+    with torch.no_grad():
+        appearance.albedo.uniform_(0.3, 1.4, generator=g)
+        appearance.shading[1:].normal_(0.0, 0.3, generator=g)
+    with CameraPass(gl_context) as camera_pass, torch.no_grad():
+        body_color, coverage = render_body_layer(camera_pass, body, vertices, camera, appearance, normals=normals)
+    assert 0.05 < coverage.mean() < 0.6 and (coverage == 0).any()
     maps = {"radiance": torch.rand(1, 3, H, W, generator=g) * 1.6,
             "offsets": (torch.rand(1, P, 3, H, W, generator=g) - 0.5) * 0.6,
             "weights": torch.softmax(torch.randn(1, P, H, W, generator=g) * 2, dim=1),
-            "mask": torch.rand(1, 1, H, W, generator=g),
-            "body_color": torch.rand(1, 3, H, W, generator=g) * 1.3 * coverage, "body_coverage": coverage}
+            "mask": torch.rand(1, 1, H, W, generator=g)}
     palette = torch.tensor([[0.75, 0.19, 0.19], [0.2, 0.5, 0.3], [0.8, 0.63, 0.53]])[-P:]
     background = (0.1, 0.2, 0.3)
     for pal in (palette, torch.cat([palette[:-1], torch.tensor([[0.3, 0.9, 0.1]])])):
         ref = compose(maps["radiance"], maps["offsets"], maps["weights"], maps["mask"], pal, background,
-                      maps["body_color"], maps["body_coverage"])[0].permute(1, 2, 0).numpy()
-        got = _gl_compose(gl_context, maps, pal, background)
+                      body_color, coverage)[0].permute(1, 2, 0).numpy()
+        got = _gl_compose(gl_context, maps, pal, background, (body, appearance, vertices, normals), camera)
         assert np.abs(got - ref).max() < 2 / 255
 
 
@@ -422,3 +444,41 @@ def test_palette_shader_matches_session_composite(gl_context, session):
     pal[0] = torch.tensor([0.2, 0.3, 0.9])
     got = _gl_compose(gl_context, maps, pal, (0.0, 0.0, 0.0))
     assert np.abs(got - nf.composite(pal, (0.0, 0.0, 0.0), size=nf.render_size)).max() < 2 / 255
+
+
+def test_palette_layer_draws_the_body_at_the_size_it_shows_it(gl_context, body, walk_clip):
+    """The body layer follows the shown size (not the maps'), and is drawn again only when the body
+    or that size changes."""
+    from garmentnerf.body.surface import vertex_normals
+    from garmentnerf.cli.view_cmd import import_viewer
+    from garmentnerf.data.cameras import ring_camera
+    from garmentnerf.gl.context import current
+    from garmentnerf.model.body_appearance import BodyAppearance
+
+    scene_gl = import_viewer("scene_gl")
+    palette_layer = import_viewer("palette_layer")
+    vertices = walk_clip[0].vertices[0].detach().float()
+    normals = vertex_normals(vertices, body.faces)
+    centre = vertices.double().mean(dim=0).numpy()
+    camera = ring_camera(0.0, 2.4, float(centre[2]), centre, 64, 48)  # the result's camera, 4:3
+    maps = scene_gl.pack_maps(np.ones((3, 12, 16), np.float32), np.zeros((2, 3, 12, 16), np.float32),
+                              np.full((2, 12, 16), 0.5, np.float32), np.ones((12, 16), np.float32))
+    with current(gl_context):
+        layer = scene_gl.PaletteLayer(gl_context)
+        try:
+            layer.set_body_model(body, BodyAppearance(texture_size=4))
+            layer.submit(maps, np.zeros((12, 16), np.float32), (64, 48),
+                         body=palette_layer.BodyView(vertices.numpy(), normals.numpy(), camera))
+            big = scene_gl.ViewParams.of(ring_camera(0.0, 2.4, 1.0, centre, 400, 300))
+            layer.prepare(big)
+            assert layer.has_body and layer.body_draws == 1 and layer._body_tex.size == (400, 300)
+            layer.prepare(big)  # nothing changed: no draw
+            assert layer.body_draws == 1
+            wide = scene_gl.ViewParams.of(ring_camera(0.0, 2.4, 1.0, centre, 600, 200))  # fitted: 267 x 200
+            layer.prepare(wide)
+            assert layer.body_draws == 2 and layer._body_tex.size == (267, 200)
+            layer.submit(maps, np.zeros((12, 16), np.float32), (64, 48))  # a result without a body
+            layer.prepare(wide)
+            assert not layer.has_body and layer.body_draws == 2
+        finally:
+            layer.release()
