@@ -269,9 +269,9 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
         if self.segmentation_start < 0:
             raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
-        for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps", "decoder_extra_layers", "bbox_padding",
-                     "blend_weight_floor", "w_image", "w_mask", "w_perceptual", "w_sparsity", "w_offset", "w_palette",
-                     "w_opacity", "w_segmentation"):
+        for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
+                     "decoder_extra_layers", "bbox_padding", "blend_weight_floor", "w_image", "w_mask",
+                     "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:
