@@ -175,7 +175,7 @@ class PaletteLayer:
         self._body_model = None               # (faces, uv, uv_faces, appearance) of set_body_model
         self._body_pass = None                # the BodyLayerPass, made at the first body
         self._body_tex: moderngl.Texture | None = None  # the pass's texture of the shown body
-        self._body_key: object = None         # (body, size) the texture holds
+        self._body_key: tuple | None = None   # (BodyView, size) the texture holds
         self.uploads = 0
         self._lock = threading.Lock()
         self._pending: _PaletteMaps | None = None
@@ -280,9 +280,9 @@ class PaletteLayer:
         from garmentnerf.gl.body_layer_pass import BodyLayerPass
 
         x0, y0, x1, y1 = self._rects(view, self.composition())[0][1]
-        size = (max(1, round((x1 - x0) * 0.5 * view.camera.width)), max(1, round((y1 - y0) * 0.5 * view.camera.height)))
-        key = (id(self.body), size)
-        if key == self._body_key:
+        size = (max(1, round((x1 - x0) * 0.5 * view.camera.width)),
+                max(1, round((y1 - y0) * 0.5 * view.camera.height)))
+        if self._body_key is not None and self._body_key[0] is self.body and self._body_key[1] == size:
             return
         if self._body_pass is None:
             self._body_pass = BodyLayerPass(self.ctx, max_sizes=2)
@@ -291,7 +291,7 @@ class PaletteLayer:
                                               self.body.camera.resized(*size), appearance)
         self._body_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._body_tex.repeat_x = self._body_tex.repeat_y = False
-        self._body_key = key
+        self._body_key = (self.body, size)
         self.body_draws += 1
 
     def composition(self) -> Composition:
@@ -315,10 +315,11 @@ class PaletteLayer:
         if self.gt_tex is not None:
             self.gt_tex.use(location=1)
         self.depth_tex.use(location=2)
-        if self.has_body:
+        with_body = self.has_body and self._body_tex is not None  # drawn by prepare(view)
+        if with_body:
             self._body_tex.use(location=3)
         for mode, rect in self._rects(view, how):
-            self._draw_rect(view, how, mode, rect)
+            self._draw_rect(view, how, mode, rect, with_body)
 
     def _rects(self, view: ViewParams, how: Composition) -> list[tuple[str, tuple[float, float, float, float]]]:
         """(mode, NDC rect) of each image drawn: the neural one first."""
@@ -331,14 +332,14 @@ class PaletteLayer:
                     ("ground_truth", fit_rect((middle, y0, x1, y1), vw, vh, self.image_size))]
         return [(how.mode, fit_rect((-1.0, -1.0, 1.0, 1.0), vw, vh, self.image_size))]
 
-    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect) -> None:
+    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect, with_body: bool) -> None:
         p = self.program
         pal = np.zeros((MAX_PALETTE, 3), dtype=np.float32)
         n = min(self.palette.shape[0], MAX_PALETTE)
         pal[:n] = self.palette[:n]
         p["u_palette"].write(pal.tobytes())
         p["u_palette_size"].value = int(min(n, self.palette_size))
-        p["u_has_body"].value = int(self.has_body)
+        p["u_has_body"].value = int(with_body)
         p["u_background"].value = tuple(float(c) for c in self.background)
         p["u_opaque"].value = int(how.opaque)
         p["u_mode"].value = PALETTE_MODES[mode]
