@@ -386,7 +386,8 @@ def test_bench_cli_with_run(tmp_path, tiny_scene):
     for p in data["presets"]:
         assert p["ms_per_frame"] > 0 and p["points_per_frame"] >= 0 and np.isfinite(p["psnr"])
         assert set(p["stages_ms"]) == {"info_maps", "reference_images", "encoders", "projection", "mlp",
-                                       "compositing", "decoder"}
+                                       "compositing", "decoder", "body_layer"}
+        assert p["stages_ms"]["body_layer"] == 0.0  # an untrained run has no body appearance
     assert data["presets"][0]["speedup_vs_reference"] == 1.0
     pb = data["playback"]
     assert pb["precomputed"] == len(pb["frames"]) == 3 and pb["precompute_ms_per_frame"] > 0  # the tiny clip
