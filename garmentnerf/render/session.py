@@ -446,7 +446,12 @@ class RenderSession(Closeable):
         return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
                            timings, cached, plan.preset.name, counts,
-                           (feats.posed_vertices, feats.vertex_normals) if self.body_appearance is not None else None)
+                           self._body_geometry(feats) if self.body_appearance is not None else None)
+
+    @staticmethod
+    def _body_geometry(features) -> tuple[torch.Tensor, torch.Tensor]:
+        """The frame's posed body vertices and vertex normals, (V, 3) each, CPU float32."""
+        return tuple(t.detach().to("cpu", torch.float32) for t in (features.posed_vertices, features.vertex_normals))
 
     def body_layer(self, features, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
         """The rasterised body layer of a frame (its :class:`~garmentnerf.model.frame_context.FrameFeatures`:

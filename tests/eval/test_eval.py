@@ -7,6 +7,7 @@ import json
 import math
 
 import numpy as np
+import torch
 import pytest
 
 from garmentnerf.cli.main import main
@@ -302,6 +303,21 @@ def test_raster_body_composition(run_dir, scene, gl_context, tmp_path, capsys, u
     assert hybrid["means"]["body_psnr"] > plain["means"]["body_psnr"] + 5
     assert hybrid["means"]["silhouette_iou"] > plain["means"]["silhouette_iou"]
     assert plain["means"] == unseen_view_result["means"]
+    # a session leaves the body layer to a caller that draws it itself (the previewer), handing over the
+    # frame's posed body: the same layer drawn from it is the one the session attaches
+    from garmentnerf.render.session import RenderSession
+
+    camera = scene.camera("held00").camera
+    with RenderSession(loaded, gl_context) as session:
+        attached = session.render(0, camera)
+        bare = session.render(0, camera, body_layer=False)
+        feats, _ = session.frame_features(0)
+        assert attached.maps.body_color is not None and bare.maps.body_color is None
+        vertices, normals = bare.body
+        assert vertices.dtype == normals.dtype == torch.float32 and vertices.device.type == "cpu"
+        torch.testing.assert_close(vertices, feats.posed_vertices.float().cpu())
+        color, coverage = session.body_layer(feats, camera.resized(*bare.render_size))
+        assert torch.equal(color, attached.maps.body_color) and torch.equal(coverage, attached.maps.body_coverage)
 
 
 def test_cli_eval_gallery(run_dir, scene, tmp_path, capsys):
