@@ -288,19 +288,26 @@ def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
-def _interrupt_once():
+class InterruptOnce:
     """A worker's SIGINT/SIGTERM handler: the first signal interrupts (KeyboardInterrupt); later
     ones are ignored, so that the clean-up the first one started (a temporary removed, a message
     printed) is not cut short. (Not SIG_IGN: a signal already caught but not yet handled would
-    then be reported as "ignored due to race condition".)"""
-    fired: list[int] = []
+    then be reported as "ignored due to race condition".) :meth:`disarm` makes it ignore every
+    signal from then on: a worker whose work is over calls it, so that a signal arriving while the
+    interpreter shuts down (the parent's stop, or its death noticed by the watch thread) cannot
+    raise inside an exit handler and print a traceback."""
 
-    def handler(signum, frame) -> None:
-        if not fired:
-            fired.append(signum)
+    def __init__(self) -> None:
+        self.fired: int | None = None  # the signal that interrupted (or 0 once disarmed)
+
+    def __call__(self, signum, frame) -> None:
+        if self.fired is None:
+            self.fired = signum
             raise KeyboardInterrupt(signal.Signals(signum).name)
 
-    return handler
+    def disarm(self) -> None:
+        if self.fired is None:
+            self.fired = 0
 
 
 def _in_main_thread() -> bool:
@@ -351,7 +358,7 @@ def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings
     the death of its parent (``parent``: the ``data make`` process), keeping the chunks committed
     so far and leaving nothing half-written; 1 after an error, which is sent through ``conn``.
     """
-    handler = _interrupt_once()
+    handler = InterruptOnce()
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     try:
@@ -385,6 +392,7 @@ def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings
         _send_error(conn, exc)
         sys.exit(1)
     finally:
+        handler.disarm()  # the work is over: a signal during the exit must not raise in an exit handler
         conn.close()
 
 

@@ -331,3 +331,21 @@ def test_a_make_killed_before_scene_json_is_resumable(tmp_path):
     assert not _is_interrupted_creation(root, ["test_run"])  # another plan: not this make's folder
     (root / "notes.txt").write_text("the user's")
     assert not _is_interrupted_creation(root, ["train", "test_run"])
+
+
+def test_worker_interrupt_handler_fires_once_and_not_after_the_work():
+    """A simulation process's handler: the first SIGINT/SIGTERM interrupts, later ones are ignored;
+    once the work is over (disarmed) none interrupts, so a stop that reaches a process already
+    shutting down cannot raise inside an exit handler (it printed a traceback into data make's
+    stderr: a weakref finalizer of torch.library interrupted at exit)."""
+    from garmentnerf.data.make import InterruptOnce
+
+    handler = InterruptOnce()
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        handler(signal.SIGTERM, None)
+    handler(signal.SIGINT, None)  # the clean-up the first one started is not cut short
+    done = InterruptOnce()
+    done.disarm()
+    done(signal.SIGTERM, None)
+    done(signal.SIGINT, None)
+    assert handler.fired == signal.SIGTERM and done.fired == 0
