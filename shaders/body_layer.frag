@@ -4,8 +4,9 @@
 // over the monomials e of monomial_exponents(degree), n the normalised interpolated normal, and A
 // the albedo texture read bilinearly, clamped at the edge (grid_sample, align_corners=False,
 // border; row 0 of the texture is v = 0). The loader #defines SHADING_TERMS (the number of
-// monomials) and SHADING_SUM(n), S written out term by term (garmentnerf.gl.body_layer_pass:
-// llvmpipe runs the unrolled sum about 4x faster than a loop over exponents read from a uniform).
+// monomials) and SHADING_SUM(n), S written out term by term (garmentnerf.gl.body_layer_pass): on
+// llvmpipe a loop over exponents read from a uniform made the whole pass 140 ms against 85 ms
+// unrolled (998 x 998 subsamples, degree 4, the CPU shared with two trainings).
 // Output (a, 1) over a (0, 0, 0, 0) clear: the resolve's box mean is then a premultiplied by
 // coverage, and the coverage.
 
