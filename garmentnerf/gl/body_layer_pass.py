@@ -82,6 +82,8 @@ class BodyLayerPass(GLObjectsOwner):
         self._albedo: moderngl.Texture | None = None
         self._targets: TargetCache[_Targets] = TargetCache(lambda key: _Targets(ctx, *key), max(1, int(max_sizes)))
         self._last: _Targets | None = None  # the targets of the last draw
+        self._mesh_inputs: tuple | None = None  # the objects the vertex buffer was made from
+        self._mesh_count = 0
         self._released = False
 
     def _use_program(self, degree: int) -> None:
@@ -99,7 +101,13 @@ class BodyLayerPass(GLObjectsOwner):
                 self._vao = None
 
     def _upload_mesh(self, vertices, normals, faces, uv, uv_faces) -> int:
-        """Interleave position, normal and UV per corner; returns the vertex count."""
+        """Interleave position, normal and UV per corner; returns the vertex count. The same five
+        objects as the last upload (a frame seen from another camera) upload nothing: the arrays
+        are read as they are at the call, not copied, so a caller must not change them in place."""
+        inputs = (vertices, normals, faces, uv, uv_faces)
+        if self._vao is not None and self._mesh_inputs is not None and \
+                all(a is b for a, b in zip(inputs, self._mesh_inputs)):
+            return self._mesh_count
         verts, tris = check_mesh_arrays(vertices, faces)
         normals = as_numpy(normals, np.float32)
         uv = as_numpy(uv, np.float32)
@@ -122,6 +130,7 @@ class BodyLayerPass(GLObjectsOwner):
             self._vao = self.ctx.vertex_array(self.program, [(self._buffer, "3f 3f 2f", "in_position", "in_normal",
                                                               "in_uv")])
         self._buffer.write(data)
+        self._mesh_inputs, self._mesh_count = inputs, len(data)
         return len(data)
 
     def _upload_appearance(self, appearance) -> None:

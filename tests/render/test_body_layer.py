@@ -134,3 +134,9 @@ def test_gl_body_layer_is_the_torch_reference(gl_context, camera_pass, body, pos
                 diff = (color - ref_color.detach()).abs()
                 assert ref_color.amax() > 0.5 and ref_color.std() > 0.05  # a layer worth comparing
                 assert diff.max() < 2e-3 and diff.mean() < 1e-5
+        # the same frame from another camera reuses the uploaded mesh (above); another frame does not
+        moved = verts + torch.tensor([0.15, 0.0, 0.0])
+        ref_moved = render_body_layer(camera_pass, body, moved, cams[0], appearance, normals=normals)[1]
+        got_moved = gl_pass.render(moved, normals, body.faces, body.uv, body.uv_faces, cams[0], appearance)[1]
+        assert torch.equal(got_moved, ref_moved) and not torch.equal(got_moved, gl_pass.render(
+            verts, normals, body.faces, body.uv, body.uv_faces, cams[0], appearance)[1])
