@@ -51,7 +51,7 @@ import scipy.sparse as sp
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.context import current
 from garmentnerf.gl.mesh_arrays import check_mesh_arrays
-from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
+from garmentnerf.gl.resources import GLObjectsOwner, SupersampleTargets, TargetCache
 from garmentnerf.gl.shaders import build_program
 
 #: Bump when the image formation changes (shaders, normals, filtering, label policy).
@@ -199,27 +199,6 @@ class _MeshBuffers:
         self.vao = self.vbo = self.ibo = None
 
 
-class _Targets:
-    """The supersampled color+label target with its depth buffer, and the resolved 1x target."""
-
-    def __init__(self, ctx: moderngl.Context, width: int, height: int, factor: int) -> None:
-        big = (width * factor, height * factor)
-        self.color = ctx.texture(big, 4, dtype="f4")
-        self.color.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.depth = ctx.depth_renderbuffer(big)
-        self.fbo = ctx.framebuffer(color_attachments=[self.color], depth_attachment=self.depth)
-        self.scope = ctx.scope(self.fbo, enable_only=moderngl.DEPTH_TEST)
-        self.resolved = ctx.texture((width, height), 4, dtype="f4")
-        self.resolve_fbo = ctx.framebuffer(color_attachments=[self.resolved])
-        self.resolve_scope = ctx.scope(self.resolve_fbo, enable_only=moderngl.NOTHING)
-        self.buffer = np.empty((height, width, 4), dtype=np.float32)
-
-    def release(self) -> None:
-        for obj in (self.scope, self.fbo, self.color, self.depth, self.resolve_scope, self.resolve_fbo,
-                    self.resolved):
-            obj.release()
-
-
 class GroundTruthRenderer(GLObjectsOwner):
     """Shaded ground-truth renders of a body and (optionally) a garment on one moderngl context.
 
@@ -247,8 +226,8 @@ class GroundTruthRenderer(GLObjectsOwner):
             self.resolve_program["u_source"].value = 0
             self.resolve_vao = ctx.vertex_array(self.resolve_program, [])
             self._meshes = {"body": _MeshBuffers(ctx, self.program), "garment": _MeshBuffers(ctx, self.program)}
-        self._targets: TargetCache[_Targets] = TargetCache(lambda size: _Targets(ctx, *size, self.supersample),
-                                                           self.max_sizes)
+        self._targets: TargetCache[SupersampleTargets] = TargetCache(
+            lambda size: SupersampleTargets(ctx, *size, self.supersample), self.max_sizes)
         self._normal_ops: OrderedDict[tuple, _NormalOperator] = OrderedDict()
         self._released = False
         self._set_lighting()
@@ -283,7 +262,7 @@ class GroundTruthRenderer(GLObjectsOwner):
             self._normal_ops.move_to_end(key)
         return op(verts)
 
-    def _targets_for(self, width: int, height: int) -> _Targets:
+    def _targets_for(self, width: int, height: int) -> SupersampleTargets:
         return self._targets.get((width, height))
 
     def _upload(self, name: str, verts: np.ndarray, tris: np.ndarray) -> None:

@@ -27,7 +27,7 @@ import torch
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.context import current
 from garmentnerf.gl.mesh_arrays import as_numpy, check_mesh_arrays
-from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
+from garmentnerf.gl.resources import GLObjectsOwner, SupersampleTargets, TargetCache
 from garmentnerf.gl.shaders import build_program
 from garmentnerf.model.body_appearance import monomial_exponents
 
@@ -41,23 +41,6 @@ def shading_sum_glsl(degree: int) -> str:
         factors = [f"n.{axis}" for axis, e in zip("xyz", exponents) for _ in range(e)]
         terms.append(f"u_shading[{k}]" + "".join(f" * {f}" for f in factors))
     return "(" + " + ".join(terms) + ")"
-
-
-class _Targets:
-    """The supersampled target (with its depth buffer) and the resolved one, for one output size."""
-
-    def __init__(self, ctx: moderngl.Context, width: int, height: int, supersample: int) -> None:
-        fine = (width * supersample, height * supersample)
-        self.fine = ctx.texture(fine, 4, dtype="f4")
-        self.fine.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.depth = ctx.depth_renderbuffer(fine)
-        self.fine_fbo = ctx.framebuffer(color_attachments=[self.fine], depth_attachment=self.depth)
-        self.resolved = ctx.texture((width, height), 4, dtype="f4")
-        self.resolved_fbo = ctx.framebuffer(color_attachments=[self.resolved])
-
-    def release(self) -> None:
-        for obj in (self.fine_fbo, self.resolved_fbo, self.fine, self.depth, self.resolved):
-            obj.release()
 
 
 class BodyLayerPass(GLObjectsOwner):
@@ -80,8 +63,9 @@ class BodyLayerPass(GLObjectsOwner):
         self._buffer: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
         self._albedo: moderngl.Texture | None = None
-        self._targets: TargetCache[_Targets] = TargetCache(lambda key: _Targets(ctx, *key), max(1, int(max_sizes)))
-        self._last: _Targets | None = None  # the targets of the last draw
+        self._targets: TargetCache[SupersampleTargets] = TargetCache(lambda key: SupersampleTargets(ctx, *key),
+                                                                   max(1, int(max_sizes)))
+        self._last: SupersampleTargets | None = None  # the targets of the last draw
         self._mesh_inputs: tuple | None = None  # the objects the vertex buffer was made from
         self._mesh_count = 0
         self._released = False
@@ -167,12 +151,12 @@ class BodyLayerPass(GLObjectsOwner):
             self.program["u_view"].write(fine.world_to_camera().T.astype(np.float32).tobytes())
             self.program["u_proj"].write(fine.gl_projection().T.astype(np.float32).tobytes())
             targets = self._targets.get((W, H, s))
-            with self.ctx.scope(targets.fine_fbo, enable_only=moderngl.DEPTH_TEST):
-                targets.fine_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            with targets.scope:
+                targets.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
                 self._albedo.use(location=0)
                 self._vao.render(moderngl.TRIANGLES, vertices=count)
-            with self.ctx.scope(targets.resolved_fbo, enable_only=moderngl.NOTHING):
-                targets.fine.use(location=0)
+            with targets.resolve_scope:
+                targets.color.use(location=0)
                 self.resolve["u_factor"].value = s
                 self.resolve_vao.render(moderngl.TRIANGLES, vertices=3)
         self._last = targets
@@ -193,10 +177,11 @@ class BodyLayerPass(GLObjectsOwner):
             premultiplied by ``coverage`` (1, 1, H, W).
         """
         self.draw(vertices, normals, faces, uv, uv_faces, camera, appearance, supersample)
-        out = np.empty((camera.height, camera.width, 4), dtype=np.float32)
+        targets = self._last
         with current(self.ctx):
-            self._last.resolved_fbo.read_into(out, components=4, dtype="f4")
-        layer = torch.from_numpy(out).permute(2, 0, 1).unsqueeze(0)  # (1, 4, H, W), row 0 at the top
+            targets.resolve_fbo.read_into(targets.buffer, components=4, dtype="f4")
+        layer = torch.from_numpy(targets.buffer).permute(2, 0, 1).unsqueeze(0)  # (1, 4, H, W), row 0 at the top
+        # both slices are strided views of the buffer, so contiguous() copies them (the buffer is reused)
         return layer[:, :3].contiguous(), layer[:, 3:].contiguous()
 
     def _release_objects(self) -> None:

@@ -12,10 +12,11 @@ from collections.abc import Callable, Hashable
 from typing import Generic, Protocol, TypeVar
 
 import moderngl
+import numpy as np
 
 from garmentnerf.gl.context import current, is_released
 
-__all__ = ["GLObjectsOwner", "TargetCache"]
+__all__ = ["GLObjectsOwner", "SupersampleTargets", "TargetCache"]
 
 
 class _Releasable(Protocol):
@@ -84,3 +85,32 @@ class GLObjectsOwner:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+class SupersampleTargets:
+    """A supersampled RGBA32F target with its depth buffer, and the resolved one it is box-filtered
+    into, for one output size (``width x height``, the supersampled one ``factor`` times larger).
+
+    Attributes:
+        color, depth, fbo, scope: the supersampled target, its depth buffer, framebuffer and scope
+            (depth test only).
+        resolved, resolve_fbo, resolve_scope: the output-size target (no depth, nothing enabled).
+        buffer: (height, width, 4) float32 host array the resolved target is read into.
+    """
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, factor: int) -> None:
+        big = (width * factor, height * factor)
+        self.color = ctx.texture(big, 4, dtype="f4")
+        self.color.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.depth = ctx.depth_renderbuffer(big)
+        self.fbo = ctx.framebuffer(color_attachments=[self.color], depth_attachment=self.depth)
+        self.scope = ctx.scope(self.fbo, enable_only=moderngl.DEPTH_TEST)
+        self.resolved = ctx.texture((width, height), 4, dtype="f4")
+        self.resolve_fbo = ctx.framebuffer(color_attachments=[self.resolved])
+        self.resolve_scope = ctx.scope(self.resolve_fbo, enable_only=moderngl.NOTHING)
+        self.buffer = np.empty((height, width, 4), dtype=np.float32)
+
+    def release(self) -> None:
+        for obj in (self.scope, self.fbo, self.color, self.depth, self.resolve_scope, self.resolve_fbo,
+                    self.resolved):
+            obj.release()
