@@ -330,22 +330,20 @@ def _terminate_as_interrupt():
 
 @contextlib.contextmanager
 def _children_start_deaf():
-    """Processes started in the block begin with SIGINT and SIGTERM blocked and ignored (both are
+    """Processes started in the block begin with SIGINT and SIGTERM blocked (the signal mask is
     inherited through ``exec``) until they have installed their own handlers and unblock them
     (:func:`_simulate_sequence`): a Ctrl-C while a worker imports its modules would otherwise end
     it with a traceback; held, it stops the worker as soon as it can stop cleanly. The signals
-    this process gets meanwhile are held too and delivered after the block."""
+    this process gets meanwhile are held too and delivered after the block. Blocked, not ignored:
+    a signal that arrives while its action is SIG_IGN is discarded even when blocked, and a
+    group Ctrl-C landing while a worker started was then lost by both (the run went on to the end)."""
     if not _in_main_thread() or not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    signals = {signal.SIGINT, signal.SIGTERM}
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
-    previous = {s: signal.signal(s, signal.SIG_IGN) for s in signals}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
         yield
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
