@@ -45,6 +45,20 @@ def register(sub) -> None:
     make.add_argument("--out", required=True, help="scene folder to create (or to finish)")
     make.set_defaults(func=run_make)
 
+    grow = data_sub.add_parser(
+        "add-sequence", help="copy a sequence simulated for another scene into this one (no new simulation)",
+        description="Copy a sequence (its motion and simulated garment) that 'data make' made for another scene "
+                    "into SCENE, so it trains on more motions without simulating again. Both scenes must dress "
+                    "the same body shape in the same garment at the same frame rate; SCENE's cameras render it.")
+    grow.add_argument("scene", help="scene folder that receives the sequence (its scene.json is rewritten)")
+    grow.add_argument("--from", dest="source", required=True, metavar="SCENE", help="scene folder to copy from")
+    grow.add_argument("--sequence", default="train", help="sequence of the --from scene (default: train)")
+    grow.add_argument("--as", dest="as_name", default=None, metavar="NAME",
+                      help="its name in SCENE (default: the same; must be new there)")
+    grow.add_argument("--split", default=None, choices=("train", "unseen_motion"),
+                      help="its split in SCENE (default: its split in the --from scene)")
+    grow.set_defaults(func=run_add_sequence)
+
     info = data_sub.add_parser("info", help="summarise a scene (cameras, sequences, simulation statistics)")
     info.add_argument("scene", help="scene folder")
     info.add_argument("--json", action="store_true", help="print JSON")
@@ -108,6 +122,16 @@ def _parse_setting(text: str):
         return float(text)
     except ValueError:
         raise ValueError(f"--sim value '{text}' is not a number or true/false") from None
+
+
+def run_add_sequence(args: argparse.Namespace) -> int:
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.data.scene_merge import import_sequence
+
+    target, source = Scene.load(args.scene), Scene.load(args.source)
+    info = import_sequence(target, source, args.sequence, as_name=args.as_name, split=args.split)
+    print(f"{info.name}: {info.frames} frames ({info.split}, {info.motion}) added to {target.scene_file}")
+    return 0
 
 
 def run_info(args: argparse.Namespace) -> int:
