@@ -58,6 +58,10 @@ Foreground (what a user looks at; full-frame PSNR over a black background is mos
     ``sharpness``: gradient energy (squared Sobel magnitude of the luma) of the prediction over
     the ground truth's, inside the garment at least :data:`SHARPNESS_MARGIN` pixels (at 512 px)
     from its outline: 1 keeps the folds, 0.5 has lost half their contrast energy.
+    ``garment_inner_psnr``: PSNR over the ground truth's garment pixels at least
+    :data:`OUTLINE_BAND` pixels (at 512 px) from its outline; ``garment_outline_share``: the share
+    of the garment's squared error (over ``garment_psnr``'s pixels) within that band. Together they
+    tell a garment of the wrong shape (most error in the band) from one shaded wrongly inside.
     A figure whose region is empty in a view (e.g. no body pixel) is left out of that view's row
     and of the mean. With a baseline, ``margin_db`` is the model's mean PSNR and ``fg_psnr``
     minus the nearest view's: the paper's yardstick, independent of the framing.
@@ -82,7 +86,8 @@ Result (:func:`evaluate_run`): a strict-JSON-serialisable dict (non-finite float
      "selection": "how frames/cameras were chosen", "resolution": "native", "resolution_wh": [W, H],
      "background": [r, g, b], "psnr_cap_db": 100.0, "palette": [[r, g, b], ...],
      "means": {"psnr": .., "ssim": .., "stlpips_alex": .., "tof": .., "fg_psnr": .., "body_psnr": ..,
-               "garment_psnr": .., "silhouette_iou": .., "sharpness": ..},
+               "garment_psnr": .., "garment_inner_psnr": .., "garment_outline_share": ..,
+               "silhouette_iou": .., "sharpness": ..},
      "counts": {"images": .., "tof_pairs": ..},
      "unavailable": {"lpips_alex": "reason", ...},
      "per_frame": [{"sequence", "camera", "frame", "psnr", "ssim", "stlpips_alex"}, ...],
@@ -125,6 +130,11 @@ RESOLUTIONS = ("native", "model")
 #: Pixels (at 512 x 512, proportionally at other sizes) between the garment's silhouette and the
 #: region its sharpness is measured in: folds inside the garment, not its outline.
 SHARPNESS_MARGIN = 3
+
+#: Width in pixels (at 512 x 512, proportionally at other sizes) of the band inside the garment's
+#: silhouette that ``garment_outline_share`` and ``garment_inner_psnr`` separate: an outline drawn
+#: a few pixels off (the garment's shape) lands its error there, misplaced shading inside.
+OUTLINE_BAND = 6
 
 #: Evaluation splits.
 SPLITS = ("seen", "unseen_view", "unseen_motion")
@@ -425,18 +435,25 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
         target: the ground-truth view (image and labels).
         pred_silhouette: (h, w) bool, where the prediction shows the character.
     Returns:
-        ``fg_psnr``, ``body_psnr``, ``garment_psnr``, ``silhouette_iou``, ``sharpness``; a
-        figure whose region is empty in this view is left out.
+        ``fg_psnr``, ``body_psnr``, ``garment_psnr``, ``garment_inner_psnr``,
+        ``garment_outline_share``, ``silhouette_iou``, ``sharpness``; a figure whose region is
+        empty in this view is left out.
     """
     from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT
 
     truth = target.labels != 0
     garment = target.labels == LABEL_GARMENT
     margin = max(1, round(SHARPNESS_MARGIN * max(truth.shape) / 512))
+    inner = interior(garment, max(1, round(OUTLINE_BAND * max(truth.shape) / 512)))
+    error = np.square(np.asarray(pred, np.float64) - np.asarray(target.image, np.float64)).sum(axis=-1)
+    garment_error = float(error[garment].sum())
     values = {
         "fg_psnr": masked_psnr(pred, target.image, truth | pred_silhouette),
         "body_psnr": masked_psnr(pred, target.image, target.labels == LABEL_BODY),
         "garment_psnr": masked_psnr(pred, target.image, garment),
+        "garment_inner_psnr": masked_psnr(pred, target.image, inner),
+        "garment_outline_share": (float(error[garment & ~inner].sum()) / garment_error
+                                  if garment_error > 0 else None),
         "silhouette_iou": silhouette_iou(pred_silhouette, truth),
         "sharpness": sharpness_ratio(pred, target.image, interior(garment, margin)),
     }
@@ -776,10 +793,12 @@ def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: floa
 
 _HEAD = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips_alex": "LPIPS↓", "stlpips_alex": "ST-LPIPS↓", "tof": "tOF↓",
          "fg_psnr": "fg PSNR↑", "body_psnr": "body PSNR↑", "garment_psnr": "garment PSNR↑",
+         "garment_inner_psnr": "inside↑", "garment_outline_share": "outline err.",
          "silhouette_iou": "IoU↑", "sharpness": "sharpness→1"}
 
 #: The foreground figures in report order (a second table).
-FOREGROUND_ORDER = ("fg_psnr", "body_psnr", "garment_psnr", "silhouette_iou", "sharpness")
+FOREGROUND_ORDER = ("fg_psnr", "body_psnr", "garment_psnr", "garment_inner_psnr", "garment_outline_share",
+                    "silhouette_iou", "sharpness")
 
 
 def _fmt(v) -> str:

@@ -233,6 +233,14 @@ def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context
 
     if inside.any() and energy(gt) > 0:  # away from the image border, where the two Sobels agree
         assert row["sharpness"] == pytest.approx(energy(pred) / energy(gt), rel=1e-3)
+    # the garment away from its outline (OUTLINE_BAND, 1 px at 64) and the outline band's share of its error
+    assert inside.any()
+    assert row["garment_inner_psnr"] == pytest.approx(peak_signal_noise_ratio(gt[inside], pred[inside], data_range=1.0),
+                                                      abs=1e-4)
+    sq = ((pred - gt) ** 2).sum(axis=-1)
+    band = (labels == 2) & ~inside
+    assert band.any()
+    assert row["garment_outline_share"] == pytest.approx(sq[band].sum() / sq[labels == 2].sum(), rel=1e-9)
     # the baseline's silhouette is its own ground-truth labels
     base_row = next(f for f in unseen_view_result["baseline"]["per_frame"] if f["frame"] == 2)
     near_sil = near_labels != 0
