@@ -59,6 +59,21 @@ def register(sub) -> None:
                       help="its split in SCENE (default: its split in the --from scene)")
     grow.set_defaults(func=run_add_sequence)
 
+    ambiguity = data_sub.add_parser(
+        "ambiguity", help="how far apart the garments of frames with matching body motion are",
+        description="For every training frame, the frame elsewhere whose body (pose, then also its 2-frame "
+                    "velocities, then also 24 frames of history) matches best, and the RMS distance between the "
+                    "two garments: a floor on what a model of the body's motion can get right "
+                    "(garmentnerf.data.state_ambiguity).")
+    ambiguity.add_argument("scene", help="scene folder")
+    ambiguity.add_argument("--sequence", action="append", default=None,
+                           help="sequence to include (repeatable; default: the training ones)")
+    ambiguity.add_argument("--min-gap", type=int, default=15,
+                           help="frames of one sequence closer than this never match (default: 15)")
+    ambiguity.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ambiguity.add_argument("--overwrite", action="store_true", help="replace --json if it exists")
+    ambiguity.set_defaults(func=run_ambiguity)
+
     info = data_sub.add_parser("info", help="summarise a scene (cameras, sequences, simulation statistics)")
     info.add_argument("scene", help="scene folder")
     info.add_argument("--json", action="store_true", help="print JSON")
@@ -131,6 +146,34 @@ def run_add_sequence(args: argparse.Namespace) -> int:
     target, source = Scene.load(args.scene), Scene.load(args.source)
     info = import_sequence(target, source, args.sequence, as_name=args.as_name, split=args.split)
     print(f"{info.name}: {info.frames} frames ({info.split}, {info.motion}) added to {target.scene_file}")
+    return 0
+
+
+def run_ambiguity(args: argparse.Namespace) -> int:
+    from garmentnerf.body.model import BodyModel
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.data.state_ambiguity import state_ambiguity
+    from garmentnerf.io_utils import atomic_write_path
+
+    from garmentnerf.cli.common import check_output_file
+
+    out = check_output_file(args.json, "--json", args.overwrite) if args.json else None
+    if args.min_gap < 1:
+        raise ValueError(f"--min-gap must be >= 1, got {args.min_gap}")
+    scene = Scene.load(args.scene)
+    for name in args.sequence or []:
+        scene.sequence(name)
+    report = state_ambiguity(scene, BodyModel.default(), args.sequence, min_gap=args.min_gap)
+    print(f"{report.frames} frames; garment RMS distance to the frame whose body matches best (median):")
+    for label, value in report.matched_garment_rms_m.items():
+        print(f"  {label:24s} {value * 100:6.2f} cm  (descriptors {report.matched_body_rms_m[label] * 100:.2f} cm apart)")
+    if report.close_pose_garment_rms_m is not None:
+        print(f"  {report.close_pose_pairs} frames have a pose match within {report.close_m * 100:g} cm: garments "
+              f"{report.close_pose_garment_rms_m * 100:.2f} cm apart")
+    print(f"  a random other frame     {report.random_garment_rms_m * 100:6.2f} cm")
+    if out is not None:
+        with atomic_write_path(out, overwrite=args.overwrite) as tmp:
+            tmp.write_text(json.dumps(report.to_json(), indent=1) + "\n", encoding="utf-8")
     return 0
 
 
