@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from garmentnerf.cli.common import refuse_existing
+from garmentnerf.cli.common import check_output_file, refuse_existing
 
 
 def register(sub) -> None:
@@ -155,8 +155,6 @@ def run_ambiguity(args: argparse.Namespace) -> int:
     from garmentnerf.data.state_ambiguity import state_ambiguity
     from garmentnerf.io_utils import atomic_write_path
 
-    from garmentnerf.cli.common import check_output_file
-
     out = check_output_file(args.json, "--json", args.overwrite) if args.json else None
     if args.min_gap < 1:
         raise ValueError(f"--min-gap must be >= 1, got {args.min_gap}")
@@ -166,7 +164,8 @@ def run_ambiguity(args: argparse.Namespace) -> int:
     report = state_ambiguity(scene, BodyModel.default(), args.sequence, min_gap=args.min_gap)
     print(f"{report.frames} frames; garment RMS distance to the frame whose body matches best (median):")
     for label, value in report.matched_garment_rms_m.items():
-        print(f"  {label:24s} {value * 100:6.2f} cm  (descriptors {report.matched_body_rms_m[label] * 100:.2f} cm apart)")
+        apart = report.matched_descriptor_rms_m[label]
+        print(f"  {label:24s} {value * 100:6.2f} cm  (descriptors {apart * 100:.2f} cm apart)")
     if report.close_pose_garment_rms_m is not None:
         print(f"  {report.close_pose_pairs} frames have a pose match within {report.close_m * 100:g} cm: garments "
               f"{report.close_pose_garment_rms_m * 100:.2f} cm apart")

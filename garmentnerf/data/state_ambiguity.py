@@ -41,7 +41,7 @@ class AmbiguityReport:
     Attributes:
         frames: frames compared (each sequence's frames from :data:`HISTORY_FRAMES` on).
         matched_garment_rms_m: descriptor -> median garment RMS distance to the best-matching frame.
-        matched_body_rms_m: descriptor -> median RMS distance per body point between the two
+        matched_descriptor_rms_m: descriptor -> median RMS distance per body point between the two
             frames' descriptors (for ``pose``, between the aligned bodies).
         close_pose_pairs: frames whose ``pose`` match is within ``close_m``.
         close_pose_garment_rms_m: median garment RMS distance over those frames (None: none).
@@ -51,7 +51,7 @@ class AmbiguityReport:
 
     frames: int
     matched_garment_rms_m: dict
-    matched_body_rms_m: dict
+    matched_descriptor_rms_m: dict
     close_pose_pairs: int
     close_pose_garment_rms_m: float | None
     random_garment_rms_m: float
@@ -133,7 +133,7 @@ def state_ambiguity(scene: Scene, body, sequences=None, *, min_gap: int = 15, bo
         return np.sqrt(((garments[i] - garments[j]) ** 2).sum(-1).mean(-1))
 
     rows = np.arange(n)
-    matched_garment, matched_body, pose_match = {}, {}, None
+    matched_garment, matched_descriptor, pose_match = {}, {}, None
     for label, distance in zip(DESCRIPTORS, (d_pose, d_pose + d_velocity, d_pose + d_velocity + d_history)):
         masked = np.where(excluded, np.inf, distance)
         best = masked.argmin(axis=1)
@@ -141,14 +141,14 @@ def state_ambiguity(scene: Scene, body, sequences=None, *, min_gap: int = 15, bo
         if not valid.any():
             raise ValueError(f"{scene.scene_file}: no frame has a partner {min_gap} or more frames away")
         matched_garment[label] = float(np.median(garment_rms(rows[valid], best[valid])))
-        matched_body[label] = float(np.median(np.sqrt(distance[rows[valid], best[valid]] / points)))
+        matched_descriptor[label] = float(np.median(np.sqrt(distance[rows[valid], best[valid]] / points)))
         if label == "pose":
             pose_match = (rows[valid], best[valid])
     i, j = pose_match
     close = np.sqrt(d_pose[i, j] / points) < close_m
     others = (rows + 1 + rng.integers(0, n - 1, n)) % n  # a random frame other than itself
     return AmbiguityReport(
-        frames=n, matched_garment_rms_m=matched_garment, matched_body_rms_m=matched_body,
+        frames=n, matched_garment_rms_m=matched_garment, matched_descriptor_rms_m=matched_descriptor,
         close_pose_pairs=int(close.sum()),
         close_pose_garment_rms_m=float(np.median(garment_rms(i[close], j[close]))) if close.any() else None,
         random_garment_rms_m=float(np.median(garment_rms(rows, others))), close_m=close_m)

@@ -39,8 +39,8 @@ def test_a_skinned_garment_follows_its_pose(rigged):
     assert report.frames == 80 - 24
     # the walk cycle repeats, so every frame finds a close pose; a skinned skirt then sits as close
     matched = report.matched_garment_rms_m["pose"]
-    assert report.matched_body_rms_m["pose"] < 0.03
-    assert matched < 1.5 * report.matched_body_rms_m["pose"] + 1e-3
+    assert report.matched_descriptor_rms_m["pose"] < 0.03
+    assert matched < 1.5 * report.matched_descriptor_rms_m["pose"] + 1e-3
     assert report.random_garment_rms_m > 3 * matched
 
 
@@ -64,7 +64,7 @@ def test_a_garment_that_varies_apart_from_the_pose_is_measured(rigged, tmp_path)
     body = BodyModel.default()
     plain = state_ambiguity(rigged, body)
     shifted = state_ambiguity(scene, body)
-    assert shifted.matched_body_rms_m == plain.matched_body_rms_m  # the bodies did not move
+    assert shifted.matched_descriptor_rms_m == plain.matched_descriptor_rms_m  # the bodies did not move
     assert shifted.matched_garment_rms_m["pose"] > plain.matched_garment_rms_m["pose"] + 0.02
 
 
