@@ -90,7 +90,7 @@ PENETRATION_BOUND_M = 0.010
 _MANIFEST = "manifest.json"
 _SETTLE = "settle.npz"
 _FORMAT = "garmentnerf.simulation"
-_VERSION = 1
+_VERSION = 2  # 2: frames take more substeps where the skin near the cloth moves fast (frame_substeps)
 
 
 class SimulationError(RuntimeError):
@@ -108,7 +108,8 @@ class SimSettings:
     Units: metres, kilograms, seconds. Time step: ``1 / (fps * substeps)`` with the motion's fps.
 
     Attributes:
-        substeps: solver steps per motion frame. 10 at 30 fps (3.3 ms) keeps a swinging knee
+        substeps: solver steps per motion frame, at least (more in frames where the skin near the
+            cloth moves fast: :func:`frame_substeps`). 10 at 30 fps (3.3 ms) keeps a swinging knee
             from passing more than a few millimetres per step; 5 lets it tunnel through.
         iterations: VBD iterations per substep.
         density: cloth mass per area, kg/m^2 (0.2: a medium cotton).
@@ -256,6 +257,46 @@ def _warp():
     return wp, newton, signed_distance_kernel
 
 
+#: Skin within this distance of a cloth particle at the start of a frame counts for
+#: :func:`frame_substeps` (a fast hand far from a t-shirt's sleeve costs no substeps).
+NEAR_CLOTH_M = 0.05
+
+#: :func:`frame_substeps` takes at most this many times ``SimSettings.substeps``.
+MAX_SUBSTEP_FACTOR = 4
+
+
+def cloth_step_limit(settings: SimSettings) -> float:
+    """How far (m) the skin may move in one solver step and still be met by the cloth: the
+    contact detection distance (``contact_gap``), and with self-contact also the distance newton's
+    penetration-free truncation lets a particle move per step (about 0.43 x (margin + gap))."""
+    limit = float(settings.contact_gap)
+    if settings.self_contact:
+        limit = min(limit, 0.43 * (float(settings.self_contact_margin) + float(settings.self_contact_gap)))
+    return limit
+
+
+def frame_substeps(body0: np.ndarray, body1: np.ndarray, cloth: np.ndarray, settings: SimSettings) -> int:
+    """Solver steps for one frame: ``settings.substeps``, or more when the skin near the cloth
+    moves farther in one step than :func:`cloth_step_limit` (the cloth would then lag behind a
+    fast arm or knee, which passes through it), at most :data:`MAX_SUBSTEP_FACTOR` times as many.
+
+    Args:
+        body0, body1: (V, 3) the skin at the start and the end of the frame.
+        cloth: (Vg, 3) the cloth particles at the start of the frame.
+    """
+    from scipy.spatial import cKDTree
+
+    base = int(settings.substeps)
+    distance, _ = cKDTree(np.asarray(cloth, np.float64)).query(np.asarray(body0, np.float64),
+                                                               distance_upper_bound=NEAR_CLOTH_M)
+    near = np.isfinite(distance)
+    if not near.any():
+        return base
+    travel = float(np.linalg.norm((body1 - body0)[near], axis=1).max())
+    needed = int(np.ceil(travel / cloth_step_limit(settings)))
+    return int(min(max(base, needed), base * MAX_SUBSTEP_FACTOR))
+
+
 class _ClothSim:
     """One newton model (cloth + body collider), its VBD solver and collision pipeline.
 
@@ -319,8 +360,8 @@ class _ClothSim:
     def advance(self, body0: np.ndarray, body1: np.ndarray, pins0: np.ndarray, pins1: np.ndarray,
                 fps: float) -> None:
         """Simulate one frame: the body goes from ``body0`` to ``body1`` (V, 3), the pinned
-        vertices from ``pins0`` to ``pins1`` (P, 3), in ``substeps`` steps."""
-        n = self.settings.substeps
+        vertices from ``pins0`` to ``pins1`` (P, 3), in :func:`frame_substeps` steps."""
+        n = frame_substeps(body0, body1, self.state.particle_q.numpy(), self.settings)
         dt = 1.0 / (fps * n)
         body_vel = ((body1 - body0) * fps).astype(np.float32)
         pin_vel = ((pins1 - pins0) * fps).astype(np.float32)

@@ -271,3 +271,31 @@ def test_sequence_wrong_shapes_rejected(tmp_path):
     with pytest.raises(GarmentSequenceError, match=r"field 'color': missing"):
         load_sequence(bad)
     assert issubclass(GarmentSequenceError, ValueError)
+
+
+# ------------------------------------------------------------------------------------------------
+# Substeps per frame
+# ------------------------------------------------------------------------------------------------
+def test_frame_substeps_follow_the_skin_near_the_cloth():
+    """Analytic cases: the step limit of the default settings, and the skin's travel near the
+    cloth (within NEAR_CLOTH_M) divided by it, between ``substeps`` and MAX_SUBSTEP_FACTOR times it."""
+    from garmentnerf.data.simulate import MAX_SUBSTEP_FACTOR, NEAR_CLOTH_M, cloth_step_limit, frame_substeps
+
+    settings = SimSettings()
+    limit = cloth_step_limit(settings)
+    assert limit == pytest.approx(min(settings.contact_gap,
+                                      0.43 * (settings.self_contact_margin + settings.self_contact_gap)))
+    assert cloth_step_limit(SimSettings(self_contact=False)) == settings.contact_gap
+    cloth = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    skin = np.array([[0.0, 0.0, 0.02], [5.0, 0.0, 0.0]])  # one point 2 cm from the cloth, one far away
+    still = frame_substeps(skin, skin, cloth, settings)
+    assert still == settings.substeps
+    arm = skin + np.array([[0.0, 0.15, 0.0], [0.0, 0.0, 0.0]])  # the near point travels 15 cm
+    assert frame_substeps(skin, arm, cloth, settings) == int(np.ceil(0.15 / limit))  # 24 with the defaults
+    hand = skin + np.array([[0.0, 0.0, 0.0], [0.0, 0.35, 0.0]])  # only the far point moves
+    assert frame_substeps(skin, hand, cloth, settings) == settings.substeps
+    beyond = skin + np.array([[0.0, 0.0, NEAR_CLOTH_M - 0.02 + 1e-3], [0.0, 0.0, 0.0]])  # now just out of reach
+    assert frame_substeps(beyond, beyond + np.array([[0.0, 0.15, 0.0], [0.0, 0.0, 0.0]]), cloth, settings) == \
+        settings.substeps
+    thrown = skin + np.array([[0.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    assert frame_substeps(skin, thrown, cloth, settings) == settings.substeps * MAX_SUBSTEP_FACTOR
