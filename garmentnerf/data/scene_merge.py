@@ -61,13 +61,13 @@ def import_sequence(target: Scene, source: Scene, name: str, *, as_name: str | N
     problem = _incompatibility(target, source)
     if problem:
         raise SceneError(f"{source.scene_file}: cannot train {target.scene_file}: {problem}")
-    faces = read_garment_arrays(source.garment_path(name)).faces
-    for existing in target.sequences:
+    existing = next(iter(target.sequences), None)  # every sequence of a scene shares its garment's topology
+    if existing is not None:
+        faces = read_garment_arrays(source.garment_path(name)).faces
         own = read_garment_arrays(target.garment_path(existing)).faces
         if own.shape != faces.shape or not np.array_equal(own, faces):
             raise SceneError(f"{source.garment_path(name)}: the garment mesh ({len(faces)} faces) differs from "
                              f"{target.garment_path(existing)} ({len(own)} faces)")
-        break  # every sequence of a scene shares its garment's topology
 
     destination = target.root / "sequences" / new_name
     if destination.exists():

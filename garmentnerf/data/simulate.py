@@ -105,7 +105,8 @@ class SimulationResumeError(ValueError):
 class SimSettings:
     """Everything that determines a simulation besides the garment, body and motion.
 
-    Units: metres, kilograms, seconds. Time step: ``1 / (fps * substeps)`` with the motion's fps.
+    Units: metres, kilograms, seconds. Time step: ``1 / (fps * n)`` with the motion's fps and
+    ``n`` = :func:`frame_substeps` (``substeps``, more in frames where the skin near the cloth moves fast).
 
     Attributes:
         substeps: solver steps per motion frame, at least (more in frames where the skin near the

@@ -132,14 +132,13 @@ def state_ambiguity(scene: Scene, body, sequences=None, *, min_gap: int = 15, bo
     def garment_rms(i: np.ndarray, j: np.ndarray) -> np.ndarray:
         return np.sqrt(((garments[i] - garments[j]) ** 2).sum(-1).mean(-1))
 
+    valid = ~excluded.all(axis=1)  # frames with a partner at all
+    if not valid.any():
+        raise ValueError(f"{scene.scene_file}: no frame has a partner {min_gap} or more frames away")
     rows = np.arange(n)
     matched_garment, matched_descriptor, pose_match = {}, {}, None
     for label, distance in zip(DESCRIPTORS, (d_pose, d_pose + d_velocity, d_pose + d_velocity + d_history)):
-        masked = np.where(excluded, np.inf, distance)
-        best = masked.argmin(axis=1)
-        valid = np.isfinite(masked[rows, best])
-        if not valid.any():
-            raise ValueError(f"{scene.scene_file}: no frame has a partner {min_gap} or more frames away")
+        best = np.where(excluded, np.inf, distance).argmin(axis=1)
         matched_garment[label] = float(np.median(garment_rms(rows[valid], best[valid])))
         matched_descriptor[label] = float(np.median(np.sqrt(distance[rows[valid], best[valid]] / points)))
         if label == "pose":
