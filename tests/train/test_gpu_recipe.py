@@ -27,11 +27,16 @@ SCHEDULE = ("lr", "lr_final", "iterations", "generator_iterations", "segmentatio
 BUNDLE_LIMIT_BYTES = 25_000_000
 
 
+def bundled_config() -> ModelConfig:
+    """The bundled model's config (its run.json)."""
+    return ModelConfig.from_dict(json.loads(BUNDLED_RUN.read_text())["model_config"])
+
+
 def test_recipe_has_the_paper_sizes_and_the_bundled_recipe_otherwise():
     recipe = read_model_config(RECIPE).to_dict()
     paper = ModelConfig.paper().to_dict()
     assert {k: recipe[k] for k in PAPER_SIZES} == {k: paper[k] for k in PAPER_SIZES}
-    bundled = ModelConfig.from_dict(json.loads(BUNDLED_RUN.read_text())["model_config"]).to_dict()
+    bundled = bundled_config().to_dict()
     differing = {k for k in recipe if recipe[k] != bundled[k]}
     assert differing <= set(PAPER_SIZES) | set(SCHEDULE), sorted(differing - set(PAPER_SIZES) - set(SCHEDULE))
 
@@ -44,7 +49,7 @@ def test_recipe_weights_fit_the_bundle_as_float16(tmp_path):
     size = path.stat().st_size
     assert size <= BUNDLE_LIMIT_BYTES, size
     # and the network is larger than the bundled one where the garment is drawn: the MLP and decoder
-    bundled = build_model(ModelConfig.from_dict(json.loads(BUNDLED_RUN.read_text())["model_config"]))
+    bundled = build_model(bundled_config())
     for part in ("nerf", "decoder"):
         ours = sum(p.numel() for p in getattr(model, part).parameters())
         theirs = sum(p.numel() for p in getattr(bundled, part).parameters())
