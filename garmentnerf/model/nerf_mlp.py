@@ -101,6 +101,8 @@ class GarmentNeRF(nn.Module):
 
     #: Parameters that start at zero so that adding them leaves the network's output unchanged.
     ZERO_START = ("atlas_input.",)
+    #: Parameters whose width follows ``width``: a wider MLP can start from a narrower one's weights.
+    GROWABLE = ("trunk.", "density_head.", "appearance_head.", "atlas_input.")
 
     def __init__(self, detail_dim: int = 8, dynamic_dim: int = 8, appearance_dim: int = 128, depth: int = 6,
                  width: int = 256, density_activation: str = "softplus", density_bias: float = -1.0,

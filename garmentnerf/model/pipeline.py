@@ -341,6 +341,11 @@ class GarmentAnimationNeRF(nn.Module):
             return ()
         return ("atlas_features.",) + tuple("nerf." + p for p in GarmentNeRF.ZERO_START)
 
+    def growable_prefixes(self) -> tuple[str, ...]:
+        """State-dict prefixes of the parameters that may come from a narrower MLP's weights (the
+        NeRF MLP's layers, grown with :func:`~garmentnerf.train.run.grow_linear_tensor`)."""
+        return tuple("nerf." + p for p in GarmentNeRF.GROWABLE)
+
     def atlas_feature(self, uv: torch.Tensor) -> torch.Tensor:
         """f^a ``(N, atlas_feature_channels)``: the atlas feature texture read at atlas UVs (N, 2)."""
         return self.atlas_features(uv.view(1, 1, -1, 2))[0, :, 0].T

@@ -283,15 +283,20 @@ def load_module_weights(path, model: torch.nn.Module, prefix: str) -> None:
             v.copy_(state[k].to(v.dtype))
 
 
-def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] = ()) -> list[str]:
+def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] = (),
+                 may_grow: tuple[str, ...] = ()) -> list[str]:
     """Load a ``.safetensors`` written by :func:`save_weights` into ``model`` (strict).
 
     Args:
         may_be_missing: state-dict key prefixes the file may lack; those parameters keep their
             values in ``model`` (for a branch added to a trained model that starts as a no-op,
             :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.zero_start_prefixes`).
+        may_grow: state-dict key prefixes whose tensors may be smaller in the file than in
+            ``model`` (a wider MLP started from a narrower one's weights,
+            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.growable_prefixes`): each is
+            embedded by :func:`grow_linear_tensor` so the model computes what the file's model did.
     Returns:
-        The keys that kept the model's values, sorted.
+        The keys that kept the model's values, whole or (grown ones) in part, sorted.
     Raises:
         FileNotFoundError: missing file; ValueError: unreadable file or keys/shapes that do not
         match the model (both name the file).
@@ -319,13 +324,35 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
         if unexpected:
             parts.append(f"unexpected {', '.join(unexpected[:5])}{' ...' if len(unexpected) > 5 else ''}")
         raise ValueError(f"{path}: weights do not match the model config ({'; '.join(parts)})")
-    for key, value in state.items():
-        if tuple(value.shape) != tuple(own[key].shape):
-            raise ValueError(f"{path}: {key} has shape {tuple(value.shape)}, the model config expects "
-                             f"{tuple(own[key].shape)}")
+    grown = []
+    for key, value in list(state.items()):
+        want = tuple(own[key].shape)
+        if tuple(value.shape) == want:
+            continue
+        if key.startswith(tuple(may_grow)) and value.dim() == len(want) \
+                and all(a <= b for a, b in zip(value.shape, want)):
+            state[key] = grow_linear_tensor(value, own[key])
+            grown.append(key)
+            continue
+        raise ValueError(f"{path}: {key} has shape {tuple(value.shape)}, the model config expects {want}")
     with torch.no_grad():
         model.load_state_dict({**{k: own[k] for k in kept}, **state}, strict=True)
-    return kept
+    return sorted(kept + grown)
+
+
+def grow_linear_tensor(trained: torch.Tensor, fresh: torch.Tensor) -> torch.Tensor:
+    """A trained ``nn.Linear`` weight ``(out, in)`` or bias ``(out,)`` embedded in a larger layer's
+    freshly initialised one ``(out', in')`` / ``(out',)``, so that the grown MLP computes the trained one.
+
+    The trained block keeps its place; trained units read nothing from the new inputs (those
+    columns are zero, so new hidden units do not change them or any head); new units keep their
+    fresh rows, so they receive gradients and learn. Both tensors are left unchanged.
+    """
+    grown = fresh.detach().clone()
+    if trained.dim() == 2:
+        grown[:trained.shape[0]] = 0.0
+    grown[tuple(slice(0, n) for n in trained.shape)] = trained
+    return grown
 
 
 # ---- the API ---------------------------------------------------------------------------------------

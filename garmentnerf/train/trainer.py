@@ -390,13 +390,14 @@ class Trainer(Closeable):
                 self.log("loss weights from step " + str(self.step) + ": " +
                          ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_weights is not None:
-            new = load_weights(tc.init_weights, self.model, self.model.zero_start_prefixes())
+            new = load_weights(tc.init_weights, self.model, self.model.zero_start_prefixes(),
+                               self.model.growable_prefixes())
             self.step = self.generator_iterations
             self._enter_stage(self._stage_of(self.step))
             self.log(f"all weights from {tc.init_weights}: G_img pre-training skipped, the NeRF stage starts at "
                      f"step {self.step}")
             if new:
-                self.log(f"new in this config, starting from their initialisation (the model's output is "
+                self.log(f"new or grown in this config, starting from their initialisation (the model's output is "
                          f"unchanged until they train): {', '.join(new)}")
         elif tc.init_generator is not None and self.generator_iterations:
             load_module_weights(tc.init_generator, self.model, "image_generator")

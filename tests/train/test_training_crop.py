@@ -188,7 +188,7 @@ def test_init_weights_without_the_atlas_branch_adds_it_as_a_no_op(tiny_scene, gl
         assert not state["nerf.atlas_input.weight"].any()
         new = [k for k in state if k not in donor]
         assert new and all(k.startswith(("atlas_features.", "nerf.atlas_input.")) for k in new)
-        assert any("new in this config" in m and "nerf.atlas_input.weight" in m for m in messages)
+        assert any("in this config" in m and "nerf.atlas_input.weight" in m for m in messages)
         result = tr.train()
         scales = sorted(g["lr_scale"] for g in tr.optimizer.param_groups)
         lrs = sorted(g["lr"] for g in tr.optimizer.param_groups)
@@ -200,6 +200,58 @@ def test_init_weights_without_the_atlas_branch_adds_it_as_a_no_op(tiny_scene, gl
     # weights missing anything else still fail, naming the file
     with pytest.raises(ValueError, match="donor.*missing"):
         with Trainer(_tc(tiny_scene, tmp_path / "wider", model_config=tiny_config().replace(mlp_depth=3),
+                         init_weights=donor_run / "model.safetensors"), gl_context, log=lambda m: None):
+            pass
+
+
+def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(tiny_scene, gl_context, tmp_path):
+    """A config with a wider NeRF MLP fine-tunes a narrower one's weights: every other weight is
+    the donor's, the MLP's density and zeta equal the donor MLP's on random samples (new units
+    read nothing into old ones or the heads), and one step moves the heads' new columns off zero."""
+    from safetensors.torch import load_file
+
+    from garmentnerf.train.run import build_model, load_weights
+
+    donor_run = tmp_path / "donor"
+    with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:
+        tr.train()
+    donor = load_file(str(donor_run / "model.safetensors"))
+    narrow = build_model(tiny_config())
+    load_weights(donor_run / "model.safetensors", narrow)
+    width = tiny_config().mlp_width
+    cfg = tiny_config().replace(mlp_width=2 * width)
+    messages = []
+    tc = _tc(tiny_scene, tmp_path / "wide", model_config=cfg, init_weights=donor_run / "model.safetensors",
+             iterations=1)
+    with Trainer(tc, gl_context, log=messages.append) as tr:
+        state = tr.model.state_dict()
+        same = [k for k in donor if tuple(donor[k].shape) == tuple(state[k].shape)]
+        assert all(torch.equal(state[k], donor[k]) for k in same)
+        grown = sorted(k for k in donor if k not in same)
+        assert grown and all(k.startswith(("nerf.trunk.", "nerf.density_head.", "nerf.appearance_head."))
+                             for k in grown)
+        assert state["nerf.trunk.0.weight"].shape == (2 * width, narrow.nerf.input_dim)
+        assert any("in this config" in m and "nerf.density_head.weight" in m for m in messages)
+        gen = torch.Generator().manual_seed(0)
+        n = 500
+        args = (torch.randn(n, 3, generator=gen) * 0.3, torch.randn(n, generator=gen) * 0.05,
+                torch.randn(n, narrow.nerf.detail_dim, generator=gen),
+                torch.randn(n, narrow.nerf.dynamic_dim, generator=gen))
+        with torch.no_grad():
+            sigma_a, zeta_a = narrow.nerf(*args)
+            sigma_b, zeta_b = tr.model.nerf(*args)
+        torch.testing.assert_close(sigma_b, sigma_a, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(zeta_b, zeta_a, rtol=1e-5, atol=1e-6)
+        result = tr.train()
+    assert result.finished
+    trained = load_file(str(tmp_path / "wide" / "model.safetensors"))
+    assert trained["nerf.density_head.weight"][:, width:].abs().sum() > 0  # the new units learn
+    # without the growth the shapes are refused (a run's own weights load strictly)
+    with pytest.raises(ValueError, match="has shape"):
+        load_weights(donor_run / "model.safetensors", build_model(cfg))
+    # a narrower MLP cannot take a wider one's weights
+    with pytest.raises(ValueError, match="has shape"):
+        with Trainer(_tc(tiny_scene, tmp_path / "narrower", model_config=tiny_config().replace(mlp_width=width // 2),
                          init_weights=donor_run / "model.safetensors"), gl_context, log=lambda m: None):
             pass
 
