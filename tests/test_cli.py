@@ -122,3 +122,16 @@ def test_smpl_like_motion_on_anny_body_is_rejected(tmp_path, capsys):
     np.savez(amass, poses=np.zeros((5, 72)), trans=np.zeros((5, 3)), mocap_framerate=np.array(30.0), betas=np.zeros(10))
     code, _, err = run_cli(capsys, "body", "export", "--motion", str(amass), "--out", str(tmp_path / "x.ply"))
     assert code == 2 and "smpl" in err and err.count("\n") == 1
+
+
+def test_the_executable_reports_a_native_crash_with_the_python_stack():
+    """``garmentnerf`` (:func:`~garmentnerf.cli.main.run`) turns Python's fault handler on: a crash
+    in native code prints the Python stack it happened under; plain ``main()`` does not."""
+    crash = ("import ctypes, sys; import garmentnerf.cli.main as cli; "
+             "cli.main = lambda: ctypes.string_at(0); cli.{}()")
+    for entry, reported in (("run", True), ("main", False)):
+        proc = subprocess.run([sys.executable, "-c", crash.format(entry)], capture_output=True, text=True,
+                              timeout=120, env={k: v for k, v in os.environ.items() if k != "PYTHONFAULTHANDLER"})
+        assert proc.returncode < 0  # killed by the signal
+        assert ("Fatal Python error: Segmentation fault" in proc.stderr) is reported, proc.stderr
+        assert ("in <lambda>" in proc.stderr) is reported

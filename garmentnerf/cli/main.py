@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import faulthandler
 import sys
 
 from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd, train_cmd,
@@ -72,5 +73,12 @@ _USER_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES,
                           errno.ENAMETOOLONG, errno.ENOTDIR, errno.EISDIR})
 
 
-if __name__ == "__main__":
+def run() -> None:
+    """The ``garmentnerf`` executable: :func:`main`, with Python's fault handler on, so that a crash
+    in native code (the GL driver, torch) prints the Python stack it happened under to stderr."""
+    faulthandler.enable()
     sys.exit(main())
+
+
+if __name__ == "__main__":
+    run()

@@ -266,7 +266,8 @@ def test_killed_training_resumes_with_the_runs_settings(tiny_scene, reference_ru
                 proc.kill()
                 proc.wait()
     child_err = log.read_text()
-    assert rc == (-signal.SIGKILL if sig == signal.SIGKILL else 130), (rc, child_err)
+    # the whole of the child's stderr on failure (a crash prints its Python stack there)
+    assert rc == (-signal.SIGKILL if sig == signal.SIGKILL else 130), f"exit {rc}, stderr:\n{child_err}"
     assert "Traceback" not in child_err, child_err
     step, _, _ = latest_checkpoint(out)
     assert 1 <= step < 25  # the first checkpoint ends G_img pre-training (step 1)
