@@ -241,6 +241,10 @@ def reference_run(tiny_scene, tmp_path_factory):
     return out
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM", "SIGKILL"])
 def test_killed_training_resumes_with_the_runs_settings(tiny_scene, reference_run, tmp_path, capsys, signame):
     """``garmentnerf train`` in a subprocess gets a signal at a random (seeded) point after its
@@ -250,8 +254,11 @@ def test_killed_training_resumes_with_the_runs_settings(tiny_scene, reference_ru
     out, log = tmp_path / "run", tmp_path / "stderr.txt"
     delay = random.Random(f"kill-{signame}").uniform(0.0, 0.8)
     with open(log, "wb") as stderr:
+        # SIGINT at its default in the child, as in a terminal: a shell without job control (`pytest &`,
+        # nohup) starts background commands with SIGINT ignored, and Python keeps it ignored
         proc = subprocess.Popen([sys.executable, "-m", "garmentnerf.cli.main",
-                                 *new_run(tiny_scene, out, *KILL_RUN)], stdout=subprocess.DEVNULL, stderr=stderr)
+                                 *new_run(tiny_scene, out, *KILL_RUN)], stdout=subprocess.DEVNULL, stderr=stderr,
+                                preexec_fn=_default_sigint)
         try:
             deadline = time.monotonic() + 120
             while not (out / "run.json").exists():  # the first complete checkpoint
