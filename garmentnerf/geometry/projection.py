@@ -68,6 +68,7 @@ from scipy.spatial import cKDTree
 from garmentnerf.geometry.triangles import (FEATURE_TOL, check_points, closest_point_on_triangles, dot_rows,
                                             face_frame_distance2, face_frame_table, face_reach, interpolate,
                                             pseudo_normals)
+from garmentnerf.interrupts import deferred_interrupts
 
 __all__ = [
     "check_search_dtype",
@@ -373,7 +374,8 @@ class PosedSurface:
             face (M,) tensor, best squared distance (M,) float64 numpy, certified (M,) bool numpy.
         """
         M = len(q4)
-        D, I = self._tree.query(q4, k=k, workers=-1)
+        with deferred_interrupts():  # scipy's threads must finish before a Ctrl-C acts
+            D, I = self._tree.query(q4, k=k, workers=-1)
         D2 = (D * D).reshape(M, k)
         I = I.reshape(M, k)
         power = D2 - self.reach_sq_max  # |q - u|^2 - R_u^2

@@ -9,7 +9,6 @@
 - :mod:`~garmentnerf.train.frames`: per-frame inputs and ground-truth targets, cached in memory.
 - :mod:`~garmentnerf.train.perceptual`: the perceptual loss network (VGG19 or shift-tolerant LPIPS).
 - :mod:`~garmentnerf.train.distributed`: data-parallel training over ``torch.distributed``.
-- :mod:`~garmentnerf.train.interrupts`: SIGINT/SIGTERM held while a step's update is applied.
 """
 
 from garmentnerf.train.run import LoadedRun, create_untrained_run, load_run, save_run_model

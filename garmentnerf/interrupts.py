@@ -1,5 +1,9 @@
-"""Holding SIGINT and SIGTERM while a training step's update is applied, so a checkpoint never holds a
-half-updated step (see :mod:`garmentnerf.train.trainer`'s "Interruption, kills and a full disk")."""
+"""Holding SIGINT and SIGTERM while work that must not be cut short runs; they act when it ends.
+
+Two users: a training step's update, so that a checkpoint never holds a half-updated step (see
+:mod:`garmentnerf.train.trainer`'s "Interruption, kills and a full disk"), and native work that
+runs on threads the main thread waits for (:func:`deferred_interrupts`).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ import contextlib
 import signal
 import threading
 
-__all__ = ["HeldInterrupts"]
+__all__ = ["HeldInterrupts", "deferred_interrupts"]
 
 
 class HeldInterrupts:
@@ -53,3 +57,16 @@ class HeldInterrupts:
         pending, self._pending = self._pending, None
         if pending is not None:
             self._previous[pending[0]](*pending)
+
+
+@contextlib.contextmanager
+def deferred_interrupts():
+    """Run the body without interruption by SIGINT/SIGTERM; one that came meanwhile acts after it.
+
+    For native work on threads the main thread joins: scipy's ``cKDTree.query(workers=-1)`` joins
+    its threads where a KeyboardInterrupt can land, and returns while they still write into arrays
+    it then frees (a segfault on Ctrl-C). Off the main thread, where no signal handler runs, it
+    only runs the body.
+    """
+    with HeldInterrupts() as held, held.hold():
+        yield
