@@ -18,6 +18,15 @@ from garmentnerf.geometry.projection import SurfaceProjector
 from garmentnerf.interrupts import deferred_interrupts
 
 
+@pytest.fixture(autouse=True)
+def python_sigint():
+    """SIGINT raising KeyboardInterrupt, as in a terminal, also where the suite was started with
+    SIGINT ignored (a background job of a shell without job control)."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def busy_python(n: int = 20000) -> int:
     """Python bytecode to run, where a pending KeyboardInterrupt would otherwise be raised."""
     total = 0
