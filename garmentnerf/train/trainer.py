@@ -85,6 +85,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, generator_losses
@@ -94,7 +95,6 @@ from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_file
                                            rng_state, set_rng_state)
 from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
-from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model, load_scene,
                                    load_module_weights, load_weights, read_run_info, remove_run_temporaries,
                                    save_run_model, save_weights, write_file_atomic)
