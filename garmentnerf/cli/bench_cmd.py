@@ -5,6 +5,9 @@ Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.benchma
 With ``--run DIR``: every render preset on the run's model, then playback figures
 (:func:`garmentnerf.perf.preset_bench.preset_benchmark`, which says what is measured and how).
 ``--plot`` draws ms/frame (log) against PSNR per preset (:func:`garmentnerf.perf.plot.write_plot`).
+
+With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
+side by side (:func:`garmentnerf.perf.train_bench.training_benchmark`).
 """
 
 from __future__ import annotations
@@ -42,6 +45,14 @@ def register(sub) -> None:
     p.add_argument("--sequence", default=None, help="with --run: scene sequence (default: the first training one)")
     p.add_argument("--playback-frames", type=int, default=24, metavar="N",
                    help="with --run: precomputed frames played per preset for the playback figure (default: 24)")
+    p.add_argument("--training", action="store_true",
+                   help="with --run: time NeRF training steps of the run's recipe per MLP precision, side by side, "
+                        "instead of the render presets")
+    p.add_argument("--precisions", default="float32,bfloat16",
+                   help="with --training: comma-separated precisions (default: float32,bfloat16)")
+    p.add_argument("--steps", type=int, default=8, help="with --training: steps per round and precision (default: 8)")
+    p.add_argument("--rounds", type=int, default=3, help="with --training: rounds, the precisions taking turns "
+                                                         "(default: 3)")
     p.set_defaults(func=run_bench)
 
 
@@ -58,6 +69,31 @@ def _print_presets(results: dict) -> None:
               + " ".join(f"{r['stages_ms'][k]:9.1f}" for k in PAPER_STAGES))
 
 
+def _run_training_bench(args: argparse.Namespace) -> int:
+    from garmentnerf.io_utils import atomic_write_path
+    from garmentnerf.perf.train_bench import training_benchmark
+    from garmentnerf.train.settings import TRAINING_PRECISIONS
+
+    precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+    unknown = [p for p in precisions if p not in TRAINING_PRECISIONS]
+    if not precisions or unknown:
+        raise ValueError(f"--precisions {args.precisions}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
+    if args.steps < 3 or args.rounds < 1:
+        raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
+    results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, log=print)
+    machine = results["machine"]
+    print(f"machine: {machine['processor']}, torch threads {machine['cpus']}, AMX-BF16 {machine['amx_bf16']}; "
+          f"{results['steps_timed']} steps timed per precision")
+    for row in results["precisions"]:
+        print(f"  {row['precision']:10s} {row['s_per_step']:7.3f} s/step   "
+              f"{results['speedup_vs_first'][row['precision']]:5.2f}x")
+    if args.json:
+        with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
+            tmp.write_text(json.dumps(results, indent=1))
+        print(f"wrote {args.json}")
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------
 def run_bench(args: argparse.Namespace) -> int:
     from garmentnerf.cli.common import check_output_file
@@ -67,9 +103,13 @@ def run_bench(args: argparse.Namespace) -> int:
         raise ValueError(f"--runs must be at least 1, got {args.runs}")
     if getattr(args, "plot", None) and not getattr(args, "run", None):
         raise ValueError("--plot needs --run")
+    if getattr(args, "training", False) and (not getattr(args, "run", None) or getattr(args, "plot", None)):
+        raise ValueError("--training needs --run (and draws no --plot)")
     for flag, path in (("--json", args.json), ("--plot", getattr(args, "plot", None))):
         if path:
             check_output_file(path, flag, args.overwrite)
+    if getattr(args, "training", False):
+        return _run_training_bench(args)
     if getattr(args, "run", None):
         from garmentnerf.perf.plot import write_plot
         from garmentnerf.perf.preset_bench import preset_benchmark

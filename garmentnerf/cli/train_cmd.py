@@ -75,6 +75,10 @@ def register(sub) -> None:
     p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
                    help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
                         "--resume it applies from the resumed step on and is recorded in run.json")
+    p.add_argument("--precision", default=None, choices=("auto", "float32", "bfloat16"),  # TRAINING_PRECISIONS
+                   help="NeRF MLP precision in the NeRF steps (default auto: bfloat16 where the machine multiplies "
+                        "it fast, a CPU with AMX-BF16 or a CUDA GPU with bfloat16, else float32; on --resume: the "
+                        "run's, another one is refused)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -148,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
                      progress=not args.no_progress, init_generator=args.init_generator,
                      init_weights=args.init_weights, training_crop_density=args.training_crop_density,
                      body_appearance=args.body_appearance,
-                     loss_weights=_loss_weights(args.loss_weight))
+                     loss_weights=_loss_weights(args.loss_weight), precision=args.precision)
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")
     # `kill` (SIGTERM, what schedulers and `timeout` send) saves a checkpoint like Ctrl-C does.

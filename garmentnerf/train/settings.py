@@ -13,8 +13,9 @@ from types import MappingProxyType
 
 from garmentnerf.model.config import ModelConfig
 
-__all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS", "tiny_config",
-           "model_config_for", "loss_weight_names", "new_run_settings", "resume_settings", "show_setting"]
+__all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
+           "TRAINING_PRECISIONS", "tiny_config", "model_config_for", "loss_weight_names", "training_precision",
+           "new_run_settings", "resume_settings", "show_setting"]
 
 MODEL_PRESETS = ("paper", "cpu_small", "tiny")
 
@@ -23,7 +24,9 @@ TRAIN_DEFAULTS = MappingProxyType({"preset": "cpu_small", "seed": 0, "log_every"
                                    "ckpt_every": 1000, "keep_checkpoints": 2, "perceptual": "auto"})
 #: :class:`TrainConfig` fields that define the run: a resume with another value is refused.
 RUN_SETTINGS = ("preset", "seed", "iterations", "generator_iterations", "sequences", "frames", "cameras",
-                "init_generator", "init_weights", "body_appearance")
+                "init_generator", "init_weights", "body_appearance", "precision")
+#: What :attr:`TrainConfig.precision` may be (``auto`` is resolved when a run starts: :func:`training_precision`).
+TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 #: :class:`TrainConfig` fields a resume may change (from the resumed step on; recorded in ``overrides``).
 OVERRIDABLE_SETTINGS = ("log_every", "image_every", "ckpt_every", "keep_checkpoints", "perceptual", "vgg19_weights")
 
@@ -133,6 +136,12 @@ class TrainConfig:
     with the body rasterised and drawn with it (frozen), so the network learns the garment and its visibility
     (the ``raster_body`` composition). Copied into the run folder, where renders find it; a resume uses that
     copy (None: the paper's composition, the network draws the body; on a resume: the run's)."""
+    precision: str | None = None
+    """*run*; the precision of the NeRF MLP's hidden layers in the NeRF steps (autocast; the input and density
+    layers stay float32, see ``model/nerf_mlp.py``): ``float32``, ``bfloat16``, or ``auto`` (the default):
+    bfloat16 where it is fast (:func:`~garmentnerf.model.pipeline.bfloat16_is_fast`), else float32. A new run
+    records what ``auto`` chose, so a resume on another machine trains on as the run began; a run.json from
+    before this setting means float32."""
     loss_weights: dict[str, float] | None = None
     """Overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a resume they apply from the
     resumed step on (a curriculum: e.g. add a term once the geometry is there); each change is logged and kept
@@ -165,6 +174,8 @@ class TrainConfig:
             raise ValueError("init_weights and init_generator exclude each other (init_weights holds G_img too)")
         if self.training_crop_density is not None and not (0 <= self.training_crop_density < math.inf):
             raise ValueError(f"training_crop_density must be a number >= 0, got {self.training_crop_density}")
+        if self.precision is not None and self.precision not in TRAINING_PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(TRAINING_PRECISIONS)}, got {self.precision!r}")
         if self.stop_after is not None and self.stop_after < 0:
             raise ValueError(f"stop_after must be >= 0, got {self.stop_after}")
 
@@ -209,9 +220,23 @@ def show_setting(name: str, value) -> str:
     return str(value)
 
 
+def training_precision(precision: str | None, device: str) -> str:
+    """``precision`` (:data:`TRAINING_PRECISIONS`; None: ``auto``) as a run on ``device`` trains: ``auto`` is
+    bfloat16 where bfloat16 is fast (:func:`~garmentnerf.model.pipeline.bfloat16_is_fast`), else float32."""
+    import torch
+
+    from garmentnerf.model.pipeline import bfloat16_is_fast
+
+    if precision in (None, "auto"):
+        return "bfloat16" if bfloat16_is_fast(torch.device(device)) else "float32"
+    return precision
+
+
 def new_run_settings(tc: TrainConfig) -> TrainConfig:
-    """``tc`` with the defaults (:data:`TRAIN_DEFAULTS`) in its None fields and the preset it runs."""
+    """``tc`` with the defaults (:data:`TRAIN_DEFAULTS`) in its None fields, the preset it runs and the
+    precision ``auto`` resolves to."""
     values = {k: v for k, v in TRAIN_DEFAULTS.items() if k != "preset" and getattr(tc, k) is None}
+    values["precision"] = training_precision(tc.precision, tc.device)
     if tc.model_config is not None:
         values["preset"] = _preset_of(tc.model_config)
     elif tc.preset is None:
@@ -229,6 +254,9 @@ def resume_settings(tc: TrainConfig, info: dict, cfg: ModelConfig, run_dir: Path
     """
     recorded = info.get("train") if isinstance(info.get("train"), dict) else {}
     run_values = {name: recorded.get(name) for name in RUN_SETTINGS}
+    run_values["precision"] = recorded.get("precision") or "float32"  # runs from before it was recorded: float32
+    if tc.precision is not None:
+        tc = dataclasses.replace(tc, precision=training_precision(tc.precision, tc.device))
     run_values["seed"] = recorded.get("seed", info.get("seed"))
     rec_preset = recorded.get("preset")
     if rec_preset in MODEL_PRESETS and _architecture(model_config_for(rec_preset)) == _architecture(cfg):

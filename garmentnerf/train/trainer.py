@@ -194,7 +194,8 @@ class Trainer(Closeable):
         self._start_position(ckpts, resume_info, setting_changes, weight_changes)
         self.dist.barrier()
         self.log(f"{len(self.frames_list)} frames x {len(self.cameras)} cameras, {self.generator_iterations} G_img + "
-                 f"{self.cfg.iterations} NeRF steps, perceptual: {self.perceptual_name}, device: {self.device}"
+                 f"{self.cfg.iterations} NeRF steps, perceptual: {self.perceptual_name}, device: {self.device}, "
+                 f"MLP precision: {self.tc.precision}"
                  + (f", {self.dist.world} processes" if self.dist.active else "")
                  + (f", resuming at step {self.step}" if ckpts else ""))
 
@@ -561,7 +562,7 @@ class Trainer(Closeable):
         gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
-        out = self.model.render(feats, camera, training=True, generator=gen)
+        out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision)
         pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette

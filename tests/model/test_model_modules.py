@@ -103,6 +103,39 @@ def test_mlp_shapes_and_density_activation_not_raw():
     torch.testing.assert_close(sigma, F.softplus(torch.full((n,), -1.0)))
 
 
+def test_mlp_under_bfloat16_autocast_keeps_input_and_density_layers_in_float32():
+    """Under bfloat16 autocast (training's and rendering's ``precision``) only the hidden layers and
+    the appearance head run in bfloat16; the reference is the same network in float32."""
+    torch.manual_seed(0)
+    mlp = GarmentNeRF.from_config(ModelConfig.cpu_small())
+    n = 2048
+    args = [torch.rand(n, 3) - 0.5, torch.rand(n) * 0.3, torch.randn(n, 8), torch.randn(n, 8)]
+    # two points 1.5 mm apart at 0.7 m: one and the same bfloat16 number, distinct in float32
+    args[0][:2] = torch.tensor([[0.6995, 0.1, 0.2], [0.7010, 0.1, 0.2]])
+    assert torch.equal(*args[0][:2, 0].to(torch.bfloat16))
+    outputs = {}
+    hooks = [module.register_forward_hook(lambda m, i, o, name=name: outputs.__setitem__(name, o))
+             for name, module in mlp.named_modules() if isinstance(module, torch.nn.Linear)]
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        sigma, zeta = mlp(*args)
+    first, density = outputs["trunk.0"], outputs["density_head"]
+    assert first.dtype == density.dtype == sigma.dtype == torch.float32
+    assert outputs["trunk.2"].dtype == outputs["appearance_head"].dtype == zeta.dtype == torch.bfloat16
+    for hook in hooks:
+        hook.remove()
+    with torch.no_grad():
+        ref_sigma, ref_zeta = mlp(*args)
+    # the input layer is the float32 one to the last bit (its ReLU works in place), so the two
+    # close points stay apart
+    inputs = torch.cat([args[0], args[1][:, None], args[2], args[3]], 1)
+    with torch.no_grad():
+        torch.testing.assert_close(first, mlp.trunk[0](inputs).clamp_min(0), rtol=0, atol=0)
+    assert not torch.equal(first[0], first[1])
+    # the rest within bfloat16's rounding (8 bits of mantissa, three layers)
+    torch.testing.assert_close(sigma, ref_sigma, rtol=0.03, atol=0.01 * float(ref_sigma.abs().max()))
+    torch.testing.assert_close(zeta.float(), ref_zeta, rtol=0.05, atol=0.02 * float(ref_zeta.abs().max()))
+
+
 def test_density_activations():
     raw = torch.tensor([-100.0, 0.0, 3.0, 40.0], requires_grad=True)
     assert (density_activation(raw) >= 0).all()

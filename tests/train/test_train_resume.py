@@ -128,6 +128,47 @@ def test_resume_keeps_the_runs_settings_and_refuses_other_ones(tiny_scene, tmp_p
     assert_same_weights(out, ref)
 
 
+def test_precision_is_chosen_once_recorded_and_kept_by_a_resume(tiny_scene, tmp_path, capsys, monkeypatch):
+    """``--precision``: ``auto`` follows the machine (bfloat16 where AMX-BF16 makes it fast), the
+    run records what it trains with, a resume keeps it and refuses another, and a run.json from
+    before the setting means float32."""
+    from garmentnerf.train.settings import training_precision
+
+    for amx, want in ((True, "bfloat16"), (False, "float32")):
+        monkeypatch.setattr(torch.cpu, "get_capabilities", lambda amx=amx: {"amx_bf16": amx})
+        assert training_precision("auto", "cpu") == training_precision(None, "cpu") == want
+        assert training_precision("float32", "cpu") == "float32"
+    monkeypatch.undo()
+
+    out, ref, plain = tmp_path / "run", tmp_path / "reference", tmp_path / "float32"
+    run_args = ["--iterations", "4", "--generator-iterations", "1", "--frames", "0:2", "--ckpt-every", "1"]
+    assert main(new_run(tiny_scene, out, *run_args, "--precision", "bfloat16", "--stop-after", "3")) == 0
+    assert "MLP precision: bfloat16" in capsys.readouterr().err
+    assert info_of(out)["train"]["precision"] == "bfloat16"
+    assert main(resume(out, "--precision", "float32")) == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("garmentnerf: error: --precision float32") and "trained with precision bfloat16;" in line
+    assert main(resume(out, "--precision", "bfloat16")) == 0
+    assert info_of(out)["step"] == 5 and info_of(out)["train"]["precision"] == "bfloat16"
+    # resumed or not, the same weights; in float32 the same run ends elsewhere (bfloat16 was used)
+    assert main(new_run(tiny_scene, ref, *run_args, "--precision", "bfloat16")) == 0
+    assert_same_weights(out, ref)
+    # a run from before the setting (no "precision" in run.json) trained in float32: a resume keeps
+    # that, even where auto would now choose bfloat16
+    assert main(new_run(tiny_scene, plain, *run_args, "--precision", "float32", "--stop-after", "3")) == 0
+    info = info_of(plain)
+    del info["train"]["precision"]
+    (plain / "run.json").write_text(json.dumps(info))
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"amx_bf16": True})
+    capsys.readouterr()
+    assert main(resume(plain, "--precision", "auto")) == 2
+    assert "--precision bfloat16: the run" in capsys.readouterr().err
+    assert main(resume(plain)) == 0
+    assert info_of(plain)["step"] == 5 and info_of(plain)["train"]["precision"] == "float32"
+    with pytest.raises(AssertionError):  # bfloat16 was used: the float32 run ends elsewhere
+        assert_same_weights(out, plain)
+
+
 # ---------------------------------------------------------------------------------------- full disk
 @pytest.mark.parametrize("failing", ["ckpt_4.safetensors", "ckpt_4.state.pt", "run.json"])
 def test_full_disk_is_one_line_and_leaves_no_partial_checkpoint(tiny_scene, tmp_path, capsys, monkeypatch, failing):

@@ -1,0 +1,59 @@
+"""``garmentnerf bench --run DIR --training``: seconds per NeRF step per MLP precision, side by side."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from garmentnerf.cli.main import main
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("train_bench") / "run"
+    assert main(["train", "--scene", str(tiny_scene.root), "--out", str(out), "--preset", "tiny", "--perceptual",
+                 "none", "--no-progress", "--threads", "1", "--iterations", "2", "--generator-iterations", "1",
+                 "--image-every", "0"]) == 0
+    return out
+
+
+def test_training_bench_times_each_precision_and_leaves_nothing_behind(tiny_run, tmp_path, capsys):
+    before = {p: p.read_bytes() for p in tiny_run.rglob("*") if p.is_file()}
+    temporaries = set(Path(tempfile.gettempdir()).glob("garmentnerf-train-bench-*"))
+    out = tmp_path / "train_bench.json"
+    assert main(["bench", "--run", str(tiny_run), "--training", "--steps", "4", "--rounds", "2",
+                 "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    results = json.loads(out.read_text())
+    assert [row["precision"] for row in results["precisions"]] == ["float32", "bfloat16"]
+    # 4 steps a round: 3 intervals, the last (it writes the round's checkpoint) left out; 2 rounds
+    assert results["steps_timed"] == 4
+    for row in results["precisions"]:
+        assert len(row["s_per_step_all"]) == 4 and all(t > 0 for t in row["s_per_step_all"])
+        assert row["s_per_step"] == pytest.approx(statistics.median(row["s_per_step_all"]))
+        assert f"{row['precision']:10s} {row['s_per_step']:7.3f} s/step" in printed
+    speedup = results["speedup_vs_first"]
+    assert speedup["float32"] == 1.0
+    assert speedup["bfloat16"] == pytest.approx(results["precisions"][0]["s_per_step"]
+                                                / results["precisions"][1]["s_per_step"])
+    # the run is untouched and the trainers' folders are gone
+    assert {p: p.read_bytes() for p in tiny_run.rglob("*") if p.is_file()} == before
+    assert set(Path(tempfile.gettempdir()).glob("garmentnerf-train-bench-*")) == temporaries
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--training"], "--training needs --run"),
+    (["--training", "--run", "RUN", "--precisions", "float16"], "--precisions float16: each must be one of"),
+    (["--training", "--run", "RUN", "--steps", "2"], "--steps must be >= 3"),
+])
+def test_training_bench_refuses_bad_flags_in_one_line(tiny_run, capsys, flags, message):
+    flags = [str(tiny_run) if f == "RUN" else f for f in flags]
+    assert main(["bench", *flags]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
