@@ -82,7 +82,7 @@ def _run_training_bench(args: argparse.Namespace) -> int:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
     results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, log=print)
     machine = results["machine"]
-    print(f"machine: {machine['processor']}, torch threads {machine['cpus']}, AMX-BF16 {machine['amx_bf16']}; "
+    print(f"machine: {machine['processor']}, torch threads {machine['torch_threads']}, AMX-BF16 {machine['amx_bf16']}; "
           f"{results['steps_timed']} steps timed per precision")
     for row in results["precisions"]:
         print(f"  {row['precision']:10s} {row['s_per_step']:7.3f} s/step   "

@@ -239,9 +239,9 @@ def reference_visibility(points: torch.Tensor, camera: Camera, depth: torch.Tens
 
 def bfloat16_is_fast(device: torch.device | str) -> bool:
     """Whether ``device`` multiplies bfloat16 matrices much faster than float32 ones: a CUDA GPU
-    that supports bfloat16, or a CPU with AMX-BF16 tiles (Intel Xeon from Sapphire Rapids on,
-    where a 128-wide layer's product runs about 8 times faster; without AMX bfloat16 autocast is
-    no faster than float32)."""
+    that supports bfloat16, or a CPU with AMX-BF16 tiles (Intel Xeon from Sapphire Rapids on; on
+    the development CPU a 60,000 x 128 by 128 x 128 product takes 0.94 ms in bfloat16 against
+    8.1 ms in float32). Other CPUs get False."""
     device = torch.device(device)
     if device.type == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()

@@ -90,6 +90,6 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
             for p, v in intervals.items()]
     first = rows[0]["s_per_step"]
     return {"run": str(run_dir), "steps_timed": len(intervals[resolved[0]]),
-            "machine": {"cpus": torch.get_num_threads(), "processor": platform.processor() or platform.machine(),
+            "machine": {"torch_threads": torch.get_num_threads(), "processor": platform.processor() or platform.machine(),
                         "amx_bf16": bool(torch.cpu.get_capabilities().get("amx_bf16", False))},
             "precisions": rows, "speedup_vs_first": {r["precision"]: first / r["s_per_step"] for r in rows}}

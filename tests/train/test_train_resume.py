@@ -150,7 +150,7 @@ def test_precision_is_chosen_once_recorded_and_kept_by_a_resume(tiny_scene, tmp_
     assert line.startswith("garmentnerf: error: --precision float32") and "trained with precision bfloat16;" in line
     assert main(resume(out, "--precision", "bfloat16")) == 0
     assert info_of(out)["step"] == 5 and info_of(out)["train"]["precision"] == "bfloat16"
-    # resumed or not, the same weights; in float32 the same run ends elsewhere (bfloat16 was used)
+    # resumed or not, the same weights
     assert main(new_run(tiny_scene, ref, *run_args, "--precision", "bfloat16")) == 0
     assert_same_weights(out, ref)
     # a run from before the setting (no "precision" in run.json) trained in float32: a resume keeps
