@@ -24,7 +24,7 @@ __all__ = ["training_benchmark"]
 
 
 def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: int = 8, rounds: int = 3,
-                       threads: int | None = None, log=None) -> dict:
+                       log=None) -> dict:
     """Median seconds per NeRF step of the run in ``run_dir`` for each of ``precisions``.
 
     Args:
@@ -34,7 +34,6 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
             is resolved first, as a run would).
         steps: steps per round and precision (at least 3: the first and last of a round are not timed).
         rounds: rounds; the precisions alternate within each.
-        threads: ``torch.set_num_threads`` (None: leave as is).
         log: called with one line per finished round (None: silent).
     Returns:
         ``{"run", "steps_timed", "machine", "precisions": [{"precision", "s_per_step",
@@ -60,8 +59,6 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
     cfg = ModelConfig.from_dict(dict(info["model_config"]))
     appearance = run_dir / BODY_APPEARANCE_FILE
     resolved = [training_precision(p, "cpu") for p in precisions]
-    if threads:
-        torch.set_num_threads(int(threads))
     intervals = {p: [] for p in resolved}
     with tempfile.TemporaryDirectory(prefix="garmentnerf-train-bench-") as tmp:
         trainers = {}
