@@ -199,7 +199,10 @@ class ModelConfig:
     iterations: int = 200_000
     """Training iterations (paper: 200k)."""
     batch_size: int = 1
-    """Images per iteration (paper: 1)."""
+    """Images per iteration and process (paper: 1): (frame, camera) pairs in the NeRF stage, frames
+    in G_img pre-training. They are backpropagated one at a time and their gradients summed (each
+    loss divided by the batch size), so memory stays that of one image and a step costs about
+    ``batch_size`` single-image steps."""
     grad_clip_value: float = 40.0
     """Gradient clipping by value (authors' code: 40)."""
     generator_lr: float = 1e-4

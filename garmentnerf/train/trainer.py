@@ -4,16 +4,16 @@
 Stage 1 -- G_img pre-training (``cfg.generator_iterations`` steps; skipped when the detail
     feature is ablated). The neural texture and G_img learn to reproduce the ground-truth front
     and back reference images (the scene's ``ref_front`` / ``ref_back`` cameras) of the training
-    frames from the body's UVs seen by those cameras: one frame (both references, DNG's batch of
-    2) per step, ``w_image * L1 + w_perceptual * perceptual``, Adam at ``cfg.generator_lr``.
+    frames from the body's UVs seen by those cameras: ``cfg.batch_size`` frames (each both
+    references, DNG's batch of 2) per step, ``w_image * L1 + w_perceptual * perceptual``, Adam at ``cfg.generator_lr``.
     Then G_img is frozen (:meth:`GarmentAnimationNeRF.set_image_generator_frozen`) and its
     reference images are computed once per frame and cached (it no longer changes).
     Left out from DNG: the SPADE temporal conditioning and the adversarial losses (see
     :mod:`garmentnerf.model.image_generator`).
 Stage 2 -- the NeRF (``cfg.iterations`` steps). E, G_en, M_NeRF, M_D and the palette, with
     :func:`garmentnerf.model.losses.garment_losses` (weights from the config: L1 image + L1
-    mask 1, perceptual 0.1, sparsity 2e-4, offsets 0.03, palette 1e-3). One (frame, training
-    camera) per step, rendered as the full feature image (``cfg.feature_image_resolution``
+    mask 1, perceptual 0.1, sparsity 2e-4, offsets 0.03, palette 1e-3). ``cfg.batch_size`` (frame,
+    training camera) pairs per step (paper: 1), each rendered as the full feature image (``cfg.feature_image_resolution``
     squared rays, decoded to ``cfg.image_resolution``): what the pipeline renders. The image is the
     whole camera, or with ``cfg.training_crop_density`` a window of the camera at that density
     placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). Adam with
@@ -26,10 +26,11 @@ Steps are counted globally: ``[0, G)`` stage 1, ``[G, G + N)`` stage 2; checkpoi
 
 Determinism and exact resume
     What each step trains on and its ray jitter depend only on ``(seed, rank, step)``: the
-    (frame, camera) of step s is entry ``(s * world + rank) mod n`` of a permutation drawn from
-    ``(seed, epoch)`` (every rank the same permutation, each its own share: the
-    ``DistributedSampler`` partitioning), and the jitter generator is seeded from
-    ``(seed, rank, step)``. A checkpoint holds the weights (``.safetensors``), the optimiser
+    i-th (frame, camera) of step s (``i < b``, the batch size) is entry ``((s * world + rank) * b + i)
+    mod n`` of a permutation drawn from ``(seed, epoch)`` (every rank the same permutation, each its
+    own share: the ``DistributedSampler`` partitioning), and the jitter generator, one per step, is
+    seeded from ``(seed, rank, step)``. The batch's images are backpropagated one at a time, their
+    gradients adding up (gradient accumulation: one image's graph in memory at a time). A checkpoint holds the weights (``.safetensors``), the optimiser
     state, the step and the python/numpy/torch RNG states (``.state.pt``); resuming from it gives
     the same losses as an uninterrupted run (tested bit-equal on the CPU).
 
@@ -63,7 +64,7 @@ Devices and several processes
     trains on its share of the (frame, camera) pairs, gradients are averaged across ranks after
     every backward pass (data parallel, as DDP does; done by hand because a step is two calls,
     ``prepare_frame`` then ``render``, not one ``forward``), and only rank 0 writes logs,
-    checkpoints and the run files. The effective batch is ``world_size`` images per step.
+    checkpoints and the run files. The effective batch is ``world_size * batch_size`` images per step.
 
 Caches
     Per-frame inputs stay in memory on the CPU (:class:`~garmentnerf.train.frames.SceneFrames`);
@@ -528,15 +529,16 @@ class Trainer(Closeable):
         self.last_checkpoint_step = step
 
     # ---- steps -------------------------------------------------------------------------------------
-    def _pick(self, items: list, step: int, salt: int):
+    def _pick(self, items: list, step: int, salt: int, index: int = 0):
+        """Image ``index`` (of ``cfg.batch_size``) of this rank's share of step ``step``."""
         n = len(items)
-        g = step * self.dist.world + self.dist.rank
+        g = (step * self.dist.world + self.dist.rank) * self.cfg.batch_size + index
         epoch, pos = divmod(g, n)
         perm = np.random.default_rng(_seed_of(self.tc.seed, salt, epoch)).permutation(n)
         return items[int(perm[pos])]
 
-    def _generator_step(self, step: int) -> tuple[dict, dict]:
-        seq, frame = self._pick(self.frames_list, step, 1)
+    def _generator_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
+        seq, frame = self._pick(self.frames_list, step, 1, index)
         inputs = self.data.frames.inputs(seq, frame)
         target = self.data.frames.reference_targets(seq, frame).to(self.device)
         pred = self.model.image_generator(inputs.reference_uv.to(self.device, torch.float32),
@@ -555,11 +557,10 @@ class Trainer(Closeable):
             inputs = frames.inputs(seq, frame)
         return inputs
 
-    def _nerf_step(self, step: int) -> tuple[dict, dict]:
-        seq, frame, cam = self._pick(self.pairs, step, 2)
+    def _nerf_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
+        seq, frame, cam = self._pick(self.pairs, step, 2, index)
         inputs = self._nerf_inputs(seq, frame)
         feats = self.model.prepare_frame(inputs)
-        gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
         out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision)
@@ -571,6 +572,25 @@ class Trainer(Closeable):
                                self.cfg, self.perceptual, opacity=out.opacity[None],
                                target_garment=garment[None] if segment else None)
         return terms, {"pred": pred, "target": image}
+
+    def _backward_batch(self, step: int, stage: str) -> tuple[dict[str, float], dict]:
+        """Backpropagates step ``step``'s ``cfg.batch_size`` images one after the other, each loss
+        divided by the batch size, so the gradients add up to those of the batch's mean loss
+        while only one image's graph is held at a time. Returns the mean of each loss term and of
+        the image MSE over the batch (floats), and the last image pair (for the log). The ray
+        jitter of the whole step comes from one generator seeded from ``(seed, rank, step)``."""
+        one_image = self._generator_step if stage == "generator" else self._nerf_step
+        batch = self.cfg.batch_size
+        gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
+        sums: dict[str, float] = {}
+        for index in range(batch):
+            terms, images = one_image(step, index, gen)
+            (terms["total"] / batch).backward()
+            with torch.no_grad():
+                terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
+            for k, v in terms.items():
+                sums[k] = sums.get(k, 0.0) + float(v.detach())
+        return {k: v / batch for k, v in sums.items()}, images
 
     def _with_body(self, out, feats, camera) -> torch.Tensor:
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
@@ -634,18 +654,14 @@ class Trainer(Closeable):
                     for group in self.optimizer.param_groups:
                         group["lr"] = lr * group.get("lr_scale", 1.0)
                     self.optimizer.zero_grad(set_to_none=True)
-                    terms, images = self._generator_step(step) if stage == "generator" else self._nerf_step(step)
-                    terms["total"].backward()
+                    values, images = self._backward_batch(step, stage)
                     self.dist.average_gradients(self.params)
                     torch.nn.utils.clip_grad_value_(self.params, self.cfg.grad_clip_value)
                     with interrupts.hold():  # a step is applied whole or not at all
                         self.optimizer.step()
                         self.step = step + 1
                         rng_done = rng_state()
-                    values = {k: float(v.detach()) for k, v in terms.items()}
-                    with torch.no_grad():
-                        mse = float((images["pred"].detach() - images["target"]).square().mean())
-                    values["psnr"] = -10.0 * math.log10(max(mse, 1e-10))
+                    values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
                     history.append({"step": self.step, "stage": stage, **values})
                     self._log_step(self.step, stage, values, lr, images)
                     bar.update(1)

@@ -64,10 +64,10 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
     # The same run, Ctrl-C in the middle of step 4 (the second NeRF step).
     original = Trainer._nerf_step
 
-    def interrupting(self, step):
+    def interrupting(self, step, index, gen):
         if step == 3:
             raise KeyboardInterrupt
-        return original(self, step)
+        return original(self, step, index, gen)
 
     monkeypatch.setattr(Trainer, "_nerf_step", interrupting)
     part, _ = run(make_tc(tiny_scene, tmp_path / "b"), gl_context)
@@ -104,6 +104,39 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
     names = sorted(p.name for p in (tmp_path / "b" / "checkpoints").iterdir())
     assert names == ["ckpt_3.safetensors", "ckpt_3.state.pt", "ckpt_5.safetensors", "ckpt_5.state.pt"]
     assert any((tmp_path / "b" / "tb").iterdir())
+
+
+def test_a_batch_is_the_mean_loss_of_its_images_drawn_in_the_single_image_order(tiny_scene, gl_context, tmp_path):
+    """cfg.batch_size 2: step s trains on the (frame, camera) pairs that single-image steps 2s and
+    2s + 1 would draw (so an epoch still visits every pair once), and the gradients accumulated
+    image by image equal those of the two images' mean loss backpropagated as one graph."""
+    from garmentnerf.train.trainer import _seed_of
+
+    single = make_tc(tiny_scene, tmp_path / "single", generator_iterations=0)
+    batched = make_tc(tiny_scene, tmp_path / "batched", generator_iterations=0,
+                      model_config=tiny_config().replace(batch_size=2))
+    with Trainer(single, gl_context, log=lambda m: None) as tr:
+        n = len(tr.pairs)
+        order = [tr._pick(tr.pairs, s, 2) for s in range(2 * n)]
+    with Trainer(batched, gl_context, log=lambda m: None) as tr:
+        assert [tr._pick(tr.pairs, s, 2, i) for s in range(n) for i in range(2)] == order
+        assert sorted(order[:n]) == sorted(tr.pairs)  # one epoch: every pair once
+
+        step = 1
+        tr._enter_stage("nerf")
+        tr.optimizer.zero_grad(set_to_none=True)
+        values, _ = tr._backward_batch(step, "nerf")
+        accumulated = [p.grad.clone() for p in tr.params]
+
+        tr.optimizer.zero_grad(set_to_none=True)
+        gen = torch.Generator().manual_seed(_seed_of(tr.tc.seed, 0, step))
+        terms = [tr._nerf_step(step, i, gen)[0] for i in range(2)]
+        ((terms[0]["total"] + terms[1]["total"]) / 2).backward()
+        assert values["total"] == pytest.approx(float((terms[0]["total"] + terms[1]["total"]).detach()) / 2, rel=1e-6)
+        assert float(terms[0]["total"].detach()) != pytest.approx(float(terms[1]["total"].detach()), rel=1e-3)  # two images
+        for p, grad in zip(tr.params, accumulated):
+            torch.testing.assert_close(grad, p.grad, atol=1e-7, rtol=1e-5)
+        assert sum(float(g.abs().sum()) for g in accumulated) > 0
 
 
 def test_refuses_non_empty_run_dir(tiny_scene, gl_context, tmp_path):
@@ -310,11 +343,11 @@ def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_
     with Trainer(probe, gl_context, log=lambda m: None) as tr:
         with torch.no_grad():  # the decoder's mask -> 0: no garment anywhere
             tr.model.decoder.head.bias[-1] = -40.0
-        _, shown = tr._nerf_step(tr.generator_iterations)
+        _, shown = tr._nerf_step(tr.generator_iterations, 0, torch.Generator())
         pred, target = shown["pred"].detach(), shown["target"]
         body_color = tr.model.palette().detach()[-1].view(3, 1, 1)
         tr.body_appearance = None
-        _, plain = tr._nerf_step(tr.generator_iterations)
+        _, plain = tr._nerf_step(tr.generator_iterations, 0, torch.Generator())
     assert float(plain["pred"].abs().max()) < 1e-6  # the network alone draws nothing
     drawn = pred.sum(dim=0) > 1e-3
     character = target.sum(dim=0) > 1e-3
