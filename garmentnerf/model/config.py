@@ -196,6 +196,9 @@ class ModelConfig:
     """Initial Adam learning rate (paper: 5e-4)."""
     lr_final: float = 5e-5
     """Learning rate at the last iteration, exponential decay (paper: 5e-5)."""
+    encoder_lr_scale: float = 1.0
+    """In the NeRF stage the U-Nets E and G_en, which make the per-frame features f_d and f_s, learn at
+    the scheduled rate times this (1: as every other network; the paper has no such scale)."""
     iterations: int = 200_000
     """Training iterations (paper: 200k)."""
     batch_size: int = 1
@@ -267,7 +270,8 @@ class ModelConfig:
                  "neural_texture_resolution", "generator_width_scale", "mlp_depth", "mlp_width",
                  "samples_per_ray", "palette_size", "decoder_width", "decoder_min_width", "offset_scale",
                  "lr", "lr_final", "iterations", "batch_size", "grad_clip_value", "generator_lr",
-                 "generator_iterations", "atlas_feature_levels", "atlas_feature_resolution", "atlas_feature_lr_scale")
+                 "generator_iterations", "atlas_feature_levels", "atlas_feature_resolution", "atlas_feature_lr_scale",
+                 "encoder_lr_scale")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
         if self.segmentation_start < 0:
