@@ -5,7 +5,8 @@ Stage 1 -- G_img pre-training (``cfg.generator_iterations`` steps; skipped when 
     feature is ablated). The neural texture and G_img learn to reproduce the ground-truth front
     and back reference images (the scene's ``ref_front`` / ``ref_back`` cameras) of the training
     frames from the body's UVs seen by those cameras: ``cfg.batch_size`` frames (each both
-    references, DNG's batch of 2) per step, ``w_image * L1 + w_perceptual * perceptual``, Adam at ``cfg.generator_lr``.
+    references, DNG's batch of 2) per step, ``w_image * L1 + w_perceptual * perceptual``, Adam
+    at ``cfg.generator_lr``.
     Then G_img is frozen (:meth:`GarmentAnimationNeRF.set_image_generator_frozen`) and its
     reference images are computed once per frame and cached (it no longer changes).
     Left out from DNG: the SPADE temporal conditioning and the adversarial losses (see
@@ -13,8 +14,9 @@ Stage 1 -- G_img pre-training (``cfg.generator_iterations`` steps; skipped when 
 Stage 2 -- the NeRF (``cfg.iterations`` steps). E, G_en, M_NeRF, M_D and the palette, with
     :func:`garmentnerf.model.losses.garment_losses` (weights from the config: L1 image + L1
     mask 1, perceptual 0.1, sparsity 2e-4, offsets 0.03, palette 1e-3). ``cfg.batch_size`` (frame,
-    training camera) pairs per step (paper: 1), each rendered as the full feature image (``cfg.feature_image_resolution``
-    squared rays, decoded to ``cfg.image_resolution``): what the pipeline renders. The image is the
+    training camera) pairs per step (paper: 1), each rendered as the full feature image
+    (``cfg.feature_image_resolution`` squared rays, decoded to ``cfg.image_resolution``): what the
+    pipeline renders. The image is the
     whole camera, or with ``cfg.training_crop_density`` a window of the camera at that density
     placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). Adam with
     ``lr`` decaying exponentially to ``lr_final`` over ``cfg.iterations``
@@ -30,9 +32,10 @@ Determinism and exact resume
     mod n`` of a permutation drawn from ``(seed, epoch)`` (every rank the same permutation, each its
     own share: the ``DistributedSampler`` partitioning), and the jitter generator, one per step, is
     seeded from ``(seed, rank, step)``. The batch's images are backpropagated one at a time, their
-    gradients adding up (gradient accumulation: one image's graph in memory at a time). A checkpoint holds the weights (``.safetensors``), the optimiser
-    state, the step and the python/numpy/torch RNG states (``.state.pt``); resuming from it gives
-    the same losses as an uninterrupted run (tested bit-equal on the CPU).
+    gradients adding up (gradient accumulation: one image's graph in memory at a time). A
+    checkpoint holds the weights (``.safetensors``), the optimiser state, the step and the
+    python/numpy/torch RNG states (``.state.pt``); resuming from it gives the same losses as an
+    uninterrupted run (tested bit-equal on the CPU).
 
 Interruption, kills and a full disk
     Ctrl-C (``KeyboardInterrupt``) during a step abandons that step, writes a checkpoint of the
@@ -64,7 +67,8 @@ Devices and several processes
     trains on its share of the (frame, camera) pairs, gradients are averaged across ranks after
     every backward pass (data parallel, as DDP does; done by hand because a step is two calls,
     ``prepare_frame`` then ``render``, not one ``forward``), and only rank 0 writes logs,
-    checkpoints and the run files. The effective batch is ``world_size * batch_size`` images per step.
+    checkpoints and the run files. The effective batch is ``world_size * batch_size`` images per
+    step.
 
 Caches
     Per-frame inputs stay in memory on the CPU (:class:`~garmentnerf.train.frames.SceneFrames`);
@@ -543,7 +547,7 @@ class Trainer(Closeable):
         perm = np.random.default_rng(_seed_of(self.tc.seed, salt, epoch)).permutation(n)
         return items[int(perm[pos])]
 
-    def _generator_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
+    def _generator_step(self, step: int, index: int) -> tuple[dict, dict]:
         seq, frame = self._pick(self.frames_list, step, 1, index)
         inputs = self.data.frames.inputs(seq, frame)
         target = self.data.frames.reference_targets(seq, frame).to(self.device)
@@ -585,12 +589,14 @@ class Trainer(Closeable):
         while only one image's graph is held at a time. Returns the mean of each loss term and of
         the image MSE over the batch (floats), and the last image pair (for the log). The ray
         jitter of the whole step comes from one generator seeded from ``(seed, rank, step)``."""
-        one_image = self._generator_step if stage == "generator" else self._nerf_step
         batch = self.cfg.batch_size
         gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
         sums: dict[str, float] = {}
         for index in range(batch):
-            terms, images = one_image(step, index, gen)
+            if stage == "generator":
+                terms, images = self._generator_step(step, index)
+            else:
+                terms, images = self._nerf_step(step, index, gen)
             (terms["total"] / batch).backward()
             with torch.no_grad():
                 terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
