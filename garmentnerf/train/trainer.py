@@ -586,9 +586,9 @@ class Trainer(Closeable):
     def _backward_batch(self, step: int, stage: str) -> tuple[dict[str, float], dict]:
         """Backpropagates step ``step``'s ``cfg.batch_size`` images one after the other, each loss
         divided by the batch size, so the gradients add up to those of the batch's mean loss
-        while only one image's graph is held at a time. Returns the mean of each loss term and of
-        the image MSE over the batch (floats), and the last image pair (for the log). The ray
-        jitter of the whole step comes from one generator seeded from ``(seed, rank, step)``."""
+        while only one image's graph is held at a time. Returns the mean of each loss term over the
+        batch and the PSNR of its mean image MSE (floats), and the last image pair (for the log).
+        The ray jitter of the whole step comes from one generator seeded from ``(seed, rank, step)``."""
         batch = self.cfg.batch_size
         gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
         sums: dict[str, float] = {}
@@ -602,7 +602,9 @@ class Trainer(Closeable):
                 terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + float(v.detach())
-        return {k: v / batch for k, v in sums.items()}, images
+        values = {k: v / batch for k, v in sums.items()}
+        values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
+        return values, images
 
     def _with_body(self, out, feats, camera) -> torch.Tensor:
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
@@ -673,7 +675,6 @@ class Trainer(Closeable):
                         self.optimizer.step()
                         self.step = step + 1
                         rng_done = rng_state()
-                    values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
                     history.append({"step": self.step, "stage": stage, **values})
                     self._log_step(self.step, stage, values, lr, images)
                     bar.update(1)
