@@ -72,14 +72,24 @@ class VGG19Loss(nn.Module):
         self.weights_path = path
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([pred, target]).sub(self.mean).div(self.std)
-        total = x.new_zeros(())
+        # The target's activations are made without autograd unless the target itself wants a
+        # gradient: nothing reads its input gradient, and its backward costs as much as pred's.
+        with torch.set_grad_enabled(torch.is_grad_enabled() and target.requires_grad):
+            target_acts = self._activations(target)
+        total = pred.new_zeros(())
+        for a, b in zip(self._activations(pred), target_acts):
+            total = total + F.l1_loss(a, b)
+        return total / len(self.layers)
+
+    def _activations(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The activations at ``self.layers`` of a (B, 3, H, W) batch in [0, 1]."""
+        x = x.sub(self.mean).div(self.std)
+        out = []
         for i, layer in enumerate(self.features):
             x = layer(x)
             if i in self.layers:
-                a, b = x.chunk(2)
-                total = total + F.l1_loss(a, b)
-        return total / len(self.layers)
+                out.append(x)
+        return out
 
 
 def make_perceptual(choice: str = "auto", vgg19_weights: str | Path | None = None,
