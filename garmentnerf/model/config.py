@@ -14,6 +14,7 @@ import dataclasses
 from dataclasses import dataclass
 
 DETAIL_SELECTION_MODES = ("visibility", "soft_normal")
+FIELDS = ("paper", "uvh")
 DENSITY_ACTIVATIONS = ("softplus", "trunc_exp")
 RADIANCE_ACTIVATIONS = ("softplus", "sigmoid")
 
@@ -72,7 +73,34 @@ class ModelConfig:
     generator_width_scale: float = 1.0
     """Width factor of G_img's encoder-decoder (1.0: the E/G_en widths)."""
 
-    # ---- NeRF MLP M_NeRF (``model/nerf_mlp.py``)
+    # ---- The field: what a sample is described by and what maps it to density and zeta
+    field: str = "paper"
+    """``"paper"`` (default): M_NeRF, an MLP on ``[b_o, h, f^d, f^s]`` (``model/nerf_mlp.py``).
+    ``"uvh"``: the UV-h field (``model/uvh_field.py``): E emits a per-frame feature volume over
+    (u, v, h) (``uvh_slices`` deep), a learned UV-h tri-plane holds what all frames share, the
+    sample's offset direction in its skin face's frame tells apart points with the same closest
+    body point, and a small MLP (``mlp_depth`` x ``mlp_width``, e.g. 2 x 64) decodes them."""
+    uvh_slices: int = 8
+    """``uvh`` field: slices of E's per-frame UV-h volume along h (E emits ``dynamic_feature_dim`` times
+    this many channels)."""
+    uvh_height_range: tuple[float, float] = (-0.1, 0.4)
+    """``uvh`` field: the heights h (metres, positive outside the skin) the volume's slices and the
+    tri-plane's h axis span; reads beyond take the border value. Default: the generous garment
+    band of ``model/height_band.py`` (a skirt's hem swings about 0.35 m from the legs)."""
+    uvh_height_freqs: int = 4
+    """``uvh`` field: frequencies of the encoding of the normalised h given to the MLP."""
+    uvh_plane_channels: int = 16
+    """``uvh`` field: channels of each of the three learned planes (u, v), (u, h), (v, h)."""
+    uvh_plane_resolution: int = 256
+    """``uvh`` field: side of the (u, v) plane and width of the (u, h), (v, h) planes (texels across the
+    atlas)."""
+    uvh_plane_height: int = 64
+    """``uvh`` field: texels of the (u, h) and (v, h) planes along h."""
+    uvh_plane_lr_scale: float = 10.0
+    """``uvh`` field: the tri-plane learns at ``lr`` times this (a texel is seen by few samples per step;
+    grids train at 10 to 100 times an MLP's rate in instant-ngp)."""
+
+    # ---- NeRF MLP M_NeRF (``model/nerf_mlp.py``; its depth and width also size the ``uvh`` field's head)
     mlp_depth: int = 6
     """Hidden Linear + ReLU layers (paper: 6)."""
     mlp_width: int = 256
@@ -216,6 +244,7 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         self.background = tuple(float(c) for c in self.background)
+        self.uvh_height_range = tuple(float(h) for h in self.uvh_height_range)
         self.validate()
 
     # ------------------------------------------------------------------ derived sizes
@@ -223,6 +252,11 @@ class ModelConfig:
     def encoder_in_channels(self) -> int:
         """3 (k + 1): normal map plus k velocity maps."""
         return 3 * (self.history + 1)
+
+    @property
+    def dynamic_encoder_channels(self) -> int:
+        """Channels E emits: ``dynamic_feature_dim``, times ``uvh_slices`` for the ``uvh`` field."""
+        return self.dynamic_feature_dim * (self.uvh_slices if self.field == "uvh" else 1)
 
     @property
     def geometry_dim(self) -> int:
@@ -272,7 +306,8 @@ class ModelConfig:
                  "samples_per_ray", "palette_size", "decoder_width", "decoder_min_width", "offset_scale",
                  "lr", "lr_final", "iterations", "batch_size", "grad_clip_value", "generator_lr",
                  "generator_iterations", "atlas_feature_levels", "atlas_feature_resolution", "atlas_feature_lr_scale",
-                 "encoder_lr_scale")
+                 "encoder_lr_scale", "uvh_slices", "uvh_plane_channels", "uvh_plane_resolution", "uvh_plane_height",
+                 "uvh_plane_lr_scale")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
         if self.segmentation_start < 0:
@@ -285,6 +320,16 @@ class ModelConfig:
         if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:
             raise ValueError(f"ModelConfig.atlas_feature_levels ({self.atlas_feature_levels}) do not fit a "
                              f"{self.atlas_feature_resolution} texture")
+        if self.field not in FIELDS:
+            raise ValueError(f"ModelConfig.field must be one of {FIELDS}, got {self.field!r}")
+        if self.uvh_height_freqs < 0:
+            raise ValueError(f"ModelConfig.uvh_height_freqs must be >= 0, got {self.uvh_height_freqs}")
+        if len(self.uvh_height_range) != 2 or not self.uvh_height_range[1] > self.uvh_height_range[0]:
+            raise ValueError(f"ModelConfig.uvh_height_range must be (low, high) metres with high > low, "
+                             f"got {self.uvh_height_range}")
+        if self.field == "uvh" and (self.atlas_feature_channels or self.positional_encoding_freqs):
+            raise ValueError("ModelConfig: atlas_feature_channels and positional_encoding_freqs belong to the "
+                             "'paper' field; the 'uvh' field has its own tri-plane and height encoding")
         if self.density_activation not in DENSITY_ACTIVATIONS:
             raise ValueError(f"ModelConfig.density_activation must be one of {DENSITY_ACTIVATIONS}, "
                              f"got {self.density_activation!r}")
@@ -378,6 +423,7 @@ class ModelConfig:
         """Plain JSON-compatible dict of every field."""
         out = dataclasses.asdict(self)
         out["background"] = list(self.background)
+        out["uvh_height_range"] = list(self.uvh_height_range)
         return out
 
     @classmethod
@@ -395,4 +441,4 @@ class ModelConfig:
         return dataclasses.replace(self, **changes)
 
 
-__all__ = ["ModelConfig", "DETAIL_SELECTION_MODES", "DENSITY_ACTIVATIONS", "RADIANCE_ACTIVATIONS"]
+__all__ = ["ModelConfig", "FIELDS", "DETAIL_SELECTION_MODES", "DENSITY_ACTIVATIONS", "RADIANCE_ACTIVATIONS"]

@@ -94,6 +94,7 @@ from garmentnerf.model.nerf_mlp import GarmentNeRF
 from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
+from garmentnerf.model.uvh_field import UVHField, face_tangent_frames, local_offset_direction
 
 #: Default samples per chunk (per-sample work: projection, feature reads, MLP, compositing).
 DEFAULT_CHUNK_POINTS = 16384
@@ -297,7 +298,7 @@ class GarmentAnimationNeRF(nn.Module):
         if cfg.atlas_feature_channels:
             self.atlas_features = NeuralTexture(cfg.atlas_feature_channels, cfg.atlas_feature_levels,
                                                 cfg.atlas_feature_resolution)
-        self.nerf = GarmentNeRF.from_config(cfg)
+        self.nerf = UVHField.from_config(cfg) if cfg.field == "uvh" else GarmentNeRF.from_config(cfg)
         self.decoder = PaletteDecoder.from_config(cfg)
         self.palette = Palette(palette_initial_colors(palette_init, cfg.palette_size))
         self.visibility_tolerance = float(visibility_tolerance)
@@ -357,20 +358,34 @@ class GarmentAnimationNeRF(nn.Module):
 
     def growable_prefixes(self) -> tuple[str, ...]:
         """State-dict prefixes of the parameters that may come from a narrower MLP's weights (the
-        NeRF MLP's layers, grown with :func:`~garmentnerf.train.run.grow_linear_tensor`)."""
+        NeRF MLP's layers, grown with :func:`~garmentnerf.train.run.grow_linear_tensor`; none for
+        the ``uvh`` field)."""
+        if self.cfg.field == "uvh":
+            return ()
         return tuple("nerf." + p for p in GarmentNeRF.GROWABLE)
+
+    def grid_prefixes(self) -> tuple[str, ...]:
+        """State-dict prefixes of the feature grids that learn at ``cfg.uvh_plane_lr_scale`` times the
+        rate (the ``uvh`` field's tri-plane)."""
+        return ("nerf.planes.",) if self.cfg.field == "uvh" else ()
 
     def atlas_feature(self, uv: torch.Tensor) -> torch.Tensor:
         """f^a ``(N, atlas_feature_channels)``: the atlas feature texture read at atlas UVs (N, 2)."""
         return self.atlas_features(uv.view(1, 1, -1, 2))[0, :, 0].T
 
     # ------------------------------------------------------------------ per frame
-    def prepare_frame(self, inputs: FrameInputs) -> FrameFeatures:
+    def prepare_frame(self, inputs: FrameInputs, geometry: FrameFeatures | None = None) -> FrameFeatures:
         """Everything of one frame that does not depend on the camera (see the module docstring).
 
         Runs E, G_img (unless ``inputs.reference_images`` is given) and G_en with autograd as the
         caller's grad mode says (G_img always without while frozen); call under
         ``torch.no_grad()`` for viewing.
+
+        ``geometry``: features prepared earlier for the same posed body (only their
+        ``posed_vertices``, ``vertex_normals``, ``surface`` and ``aabb`` are read), whose body
+        geometry is then reused instead of rebuilt: binding the body (a KD-tree) and its normals
+        cost more than the encoders, and a trainer meets each frame many times. ValueError when
+        its vertices are not exactly those of ``inputs``.
         """
         cfg = self.cfg
         inputs.validate(cfg, self.body.asset.num_vertices)
@@ -379,9 +394,16 @@ class GarmentAnimationNeRF(nn.Module):
         sw = _Stopwatch(timings, dev)
         with sw("surface"), torch.no_grad():
             verts = inputs.posed_vertices.detach().to("cpu", torch.float32).contiguous()
-            normals = vertex_normals(verts, self._faces)
-            surface = self.bind_body(verts)
-            aabb = body_aabb(verts)
+            if geometry is None:
+                normals = vertex_normals(verts, self._faces)
+                surface = self.bind_body(verts)
+                aabb = body_aabb(verts)
+            elif torch.equal(geometry.posed_vertices, verts):
+                verts, normals, surface, aabb = (geometry.posed_vertices, geometry.vertex_normals, geometry.surface,
+                                                 geometry.aabb)
+            else:
+                raise ValueError(f"geometry of frame {geometry.frame} is not that of the posed body of frame "
+                                 f"{inputs.frame}")
         dynamic = reference_images = detail = None
         if cfg.use_dynamic_feature:
             with sw("encoders"):
@@ -423,6 +445,16 @@ class GarmentAnimationNeRF(nn.Module):
         frame's vertex normals (the ``soft_normal`` detail selection)."""
         normal = interpolate(frame.vertex_normals, self.projector.faces, points.face, points.bary)
         return F.normalize(normal, dim=-1)
+
+    def offset_direction(self, frame: FrameFeatures, points: BodyPoints, positions: torch.Tensor) -> torch.Tensor:
+        """(n, 3) the unit offsets ``positions - b_t`` in the tangent frames of the skin faces of
+        ``points`` on the frame's posed body (the ``uvh`` field's input; no gradient)."""
+        with torch.no_grad():
+            faces = points.face.long().cpu()
+            frames = face_tangent_frames(frame.posed_vertices, self.projector.faces[faces], self.projector.uv,
+                                         self.projector.uv_faces[faces])
+            return local_offset_direction(positions.detach().to("cpu", torch.float32), points.closest.cpu().float(),
+                                          frames)
 
     def detail_features(self, frame: FrameFeatures, closest: torch.Tensor,
                         normal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -477,16 +509,24 @@ class GarmentAnimationNeRF(nn.Module):
             return torch.zeros(n, device=dev), torch.zeros(n, cfg.appearance_dim, device=dev), 0
         with sw("features"):
             dynamic = detail = None
-            if cfg.use_dynamic_feature:
-                fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
-                dynamic = sample_uv_map(fmap, points.uv.to(dev))
             if cfg.use_detail_feature:
                 normal = self.surface_normals(frame, points) if cfg.detail_selection == "soft_normal" else None
                 detail, _ = self.detail_features(frame, points.closest, normal)
-            atlas = self.atlas_feature(points.uv.to(dev)) if self.atlas_features is not None else None
+            if cfg.field == "uvh":
+                kept_positions = positions if kept is None else positions[kept.to(positions.device)]
+                direction = self.offset_direction(frame, points, kept_positions).to(dev)
+            else:
+                if cfg.use_dynamic_feature:
+                    fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
+                    dynamic = sample_uv_map(fmap, points.uv.to(dev))
+                atlas = self.atlas_feature(points.uv.to(dev)) if self.atlas_features is not None else None
         with sw("mlp"), _autocast(precision, dev):
-            sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic,
-                                    atlas)
+            if cfg.field == "uvh":
+                sigma, zeta = self.nerf(frame.dynamic_features, points.uv.to(dev), points.signed_distance.to(dev),
+                                        direction, detail)
+            else:
+                sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic,
+                                        atlas)
         sigma, zeta = sigma.float(), zeta.float()
         if kept is not None and kept.shape[0] < n:
             rows = kept.to(dev)

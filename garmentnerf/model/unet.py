@@ -90,7 +90,8 @@ class UNet(nn.Module):
 
 
 class DynamicFeatureEncoder(UNet):
-    """E: info maps [N_t, V_t] ``(B, 3 (k + 1), R, R)`` -> dynamic feature map F^s_t ``(B, 8, R, R)``."""
+    """E: info maps [N_t, V_t] ``(B, 3 (k + 1), R, R)`` -> dynamic feature map F^s_t ``(B, 8, R, R)``
+    (the ``uvh`` field: ``(B, 8 K, R, R)``, K slices along h; ``ModelConfig.dynamic_encoder_channels``)."""
 
     def __init__(self, history: int = 2, out_channels: int = 8, base_width: int = 32, depth: int = 4,
                  width_scale: float = 1.0):
@@ -98,7 +99,7 @@ class DynamicFeatureEncoder(UNet):
 
     @classmethod
     def from_config(cls, cfg) -> "DynamicFeatureEncoder":
-        return cls(cfg.history, cfg.dynamic_feature_dim, cfg.encoder_base_width, cfg.encoder_depth,
+        return cls(cfg.history, cfg.dynamic_encoder_channels, cfg.encoder_base_width, cfg.encoder_depth,
                    cfg.encoder_width_scale)
 
 

@@ -135,15 +135,19 @@ def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> l
     the atlas branch (``model.zero_start_prefixes()``: its texture and the MLP's weights on f^a) at
     ``cfg.atlas_feature_lr_scale``; the U-Nets E and G_en at ``cfg.encoder_lr_scale`` when it is not
     1 (at 1 they stay in the main group, so an optimiser state saved before the setting loads);
+    the ``uvh`` field's tri-plane (``model.grid_prefixes()``) at ``cfg.uvh_plane_lr_scale``;
     everything else at 1. Groups left empty are dropped."""
     def ids_under(prefixes: tuple[str, ...]) -> set[int]:
         return {id(p) for name, p in model.named_parameters() if name.startswith(prefixes)} if prefixes else set()
 
     atlas_ids = ids_under(model.zero_start_prefixes())
     encoder_ids = ids_under(("encoder.", "detail_encoder.")) if cfg.encoder_lr_scale != 1.0 else set()
-    groups = [{"params": [p for p in params if id(p) not in atlas_ids | encoder_ids], "lr_scale": 1.0},
+    grid_ids = ids_under(model.grid_prefixes())
+    scaled = atlas_ids | encoder_ids | grid_ids
+    groups = [{"params": [p for p in params if id(p) not in scaled], "lr_scale": 1.0},
               {"params": [p for p in params if id(p) in atlas_ids], "lr_scale": float(cfg.atlas_feature_lr_scale)},
-              {"params": [p for p in params if id(p) in encoder_ids], "lr_scale": float(cfg.encoder_lr_scale)}]
+              {"params": [p for p in params if id(p) in encoder_ids], "lr_scale": float(cfg.encoder_lr_scale)},
+              {"params": [p for p in params if id(p) in grid_ids], "lr_scale": float(cfg.uvh_plane_lr_scale)}]
     return [g for g in groups if g["params"]]
 
 

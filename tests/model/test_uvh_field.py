@@ -1,0 +1,141 @@
+"""The UV-h field (``model/uvh_field.py``): its reads against scipy's interpolation, its tangent
+frames against analytic and trimesh values, and the field inside the assembled model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.interpolate import RegularGridInterpolator
+
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.pipeline import GarmentAnimationNeRF
+from garmentnerf.model.uvh_field import (UVHField, face_tangent_frames, local_offset_direction, normalised_height,
+                                         read_triplane, read_uvh_volume)
+from garmentnerf.conventions import orbit_camera
+from garmentnerf.train.settings import tiny_config
+from garmentnerf.train.trainer import param_groups
+
+PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
+
+
+def texel_axis(n: int) -> np.ndarray:
+    """Grid coordinates in [-1, 1] of n texel centres (``grid_sample``, ``align_corners=False``)."""
+    return (np.arange(n) + 0.5) / n * 2.0 - 1.0
+
+
+def test_volume_read_is_scipys_trilinear_interpolation():
+    g = torch.Generator().manual_seed(0)
+    C, K, R = 3, 5, 7
+    volume = torch.randn(C, K, R, R, generator=g, dtype=torch.float64)
+    # Inside the texel centres, where border clamping plays no part.
+    uv = 0.08 + 0.84 * torch.rand(50, 2, generator=g, dtype=torch.float64)
+    height = -0.75 + 1.5 * torch.rand(50, generator=g, dtype=torch.float64)
+    got = read_uvh_volume(volume, uv, height)
+    axes = (texel_axis(K), texel_axis(R), texel_axis(R))  # (h, v, u)
+    query = np.stack([height.numpy(), uv[:, 1].numpy() * 2 - 1, uv[:, 0].numpy() * 2 - 1], -1)
+    for c in range(C):
+        want = RegularGridInterpolator(axes, volume[c].numpy())(query)
+        np.testing.assert_allclose(got[:, c].numpy(), want, atol=1e-10)
+
+
+def test_triplane_reads_are_scipys_bilinear_interpolation():
+    g = torch.Generator().manual_seed(1)
+    C, R, K = 2, 9, 4
+    planes = torch.nn.ParameterList([torch.nn.Parameter(torch.randn(1, C, rows, R, generator=g, dtype=torch.float64))
+                                     for rows in (R, K, K)])
+    uv = 0.06 + 0.88 * torch.rand(40, 2, generator=g, dtype=torch.float64)
+    height = -0.7 + 1.4 * torch.rand(40, generator=g, dtype=torch.float64)
+    got = read_triplane(planes, uv, height).detach().numpy()
+    u, v, h = uv[:, 0].numpy() * 2 - 1, uv[:, 1].numpy() * 2 - 1, height.numpy()
+    for k, (rows_axis, rows_q, cols_q) in enumerate(((texel_axis(R), v, u), (texel_axis(K), h, u),
+                                                     (texel_axis(K), h, v))):
+        for c in range(C):
+            plane = planes[k][0, c].detach().numpy()
+            want = RegularGridInterpolator((rows_axis, texel_axis(R)), plane)(np.stack([rows_q, cols_q], -1))
+            np.testing.assert_allclose(got[:, k * C + c], want, atol=1e-10)
+
+
+def test_normalised_height_maps_the_band_to_the_grid():
+    h = torch.tensor([-0.1, 0.15, 0.4, 0.65])
+    assert torch.allclose(normalised_height(h, (-0.1, 0.4)), torch.tensor([-1.0, 0.0, 1.0, 2.0]))
+
+
+def test_tangent_frames_follow_the_atlas_and_the_face_normal():
+    # A triangle in the plane z = 1 whose atlas is its (x, y) coordinates, and the same triangle
+    # with the atlas mirrored in u (a flipped atlas island): T follows +u both times.
+    vertices = torch.tensor([[0.0, 0.0, 1.0], [2.0, 0.0, 1.0], [0.0, 3.0, 1.0]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2]])
+    uv = torch.tensor([[0.0, 0.0], [0.2, 0.0], [0.0, 0.3], [0.2, 0.0], [0.0, 0.0], [0.2, 0.3]], dtype=torch.float64)
+    frames = face_tangent_frames(vertices, faces.repeat(2, 1), uv, torch.tensor([[0, 1, 2], [3, 4, 5]]))
+    assert torch.allclose(frames[0], torch.eye(3, dtype=torch.float64))
+    assert torch.allclose(frames[1, 0], torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64))  # u grows to -x
+    assert torch.allclose(frames[1, 2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+
+
+def test_tangent_frames_on_the_body_are_orthonormal_with_trimeshs_normals(body, projector):
+    verts = body.template_vertices.double()
+    frames = face_tangent_frames(verts, projector.faces, body.uv, projector.uv_faces)
+    eye = torch.eye(3, dtype=torch.float64).expand_as(frames)
+    assert torch.allclose(frames @ frames.transpose(1, 2), eye, atol=1e-9)
+    assert torch.allclose(torch.linalg.det(frames), torch.ones(len(frames), dtype=torch.float64), atol=1e-9)
+    mesh = trimesh.Trimesh(verts.numpy(), projector.faces.numpy(), process=False)
+    area = torch.tensor(mesh.area_faces)
+    good = area > 1e-10  # trimesh gives degenerate faces a zero normal
+    np.testing.assert_allclose(frames[good, 2].numpy(), mesh.face_normals[good.numpy()], atol=1e-7)
+
+
+def test_local_offset_direction_is_the_normal_above_a_face_and_tilts_past_an_edge():
+    frames = torch.eye(3).expand(3, 3, 3)
+    closest = torch.zeros(3, 3)
+    positions = torch.tensor([[0.0, 0.0, 0.5], [0.3, 0.0, 0.4], [0.0, 0.0, 0.0]])
+    got = local_offset_direction(positions, closest, frames)
+    assert torch.allclose(got, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 0.0]]))
+
+
+def uvh_config(**changes) -> ModelConfig:
+    return tiny_config().replace(field="uvh", mlp_depth=2, mlp_width=16, uvh_plane_resolution=32,
+                                 uvh_plane_height=8, uvh_slices=4, **changes)
+
+
+def test_config_checks_and_round_trip():
+    cfg = uvh_config()
+    assert cfg.dynamic_encoder_channels == cfg.dynamic_feature_dim * 4
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="field"):
+        uvh_config().replace(field="hash")
+    with pytest.raises(ValueError, match="uvh_height_range"):
+        uvh_config(uvh_height_range=(0.3, 0.1))
+    with pytest.raises(ValueError, match="'paper' field"):
+        uvh_config(positional_encoding_freqs=2)
+
+
+def test_the_field_tells_apart_points_that_share_their_closest_body_point():
+    torch.manual_seed(0)
+    field = UVHField(dynamic_dim=2, slices=3, detail_dim=0, appearance_dim=4, plane_channels=2,
+                     plane_resolution=8, plane_height=4, depth=2, width=16)
+    volume = torch.randn(6, 8, 8)
+    uv, h = torch.full((2, 2), 0.4), torch.full((2,), 0.1)
+    direction = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    sigma, zeta = field(volume, uv, h, direction)
+    assert sigma.shape == (2,) and zeta.shape == (2, 4) and (sigma >= 0).all()
+    assert not torch.allclose(zeta[0], zeta[1])
+
+
+def test_a_uvh_model_renders_and_trains_its_grids_and_encoder(body, projector, walk_inputs):
+    torch.manual_seed(0)
+    cfg = uvh_config()
+    model = GarmentAnimationNeRF(cfg, body, PALETTE, projector=projector)
+    frame = model.prepare_frame(walk_inputs)
+    assert frame.dynamic_features.shape == (cfg.dynamic_feature_dim * 4, 32, 32)
+    out = model.render(frame, orbit_camera(30.0, 10.0, 3.0, width=64, height=64), training=True,
+                       generator=torch.Generator().manual_seed(0))
+    assert out.points_evaluated > 0
+    out.image.mean().backward()
+    assert model.nerf.planes[0].grad.abs().sum() > 0
+    assert model.encoder.head.weight.grad.abs().sum() > 0
+    groups = param_groups(model, [p for p in model.parameters() if p.requires_grad], cfg)
+    planes = [g for g in groups if any(p is model.nerf.planes[0] for p in g["params"])]
+    assert len(planes) == 1 and planes[0]["lr_scale"] == cfg.uvh_plane_lr_scale
+    assert len(planes[0]["params"]) == 3
