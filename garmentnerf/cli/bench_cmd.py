@@ -7,7 +7,8 @@ With ``--run DIR``: every render preset on the run's model, then playback figure
 ``--plot`` draws ms/frame (log) against PSNR per preset (:func:`garmentnerf.perf.plot.write_plot`).
 
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
-side by side (:func:`garmentnerf.perf.train_bench.training_benchmark`).
+side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`);
+``--before`` adds each precision's step as it was before issue 27 beside it.
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=8, help="with --training: steps per round and precision (default: 8)")
     p.add_argument("--rounds", type=int, default=3, help="with --training: rounds, the precisions taking turns "
                                                          "(default: 3)")
+    p.add_argument("--before", action="store_true",
+                   help="with --training: also time each precision's step as before issue 27 (body geometry rebuilt "
+                        "every step, the perceptual loss backpropagated into its target), taking turns with the others")
     p.set_defaults(func=run_bench)
 
 
@@ -80,13 +84,23 @@ def _run_training_bench(args: argparse.Namespace) -> int:
         raise ValueError(f"--precisions {args.precisions}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
     if args.steps < 3 or args.rounds < 1:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
-    results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, log=print)
+    results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, before=args.before,
+                                 log=print)
     machine = results["machine"]
     print(f"machine: {machine['processor']}, torch threads {machine['torch_threads']}, AMX-BF16 {machine['amx_bf16']}; "
           f"{results['steps_timed']} steps timed per precision")
+    columns = [(row["precision"], row) for row in results["precisions"]]
+    columns += [(f"{row['precision']} before", row) for row in results.get("before", [])]
+    print(f"{'s/step by stage (median)':24s}" + "".join(f" {label:>16s}" for label, _ in columns))
+    for stage in results["stages"]:
+        print(f"  {stage:22s}" + "".join(f" {row['stages_s'][stage]:16.3f}" for _, row in columns))
+    print(f"  {'step':22s}" + "".join(f" {row['s_per_step']:16.3f}" for _, row in columns))
     for row in results["precisions"]:
         print(f"  {row['precision']:10s} {row['s_per_step']:7.3f} s/step   "
               f"{results['speedup_vs_first'][row['precision']]:5.2f}x")
+    for row in results.get("before", []):
+        print(f"  {row['precision']:10s} {results['speedup_vs_before'][row['precision']]:5.2f}x faster than before "
+              f"issue 27 ({row['s_per_step']:.3f} s/step)")
     if args.json:
         with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(results, indent=1))

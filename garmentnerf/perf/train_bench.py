@@ -1,5 +1,5 @@
-"""Seconds per NeRF training step of a run's recipe, per MLP precision, measured side by side
-(what ``garmentnerf bench --run DIR --training`` prints and saves).
+"""Seconds per NeRF training step of a run's recipe, per MLP precision, measured side by side,
+whole and by stage (what ``garmentnerf bench --run DIR --training`` prints and saves).
 
 :func:`training_benchmark` builds one :class:`~garmentnerf.train.trainer.Trainer` per precision on
 the run's scene, model config and composition, starting from the run's weights at the NeRF stage
@@ -8,6 +8,25 @@ trainers take turns: ``rounds`` rounds of ``steps`` steps each, so both see the 
 same state, and both draw the same views (same seed). A step's time is the interval between
 consecutive step callbacks (render, losses, backward, optimiser); the first step of each round
 and the one that ends it (it writes a checkpoint) are left out, and the median is reported.
+
+Stages (:data:`STAGES`, seconds per step, the median of each over the timed steps)
+    ``surface``, ``reference_images``, ``encoders``: :meth:`prepare_frame
+    <garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame>`'s own timings (body geometry;
+    G_img; E and G_en); ``rays`` ... ``decoder``: the render's
+    (:data:`~garmentnerf.model.pipeline.RENDER_STAGES`); ``body_layer``: the body rasterised and
+    composed under the garment (runs with a body appearance only); ``perceptual``: the perceptual
+    loss's forward; ``forward_other``: the rest of the forward (data, other loss terms, palette
+    composition); ``perceptual_backward``: from the gradient reaching the perceptual loss's output
+    to its input's (module backward hooks); ``backward_other``: the rest of ``backward()``;
+    ``optimizer``: the rest of the step (gradient clipping, Adam, bookkeeping). They add up to the
+    step. The trainer is instrumented from outside (wrapped methods, module hooks): no timing
+    code in the training loop.
+
+``before=True`` adds, per precision, a trainer timed as the step was before issue 27: body
+geometry rebuilt at every step (``geometry_cache_frames = 0``) and the perceptual loss's target
+tracked by autograd (handed over as a tensor that requires grad, so its features are
+backpropagated as in the concatenated batch of old); it takes its turn with the others, so the
+speed-up is a ratio measured in one run.
 """
 
 from __future__ import annotations
@@ -20,25 +39,109 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["training_benchmark"]
+__all__ = ["training_benchmark", "STAGES"]
+
+#: The stages of a NeRF step timed by :func:`training_benchmark`, in step order.
+STAGES = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp", "compositing",
+          "decoder", "body_layer", "perceptual", "forward_other", "perceptual_backward", "backward_other",
+          "optimizer")
+#: :class:`~garmentnerf.model.pipeline.RenderOutput` timings (ms) that a step pays.
+_RENDER_TIMINGS = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp",
+                   "compositing", "decoder")
+
+
+class _StageClock:
+    """Times the stages of one trainer's NeRF steps (see the module docstring): wraps the trainer's
+    ``_backward_batch``, ``_nerf_step``, ``_with_body`` and its model's ``render`` on the
+    instances, and hooks the perceptual module. :meth:`lap` (called at each step's end) returns the
+    step's stage seconds and starts the next step."""
+
+    def __init__(self, trainer):
+        self.current: dict[str, float] = {}
+        self._t_step = time.perf_counter()
+        self._t_perceptual = 0.0
+        self._batch_s = self._forward_s = 0.0
+        self._wrap(trainer, "_backward_batch", "backward_batch")
+        self._wrap(trainer, "_nerf_step", "nerf_step")
+        self._wrap(trainer, "_with_body", "body_layer")
+        render = trainer.model.render
+
+        def timed_render(*args, **kwargs):
+            out = render(*args, **kwargs)
+            for k in _RENDER_TIMINGS:
+                self._add(k, out.timings.get(k, 0.0) / 1e3)
+            return out
+
+        trainer.model.render = timed_render
+        if trainer.perceptual is not None:
+            module = trainer.perceptual
+            module.register_forward_pre_hook(lambda m, args: self._start())
+            module.register_forward_hook(lambda m, args, out: self._stop("perceptual"))
+            module.register_full_backward_pre_hook(lambda m, grad: self._start())
+            module.register_full_backward_hook(lambda m, grad_in, grad_out: self._stop("perceptual_backward"))
+
+    def _add(self, stage: str, seconds: float) -> None:
+        self.current[stage] = self.current.get(stage, 0.0) + seconds
+
+    def _start(self) -> None:
+        self._t_perceptual = time.perf_counter()
+
+    def _stop(self, stage: str) -> None:
+        self._add(stage, time.perf_counter() - self._t_perceptual)
+
+    def _wrap(self, obj, name: str, stage: str) -> None:
+        method = getattr(obj, name)
+
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                self._add(stage, time.perf_counter() - t0)
+
+        setattr(obj, name, timed)
+
+    def lap(self) -> dict[str, float]:
+        """The stage seconds of the step that ends now (the remainders computed as described)."""
+        now = time.perf_counter()
+        c, self.current = self.current, {}
+        step, self._t_step = now - self._t_step, now
+        forward, batch = c.pop("nerf_step", 0.0), c.pop("backward_batch", 0.0)
+        stages = {k: c.get(k, 0.0) for k in STAGES}
+        stages["forward_other"] = forward - sum(c.get(k, 0.0) for k in (*_RENDER_TIMINGS, "body_layer", "perceptual"))
+        stages["backward_other"] = batch - forward - stages["perceptual_backward"]
+        stages["optimizer"] = step - batch
+        return stages
+
+
+def _as_before(trainer) -> None:
+    """Make ``trainer`` step as before issue 27 (see the module docstring)."""
+    trainer.geometry_cache_frames = 0
+    if trainer.perceptual is not None:
+        trainer.perceptual.register_forward_pre_hook(lambda m, args: (args[0], args[1].detach().requires_grad_(True)))
 
 
 def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: int = 8, rounds: int = 3,
-                       log=None) -> dict:
-    """Median seconds per NeRF step of the run in ``run_dir`` for each of ``precisions``.
+                       before: bool = False, log=None) -> dict:
+    """Median seconds per NeRF step of the run in ``run_dir`` for each of ``precisions``, whole and
+    by stage.
 
     Args:
         run_dir: a run folder (its ``run.json`` names the scene; its body appearance, if any, is
             composed with as in its training).
         precisions: :data:`~garmentnerf.train.settings.TRAINING_PRECISIONS` to compare (``auto``
             is resolved first, as a run would).
-        steps: steps per round and precision (at least 3: the first and last of a round are not timed).
-        rounds: rounds; the precisions alternate within each.
+        steps: steps per round and trainer (at least 3: the first and last of a round are not timed).
+        rounds: rounds; the trainers alternate within each.
+        before: also time each precision's step as it was before issue 27 (module docstring).
         log: called with one line per finished round (None: silent).
     Returns:
-        ``{"run", "steps_timed", "machine", "precisions": [{"precision", "s_per_step",
-        "s_per_step_all"}], "speedup_vs_first"}``: ``speedup_vs_first`` is the first
-        precision's seconds per step over each one's.
+        ``{"run", "steps_timed", "machine", "stages", "precisions": [row], "speedup_vs_first"}``,
+        a row ``{"precision", "s_per_step", "s_per_step_all", "stages_s", "stages_s_all"}``
+        (``stages_s``: the median seconds per step of each of ``stages``; ``stages_s_all``: each
+        timed step's, in the order of ``s_per_step_all``); ``speedup_vs_first`` is the first
+        precision's seconds per step over each one's. With ``before``, also ``"before": [row]``
+        and ``"speedup_vs_before"``: each precision's seconds per step before over now.
     """
     import torch
 
@@ -58,35 +161,66 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
     scene = scene if scene.is_absolute() else (run_dir / scene).resolve()
     cfg = ModelConfig.from_dict(dict(info["model_config"]))
     appearance = run_dir / BODY_APPEARANCE_FILE
-    resolved = [training_precision(p, "cpu") for p in precisions]
-    intervals = {p: [] for p in resolved}
+    resolved = list(dict.fromkeys(training_precision(p, "cpu") for p in precisions))
+    variants = [(p, old) for p in resolved for old in ((True, False) if before else (False,))]
+    intervals = {v: [] for v in variants}
+    stages = {v: [] for v in variants}
     with tempfile.TemporaryDirectory(prefix="garmentnerf-train-bench-") as tmp:
-        trainers = {}
+        trainers, clocks = {}, {}
         try:
-            for p in resolved:
-                tc = TrainConfig(scene=scene, out=Path(tmp) / p, model_config=cfg.replace(iterations=steps * rounds),
+            for p, old in variants:
+                tc = TrainConfig(scene=scene, out=Path(tmp) / (p + ("-before" if old else "")),
+                                 model_config=cfg.replace(iterations=steps * rounds),
                                  init_weights=run_dir / MODEL_FILE, precision=p, progress=False,
                                  body_appearance=appearance if appearance.is_file() else None,
                                  generator_iterations=int(info.get("generator_iterations", cfg.generator_iterations)),
                                  log_every=10 ** 9, image_every=0, ckpt_every=10 ** 9, keep_checkpoints=1)
-                trainers[p] = Trainer(tc, log=lambda message: None)
+                trainer = trainers[p, old] = Trainer(tc, log=lambda message: None)
+                if old:
+                    _as_before(trainer)
+                clocks[p, old] = _StageClock(trainer)
             for r in range(rounds):
-                for p, trainer in trainers.items():
+                for v, trainer in trainers.items():
                     stamps: list[float] = []
-                    trainer.step_callback = lambda step, values, stamps=stamps: stamps.append(time.perf_counter())
+                    laps: list[dict[str, float]] = []
+
+                    def done(step, values, stamps=stamps, laps=laps, clock=clocks[v]):
+                        stamps.append(time.perf_counter())
+                        laps.append(clock.lap())
+
+                    trainer.step_callback = done
                     trainer.tc = dataclasses.replace(trainer.tc, stop_after=trainer.step + steps)
                     trainer.train()
-                    intervals[p] += list(np.diff(stamps)[:-1])  # neither the first step nor the checkpointed last
+                    intervals[v] += list(np.diff(stamps)[:-1])  # neither the first step nor the checkpointed last
+                    stages[v] += laps[1:-1]  # the same steps
                 if log is not None:
-                    log(f"round {r + 1}/{rounds}: " + ", ".join(f"{p} {np.median(v):.3f} s/step"
-                                                                for p, v in intervals.items()))
+                    log(f"round {r + 1}/{rounds}: " + ", ".join(f"{_label(v)} {np.median(t):.3f} s/step"
+                                                                for v, t in intervals.items()))
         finally:
             for trainer in trainers.values():
                 trainer.close()
-    rows = [{"precision": p, "s_per_step": float(np.median(v)), "s_per_step_all": [float(x) for x in v]}
-            for p, v in intervals.items()]
+
+    def row(v) -> dict:
+        return {"precision": v[0], "s_per_step": float(np.median(intervals[v])),
+                "s_per_step_all": [float(x) for x in intervals[v]],
+                "stages_s": {k: float(np.median([lap[k] for lap in stages[v]])) for k in STAGES},
+                "stages_s_all": [{k: float(lap[k]) for k in STAGES} for lap in stages[v]]}
+
+    rows = [row((p, False)) for p in resolved]
     first = rows[0]["s_per_step"]
-    return {"run": str(run_dir), "steps_timed": len(intervals[resolved[0]]),
-            "machine": {"torch_threads": torch.get_num_threads(), "processor": platform.processor() or platform.machine(),
-                        "amx_bf16": bool(torch.cpu.get_capabilities().get("amx_bf16", False))},
-            "precisions": rows, "speedup_vs_first": {r["precision"]: first / r["s_per_step"] for r in rows}}
+    results = {"run": str(run_dir), "steps_timed": len(intervals[variants[0]]),
+               "machine": {"torch_threads": torch.get_num_threads(),
+                           "processor": platform.processor() or platform.machine(),
+                           "amx_bf16": bool(torch.cpu.get_capabilities().get("amx_bf16", False))},
+               "stages": list(STAGES), "precisions": rows,
+               "speedup_vs_first": {r["precision"]: first / r["s_per_step"] for r in rows}}
+    if before:
+        results["before"] = [row((p, True)) for p in resolved]
+        results["speedup_vs_before"] = {b["precision"]: b["s_per_step"] / r["s_per_step"]
+                                        for b, r in zip(results["before"], rows)}
+    return results
+
+
+def _label(variant) -> str:
+    precision, old = variant
+    return f"{precision} before" if old else precision
