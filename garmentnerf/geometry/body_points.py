@@ -87,7 +87,7 @@ class BodyPointProjector:
     Args:
         body: the body model; its canonical surface is the template (average shape, rest pose).
         skin_only: project onto the largest connected shell only (see :func:`main_component_faces`).
-        method: "auto" (default): the exact CPU KD-tree search (:class:`SurfaceProjector`) for
+        method: "auto" (default): the exact CPU tree search (:class:`SurfaceProjector`) for
             CPU vertices, the brute-force torch search (:class:`DenseSurfaceProjector`, same
             results up to rounding) on the device of the vertices otherwise; "exact" or "dense"
             force one. Outputs are on the device of the points either way.
@@ -115,9 +115,10 @@ class BodyPointProjector:
 
     @property
     def exact_projector(self) -> SurfaceProjector:
-        """The exact KD-tree projector of the skin faces."""
+        """The exact projector of the skin faces (its search tree's face order is computed once,
+        on the template)."""
         if self._exact is None:
-            self._exact = SurfaceProjector(self.faces, self.num_vertices)
+            self._exact = SurfaceProjector(self.faces, self.num_vertices, reference_vertices=self.canonical_vertices)
         return self._exact
 
     @property
@@ -144,7 +145,7 @@ class BodyPointProjector:
 
     def bind(self, posed_vertices: torch.Tensor, dtype: torch.dtype | None = None) -> "BoundBody":
         """Prepare the body posed as ``posed_vertices (V, 3)`` for queries (the search structure
-        of the frame: a KD-tree on the CPU, face tables on another device)."""
+        of the frame: a bounding-volume tree on the CPU, face tables on another device)."""
         if self._uses_dense(posed_vertices.device):
             surface = self.dense_projector.bind(posed_vertices, dtype)
         else:

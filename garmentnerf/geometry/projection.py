@@ -16,34 +16,25 @@ Usage::
 
 How the exact search stays cheap
 --------------------------------
-*Witness lemma.* Let p* be the closest point of face f to a query q, at distance h. Every point
-of a triangle lies within r_f of one of its corners, r_f being the radius of the triangle's
-smallest enclosing circle (the circumradius, or half the longest edge if the triangle is obtuse).
-Take as witness the corner nearest to p* within the smallest feature holding p*: the face
-(|p* - v| <= r_f), an edge (half its length <= r_f) or the corner itself. q - p* is orthogonal to
-that feature, hence ``|q - v|^2 = h^2 + |p* - v|^2 <= h^2 + r_f^2``. This quadratic bound keeps
-the search local: it looks a lateral distance r_f around the foot point however far q is (the
-linear bound ``h + r_f`` would grow a cap of radius ``sqrt(2 h r_f)``).
+Each posed frame gets a bounding-volume hierarchy over its faces (:mod:`~garmentnerf.geometry.face_bvh`):
+a complete binary tree of median splits down to leaves of one or two faces, every node bounded by
+a thin cylinder around its faces' mean normal. A native kernel (warp, on the CPU) walks it depth
+first for every point, the nearer child first, and skips a node when its cylinder is farther
+than the best face found: the answer is the exact nearest face (in float64), with nothing to
+certify or retry. Oriented cylinders hug a patch of skin, so a point tens of centimetres off the
+body opens only the nodes around its foot point, where an axis-aligned box (the scipy KD-tree of
+vertices this replaced) sticks out of the surface by its own size and lets the point's distance
+ball reach far more of them. The points are walked in Morton order, each starting from the face
+of the point before it (samples along a ray share their neighbourhood); ``stats`` counts the
+bounds and faces tested.
 
-*Lifted KD-tree.* Give every vertex the reach R_u = max r_f over its faces and put it in a 4-D
-KD-tree at ``(u, sqrt(C - R_u^2))``, C = max R_u^2. For the query ``(q, 0)`` the squared 4-D
-distance minus C is the power ``|q - u|^2 - R_u^2``, and by the lemma the face holding the
-closest point has a corner of power <= best^2. So: fetch the k vertices of least power, search
-the faces of those whose power is <= best^2, and the answer is *certified* when the k-th power
-exceeds best^2 (no vertex left out can be a witness). Big triangles widen the search only near
-themselves, not everywhere as one global radius would. Points that fail the certificate (near
-the medial axis, where many vertices are almost equidistant) are retried with 8x more
-neighbours until they pass or every vertex is in; :func:`benchmark_projection` reports the
-fraction retried.
+The tree's face order is computed once per topology when a reference pose is given
+(``reference_vertices``, the body's template), else on every :meth:`SurfaceProjector.bind`;
+either way :meth:`~SurfaceProjector.bind` refits the node bounds to the frame (exact for that
+frame, so any order gives the same answers, up to ties between equidistant faces).
 
-*Refinement.* The faces around each point's nearest vertex are tested first: the classic guess,
-right for most points, it gives a tight ``best``. Then only the fetched vertices of power <=
-best^2 are expanded, and from each only the faces it can witness (``|q - u|^2 - r_f^2 <=
-best^2``), about a dozen point-face tests per point on a body mesh. The tests run on flat pairs,
-component-wise on contiguous 1-D tensors (strided ``(P, 3)`` slices are several times slower on
-the CPU), in each face's own orthonormal frame so that rounding stays at eps |q - a| (the
-shorter ``|q - a|^2 - |projection|^2`` forms lose every digit near a big face). Only the
-winning face of each point is re-solved, with :func:`closest_point_on_triangles` in float64.
+Only the winning face of each point is then solved in full, with
+:func:`closest_point_on_triangles` in float64 (closest point, barycentrics).
 
 Sign
 ----
@@ -58,16 +49,16 @@ open mesh it gives the side of the face the point projects onto.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
-from garmentnerf.geometry.triangles import (FEATURE_TOL, check_points, closest_point_on_triangles, dot_rows,
-                                            face_frame_distance2, face_frame_table, face_reach, interpolate,
-                                            pseudo_normals)
+from garmentnerf.geometry.face_bvh import FaceBVH, tree_order
+from garmentnerf.geometry.triangles import FEATURE_TOL, check_points, closest_point_on_triangles, dot_rows, \
+    interpolate, pseudo_normals
 from garmentnerf.interrupts import deferred_interrupts
 
 __all__ = [
@@ -77,22 +68,10 @@ __all__ = [
     "PosedSurface",
     "benchmark_projection",
     "DEFAULT_CHUNK_SIZE",
-    "DEFAULT_NEIGHBOURS",
 ]
 
-#: Points processed at once; bounds the memory of the flat point-face pairs (~12 per point).
+#: Points processed at once; bounds the memory of the float64 re-solve of the winners.
 DEFAULT_CHUNK_SIZE = 65536
-#: Vertices of least power fetched per point in the first pass (see the module docstring). Fewer
-#: make the KD-tree query cheaper and more points retry: on a render's samples (57k points, 0 to
-#: 35 cm from the body) 4 took 2.6 us per point (1.2 % retried) against 2.7 for 3 (7 %), 2.6 for 5
-#: and 3.0 for 8 (0.02 %); on the icosphere benchmark 1.74 against 1.90 for 8.
-DEFAULT_NEIGHBOURS = 4
-#: Factor by which a failed certificate grows the neighbour count for the retry.
-_RETRY_GROWTH = 8
-#: Most (point, neighbour) entries a retry pass holds at once.
-_RETRY_BUDGET = 1 << 22
-#: Most point-face pairs evaluated at once (~100 bytes each).
-_PAIR_BUDGET = 1 << 21
 
 
 def check_search_dtype(vertices: torch.Tensor, num_vertices: int, dtype: torch.dtype | None) -> torch.dtype:
@@ -138,22 +117,25 @@ class SurfaceProjection:
 class SurfaceProjector:
     """Exact closest-point queries against a triangle mesh of fixed topology.
 
-    Built once per topology (the vertex -> incident-face table, the edge table); :meth:`bind`
-    then prepares one posed frame and :meth:`project` answers queries. See the module docstring
-    for the algorithm and for the sign convention (pseudo-normals; faces wound counter-clockwise
-    seen from outside).
+    Built once per topology (the vertex -> incident-face table, the edge table, the search
+    tree's face order if ``reference_vertices`` is given); :meth:`bind` then prepares one posed
+    frame and :meth:`project` answers queries. See the module docstring for the algorithm and for
+    the sign convention (pseudo-normals; faces wound counter-clockwise seen from outside).
 
     Vertices that no face references are ignored (never returned as a closest point).
 
     Args:
         faces: (F, 3) integer vertex indices.
         num_vertices: V, the number of vertices of the posed meshes.
-        neighbours: k of the first pass; more makes fewer points retry but each costlier.
         chunk_size: points processed at once.
+        reference_vertices: (V, 3) a pose to compute the search tree's face order on once (e.g.
+            the template); None: each :meth:`bind` computes it on its own frame (a few tens of
+            ms more per frame, a slightly tighter tree).
+        threads: kernel launches run at once per query (default: torch's thread count).
     """
 
-    def __init__(self, faces: torch.Tensor | np.ndarray, num_vertices: int, *, neighbours: int = DEFAULT_NEIGHBOURS,
-                 chunk_size: int = DEFAULT_CHUNK_SIZE):
+    def __init__(self, faces: torch.Tensor | np.ndarray, num_vertices: int, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                 reference_vertices: torch.Tensor | None = None, threads: int | None = None):
         if not isinstance(faces, torch.Tensor):
             faces = np.asarray(faces)
             if faces.dtype.kind not in "iu":
@@ -169,12 +151,18 @@ class SurfaceProjector:
         if int(faces.min()) < 0 or int(faces.max()) >= num_vertices:
             raise ValueError(f"face indices must lie in [0, {num_vertices}), "
                              f"got [{int(faces.min())}, {int(faces.max())}]")
-        if neighbours < 1 or chunk_size < 1:
-            raise ValueError(f"neighbours and chunk_size must be positive, got {neighbours}, {chunk_size}")
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be positive, got {threads}")
         self.faces = faces
         self.num_vertices = int(num_vertices)
-        self.neighbours = int(neighbours)
         self.chunk_size = int(chunk_size)
+        self.threads = threads
+        self.tree_order = None
+        if reference_vertices is not None:
+            check_search_dtype(reference_vertices, self.num_vertices, None)
+            self.tree_order = tree_order(reference_vertices, faces)
 
         # The KD-tree holds only referenced vertices, under compact ids.
         used = torch.zeros(num_vertices, dtype=torch.bool)
@@ -233,13 +221,12 @@ class SurfaceProjector:
 class PosedSurface:
     """A :class:`SurfaceProjector` bound to one posed frame; see :meth:`SurfaceProjector.bind`.
 
-    Holds the frame's KD-tree, per-face constants and pseudo-normals (a few MB for a body
-    mesh; building them takes milliseconds). Queries do not modify it.
+    Holds the frame's search tree (:class:`~garmentnerf.geometry.face_bvh.FaceBVH`: per-face
+    and per-node tables, ~6 MB for a body mesh) and pseudo-normals. Queries do not modify it.
 
     Attributes:
         projector: the topology it was built from.
-        dtype: precision of the search and of the results (float32 or float64).
-        reach_sq_max: C, the largest squared reach of a vertex (m^2).
+        dtype: precision of the results (float32 or float64; the search itself runs in float64).
     """
 
     def __init__(self, projector: SurfaceProjector, vertices: torch.Tensor, dtype: torch.dtype | None = None):
@@ -249,22 +236,11 @@ class PosedSurface:
         v64 = vertices.detach().to("cpu", torch.float64)
         self._vertices64 = v64
         F = P.faces
-        r_face, cross, twice_area = face_reach(v64[F[:, 0]], v64[F[:, 1]], v64[F[:, 2]])
-        reach = torch.zeros(P.used_vertices.shape[0], dtype=torch.float64)
-        reach = reach.scatter_reduce(0, P._compact_faces.reshape(-1), r_face.repeat_interleave(3), "amax")
-        self.reach_sq_max = float((reach * reach).max())
-        self._face_reach_sq = r_face * r_face
-        lift = torch.sqrt((self.reach_sq_max - reach * reach).clamp_min(0.0))
-        self._lift_sq = (lift * lift).numpy()
-        pts4 = torch.cat([v64[P.used_vertices], lift.unsqueeze(1)], dim=1).numpy()
-        self._tree = cKDTree(pts4, leafsize=32)  # a little faster than 16 (measured with k = 8)
-        self._num_tree = pts4.shape[0]
-
-        table, self._degenerate = face_frame_table(v64, F)
-        self._pair_table = table.to(self.dtype).contiguous()
-        self._has_degenerate = bool(self._degenerate.any())
+        self._tree = FaceBVH(v64, F, P.tree_order)
+        a, b, c = v64[F[:, 0]], v64[F[:, 1]], v64[F[:, 2]]
+        cross = torch.cross(b - a, c - a, dim=1)
         self._face_normals, self._edge_normals, self._vertex_normals = pseudo_normals(
-            v64, F, P._face_edges, P.num_edges, cross, twice_area)
+            v64, F, P._face_edges, P.num_edges, cross, cross.norm(dim=1))
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -273,8 +249,8 @@ class PosedSurface:
 
         Args:
             points: (N, 3) query points (any device; the search runs on the CPU).
-            stats: if given, filled with counters: ``points``, ``pairs`` (point-face tests),
-                ``retried`` (points whose first-pass certificate failed), ``retry_passes``.
+            stats: if given, filled with counters: ``points``, ``bounds`` (node bounds tested)
+                and ``pairs`` (point-face distances computed).
         Returns:
             :class:`SurfaceProjection` in the dtype of the search and on the device of ``points``;
             no gradient flows through it.
@@ -283,9 +259,10 @@ class PosedSurface:
         device = points.device
         N = points.shape[0]
         if stats is not None:
-            stats.update(points=N, pairs=0, retried=0, retry_passes=0)
-        q_all = points.detach().to("cpu", self.dtype)
-        # Nearby queries in a row keep the KD-tree walk and the face-table gathers in cache.
+            stats.update(points=N, pairs=0, bounds=0)
+        q_all = points.detach().to("cpu", torch.float64)
+        # Nearby queries in a row: each starts from its predecessor's face, and the tree walk
+        # and the table reads stay in cache.
         order = _spatial_order(q_all)
         q_all = q_all[order]
         face = torch.empty(N, dtype=torch.long)
@@ -296,14 +273,19 @@ class PosedSurface:
         F = self.projector.faces
         v = self._vertices64
         chunk = self.projector.chunk_size
+        threads = self.projector.threads or min(torch.get_num_threads(), os.cpu_count() or 1)
         with torch.no_grad():
             for s in range(0, N, chunk):
-                q = q_all[s:s + chunk]
+                q64 = q_all[s:s + chunk]
                 rows = order[s:s + chunk]
-                f = self._nearest_faces(q, stats)
+                with deferred_interrupts():  # the kernel threads must finish before a Ctrl-C acts
+                    f, _, work = self._tree.query(q64, threads)
+                if stats is not None:
+                    totals = work.sum(dim=0, dtype=torch.int64)
+                    stats["bounds"] += int(totals[0])
+                    stats["pairs"] += int(totals[1])
                 # Only the winner is solved in full, in float64: its barycentrics must be exact
                 # enough to pick the sign's feature (face / edge / corner).
-                q64 = q.to(torch.float64)
                 corners = F[f]
                 cp, bc = closest_point_on_triangles(q64, v[corners[:, 0]], v[corners[:, 1]], v[corners[:, 2]])
                 offset = q64 - cp
@@ -333,154 +315,6 @@ class PosedSurface:
         dot = dot_rows(offset, normal)
         return torch.where(dot < 0, -1.0, 1.0).to(offset.dtype)
 
-    def _nearest_faces(self, q: torch.Tensor, stats: dict | None) -> torch.Tensor:
-        """(M,) index of a face at minimal distance from each point of ``q`` (M, 3), certified."""
-        M = q.shape[0]
-        if M == 0:
-            return torch.empty(0, dtype=torch.long)
-        q4 = np.zeros((M, 4))
-        q4[:, :3] = q.numpy()
-        k = min(self.projector.neighbours, self._num_tree)
-        face, best2, ok = self._search(q, q4, k, torch.full((M,), -1, dtype=torch.long), np.full(M, np.inf), stats)
-        pending = np.flatnonzero(~ok)
-        if stats is not None:
-            stats["retried"] += int(pending.shape[0])
-        while pending.size:
-            k = min(k * _RETRY_GROWTH, self._num_tree)
-            if stats is not None:
-                stats["retry_passes"] += 1
-            step = max(1, _RETRY_BUDGET // k)
-            still = []
-            for s in range(0, pending.shape[0], step):
-                idx = pending[s:s + step]
-                rows = torch.from_numpy(idx)
-                f2, b2, ok2 = self._search(q[rows], q4[idx], k, face[rows], best2[idx], stats)
-                face[rows] = f2
-                best2[idx] = b2
-                still.append(idx[~ok2])
-            pending = np.concatenate(still)
-        return face
-
-    def _search(self, q: torch.Tensor, q4: np.ndarray, k: int, face: torch.Tensor, best2: np.ndarray,
-                stats: dict | None):
-        """One certified pass with the k vertices of least power.
-
-        Args:
-            q: (M, 3) points; q4: (M, 4) the same lifted to the KD-tree's space (w = 0).
-            k: neighbours to fetch.
-            face, best2: (M,) best face known so far (-1 if none) and its squared distance
-                (inf if none); a retry starts from the previous pass's answer.
-        Returns:
-            face (M,) tensor, best squared distance (M,) float64 numpy, certified (M,) bool numpy.
-        """
-        M = len(q4)
-        with deferred_interrupts():  # scipy's threads must finish before a Ctrl-C acts
-            D, I = self._tree.query(q4, k=k, workers=-1)
-        D2 = (D * D).reshape(M, k)
-        I = I.reshape(M, k)
-        power = D2 - self.reach_sq_max  # |q - u|^2 - R_u^2
-        d2_vertex = D2 - self._lift_sq[I]  # |q - u|^2
-        rel = 64.0 * float(torch.finfo(self.dtype).eps)  # rounding slack of the pair kernel
-        slack = rel * 4.0 * self.reach_sq_max
-        rows = np.arange(M)
-
-        def merge(face_new, best2_new):
-            nonlocal face, best2
-            better = best2_new.numpy().astype(np.float64) < best2
-            face = torch.where(torch.from_numpy(better), face_new, face)
-            best2 = np.where(better, best2_new.numpy().astype(np.float64), best2)
-
-        # Stage 1: the faces around the nearest vertex (the classic guess, right for most
-        # points) give a tight upper bound of the distance ...
-        nearest = d2_vertex.argmin(axis=1)
-        merge(*self._refine(q, torch.from_numpy(rows), torch.from_numpy(I[rows, nearest]), M, stats))
-        # ... so only the vertices that may still be witnesses for it are expanded.
-        select = power <= (best2 * (1.0 + rel) + slack)[:, None]
-        select[rows, nearest] = False
-        pt, slot = np.nonzero(select)
-        if pt.size:
-            # A face is only needed from a vertex that can be its witness.
-            bound = torch.from_numpy(d2_vertex[pt, slot] - best2[pt] * (1.0 + rel) - slack)
-            merge(*self._refine(q, torch.from_numpy(pt), torch.from_numpy(I[pt, slot]), M, stats, bound))
-        if k >= self._num_tree:
-            ok = np.ones(M, dtype=bool)
-        else:
-            ok = power[:, -1] > best2 * (1.0 + rel) + slack
-        return face, best2, ok
-
-    def _refine(self, q: torch.Tensor, pt: torch.Tensor, u: torch.Tensor, M: int, stats: dict | None,
-                bound: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Exact search over the faces incident to vertex u[i] for point pt[i] (compact ids).
-
-        Args:
-            q: (M, 3) points.
-            pt, u: (E,) entries: point index and compact vertex id.
-            bound: optional (E,) value that a face's squared reach must reach for the face to be
-                tested from that entry (``|q - u|^2 - best^2``: the vertex must be able to be the
-                face's witness).
-        Returns:
-            the winning face (M,) (-1 for points without entries) and its squared distance (M,)
-            in the search dtype (inf for points without entries).
-        """
-        count = self.projector._ring_count[u]
-        total = int(count.sum())
-        if total <= _PAIR_BUDGET:
-            return self._refine_entries(q, pt, u, count, M, stats, bound)
-        # Deep retries (a point near the medial axis may list every vertex) go in slices.
-        cuts = torch.searchsorted(torch.cumsum(count, 0), torch.arange(_PAIR_BUDGET, total, _PAIR_BUDGET))
-        edges = [0, *torch.unique(cuts).tolist(), len(u)]
-        face = torch.full((M,), -1, dtype=torch.long)
-        best2 = torch.full((M,), math.inf, dtype=self.dtype)
-        for s0, s1 in zip(edges[:-1], edges[1:]):
-            if s1 <= s0:
-                continue
-            f, b = self._refine_entries(q, pt[s0:s1], u[s0:s1], count[s0:s1], M, stats,
-                                        None if bound is None else bound[s0:s1])
-            better = b < best2
-            face, best2 = torch.where(better, f, face), torch.where(better, b, best2)
-        return face, best2
-
-    def _refine_entries(self, q: torch.Tensor, pt: torch.Tensor, u: torch.Tensor, count: torch.Tensor, M: int,
-                        stats: dict | None, bound: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`_refine` for entries whose rings (``count`` faces each) fit in memory at once."""
-        P = self.projector
-        rep = torch.repeat_interleave(count)
-        n_pairs = rep.shape[0]
-        base = P._ring_start[u] - (torch.cumsum(count, 0) - count)
-        face = P._ring_faces[base[rep] + torch.arange(n_pairs)]
-        pid = pt[rep]
-        if bound is not None:
-            keep = (bound[rep] <= self._face_reach_sq[face]).nonzero().squeeze(1)
-            face, pid = face[keep], pid[keep]
-            n_pairs = face.shape[0]
-        if stats is not None:
-            stats["pairs"] += n_pairs
-        d2 = self._pair_distance2(q, pid, face)
-        if self._has_degenerate:
-            bad = self._degenerate[face].nonzero().squeeze(1)
-            if bad.numel():
-                fb, qb = P.faces[face[bad]], q[pid[bad]].to(torch.float64)
-                v = self._vertices64
-                cp, _ = closest_point_on_triangles(qb, v[fb[:, 0]], v[fb[:, 1]], v[fb[:, 2]])
-                d2[bad] = ((qb - cp) ** 2).sum(1).to(d2.dtype)
-        best2 = torch.full((M,), math.inf, dtype=d2.dtype).scatter_reduce_(0, pid, d2, "amin")
-        pair_id = torch.where(d2 <= best2[pid], torch.arange(n_pairs), n_pairs)
-        win = torch.full((M,), n_pairs, dtype=torch.long).scatter_reduce_(0, pid, pair_id, "amin")
-        face = torch.cat([face, torch.full((1,), -1, dtype=torch.long)])
-        return face[win], best2
-
-    def _pair_distance2(self, q: torch.Tensor, pid: torch.Tensor, face: torch.Tensor) -> torch.Tensor:
-        """(P,) squared distance from q[pid] to each face, on contiguous 1-D tensors.
-
-        In the face's frame (see :meth:`_face_constants`) the squared distance is the squared
-        height over the plane plus the squared 2-D distance to the triangle: zero inside it,
-        else the least distance to its three edges (segments, so corners are covered).
-        Degenerate faces come out wrong here and are redone by the caller.
-        """
-        qx, qy, qz = (torch.index_select(q[:, i].contiguous(), 0, pid) for i in range(3))
-        ax, ay, az, *frame = torch.index_select(self._pair_table, 1, face).unbind(0)
-        return face_frame_distance2(qx - ax, qy - ay, qz - az, frame)
-
 
 def _spatial_order(points: torch.Tensor) -> torch.Tensor:
     """(N,) permutation putting points (N, 3) in Morton (Z-curve) order over their bounding box."""
@@ -503,7 +337,7 @@ def _spatial_order(points: torch.Tensor) -> torch.Tensor:
 def benchmark_projection(n_points: int = 262144, *, vertices: torch.Tensor | np.ndarray | None = None,
                          faces: torch.Tensor | np.ndarray | None = None, band: float = 0.1,
                          far_fraction: float = 0.05, far: float = 3.0, repeats: int = 3, seed: int = 0,
-                         neighbours: int = DEFAULT_NEIGHBOURS, chunk_size: int = DEFAULT_CHUNK_SIZE) -> dict:
+                         chunk_size: int = DEFAULT_CHUNK_SIZE) -> dict:
     """Time :meth:`PosedSurface.project` on float32 points around a mesh.
 
     Default mesh: an icosphere of radius 0.5 m with 20,480 faces (edges ~1.9 cm, close to a body
@@ -537,8 +371,7 @@ def benchmark_projection(n_points: int = 262144, *, vertices: torch.Tensor | np.
     points = torch.as_tensor(pts, dtype=torch.float32)
     verts = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
 
-    projector = SurfaceProjector(torch.as_tensor(np.asarray(mesh.faces)), verts.shape[0], neighbours=neighbours,
-                                 chunk_size=chunk_size)
+    projector = SurfaceProjector(torch.as_tensor(np.asarray(mesh.faces)), verts.shape[0], chunk_size=chunk_size)
     t0 = time.perf_counter()
     surface = projector.bind(verts)
     bind_seconds = time.perf_counter() - t0
@@ -556,8 +389,9 @@ def benchmark_projection(n_points: int = 262144, *, vertices: torch.Tensor | np.
         "median_seconds": float(np.median(times)),
         "first_seconds": times[0],
         "bind_seconds": bind_seconds,
+        "us_per_point": seconds / n_points * 1e6,
         "points_per_second": n_points / seconds if seconds > 0 else math.inf,
-        "fallback_fraction": stats["retried"] / max(1, n_points),
-        "pairs_per_point": stats["pairs"] / max(1, n_points),
+        "bounds_per_point": stats["bounds"] / n_points,
+        "pairs_per_point": stats["pairs"] / n_points,
         "torch_threads": torch.get_num_threads(),
     }

@@ -1,7 +1,7 @@
 """Closest points on a triangle mesh by brute force, in pure torch: the GPU twin of projection.py.
 
 :class:`SurfaceProjector` (:mod:`garmentnerf.geometry.projection`) answers the same queries with a
-KD-tree on the CPU, about 3 us per point; with a million NeRF samples per training step that
+native tree search on the CPU, under a microsecond per point; with a million NeRF samples per training step that
 CPU search, not the network, would bound the step time. :class:`DenseSurfaceProjector` has the
 same ``bind`` / ``project`` interface and returns the same :class:`SurfaceProjection`, but runs
 only dense tensor operations on the device of its inputs (CUDA, CPU, any other), with no host
@@ -23,8 +23,8 @@ Algorithm
    CUDA with TF32 off, or float64), then ``topk`` keeps the k smallest. With the default
    ``ranking="power"``, ``L_u = R_u^2`` is the squared *reach* of the vertex (the largest
    enclosing-circle radius of its faces) and ``|q - u|^2 - R_u^2`` is the power distance of
-   projection.py's lifted KD-tree; with ``ranking="distance"`` ``L_u = 0`` and these are the
-   plain k nearest vertices.
+   the witness lemma below; with ``ranking="distance"`` ``L_u = 0`` and these are the plain k
+   nearest vertices.
 2. *One-ring faces.* The faces around those k vertices (a padded (V, max valence) table, -1
    padding) are tested with the exact point-triangle distance (in each face's orthonormal frame,
    as projection.py does; duplicates are harmless) and the nearest is kept. The winner alone is
@@ -44,8 +44,13 @@ large face, points near the medial axis such as between the legs or arms where s
 are almost equidistant). The miss is then a neighbouring face, so the distance error is small,
 but the foot point, the face and the barycentrics can be off.
 
-By projection.py's witness lemma the closest face has a corner u with
-``|q - u|^2 - r_f^2 <= h^2`` (h the true distance, r_f <= R_u the face's reach). Hence, with
+*Witness lemma.* Let p* be the closest point of face f to a query q, at distance h. Every point
+of a triangle lies within r_f of one of its corners, r_f being the radius of the triangle's
+smallest enclosing circle (the circumradius, or half the longest edge if the triangle is obtuse;
+the face's *reach*, :func:`face_reach`). Take as witness the corner nearest to p* within the
+smallest feature holding p*: the face, an edge or the corner itself. q - p* is orthogonal to that
+feature, hence ``|q - u|^2 = h^2 + |p* - u|^2 <= h^2 + r_f^2``: the closest face has a corner u
+with ``|q - u|^2 - r_f^2 <= h^2`` (r_f <= R_u, the largest reach of u's faces). Hence, with
 ``best`` the distance found, the answer is *certified* exact when the k-th least power exceeds
 ``best^2`` (power ranking) or the k-th least squared vertex distance exceeds ``best^2 + max
 R^2`` (distance ranking), rounding slack included. With ``certify=True`` (default) points that
@@ -61,7 +66,7 @@ box, no sign flips (see that function's docstring).
 Memory: each chunk holds a (M, V) score matrix and (M, k * valence) point-face pairs; the chunk
 size M is derived from ``memory_budget`` (default 256 MB; at most 32 MB on the CPU, where small
 chunks run faster) unless ``chunk_size`` is given. The brute force costs O(V) per point: on a
-CPU it is far slower than projection.py's KD-tree (use that there); it is meant for GPUs.
+CPU it is far slower than projection.py's tree search (use that there); it is meant for GPUs.
 """
 
 from __future__ import annotations
@@ -138,7 +143,10 @@ class DenseSurfaceProjector(SurfaceProjector):
             raise ValueError(f"ranking must be one of {_RANKINGS}, got {ranking!r}")
         if memory_budget < 1:
             raise ValueError(f"memory_budget must be positive, got {memory_budget}")
-        super().__init__(faces, num_vertices, neighbours=neighbours, chunk_size=chunk_size or 1)
+        if neighbours < 1:
+            raise ValueError(f"neighbours must be positive, got {neighbours}")
+        super().__init__(faces, num_vertices, chunk_size=chunk_size or 1)
+        self.neighbours = int(neighbours)
         self.chunk_size = None if chunk_size is None else int(chunk_size)
         self.ranking = ranking
         self.certify = bool(certify)

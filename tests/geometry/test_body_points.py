@@ -75,3 +75,51 @@ def test_distances_match_trimesh_for_near_and_far_points(setup):
     np.testing.assert_allclose(out.signed_distance.abs().numpy(), dist, atol=1e-5)
     inside = trimesh.proximity.signed_distance(skin_mesh, points) > 1e-3  # trimesh: positive inside
     assert np.all(out.signed_distance.numpy()[inside] < 0)
+
+
+def brute_force_nearest(points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(N,) float64 distance from every point to its nearest face, every face tested."""
+    from garmentnerf.geometry.triangles import closest_point_on_triangles
+
+    a, b, c = (verts[faces[:, i]] for i in range(3))
+    out = []
+    for p in points:
+        cp, _ = closest_point_on_triangles(p.expand(len(faces), 3), a, b, c)
+        out.append((cp - p).norm(dim=1).min())
+    return torch.stack(out)
+
+
+def test_exact_search_matches_brute_force_on_a_posed_body(setup):
+    # The fast search (tree order from the template, bounds refit to the posed frame) against
+    # every face: points near the skin, up to 0.5 m away, far away, and between the legs / at
+    # the armpits where two parts of the body are about equally near (the medial axis).
+    body, verts, projector = setup
+    faces = projector.faces
+    g = torch.Generator().manual_seed(3)
+    skin = torch.unique(faces)
+    normals = vertex_normals(verts, body.faces)
+    idx = skin[torch.randint(0, len(skin), (300,), generator=g)]
+    near = verts[idx] + normals[idx] * (torch.rand(300, 1, generator=g, dtype=torch.float64) * 0.1 - 0.05)
+    lo, hi = verts.amin(0) - 0.5, verts.amax(0) + 0.5
+    box = lo + (hi - lo) * torch.rand(200, 3, generator=g, dtype=torch.float64)
+    far = torch.randn(20, 3, generator=g, dtype=torch.float64) * 5.0
+    # Midpoints of random pairs of skin vertices a few cm to 40 cm apart: on or near the medial axis.
+    i, j = skin[torch.randint(0, len(skin), (4000,), generator=g)], skin[torch.randint(0, len(skin), (4000,), generator=g)]
+    gap = (verts[i] - verts[j]).norm(dim=1)
+    keep = ((gap > 0.03) & (gap < 0.4)).nonzero().squeeze(1)[:150]
+    medial = 0.5 * (verts[i[keep]] + verts[j[keep]])
+    points = torch.cat([near, box, far, medial])
+    for dtype in (torch.float64, torch.float32):
+        surface = projector.exact_projector.bind(verts, dtype)
+        stats: dict = {}
+        proj = surface.project(points.to(dtype), stats=stats)
+        q = points.to(dtype).double()  # the points the search saw
+        ref = brute_force_nearest(q, verts, faces)
+        # The returned face is a nearest face: its float64 distance equals the brute-force minimum.
+        a, b, c = (verts[faces[proj.face, k]] for k in range(3))
+        from garmentnerf.geometry.triangles import closest_point_on_triangles
+        cp, _ = closest_point_on_triangles(q, a, b, c)
+        torch.testing.assert_close((cp - q).norm(dim=1), ref, rtol=0, atol=1e-12)
+        tol = 1e-12 if dtype == torch.float64 else 1e-6
+        torch.testing.assert_close(proj.distance.double(), ref, rtol=0, atol=tol)
+    assert stats["pairs"] < 200 * len(points)  # the walk stays local

@@ -207,8 +207,7 @@ def test_projection_matches_trimesh(name):
         np.testing.assert_allclose(proj64.closest.numpy()[outside], ref_closest[outside], atol=1e-7)
         near = outside & (proj.distance.numpy() < 0.05)
         np.testing.assert_allclose(proj.closest.double().numpy()[near], ref_closest[near], atol=1e-4)
-    if name == "capsule":
-        assert stats["retried"] > 0  # the retry path was exercised (and stayed exact)
+    assert stats["points"] == len(points) and stats["pairs"] >= len(points) and stats["bounds"] > 0
 
 
 def test_projection_float64_exact():
@@ -219,29 +218,40 @@ def test_projection_float64_exact():
     assert_exact_distances(mesh, points, proj.distance.numpy(), atol=1e-10)
 
 
-def test_projection_exact_with_one_neighbour_and_tiny_chunks():
-    # k = 1 fails the certificate almost everywhere: every point goes through the retries.
+def test_projection_tiny_chunks_and_threads_agree():
+    # Chunks of 97 points and several kernel launches at once: the same answers as one launch.
     mesh = torus_mesh()
-    points = near_and_far_points(mesh, n_near=800, n_far=200, band=0.1, far=2.0, seed=4)
-    proj, stats, _ = project(mesh, points, neighbours=1, chunk_size=97)
-    assert stats["retried"] > len(points) // 2
-    assert_exact_distances(mesh, points, proj.distance.double().numpy(), atol=1e-5)
+    points = near_and_far_points(mesh, n_near=8000, n_far=2000, band=0.1, far=2.0, seed=4)
+    one, _, _ = project(mesh, points, threads=1)
+    for kw in ({"chunk_size": 97}, {"threads": 2}, {"threads": 3, "chunk_size": 5000}):
+        proj, _, _ = project(mesh, points, **kw)
+        torch.testing.assert_close(proj.distance, one.distance, rtol=0, atol=0)
+        torch.testing.assert_close(proj.face, one.face)
+    assert_exact_distances(mesh, points, one.distance.double().numpy(), atol=1e-5)
 
 
-def test_projection_deep_retries_in_slices(monkeypatch):
-    # On the axis of a torus the whole inner equator is equidistant: the certificate keeps
-    # failing until the retries list most of the ring. Tiny budgets force the sliced paths.
-    import garmentnerf.geometry.projection as projection
-
-    monkeypatch.setattr(projection, "_PAIR_BUDGET", 500)
-    monkeypatch.setattr(projection, "_RETRY_BUDGET", 2000)
+def test_projection_on_the_medial_axis():
+    # On the axis of a torus the whole inner equator is equidistant: every face of the inner
+    # ring is a candidate and the walk opens most of the tree; the answer stays exact.
     mesh = torus_mesh()
     rng = np.random.default_rng(9)
     axis = np.stack([np.zeros(20), np.zeros(20), np.linspace(-1.0, 1.0, 20)], axis=1)
     points = np.concatenate([axis + rng.normal(size=(20, 3)) * 1e-4, rng.normal(size=(60, 3)) * 0.5])
-    proj, stats, _ = project(mesh, points, dtype=torch.float64, neighbours=2)
-    assert stats["retry_passes"] >= 2
+    proj, stats, _ = project(mesh, points, dtype=torch.float64)
+    assert stats["pairs"] > 5 * len(points)
     assert_exact_distances(mesh, points, proj.distance.numpy(), atol=1e-10)
+
+
+def test_reference_order_gives_the_same_answers():
+    # The tree's face order from another pose (the topology's reference) only changes the speed.
+    mesh = MESHES["thin_box"]()
+    points = near_and_far_points(mesh, n_near=2000, n_far=500, band=0.1, far=1.0, seed=12)
+    reference = np.asarray(mesh.vertices) * np.array([0.3, 4.0, 1.0])  # a very different shape
+    own, _, _ = project(mesh, points, dtype=torch.float64)
+    ref, _, projector = project(mesh, points, dtype=torch.float64, reference_vertices=torch.as_tensor(reference))
+    assert projector.tree_order is not None
+    torch.testing.assert_close(ref.distance, own.distance, rtol=0, atol=1e-12)
+    torch.testing.assert_close(ref.closest, own.closest, rtol=0, atol=1e-7)
 
 
 def test_projection_with_degenerate_faces():
@@ -349,4 +359,4 @@ def test_empty_and_invalid_inputs():
 def test_benchmark_smoke():
     out = benchmark_projection(n_points=3000, repeats=1)
     assert out["n_points"] == 3000 and out["seconds"] > 0 and out["points_per_second"] > 0
-    assert 0.0 <= out["fallback_fraction"] <= 1.0
+    assert out["us_per_point"] > 0 and out["pairs_per_point"] >= 1 and out["bounds_per_point"] > 0
