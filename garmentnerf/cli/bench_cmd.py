@@ -26,7 +26,9 @@ ROWS = [
     ("depth_range_512_ms", "ray bounds 512x512 (near + far depth)", "ms"),
     ("body_layer_gl_512_ms", "body layer 512x512, 2x2 supersampled: GL-shaded", "ms"),
     ("body_layer_reference_512_ms", "body layer: the reference (camera pass + torch)", "ms"),
+    ("projection_bind_ms", "body projection: bind a frame (search tree)", "ms"),
     ("projection_ms", "body projection of 262,144 points (b_t, h, b_o, uv)", "ms"),
+    ("projection_us_per_point", "body projection per point", "us"),
     ("projection_points_per_s", "surface projection throughput", "points/s"),
 ]
 

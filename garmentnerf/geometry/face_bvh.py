@@ -36,7 +36,6 @@ rounding of the coordinates (~1e-16 m), far below anything that would change whi
 opened.
 """
 
-from __future__ import annotations
 
 import functools
 import threading
@@ -44,7 +43,7 @@ import threading
 import numpy as np
 import torch
 
-from garmentnerf.geometry.triangles import face_frame_table
+from garmentnerf.geometry.triangles import FEATURE_TOL, face_frame_table
 
 __all__ = ["FaceBVH", "BOUND_SLACK", "tree_order", "tree_depth"]
 
@@ -155,11 +154,129 @@ def _kernels():
         da = wp.max(wp.max(N[j, 7] - a, a - N[j, 8]), wp.float64(0.0))
         return dr * dr + da * da
 
+    @wp.func
+    def safe_ratio(num: wp.float64, den: wp.float64, tiny: wp.float64):
+        if den > tiny:
+            return wp.clamp(num / den, wp.float64(0.0), wp.float64(1.0))
+        return wp.float64(0.0)
+
+    @wp.func
+    def residual2(apx: wp.float64, apy: wp.float64, apz: wp.float64, abx: wp.float64, aby: wp.float64,
+                  abz: wp.float64, acx: wp.float64, acy: wp.float64, acz: wp.float64, v: wp.float64, w: wp.float64):
+        rx = apx - v * abx - w * acx
+        ry = apy - v * aby - w * acy
+        rz = apz - v * abz - w * acz
+        return rx * rx + ry * ry + rz * rz
+
+    @wp.func
+    def finish(T: wp.array2d(dtype=wp.float64), S: wp.array2d(dtype=wp.float64), k: int, px: wp.float64,
+               py: wp.float64, pz: wp.float64, feature_tol: wp.float64, out: wp.array2d(dtype=wp.float64), i: int):
+        # closest_point_on_triangles of garmentnerf.geometry.triangles (float64) for the winner,
+        # then PosedSurface._sign: the same candidates, order and ties, so the same answer.
+        zero = wp.float64(0.0)
+        one = wp.float64(1.0)
+        tiny = wp.float64(2.2250738585072014e-308)
+        eps = wp.float64(2.220446049250313e-16)
+        ax = T[k, 0]
+        ay = T[k, 1]
+        az = T[k, 2]
+        abx = T[k, 19] - ax
+        aby = T[k, 20] - ay
+        abz = T[k, 21] - az
+        acx = T[k, 22] - ax
+        acy = T[k, 23] - ay
+        acz = T[k, 24] - az
+        apx = px - ax
+        apy = py - ay
+        apz = pz - az
+        saa = abx * abx + aby * aby + abz * abz
+        scc = acx * acx + acy * acy + acz * acz
+        nx = aby * acz - abz * acy
+        ny = abz * acx - abx * acz
+        nz = abx * acy - aby * acx
+        nn = nx * nx + ny * ny + nz * nz
+        v = zero
+        w = zero
+        best = wp.float64(1.0e308) * wp.float64(10.0)  # inf
+        if nn > eps * eps * saa * scc + tiny:
+            inv = one / nn
+            v = ((apy * acz - apz * acy) * nx + (apz * acx - apx * acz) * ny + (apx * acy - apy * acx) * nz) * inv
+            w = ((aby * apz - abz * apy) * nx + (abz * apx - abx * apz) * ny + (abx * apy - aby * apx) * nz) * inv
+            if v >= zero and w >= zero and v + w <= one:
+                best = residual2(apx, apy, apz, abx, aby, abz, acx, acy, acz, v, w)
+        bu = wp.max(one - v - w, zero)
+        bv = v
+        bw = w
+        t = safe_ratio(apx * abx + apy * aby + apz * abz, saa, tiny)  # edge ab
+        d2 = residual2(apx, apy, apz, abx, aby, abz, acx, acy, acz, t, zero)
+        if d2 < best:
+            best = d2
+            bu = one - t
+            bv = t
+            bw = zero
+        t = safe_ratio(apx * acx + apy * acy + apz * acz, scc, tiny)  # edge ac
+        d2 = residual2(apx, apy, apz, abx, aby, abz, acx, acy, acz, zero, t)
+        if d2 < best:
+            best = d2
+            bu = one - t
+            bv = zero
+            bw = t
+        bcx = acx - abx
+        bcy = acy - aby
+        bcz = acz - abz
+        t = safe_ratio((px - T[k, 19]) * bcx + (py - T[k, 20]) * bcy + (pz - T[k, 21]) * bcz,
+                       bcx * bcx + bcy * bcy + bcz * bcz, tiny)  # edge bc
+        d2 = residual2(apx, apy, apz, abx, aby, abz, acx, acy, acz, one - t, t)
+        if d2 < best:
+            best = d2
+            bu = zero
+            bv = one - t
+            bw = t
+        cx = bu * ax + bv * T[k, 19] + bw * T[k, 22]
+        cy = bu * ay + bv * T[k, 20] + bw * T[k, 23]
+        cz = bu * az + bv * T[k, 21] + bw * T[k, 24]
+        ox = px - cx
+        oy = py - cy
+        oz = pz - cz
+        d = wp.sqrt(ox * ox + oy * oy + oz * oz)
+        # Sign: the pseudo-normal of the feature holding the closest point (S: face normal, the
+        # normals of the edges opposite corners 0, 1, 2, the normals of corners 0, 1, 2).
+        z0 = bu <= feature_tol
+        z1 = bv <= feature_tol
+        z2 = bw <= feature_tol
+        nzero = int(z0) + int(z1) + int(z2)
+        col = int(0)
+        if nzero == 1:
+            col = 3
+            if z1:
+                col = 6
+            if z2:
+                col = 9
+        elif nzero >= 2:
+            col = 12
+            if bv > bu:
+                col = 15
+            if bw > wp.max(bu, bv):
+                col = 18
+        dot = ox * S[k, col] + oy * S[k, col + 1] + oz * S[k, col + 2]
+        out[i, 0] = bu
+        out[i, 1] = bv
+        out[i, 2] = bw
+        out[i, 3] = cx
+        out[i, 4] = cy
+        out[i, 5] = cz
+        out[i, 6] = d
+        if dot < zero:
+            out[i, 7] = -d
+        else:
+            out[i, 7] = d
+
     @wp.kernel
     def nearest_faces(points: wp.array2d(dtype=wp.float64), T: wp.array2d(dtype=wp.float64),
                       N: wp.array2d(dtype=wp.float64), first_leaf: int, num_faces: int, num_points: int,
                       block: int, out_face: wp.array(dtype=wp.int32), out_d2: wp.array(dtype=wp.float64),
-                      out_work: wp.array2d(dtype=wp.int32)):
+                      out_work: wp.array2d(dtype=wp.int32), S: wp.array2d(dtype=wp.float64),
+                      feature_tol: wp.float64, out_geom: wp.array2d(dtype=wp.float64)):
         b = wp.tid()
         start = b * block
         end = wp.min(start + block, num_points)
@@ -219,6 +336,8 @@ def _kernels():
             out_work[i, 0] = n_nodes
             out_work[i, 1] = n_faces
             seed = best_face
+            if S.shape[0] > 0:
+                finish(T, S, best_face, qx, qy, qz, feature_tol, out_geom, i)
 
     @wp.kernel
     def node_cylinders(corners: wp.array2d(dtype=wp.float64), num_faces: int, first_node: int,
@@ -304,6 +423,9 @@ class FaceBVH:
     Args:
         vertices: (V, 3) float64 posed vertices (CPU).
         faces: (F, 3) long.
+        normals: (face (F, 3), edge (E, 3), vertex (V, 3) pseudo-normals, face_edges (F, 3) the
+            edge opposite each corner): if given, :meth:`query` also solves every winner in full
+            (closest point, barycentrics, signed distance).
         order: (F,) the tree's face order (:func:`tree_order`), e.g. computed once per topology
             on a reference pose; default: computed here from ``vertices``. Any order gives the
             same exact answers (up to ties); one that groups faces that are near each other in
@@ -313,7 +435,8 @@ class FaceBVH:
         depth: the level of the leaves (``2^depth`` leaves of one or two faces).
     """
 
-    def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, order: torch.Tensor | None = None):
+    def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, order: torch.Tensor | None = None,
+                 normals: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None = None):
         F = faces.shape[0]
         self.num_faces = F
         self.depth = tree_depth(F)
@@ -328,8 +451,16 @@ class FaceBVH:
         T[:, 25] = degenerate.to(torch.float64)
         self.face_table = T.contiguous()
         self.node_table = _node_cylinders(corners, self.depth)
+        if normals is None:
+            self.sign_table = torch.zeros(0, 21, dtype=torch.float64)
+        else:
+            face_n, edge_n, vertex_n, face_edges = normals
+            o = self.order
+            self.sign_table = torch.cat([face_n[o], edge_n[face_edges[o]].reshape(F, 9),
+                                         vertex_n[faces_s].reshape(F, 9)], dim=1).to(torch.float64).contiguous()
 
-    def query(self, points: torch.Tensor, threads: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def query(self, points: torch.Tensor, threads: int = 1
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The nearest face of every point of ``points`` (M, 3) float64, walked in the given
         order (put nearby points next to each other).
 
@@ -338,7 +469,10 @@ class FaceBVH:
                 are serial; a launch releases the GIL).
         Returns:
             (M,) face index (of the original ``faces``), (M,) float64 squared distance, (M, 2)
-            int32 work: bounds tested and faces tested per point.
+            int32 work: bounds tested and faces tested per point, and with ``normals`` (M, 8)
+            float64: barycentrics (in ``faces`` corner order), closest point, distance, signed
+            distance, as :func:`~garmentnerf.geometry.triangles.closest_point_on_triangles` and
+            the pseudo-normal sign of :mod:`~garmentnerf.geometry.projection` give them (else None).
         """
         wp, kernel, _ = _kernels()
         M = points.shape[0]
@@ -346,6 +480,8 @@ class FaceBVH:
         face = torch.empty(M, dtype=torch.int32)
         d2 = torch.empty(M, dtype=torch.float64)
         work = torch.empty(M, 2, dtype=torch.int32)
+        solve = self.sign_table.shape[0] > 0
+        geom = torch.empty(M if solve else 0, 8, dtype=torch.float64)
         blocks = (M + BLOCK - 1) // BLOCK
         tables = (wp.from_torch(self.face_table, dtype=wp.float64), wp.from_torch(self.node_table, dtype=wp.float64))
 
@@ -355,7 +491,9 @@ class FaceBVH:
                       inputs=[wp.from_torch(pts[r0:r1], dtype=wp.float64), *tables, (1 << self.depth) - 1,
                               self.num_faces, r1 - r0, BLOCK],
                       outputs=[wp.from_torch(face[r0:r1], dtype=wp.int32), wp.from_torch(d2[r0:r1], dtype=wp.float64),
-                               wp.from_torch(work[r0:r1], dtype=wp.int32)])
+                               wp.from_torch(work[r0:r1], dtype=wp.int32),
+                               wp.from_torch(self.sign_table, dtype=wp.float64), FEATURE_TOL,
+                               wp.from_torch(geom[r0:r1] if solve else geom, dtype=wp.float64)])
 
         threads = max(1, min(int(threads), blocks // _MIN_BLOCKS_PER_THREAD))
         if M == 0:
@@ -369,7 +507,7 @@ class FaceBVH:
             jobs = [_pool(threads).submit(launch, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
             for job in jobs:
                 job.result()
-        return self.order[face.long()], d2, work
+        return self.order[face.long()], d2, work, (geom if solve else None)
 
 
 def tree_depth(num_faces: int) -> int:

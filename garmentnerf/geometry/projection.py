@@ -33,8 +33,9 @@ The tree's face order is computed once per topology when a reference pose is giv
 either way :meth:`~SurfaceProjector.bind` refits the node bounds to the frame (exact for that
 frame, so any order gives the same answers, up to ties between equidistant faces).
 
-Only the winning face of each point is then solved in full, with
-:func:`closest_point_on_triangles` in float64 (closest point, barycentrics).
+Only the winning face of each point is then solved in full, in the same kernel and in float64:
+closest point and barycentrics as :func:`~garmentnerf.geometry.triangles.closest_point_on_triangles`
+computes them (the same candidates in the same order), and the sign below.
 
 Sign
 ----
@@ -57,8 +58,7 @@ import numpy as np
 import torch
 
 from garmentnerf.geometry.face_bvh import FaceBVH, tree_order
-from garmentnerf.geometry.triangles import FEATURE_TOL, check_points, closest_point_on_triangles, dot_rows, \
-    interpolate, pseudo_normals
+from garmentnerf.geometry.triangles import check_points, interpolate, pseudo_normals
 from garmentnerf.interrupts import deferred_interrupts
 
 __all__ = [
@@ -236,11 +236,12 @@ class PosedSurface:
         v64 = vertices.detach().to("cpu", torch.float64)
         self._vertices64 = v64
         F = P.faces
-        self._tree = FaceBVH(v64, F, P.tree_order)
         a, b, c = v64[F[:, 0]], v64[F[:, 1]], v64[F[:, 2]]
         cross = torch.cross(b - a, c - a, dim=1)
         self._face_normals, self._edge_normals, self._vertex_normals = pseudo_normals(
             v64, F, P._face_edges, P.num_edges, cross, cross.norm(dim=1))
+        self._tree = FaceBVH(v64, F, P.tree_order, (self._face_normals, self._edge_normals, self._vertex_normals,
+                                                    P._face_edges))
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -270,8 +271,6 @@ class PosedSurface:
         closest = torch.empty(N, 3, dtype=self.dtype)
         dist = torch.empty(N, dtype=self.dtype)
         signed = torch.empty(N, dtype=self.dtype)
-        F = self.projector.faces
-        v = self._vertices64
         chunk = self.projector.chunk_size
         threads = self.projector.threads or min(torch.get_num_threads(), os.cpu_count() or 1)
         with torch.no_grad():
@@ -279,41 +278,21 @@ class PosedSurface:
                 q64 = q_all[s:s + chunk]
                 rows = order[s:s + chunk]
                 with deferred_interrupts():  # the kernel threads must finish before a Ctrl-C acts
-                    f, _, work = self._tree.query(q64, threads)
+                    f, _, work, geom = self._tree.query(q64, threads)
                 if stats is not None:
                     totals = work.sum(dim=0, dtype=torch.int64)
                     stats["bounds"] += int(totals[0])
                     stats["pairs"] += int(totals[1])
-                # Only the winner is solved in full, in float64: its barycentrics must be exact
-                # enough to pick the sign's feature (face / edge / corner).
-                corners = F[f]
-                cp, bc = closest_point_on_triangles(q64, v[corners[:, 0]], v[corners[:, 1]], v[corners[:, 2]])
-                offset = q64 - cp
-                d = offset.norm(dim=1)
+                # The kernel solved the winner in full, in float64 (closest_point_on_triangles and
+                # _sign, ported): its barycentrics pick the sign's feature (face / edge / corner).
+                geom = geom.to(self.dtype)
                 face[rows] = f
-                bary[rows] = bc.to(self.dtype)
-                closest[rows] = cp.to(self.dtype)
-                dist[rows] = d.to(self.dtype)
-                signed[rows] = (d * self._sign(offset, f, bc)).to(self.dtype)
+                bary[rows] = geom[:, 0:3]
+                closest[rows] = geom[:, 3:6]
+                dist[rows] = geom[:, 6]
+                signed[rows] = geom[:, 7]
         out = SurfaceProjection(face, bary, closest, dist, signed)
         return out if device.type == "cpu" else out.to(device)
-
-    def _sign(self, offset: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
-        """(N,) +1 outside / -1 inside from the pseudo-normal of the closest feature."""
-        zero = bary <= FEATURE_TOL
-        nzero = zero.sum(dim=1)
-        normal = self._face_normals[face]
-        # Edge: the zero coordinate names the opposite corner, i.e. the edge's slot in face_edges.
-        on_edge = nzero == 1
-        if bool(on_edge.any()):
-            slot = zero[on_edge].to(torch.uint8).argmax(dim=1)
-            normal[on_edge] = self._edge_normals[self.projector._face_edges[face[on_edge], slot]]
-        on_corner = nzero >= 2
-        if bool(on_corner.any()):
-            slot = bary[on_corner].argmax(dim=1)
-            normal[on_corner] = self._vertex_normals[self.projector.faces[face[on_corner], slot]]
-        dot = dot_rows(offset, normal)
-        return torch.where(dot < 0, -1.0, 1.0).to(offset.dtype)
 
 
 def _spatial_order(points: torch.Tensor) -> torch.Tensor:

@@ -360,3 +360,19 @@ def test_benchmark_smoke():
     out = benchmark_projection(n_points=3000, repeats=1)
     assert out["n_points"] == 3000 and out["seconds"] > 0 and out["points_per_second"] > 0
     assert out["us_per_point"] > 0 and out["pairs_per_point"] >= 1 and out["bounds_per_point"] > 0
+
+
+def test_kernel_solve_matches_closest_point_on_triangles():
+    # The kernel solves the winner as closest_point_on_triangles does (float64): same point,
+    # same barycentrics, exact zeros on edges and corners included.
+    mesh = MESHES["thin_box"]()
+    points = near_and_far_points(mesh, n_near=3000, n_far=500, band=0.1, far=1.0, seed=13)
+    corners = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[[0, 5, 9]]]
+    points = np.concatenate([points, corners.reshape(-1, 3) + 1e-3, corners.reshape(-1, 3)])  # corner/edge feet
+    proj, _, _ = project(mesh, points, dtype=torch.float64)
+    v, f = torch.as_tensor(mesh.vertices), torch.as_tensor(mesh.faces)[proj.face]
+    cp, bc = closest_point_on_triangles(torch.as_tensor(points), v[f[:, 0]], v[f[:, 1]], v[f[:, 2]])
+    torch.testing.assert_close(proj.closest, cp, rtol=0, atol=1e-12)
+    torch.testing.assert_close(proj.bary, bc, rtol=0, atol=1e-12)
+    assert torch.equal(proj.bary == 0, bc == 0)
+    np.testing.assert_allclose(proj.distance.numpy(), np.linalg.norm(points - cp.numpy(), axis=1), atol=1e-12)
