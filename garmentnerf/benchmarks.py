@@ -105,4 +105,8 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
     results["projection_us_per_point"] = proj_ms * 1e3 / projection_points
     results["projection_points_per_s"] = projection_points / (proj_ms / 1e3)
     ctx.release()
+    # What a projected sample then costs in each field (ModelConfig.field), side by side.
+    from garmentnerf.perf.field_bench import field_benchmark
+
+    results["fields"] = field_benchmark(rounds=max(3, runs // 4))
     return results

@@ -152,6 +152,13 @@ def run_bench(args: argparse.Namespace) -> int:
         value = results[key]
         text = f"{value:,.0f}" if unit == "points/s" else f"{value:8.2f}"
         print(f"  {label:48s} {text:>12s} {unit}")
+    fields = results["fields"]
+    print(f"  per projected sample, chunks of {fields['samples']:,} (render: no autograd; train: forward + backward):")
+    for name in ("paper", "uvh"):
+        row = fields[name]
+        print(f"    field {name:6s} render {row['render_us_per_sample']:6.2f} us ({row['render_samples_per_s']:>10,.0f}/s)"
+              f"   train {row['train_us_per_sample']:6.2f} us ({row['train_samples_per_s']:>10,.0f}/s)"
+              f"   {row['parameters']:,} parameters")
     if args.json:
         with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(results, indent=2))
