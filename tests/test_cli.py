@@ -102,7 +102,7 @@ def test_wheel_ships_shaders_and_assets(tmp_path):
                     "-w", str(tmp_path)], check=True)
     wheel = next(tmp_path.glob("garmentnerf-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
-    shaders = sorted(p.name for p in (REPO / "shaders").iterdir() if p.suffix in (".vert", ".frag", ".glsl"))
+    shaders = sorted(p.name for p in (REPO / "garmentnerf" / "shaders").iterdir() if p.suffix in (".vert", ".frag", ".glsl"))
     assert shaders and all(f"garmentnerf/shaders/{s}" in names for s in shaders)
     assert "garmentnerf/assets/anny_body_v1.npz" in names
     site = tmp_path / "site"

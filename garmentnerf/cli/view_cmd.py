@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -72,39 +70,9 @@ def register(sub) -> None:
     view.set_defaults(func=run_view)
 
 
-def import_viewer(module: str = "app"):
-    """Import ``garmentnerf.viewer.<module>``.
-
-    An installed garmentnerf maps the top-level ``viewer/`` folder to ``garmentnerf.viewer`` (see
-    pyproject.toml). Run from a source tree via PYTHONPATH, that mapping does not exist, so the package
-    is registered here from the folder beside the ``garmentnerf`` package (as the GLSL loader does for
-    ``shaders/``).
-    """
-    try:
-        importlib.import_module("garmentnerf.viewer")
-    except ModuleNotFoundError as exc:
-        if exc.name != "garmentnerf.viewer":
-            raise
-        import garmentnerf
-
-        root = Path(garmentnerf.__file__).resolve().parent.parent / "viewer"
-        if not (root / "__init__.py").is_file():
-            raise
-        spec = importlib.util.spec_from_file_location("garmentnerf.viewer", root / "__init__.py",
-                                                      submodule_search_locations=[str(root)])
-        package = importlib.util.module_from_spec(spec)
-        sys.modules["garmentnerf.viewer"] = package
-        try:
-            spec.loader.exec_module(package)
-        except BaseException:
-            del sys.modules["garmentnerf.viewer"]
-            raise
-        garmentnerf.viewer = package
-    return importlib.import_module(f"garmentnerf.viewer.{module}")
-
-
 def run_view(args: argparse.Namespace) -> int:
-    export_jobs = import_viewer("export_jobs")
+    from garmentnerf.viewer import export_jobs
+
     size = export_jobs.parse_size(args.size, "--size")
     snapshot_size = export_jobs.parse_size(args.snapshot_size, "--snapshot-size")
     if args.msaa is not None and args.msaa < 0:
@@ -120,7 +88,8 @@ def run_view(args: argparse.Namespace) -> int:
         from garmentnerf.cli.common import check_output_file
 
         check_output_file(args.json, "--json", args.overwrite)
-    app_module = import_viewer("app")
+    from garmentnerf.viewer import app as app_module
+
     if not app_module.display_available():
         print(NO_DISPLAY_MESSAGE, file=sys.stderr)
         return 2

@@ -1,4 +1,4 @@
-"""Loading the project's GLSL (the top-level ``shaders/`` folder, installed as ``garmentnerf.shaders``).
+"""Loading the project's GLSL (the ``garmentnerf/shaders/`` folder, the package ``garmentnerf.shaders``).
 
 Programs are never cached here: each pass object builds its own programs on its own context, so
 several contexts in one process never share GL objects.
@@ -7,26 +7,15 @@ several contexts in one process never share GL objects.
 from __future__ import annotations
 
 import re
+from importlib.resources import files
 from importlib.resources.abc import Traversable
-from pathlib import Path
 
 import moderngl
 
 
 def shader_root() -> Traversable:
-    """The folder that holds the GLSL files.
-
-    The installed package ``garmentnerf.shaders`` when it imports; otherwise (running from a source
-    tree that is not installed) the ``shaders/`` folder beside the ``garmentnerf`` package.
-    """
-    try:
-        from importlib.resources import files
-
-        return files("garmentnerf.shaders")
-    except ImportError:  # ModuleNotFoundError included
-        import garmentnerf
-
-        return Path(garmentnerf.__file__).resolve().parent.parent / "shaders"
+    """The folder that holds the GLSL files: the package ``garmentnerf.shaders``."""
+    return files("garmentnerf.shaders")
 
 
 _VERSION_LINE = re.compile(r"^[ \t]*#version[^\n]*\n", re.MULTILINE)

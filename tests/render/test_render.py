@@ -337,11 +337,8 @@ def _gl_compose(ctx, maps, palette, background, body=None, camera=None):
     (body model, appearance, vertices, normals) of a body layer it draws itself, seen by ``camera``."""
     import moderngl
 
-    from garmentnerf.cli.view_cmd import import_viewer
-
-    scene_gl = import_viewer("scene_gl")
-    palette_layer = import_viewer("palette_layer")
     from garmentnerf.gl.context import current
+    from garmentnerf.viewer import palette_layer, scene_gl
 
     B, P, H, W = maps["weights"].shape
     layers = scene_gl.pack_maps(maps["radiance"][0].numpy(), maps["offsets"][0].numpy(),
@@ -450,13 +447,11 @@ def test_palette_layer_draws_the_body_at_the_size_it_shows_it(gl_context, body, 
     """The body layer follows the shown size (not the maps'), and is drawn again only when the body
     or that size changes."""
     from garmentnerf.body.surface import vertex_normals
-    from garmentnerf.cli.view_cmd import import_viewer
     from garmentnerf.data.cameras import ring_camera
     from garmentnerf.gl.context import current
     from garmentnerf.model.body_appearance import BodyAppearance
+    from garmentnerf.viewer import palette_layer, scene_gl
 
-    scene_gl = import_viewer("scene_gl")
-    palette_layer = import_viewer("palette_layer")
     vertices = walk_clip[0].vertices[0].detach().float()
     normals = vertex_normals(vertices, body.faces)
     centre = vertices.double().mean(dim=0).numpy()

@@ -19,16 +19,13 @@ import numpy as np
 import torch
 import pytest
 
-from garmentnerf.cli.view_cmd import NO_DISPLAY_MESSAGE, import_viewer, register
-
-import_viewer("timeline")  # registers garmentnerf.viewer when running from a source tree
-
-from garmentnerf.conventions import Camera  # noqa: E402
-from garmentnerf.viewer import shortcuts as sc  # noqa: E402
-from garmentnerf.viewer.camera import VIEW_DIRECTIONS, OrbitController  # noqa: E402
-from garmentnerf.viewer.export_jobs import parse_size, snapshot_name, write_png  # noqa: E402
-from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED, Timeline  # noqa: E402
-from garmentnerf.viewer.worker import RenderWorker  # noqa: E402
+from garmentnerf.cli.view_cmd import NO_DISPLAY_MESSAGE, register
+from garmentnerf.conventions import Camera
+from garmentnerf.viewer import shortcuts as sc
+from garmentnerf.viewer.camera import VIEW_DIRECTIONS, OrbitController
+from garmentnerf.viewer.export_jobs import parse_size, snapshot_name, write_png
+from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED, Timeline
+from garmentnerf.viewer.worker import RenderWorker
 
 WINDOW = (640, 480)
 

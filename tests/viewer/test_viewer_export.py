@@ -14,13 +14,9 @@ import time
 import numpy as np
 import pytest
 
-from garmentnerf.cli.view_cmd import import_viewer
-
-import_viewer("timeline")  # registers garmentnerf.viewer when running from a source tree
-
-from garmentnerf.render.video import count_video_frames, to_uint8  # noqa: E402
-from garmentnerf.viewer.camera import OrbitController  # noqa: E402
-from garmentnerf.viewer.export_jobs import (ExportJob, ExportSettings, format_seconds, plan_range,  # noqa: E402
+from garmentnerf.render.video import count_video_frames, to_uint8
+from garmentnerf.viewer.camera import OrbitController
+from garmentnerf.viewer.export_jobs import (ExportJob, ExportSettings, format_seconds, plan_range,
                                             plan_turntable, video_name)
 
 SIZE = (48, 32)
