@@ -55,6 +55,32 @@ def atomic_write_path(path: str | Path, overwrite: bool = True):
         raise
 
 
+def _write_synced(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` and sync it to the disk (a full disk raises :class:`OSError`
+    with its errno here, not later)."""
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_file_atomic(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically: a synced temporary beside it, renamed over ``path``.
+
+    Readers see the old file or the complete new one; a failed write (OSError naming ``path``)
+    leaves the old file and no temporary.
+    """
+    path = Path(path)
+    try:
+        with atomic_write_path(path) as tmp:
+            _write_synced(tmp, data)
+    except OSError as exc:
+        if exc.filename is None and str(path) not in str(exc):  # write() errors name no file
+            raise type(exc)(exc.errno, f"{path}: cannot write ({exc.strerror or exc})") from exc
+        raise
+    return path
+
+
 #: A temporary file of :func:`atomic_write_path` untouched for this long is a leftover of a killed
 #: write (a live write touches its file continuously; a PNG takes milliseconds).
 STALE_TEMPORARY_SECONDS = 60.0

@@ -35,6 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.io_utils import write_file_atomic
+
 #: Degree of the shading polynomial (see the module docstring).
 SHADING_DEGREE = 4
 #: Side of the albedo texture, texels.
@@ -97,8 +99,6 @@ class BodyAppearance(nn.Module):
 def save_body_appearance(path, appearance: BodyAppearance) -> Path:
     """Write ``appearance`` to a ``.safetensors`` file atomically. Returns the path."""
     from safetensors.torch import save
-
-    from garmentnerf.train.run import write_file_atomic
 
     tensors = {"albedo": appearance.albedo.detach().cpu().contiguous(),
                "shading": appearance.shading.detach().cpu().contiguous()}

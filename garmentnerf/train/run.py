@@ -50,7 +50,8 @@ from pathlib import Path
 
 import torch
 
-from garmentnerf.io_utils import atomic_write_path, remove_stale_temporaries
+from garmentnerf.io_utils import remove_stale_temporaries, write_file_atomic
+from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, BodyAppearance, load_body_appearance
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.version import package_version
 
@@ -63,7 +64,7 @@ TB_DIR = "tb"
 
 __all__ = ["LoadedRun", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
            "save_weights", "load_weights", "load_scene", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
-           "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "write_file_atomic", "remove_run_temporaries"]
+           "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "remove_run_temporaries"]
 
 
 @dataclass
@@ -90,7 +91,7 @@ class LoadedRun:
     step: int
     info: dict
     betas: torch.Tensor | None = field(default=None)
-    body_appearance: "BodyAppearance | None" = field(default=None)  # noqa: F821
+    body_appearance: BodyAppearance | None = field(default=None)
 
     def palette(self) -> torch.Tensor:
         """(P, 3) the learned palette as the model composes with it (its parameter clamped to [0, 1])."""
@@ -200,32 +201,6 @@ def _state_for_file(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     return out
 
 
-def _write_synced(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` and sync it to the disk (a full disk raises :class:`OSError`
-    with its errno here, not later)."""
-    with open(path, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def write_file_atomic(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically: a synced temporary beside it, renamed over ``path``.
-
-    Readers see the old file or the complete new one; a failed write (OSError naming ``path``)
-    leaves the old file and no temporary.
-    """
-    path = Path(path)
-    try:
-        with atomic_write_path(path) as tmp:
-            _write_synced(tmp, data)
-    except OSError as exc:
-        if exc.filename is None and str(path) not in str(exc):  # write() errors name no file
-            raise type(exc)(exc.errno, f"{path}: cannot write ({exc.strerror or exc})") from exc
-        raise
-    return path
-
-
 def remove_run_temporaries(run_dir) -> list[Path]:
     """Delete the temporaries of killed writes of a run's own files (``run.json``,
     ``model.safetensors`` and the checkpoints; nothing else). Returns what was deleted.
@@ -246,7 +221,7 @@ RENAMED_WEIGHTS = {"palette.colours": "palette.colors"}
 
 
 def save_weights(path, model: torch.nn.Module, metadata: dict | None = None) -> Path:
-    """Model weights to a ``.safetensors`` file, atomically (:func:`write_file_atomic`).
+    """Model weights to a ``.safetensors`` file, atomically (:func:`~garmentnerf.io_utils.write_file_atomic`).
 
     Serialised in memory first, so that a full disk is an :class:`OSError` naming ``path``.
     """
@@ -442,8 +417,6 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
         raise ValueError(f"{file}: {exc}") from exc
     load_weights(run_dir / MODEL_FILE, model)
     model = model.to(device).eval()
-    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance
-
     appearance = load_body_appearance(run_dir / BODY_APPEARANCE_FILE) if (run_dir / BODY_APPEARANCE_FILE).is_file() else None
     return LoadedRun(run_dir, model, config, loaded_scene, int(info["step"]), info, betas, appearance)
 

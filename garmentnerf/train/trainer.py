@@ -95,6 +95,7 @@ import numpy as np
 import torch
 
 from garmentnerf.interrupts import HeldInterrupts
+from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, generator_losses
@@ -106,7 +107,7 @@ from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model, load_scene,
                                    load_module_weights, load_weights, read_run_info, remove_run_temporaries,
-                                   save_run_model, save_weights, write_file_atomic)
+                                   save_run_model, save_weights)
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
                                         new_run_settings, resume_settings, show_setting, tiny_config)
 

@@ -174,10 +174,10 @@ def test_precision_is_chosen_once_recorded_and_kept_by_a_resume(tiny_scene, tmp_
 def test_full_disk_is_one_line_and_leaves_no_partial_checkpoint(tiny_scene, tmp_path, capsys, monkeypatch, failing):
     """ENOSPC while the checkpoint of step 4 is written: exit 2, one line naming the checkpoint
     folder; no partial checkpoint, no temporary; after freeing space --resume finishes."""
-    import garmentnerf.train.run as run_module
+    import garmentnerf.io_utils as io_module
 
     out = tmp_path / "run"
-    real = run_module._write_synced
+    real = io_module._write_synced
     seen = []
 
     def full_disk(path: Path, data: bytes) -> None:
@@ -188,7 +188,7 @@ def test_full_disk_is_one_line_and_leaves_no_partial_checkpoint(tiny_scene, tmp_
             raise OSError(errno.ENOSPC, "No space left on device")
         real(path, data)
 
-    monkeypatch.setattr(run_module, "_write_synced", full_disk)
+    monkeypatch.setattr(io_module, "_write_synced", full_disk)
     assert main(new_run(tiny_scene, out, "--iterations", "5", "--generator-iterations", "0", "--ckpt-every", "2",
                         "--seed", "3")) == 2
     lines = capsys.readouterr().err.strip().splitlines()
