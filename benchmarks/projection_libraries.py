@@ -59,7 +59,7 @@ def main(argv=None) -> int:
         print(f"projection_libraries: --json {args.json} exists; remove it first", file=sys.stderr)
         return 2
 
-    from garmentnerf.benchmarks import near_surface_points
+    from garmentnerf.perf.projection_bench import near_surface_points
     from garmentnerf.body.model import BodyModel
     from garmentnerf.body.surface import vertex_normals
     from garmentnerf.geometry.body_points import BodyPointProjector

@@ -1,6 +1,6 @@
 """``garmentnerf bench``: time the per-frame stages and print (and optionally save) the figures.
 
-Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.benchmarks.foundation_benchmark`).
+Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.perf.foundation_bench.foundation_benchmark`).
 
 With ``--run DIR``: every render preset on the run's model, then playback figures
 (:func:`garmentnerf.perf.preset_bench.preset_benchmark`, which says what is measured and how).
@@ -142,7 +142,7 @@ def run_bench(args: argparse.Namespace) -> int:
             write_plot(results, args.plot, overwrite=args.overwrite)
             print(f"wrote {args.plot}")
         return 0
-    from garmentnerf.benchmarks import foundation_benchmark
+    from garmentnerf.perf.foundation_bench import foundation_benchmark
 
     results = foundation_benchmark(runs=args.runs)
     machine = results["machine"]

@@ -49,9 +49,7 @@ open mesh it gives the side of the face the point projects onto.
 
 from __future__ import annotations
 
-import math
 import os
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,7 +64,6 @@ __all__ = [
     "SurfaceProjection",
     "SurfaceProjector",
     "PosedSurface",
-    "benchmark_projection",
     "DEFAULT_CHUNK_SIZE",
 ]
 
@@ -311,66 +308,3 @@ def _spatial_order(points: torch.Tensor) -> torch.Tensor:
 
     code = spread(cells[:, 0]) | (spread(cells[:, 1]) << 1) | (spread(cells[:, 2]) << 2)
     return torch.argsort(code)
-
-
-def benchmark_projection(n_points: int = 262144, *, vertices: torch.Tensor | np.ndarray | None = None,
-                         faces: torch.Tensor | np.ndarray | None = None, band: float = 0.1,
-                         far_fraction: float = 0.05, far: float = 3.0, repeats: int = 3, seed: int = 0,
-                         chunk_size: int = DEFAULT_CHUNK_SIZE) -> dict:
-    """Time :meth:`PosedSurface.project` on float32 points around a mesh.
-
-    Default mesh: an icosphere of radius 0.5 m with 20,480 faces (edges ~1.9 cm, close to a body
-    mesh's). Points: ``1 - far_fraction`` of them on random surface points offset along the
-    normal uniformly within +-``band`` m, the rest uniform in the bounding box grown by ``far`` m.
-
-    Returns:
-        dict with ``seconds`` (best of ``repeats`` projections: the CPU is often shared, and
-        the best run is the least disturbed one), ``median_seconds``, ``first_seconds`` (the
-        first call pays one-off warm-up), ``bind_seconds`` (preparing the frame),
-        ``points_per_second`` (from ``seconds``), ``fallback_fraction`` (points whose first-pass
-        certificate failed and were retried), ``pairs_per_point`` (point-face tests) and the
-        problem size.
-    """
-    import trimesh  # only here: the module itself needs no mesh library
-
-    if n_points < 1:
-        raise ValueError(f"n_points must be positive, got {n_points}")
-
-    if vertices is None or faces is None:
-        mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
-    else:
-        mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces), process=False)
-    rng = np.random.default_rng(seed)
-    n_far = int(round(n_points * far_fraction))
-    n_near = n_points - n_far
-    samples, fid = trimesh.sample.sample_surface(mesh, n_near, seed=seed)
-    near = samples + mesh.face_normals[fid] * rng.uniform(-band, band, size=(n_near, 1))
-    lo, hi = mesh.bounds[0] - far, mesh.bounds[1] + far
-    pts = np.concatenate([near, rng.uniform(lo, hi, size=(n_far, 3))])[rng.permutation(n_points)]
-    points = torch.as_tensor(pts, dtype=torch.float32)
-    verts = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
-
-    projector = SurfaceProjector(torch.as_tensor(np.asarray(mesh.faces)), verts.shape[0], chunk_size=chunk_size)
-    t0 = time.perf_counter()
-    surface = projector.bind(verts)
-    bind_seconds = time.perf_counter() - t0
-    times, stats = [], {}
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        surface.project(points, stats=stats)
-        times.append(time.perf_counter() - t0)
-    seconds = min(times)
-    return {
-        "n_points": n_points,
-        "n_vertices": int(verts.shape[0]),
-        "n_faces": int(mesh.faces.shape[0]),
-        "seconds": seconds,
-        "median_seconds": float(np.median(times)),
-        "first_seconds": times[0],
-        "bind_seconds": bind_seconds,
-        "us_per_point": seconds / n_points * 1e6,
-        "points_per_second": n_points / seconds if seconds > 0 else math.inf,
-        "bounds_per_point": stats["bounds"] / n_points,
-        "pairs_per_point": stats["pairs"] / n_points,
-        "torch_threads": torch.get_num_threads(),
-    }

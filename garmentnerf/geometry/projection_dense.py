@@ -56,12 +56,12 @@ with ``|q - u|^2 - r_f^2 <= h^2`` (r_f <= R_u, the largest reach of u's faces). 
 R^2`` (distance ranking), rounding slack included. With ``certify=True`` (default) points that
 fail are searched again with 8x more vertices until they pass (at most every face), so the
 result equals the exact projector's up to rounding and ties; with ``certify=False`` they keep
-the first answer. :func:`measure_dense_mismatch` measures both on the bundled body; on a posed
-walk frame of the bundled body (points in a padded box and in a shell ``|h| < 0.15 m``) the
-uncertified first pass with power ranking differs from the exact distance by more than 1e-5 m
-for 0.05 % / 0.002 % / 0 of the shell points with k = 4 / 8 / 16 (max 1.7 mm / 1.9e-5 m / 0),
-the plain k nearest vertices for 0.066 % / 0.006 % / 0 (max 4.6 mm / 0.6 mm / 0); none in the
-box, no sign flips (see that function's docstring).
+the first answer. :func:`garmentnerf.perf.projection_bench.measure_dense_mismatch` measures
+both on the bundled body; on a posed walk frame of the bundled body (points in a padded box and
+in a shell ``|h| < 0.15 m``) the uncertified first pass with power ranking differs from the
+exact distance by more than 1e-5 m for 0.05 % / 0.002 % / 0 of the shell points with k = 4 / 8
+/ 16 (max 1.7 mm / 1.9e-5 m / 0), the plain k nearest vertices for 0.066 % / 0.006 % / 0 (max
+4.6 mm / 0.6 mm / 0); none in the box, no sign flips (see that function's docstring).
 
 Memory: each chunk holds a (M, V) score matrix and (M, k * valence) point-face pairs; the chunk
 size M is derived from ``memory_budget`` (default 256 MB; at most 32 MB on the CPU, where small
@@ -72,7 +72,6 @@ CPU it is far slower than projection.py's tree search (use that there); it is me
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import torch
@@ -84,8 +83,7 @@ from garmentnerf.geometry.triangles import (FEATURE_TOL, check_points, closest_p
 __all__ = [
     "DenseSurfaceProjector",
     "DensePosedSurface",
-    "benchmark_dense_projection",
-    "measure_dense_mismatch",
+    "RANKINGS",
     "DEFAULT_DENSE_NEIGHBOURS",
     "DEFAULT_MEMORY_BUDGET",
 ]
@@ -98,7 +96,8 @@ DEFAULT_MEMORY_BUDGET = 256 << 20
 _CPU_MEMORY_CAP = 32 << 20
 #: Factor by which a failed certificate grows k for the retry.
 _RETRY_GROWTH = 8
-_RANKINGS = ("power", "distance")
+#: How the first pass picks its k vertices: least power, or nearest.
+RANKINGS = ("power", "distance")
 
 
 def _solve_dtype(device: torch.device) -> torch.dtype:
@@ -139,8 +138,8 @@ class DenseSurfaceProjector(SurfaceProjector):
     def __init__(self, faces: torch.Tensor | np.ndarray, num_vertices: int, *,
                  neighbours: int = DEFAULT_DENSE_NEIGHBOURS, ranking: str = "power", certify: bool = True,
                  memory_budget: int = DEFAULT_MEMORY_BUDGET, chunk_size: int | None = None):
-        if ranking not in _RANKINGS:
-            raise ValueError(f"ranking must be one of {_RANKINGS}, got {ranking!r}")
+        if ranking not in RANKINGS:
+            raise ValueError(f"ranking must be one of {RANKINGS}, got {ranking!r}")
         if memory_budget < 1:
             raise ValueError(f"memory_budget must be positive, got {memory_budget}")
         if neighbours < 1:
@@ -401,155 +400,3 @@ class DensePosedSurface:
                 cp, _ = closest_point_on_triangles(qb, v[fb[:, 0]], v[fb[:, 1]], v[fb[:, 2]])
                 d2[bad[:, 0], bad[:, 1]] = ((qb - cp) ** 2).sum(1).to(d2.dtype)
         return d2.masked_fill_(cand < 0, math.inf)
-
-
-# -- measurements -------------------------------------------------------------------------------
-
-def _body_frame(frame: int = 10):
-    """(faces (F, 3) long of the skin, posed vertices (V, 3) float64, V) of the bundled body walking."""
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.geometry.body_points import main_component_faces
-    from garmentnerf.motion.library import load_motion
-
-    body = BodyModel.default()
-    posed = load_motion("walk", body).pose(body)
-    verts = posed.vertices[min(frame, posed.vertices.shape[0] - 1)].to(torch.float64)
-    faces = body.faces[torch.as_tensor(main_component_faces(body.asset.faces))]
-    return faces, verts, body.asset.num_vertices
-
-
-def _sample_points(verts: torch.Tensor, faces: torch.Tensor, n_box: int, n_shell: int, shell: float, pad: float,
-                   seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(box points, shell points) float64: uniform in the padded bounding box; surface samples
-    moved along the face normal by a uniform offset in (-shell, shell)."""
-    g = torch.Generator().manual_seed(seed)
-    lo, hi = verts.min(dim=0).values - pad, verts.max(dim=0).values + pad
-    box = lo + (hi - lo) * torch.rand(n_box, 3, generator=g, dtype=torch.float64)
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    n = torch.cross(b - a, c - a, dim=1)
-    area = n.norm(dim=1)
-    f = torch.multinomial(area, n_shell, replacement=True, generator=g)
-    r = torch.rand(n_shell, 2, generator=g, dtype=torch.float64)
-    flip = r.sum(1) > 1
-    r[flip] = 1.0 - r[flip]
-    p = a[f] + r[:, :1] * (b[f] - a[f]) + r[:, 1:] * (c[f] - a[f])
-    h = (torch.rand(n_shell, 1, generator=g, dtype=torch.float64) * 2.0 - 1.0) * shell
-    return box, p + h * n[f] / area[f].unsqueeze(1)
-
-
-def measure_dense_mismatch(ks=(4, 8, 16), n_box: int = 100_000, n_shell: int = 100_000, *, shell: float = 0.15,
-                           pad: float = 0.3, tol: float = 1e-5, frame: int = 10, seed: int = 0,
-                           device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> list[dict]:
-    """How often the uncertified dense search differs from the exact projector on the bundled body.
-
-    Body: :meth:`BodyModel.default` posed by frame ``frame`` of the "walk" motion, skin only.
-    Points: ``n_box`` uniform in the bounding box grown by ``pad`` m and ``n_shell`` at signed
-    heights uniform in (-shell, shell) m over uniform surface samples. For each k and ranking
-    ("distance": the k nearest vertices; "power": the k vertices of least power) the first pass
-    alone (``certify=False``) is compared with :class:`SurfaceProjector` in float64.
-
-    Measured (walk frame 10, 50k box points with pad 0.3 m, 50k shell points, float32 search):
-    fraction of points whose distance is off by > 1e-5 m / max |difference| / fraction failing
-    the certificate, first pass only:
-
-    ========  ===  ==================================  =====================================
-    ranking    k   box                                 shell |h| < 0.15 m
-    ========  ===  ==================================  =====================================
-    power      4   0       / 8e-8 m   / 0.4 %          0.05 %  / 1.7 mm   / 8.0 %
-    power      8   0       / 8e-8 m   / 0.004 %        0.002 % / 1.9e-5 m / 0.45 %
-    power     16   0       / 8e-8 m   / 0              0       / 6e-8 m   / 0.014 %
-    distance   4   0.002 % / 8.1e-5 m / 48 %           0.066 % / 4.6 mm   / 88 %
-    distance   8   0       / 8e-8 m   / 21 %           0.006 % / 0.6 mm   / 49 %
-    distance  16   0       / 8e-8 m   / 7 %            0       / 6e-8 m   / 21 %
-    ========  ===  ==================================  =====================================
-
-    No sign differed; with ``certify=True`` every case matched to 8e-8 m (float32 rounding).
-
-    Returns:
-        one dict per (ranking, k, set): ``ranking``, ``k``, ``set`` ("box" / "shell"),
-        ``mismatch_fraction``, ``max_abs_diff`` (m), ``uncertified_fraction`` (points the
-        certificate sends to a retry), ``sign_flips`` (points whose sign differs and whose
-        exact |h| > tol), and ``certified_max_abs_diff`` (with retries).
-    """
-    faces, verts, V = _body_frame(frame)
-    box, shell_pts = _sample_points(verts, faces, n_box, n_shell, shell, pad, seed)
-    exact = SurfaceProjector(faces, V).bind(verts, torch.float64)
-    reference = {name: exact.project(pts) for name, pts in (("box", box), ("shell", shell_pts))}
-    rows = []
-    for ranking in _RANKINGS:
-        for k in ks:
-            projector = DenseSurfaceProjector(faces, V, neighbours=k, ranking=ranking, certify=False)
-            surface = projector.bind(verts.to(device), dtype)
-            certified = DenseSurfaceProjector(faces, V, neighbours=k, ranking=ranking).bind(verts.to(device), dtype)
-            for name, pts in (("box", box), ("shell", shell_pts)):
-                ref = reference[name]
-                stats = {}
-                out = surface.project(pts.to(device, dtype), stats=stats)
-                diff = (out.distance.double().cpu() - ref.distance).abs()
-                flips = ((torch.sign(out.signed_distance.double().cpu()) != torch.sign(ref.signed_distance))
-                         & (ref.distance > tol))
-                cert = certified.project(pts.to(device, dtype))
-                cdiff = (cert.distance.double().cpu() - ref.distance).abs()
-                rows.append({
-                    "ranking": ranking, "k": k, "set": name,
-                    "mismatch_fraction": float((diff > tol).double().mean()),
-                    "max_abs_diff": float(diff.max()),
-                    "uncertified_fraction": stats["retried"] / max(1, pts.shape[0]),
-                    "sign_flips": int(flips.sum()),
-                    "certified_max_abs_diff": float(cdiff.max()),
-                })
-    return rows
-
-
-def benchmark_dense_projection(n_points: int = 262144, device: torch.device | str = "cpu", *, repeats: int = 3,
-                               neighbours: int = DEFAULT_DENSE_NEIGHBOURS, ranking: str = "power",
-                               certify: bool = True, memory_budget: int = DEFAULT_MEMORY_BUDGET,
-                               far_fraction: float = 0.05, band: float = 0.1, seed: int = 0,
-                               stats: dict | None = None) -> float:
-    """Points per second of :meth:`DensePosedSurface.project` on the bundled body (walk frame).
-
-    Points (float32): ``1 - far_fraction`` of them at heights uniform in +-``band`` m over the
-    skin, the rest uniform in the bounding box grown by 1 m. Best of ``repeats`` timed runs after
-    one warm-up (CUDA is synchronised around each run).
-
-    Args:
-        stats: if given, filled with ``seconds``, ``bind_seconds``, ``n_points``, ``device``,
-            ``retried_fraction``, ``pairs_per_point`` and ``torch_threads``.
-    """
-    if n_points < 1:
-        raise ValueError(f"n_points must be positive, got {n_points}")
-    device = torch.device(device)
-    faces, verts, V = _body_frame()
-    n_far = int(round(n_points * far_fraction))
-    box, near = _sample_points(verts, faces, n_far, n_points - n_far, band, 1.0, seed)
-    pts = torch.cat([near, box])[torch.randperm(n_points, generator=torch.Generator().manual_seed(seed))]
-    pts = pts.to(device, torch.float32)
-    projector = DenseSurfaceProjector(faces, V, neighbours=neighbours, ranking=ranking, certify=certify,
-                                      memory_budget=memory_budget)
-
-    def sync():
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-
-    vd = verts.to(device, torch.float32)
-    projector.bind(vd)  # copies the topology tables to the device
-    sync()
-    t0 = time.perf_counter()
-    surface = projector.bind(vd)
-    sync()
-    bind_seconds = time.perf_counter() - t0
-    run_stats: dict = {}
-    surface.project(pts, stats=run_stats)  # warm-up
-    times = []
-    for _ in range(max(1, repeats)):
-        sync()
-        t0 = time.perf_counter()
-        surface.project(pts)
-        sync()
-        times.append(time.perf_counter() - t0)
-    seconds = min(times)
-    if stats is not None:
-        stats.update(seconds=seconds, bind_seconds=bind_seconds, n_points=n_points, device=str(device),
-                     retried_fraction=run_stats["retried"] / n_points,
-                     pairs_per_point=run_stats["pairs"] / n_points, torch_threads=torch.get_num_threads())
-    return n_points / seconds if seconds > 0 else math.inf

@@ -10,5 +10,4 @@
 - :mod:`~garmentnerf.gl.camera_pass`: the camera-view G-buffer (depth, face, barycentrics, UV) and
   per-pixel depth ranges.
 - :mod:`~garmentnerf.gl.shell_raster`: the distance range of a closed shell along every pixel ray.
-- :mod:`~garmentnerf.gl.bench`: timing of these passes.
 """

@@ -1,7 +1,14 @@
-"""Speed/accuracy settings of rendering (presets) and their measurement.
+"""Speed/accuracy settings of rendering (presets) and the benchmarks. The benchmarks (``*_bench``)
+import the layers they measure; nothing but the CLI imports a benchmark.
 
 - :mod:`~garmentnerf.perf.presets`: the render presets and the previewer's quality levels.
 - :mod:`~garmentnerf.perf.preset_bench`: every preset measured on a trained run (speed, points,
   PSNR/SSIM) and playback figures (``garmentnerf bench --run``).
 - :mod:`~garmentnerf.perf.plot`: the speed/accuracy plot of those figures.
+- :mod:`~garmentnerf.perf.foundation_bench`: the per-frame foundation stages on the bundled body
+  (info maps, camera pass, body layer, projection; ``garmentnerf bench`` without ``--run``).
+- :mod:`~garmentnerf.perf.gl_bench`: the GL passes on synthetic meshes.
+- :mod:`~garmentnerf.perf.projection_bench`: the surface projectors' speed and the dense search's
+  mismatch against the exact one.
+- :mod:`~garmentnerf.perf.timing`: median wall-clock time of a call.
 """

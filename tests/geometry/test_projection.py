@@ -10,7 +10,8 @@ import torch
 import trimesh
 
 import garmentnerf.assets
-from garmentnerf.geometry.projection import SurfaceProjector, benchmark_projection
+from garmentnerf.geometry.projection import SurfaceProjector
+from garmentnerf.perf.projection_bench import benchmark_projection
 from garmentnerf.geometry.triangles import closest_point_on_triangles, interpolate
 
 

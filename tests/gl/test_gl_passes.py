@@ -459,7 +459,7 @@ def test_two_contexts_in_one_process(gl_context):
 
 
 def test_benchmark_runs(gl_context):
-    from garmentnerf.gl.bench import benchmark_gl_passes
+    from garmentnerf.perf.gl_bench import benchmark_gl_passes
 
     result = benchmark_gl_passes(gl_context, runs=2, warmup=1, image_size=64)
     for key in ("uv_raster_ms", "uv_raster_draw_ms", "camera_pass_ms", "depth_range_ms"):

@@ -8,32 +8,11 @@ from __future__ import annotations
 
 import os
 import platform
-import time
 
-import numpy as np
 import torch
 
-
-def median_ms(fn, runs: int, warmup: int = 2) -> float:
-    """Median wall-clock milliseconds of ``fn()`` over ``runs`` calls after ``warmup`` calls."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - start) * 1e3)
-    return float(np.median(times))
-
-
-def near_surface_points(vertices: torch.Tensor, normals: torch.Tensor, count: int, spread: float, seed: int = 0) -> torch.Tensor:
-    """(count, 3) points offset from random vertices along their normals by U(-spread, spread)
-    plus isotropic jitter: the distribution NeRF samples around a body have."""
-    g = torch.Generator().manual_seed(seed)
-    idx = torch.randint(0, vertices.shape[0], (count,), generator=g)
-    offset = (torch.rand(count, 1, generator=g) * 2 - 1) * spread
-    jitter = torch.randn(count, 3, generator=g) * spread * 0.3
-    return vertices[idx] + normals[idx] * offset + jitter
+from garmentnerf.perf.projection_bench import near_surface_points
+from garmentnerf.perf.timing import median_ms
 
 
 def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_points: int = 262144) -> dict:

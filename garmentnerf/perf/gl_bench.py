@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from garmentnerf.benchmarks import median_ms
 from garmentnerf.conventions import orbit_camera
 from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.gl.context import context_info, create_context
 from garmentnerf.gl.uv_raster import UVAttributeRasterizer
+from garmentnerf.perf.timing import median_ms
 
 
 def cube_atlas_mesh(subdivisions: int = 48, margin: float = 0.02):
