@@ -101,16 +101,3 @@ def apply_transforms(per_vertex: torch.Tensor, points: torch.Tensor) -> torch.Te
     """Apply (T, V, 3, 4) affine transforms to (V, 3) or (T, V, 3) points -> (T, V, 3)."""
     pts = points.expand(per_vertex.shape[0], *points.shape[-2:])
     return torch.einsum("tvij,tvj->tvi", per_vertex[..., :3], pts) + per_vertex[..., 3]
-
-
-def nearest_rotation(matrices: torch.Tensor) -> torch.Tensor:
-    """Closest rotation (polar decomposition) to each (..., 3, 3) matrix, via SVD.
-
-    Used for the per-vertex "skinning rotation": a blend of rotations is not a rotation, and its
-    orthonormal polar factor is the rotation that best explains the local deformation.
-    """
-    U, _, Vh = torch.linalg.svd(matrices)
-    det = torch.det(U @ Vh)
-    D = torch.ones_like(matrices[..., 0])
-    D[..., 2] = det.sign().where(det != 0, torch.ones_like(det))
-    return U @ torch.diag_embed(D) @ Vh

@@ -200,11 +200,3 @@ def default_rig(count: int = 16, held_out: int = 4, radius: float = 3.0, height:
     if references:
         cams += reference_cameras(**kw)
     return cams
-
-
-def by_split(cameras: Iterable[NamedCamera], split: str | Sequence[str] | None) -> list[NamedCamera]:
-    """The cameras of one split (or of several, or all with None), in their order."""
-    if split is None:
-        return list(cameras)
-    wanted = {split} if isinstance(split, str) else set(split)
-    return [c for c in cameras if c.split in wanted]

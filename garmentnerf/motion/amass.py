@@ -78,16 +78,6 @@ def _field(data, path: Path, key: str) -> np.ndarray:
     return arr
 
 
-def amass_betas(path: str | Path) -> np.ndarray | None:
-    """The file's ``betas`` (shape coefficients, 1-D) or None when it has none."""
-    path = Path(path)
-    with _open(path) as data:
-        if "betas" not in data.files:
-            return None
-        betas = _field(data, path, "betas")
-    return betas.reshape(-1)
-
-
 def load_amass(path: str | Path, up: str = "auto", name: str | None = None) -> Motion:
     """Read an AMASS-style SMPL motion into our axes (see the module doc for ``up``).
 

@@ -56,11 +56,6 @@ class WindowSystem:
         self._open_windows = 0
         self._egl = None  # libEGL once the process has loaded it (it stays loaded)
 
-    @property
-    def open_windows(self) -> int:
-        with self._lock:
-            return self._open_windows
-
     def open(self, width: int, height: int, title: str, visible: bool):
         """A new GLFW window with an OpenGL 3.3 core context (no default depth/stencil: the scene has
         its own). Raises NoDisplayError when GLFW cannot initialise, GLUnavailableError when no such
