@@ -92,6 +92,19 @@ def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
     return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
 
 
+def field_heads(field: nn.Module, hidden: torch.Tensor, distance: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """sigma (N,) and zeta (N, C) from a field's last hidden layer (N, W): the density head in
+    float32 (see "Precision"), the body prior of h ``distance (N,)`` added, the activation; the
+    appearance head as is. ``field`` holds ``density_head``, ``appearance_head`` and the density
+    settings (:class:`GarmentNeRF`, :class:`~garmentnerf.model.uvh_field.UVHField`)."""
+    with torch.autocast(hidden.device.type, enabled=False):
+        raw = field.density_head(hidden.float()).squeeze(-1)
+    if field.body_prior_strength:
+        raw = raw + body_density_prior(distance, field.body_prior_strength, field.body_prior_width)
+    sigma = density_activation(raw, field.density_kind, field.density_bias, field.density_scale)
+    return sigma, field.appearance_head(hidden)
+
+
 class GarmentNeRF(nn.Module):
     """The NeRF MLP.
 
@@ -186,10 +199,4 @@ class GarmentNeRF(nn.Module):
             first = self.trunk[0](torch.cat(parts, dim=-1).float())
             if atlas is not None:
                 first = first + self.atlas_input(atlas.float())
-        hidden = self.trunk[1:](first)
-        with torch.autocast(canonical.device.type, enabled=False):
-            raw = self.density_head(hidden.float()).squeeze(-1)
-        if self.body_prior_strength:
-            raw = raw + body_density_prior(distance, self.body_prior_strength, self.body_prior_width)
-        sigma = density_activation(raw, self.density_kind, self.density_bias, self.density_scale)
-        return sigma, self.appearance_head(hidden)
+        return field_heads(self, self.trunk[1:](first), distance)

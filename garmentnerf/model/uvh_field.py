@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from garmentnerf.model.nerf_mlp import body_density_prior, density_activation, positional_encoding
+from garmentnerf.model.nerf_mlp import field_heads, positional_encoding
 
 #: Standard deviation of the tri-plane's initial values (small: the MLP starts near its bias).
 PLANE_INIT_STD = 0.1
@@ -186,13 +186,7 @@ class UVHField(nn.Module):
                 parts.append(detail.float())
             parts += [direction.float(), positional_encoding(height.float()[:, None], self.height_freqs)]
             first = self.trunk[0](torch.cat(parts, dim=-1))
-        hidden = self.trunk[1:](first)
-        with torch.autocast(uv.device.type, enabled=False):
-            raw = self.density_head(hidden.float()).squeeze(-1)
-        if self.body_prior_strength:
-            raw = raw + body_density_prior(distance, self.body_prior_strength, self.body_prior_width)
-        sigma = density_activation(raw, self.density_kind, self.density_bias, self.density_scale)
-        return sigma, self.appearance_head(hidden)
+        return field_heads(self, self.trunk[1:](first), distance)
 
 
 __all__ = ["UVHField", "face_tangent_frames", "local_offset_direction", "read_uvh_volume", "read_triplane",
