@@ -20,7 +20,10 @@ Two levels, so that a viewer can cache what the camera does not change:
    garment's height band) may drop the sample here; f^s = F^s_t read bilinearly at
    the UV; f^d = F^d_t read bilinearly where b_t projects into each reference camera, front or
    back chosen per ``cfg.detail_selection``; with ``cfg.atlas_feature_channels``, f^a = the
-   learned atlas feature texture read at the UV; M_NeRF -> (sigma, zeta); packed volume rendering,
+   learned atlas feature texture read at the UV; M_NeRF -> (sigma, zeta) (with ``cfg.field =
+   "uvh"`` the field of :mod:`~garmentnerf.model.uvh_field` instead: E's per-frame UV-h volume and
+   a learned tri-plane read at (u, v, h), the offset direction in the skin face's frame, f^d and
+   a small MLP); packed volume rendering,
    segment by segment with optional early ray termination
    (:func:`~garmentnerf.model.volume_rendering.render_packed_segmented`) -> F^zeta (C_zeta, h, w);
    M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at ``2**decoder_upsample_steps``
@@ -383,7 +386,7 @@ class GarmentAnimationNeRF(nn.Module):
 
         ``geometry``: features prepared earlier for the same posed body (only their
         ``posed_vertices``, ``vertex_normals``, ``surface`` and ``aabb`` are read), whose body
-        geometry is then reused instead of rebuilt: binding the body (a KD-tree) and its normals
+        geometry is then reused instead of rebuilt: binding the body (its search tree) and its normals
         cost more than the encoders, and a trainer meets each frame many times. ValueError when
         its vertices are not exactly those of ``inputs``.
         """
