@@ -23,13 +23,18 @@ def register(sub) -> None:
     p.add_argument("--motion", default=None,
                    help="a scene sequence name or a motion name/file (default: the scene's first training "
                         "sequence, else walk)")
-    p.add_argument("--camera", default="orbit",
+    p.add_argument("--camera", default=None,
                    help="orbit (a turntable over the frames), orbit:AZ[:EL] (fixed), or a scene camera name or "
                         "index (default: orbit)")
+    p.add_argument("--camera-path", default=None, metavar="JSON",
+                   help="render along a camera path instead (the previewer's Camera path panel saves one; "
+                        "nerfstudio's camera_path.json loads too): its keyframes' frames choose the motion's "
+                        "frames, its size and fps are the defaults of --size and --fps")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="frames A..B-1 of the motion (A:B, A:, :B or N; default: all)")
-    p.add_argument("--size", default="256",
-                   help="output size: N (longer side; orbit views are square) or WxH (default: 256)")
+                   help="frames A..B-1 of the motion (A:B, A:, :B or N; default: all, or the camera path's span)")
+    p.add_argument("--size", default=None,
+                   help="output size: N (longer side; orbit views are square) or WxH (default: 256, or the "
+                        "camera path's)")
     p.add_argument("--preset", default=None, metavar="NAME",
                    help="render preset: reference (the paper's sampling), full (default: the reference's image, "
                         "culled), balanced or interactive (the rows of 'garmentnerf bench --run')")
@@ -100,24 +105,31 @@ def run_render(args: argparse.Namespace) -> int:
     from garmentnerf.render.session import RenderSession
     from garmentnerf.render.video import FrameWriter, VideoWriter
 
-    size, preset, background = _checked_render_args(args)  # before the model loads
+    size, preset, background, camera_path = _checked_render_args(args)  # before the model loads
     run_dir, run = _load_render_run(args)
-    spec = parse_camera_spec(args.camera, run.scene)
+    spec = parse_camera_spec(args.camera or "orbit", run.scene) if camera_path is None else None
     palette = build_palette(run.palette(), args.palette, args.body_color)
     ctx = create_context(headless=True)
     session = None
     try:
         session = RenderSession(run, ctx, args.motion)
         motion_name = session.sequence or session.motion.name
-        frames = parse_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
-        centers = [session.body_center(f)[:2] for f in frames]
-        cameras = cameras_for(spec, frames, size, run.scene, centers)
+        if camera_path is not None:
+            camera_path.check_motion(session.num_frames, f"motion '{motion_name}'")
+            frames = (parse_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+                      if args.frames is not None else camera_path.frames())
+            cameras = camera_path.cameras(frames, size)
+            cam_label, fps = Path(args.camera_path).stem, args.fps or camera_path.fps
+        else:
+            frames = parse_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+            centers = [session.body_center(f)[:2] for f in frames]
+            cameras = cameras_for(spec, frames, size or 256, run.scene, centers)
+            cam_label, fps = spec.name if spec.kind == "scene" else spec.kind, args.fps or session.fps
         out = Path(args.out)
         writer = FrameWriter(out, prefix="frame")
         writer.check(frames)
-        cam_label = spec.name if spec.kind == "scene" else spec.kind
         video_path = out / f"{_safe(motion_name)}_{_safe(cam_label)}.mp4"
-        video = VideoWriter(video_path, args.fps or session.fps) if args.video else None
+        video = VideoWriter(video_path, fps) if args.video else None
         times, interrupted, written_video = _render_frames(session, frames, cameras, args, preset, palette,
                                                            background, writer, video)
         n = len(writer.written)
@@ -137,14 +149,21 @@ def run_render(args: argparse.Namespace) -> int:
 
 
 def _checked_render_args(args: argparse.Namespace):
-    """(output size, render preset, background color or None); everything that can be wrong with
-    the arguments fails here, before the model loads."""
+    """(output size or None (the default), render preset, background color or None, camera path or
+    None); everything that can be wrong with the arguments fails here, before the model loads."""
     from garmentnerf.cli.common import check_output_dir, parse_device
     from garmentnerf.perf.presets import get_render_preset
     from garmentnerf.render.colors import parse_hex_color
     from garmentnerf.render.session import DEFAULT_PRESET
 
-    size = parse_output_size(args.size)
+    size = parse_output_size(args.size) if args.size is not None else None
+    camera_path = None
+    if args.camera_path is not None:
+        from garmentnerf.render.camera_path import load_camera_path
+
+        if args.camera is not None:
+            raise ValueError("--camera and --camera-path both choose the camera: pass one")
+        camera_path = load_camera_path(args.camera_path)
     parse_device(args.device)
     check_output_dir(args.out)
     preset = get_render_preset(args.preset if args.preset is not None else DEFAULT_PRESET)
@@ -159,7 +178,7 @@ def _checked_render_args(args: argparse.Namespace):
     background = parse_hex_color(args.background, "--background") if args.background else None
     if args.fps is not None and not args.fps > 0:
         raise ValueError(f"--fps must be > 0, got {args.fps}")
-    return size, preset, background
+    return size, preset, background, camera_path
 
 
 def _load_render_run(args: argparse.Namespace):

@@ -331,6 +331,66 @@ def test_render_command_errors_are_one_line(run_dir, tmp_path, capsys, args, mes
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())
 
 
+def _write_path(file, frames=(0, 2), size=(40, 30)):
+    from garmentnerf.render.camera_path import CameraPath, Keyframe, save_camera_path
+
+    keys = tuple(Keyframe.from_camera(orbit_view(az, 10.0, (0.0, 0.0), 64, 64), f)
+                 for az, f in zip((20.0, 110.0, 200.0), frames))
+    return save_camera_path(CameraPath(keys, *size, fps=12.0), file)
+
+
+def test_render_command_follows_a_camera_path(run_dir, tmp_path, session):
+    from PIL import Image
+
+    from garmentnerf.render.camera_path import load_camera_path
+
+    path_file = _write_path(tmp_path / "dolly.json")
+    out = tmp_path / "path"
+    assert main(["render", "--run", str(run_dir), "--motion", session.sequence, "--camera-path", str(path_file),
+                 "--out", str(out), "--video", "--no-progress"]) == 0
+    pngs = sorted(out.glob("*.png"))
+    assert [p.name for p in pngs] == [f"frame_{f:04d}.png" for f in range(3)]  # the path's span, frames 0..2
+    videos = list(out.glob("*.mp4"))
+    assert [v.name for v in videos] == [f"{session.sequence}_dolly.mp4"] and count_video_frames(videos[0]) == 3
+    path = load_camera_path(path_file)
+    for f, png in enumerate(pngs):
+        image = np.asarray(Image.open(png)).astype(float) / 255
+        assert image.shape == (30, 40, 3)  # the path's size
+        reference = session.render(f, path.camera_at(f, 40, 30)).composite()
+        assert np.abs(image - reference).max() <= 1 / 255 + 1e-6
+    # --frames picks frames inside the motion; --size N keeps the path's aspect
+    out2 = tmp_path / "path2"
+    assert main(["render", "--run", str(run_dir), "--motion", session.sequence, "--camera-path", str(path_file),
+                 "--frames", "1:3", "--size", "80", "--out", str(out2), "--no-progress"]) == 0
+    assert [p.name for p in sorted(out2.glob("*.png"))] == ["frame_0001.png", "frame_0002.png"]
+    assert Image.open(out2 / "frame_0001.png").size == (80, 60)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("not json at all", "not JSON"),
+    ('{"format": "garmentnerf-camera-path", "keyframes": []}', "no keyframes"),
+    ('{"format": "garmentnerf-camera-path", "keyframes": [{"frame": 0, "fov_y": 40, '
+     '"camera_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]}]}', "not rigid"),
+    ("frame 999", "outside motion"),
+    ("--camera too", "--camera and --camera-path"),
+])
+def test_render_command_camera_path_errors_are_one_line(run_dir, tmp_path, capsys, session, content, message):
+    file = tmp_path / "bad.json"
+    extra = []
+    if content == "frame 999":
+        _write_path(file, frames=(0, 2, 999))
+    elif content == "--camera too":
+        _write_path(file)
+        extra = ["--camera", "orbit"]
+    else:
+        file.write_text(content)
+    code = main(["render", "--run", str(run_dir), "--motion", session.sequence, "--camera-path", str(file),
+                 "--out", str(tmp_path / "o"), "--no-progress"] + extra)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())
+
+
 # ---- the viewer's palette shader == compose() -----------------------------------------------------
 def _gl_compose(ctx, maps, palette, background, body=None, camera=None):
     """The palette layer's image of ``maps`` (W x H, drawn over a whole W x H view); ``body``:
