@@ -75,10 +75,20 @@ def _pool(threads: int):
         return _pools[threads]
 
 
-@functools.cache
+_define_lock = threading.Lock()  # the kernels are defined once, by one thread
+
+
 def _kernels():
-    """Import warp (quietly) and define the search kernel: once per process. The compiled
-    kernel is kept in warp's kernel cache, so only the first run on a machine compiles it."""
+    """Import warp (quietly) and define the kernels: once per process, whichever thread asks first
+    (two threads defining them at once would redefine warp's module under each other's builds)."""
+    with _define_lock:
+        return _define_kernels()
+
+
+@functools.cache
+def _define_kernels():
+    """See :func:`_kernels`. The compiled kernels are kept in warp's kernel cache, so only the
+    first run on a machine compiles them."""
     import warp as wp
 
     if wp.config.log_level == wp.LOG_INFO:  # the default: hide the banner and module-load messages

@@ -7,7 +7,8 @@ Pipeline
     (blended over the background, no depth test), body (opaque, depth tested), neural layer
     (:class:`~garmentnerf.viewer.palette_layer.PaletteLayer`: the network's maps composed with the
     palette; blended by its mask, optionally depth tested against the body, or opaque in the
-    ground-truth/difference/maps modes). Before each pass the renderer sets the *whole* GL state
+    ground-truth/difference/maps modes), camera path (:class:`~garmentnerf.viewer.renderables.LineSet`:
+    lines, depth tested against the body). Before each pass the renderer sets the *whole* GL state
     the renderable declares (:class:`~garmentnerf.viewer.renderables.PassState`), so no pass
     inherits another's flags. The window then shows the resolved texture with
     :meth:`SceneRenderer.present` and draws imgui on top. Because the window and a snapshot of the
@@ -31,10 +32,10 @@ import moderngl
 import numpy as np
 
 from garmentnerf.conventions import Camera
-from garmentnerf.gl.context import current, is_released
+from garmentnerf.gl.context import current, is_released, make_current
 from garmentnerf.gl.shaders import build_program
 from garmentnerf.viewer.palette_layer import PaletteLayer, pack_maps
-from garmentnerf.viewer.renderables import FULL_VIEW, BodyMesh, FloorGrid, PassState, ViewParams
+from garmentnerf.viewer.renderables import FULL_VIEW, BodyMesh, FloorGrid, LineSet, PassState, ViewParams
 
 # The renderables' names, for callers that know the scene by this module (tests/render/test_render.py).
 __all__ = ["SceneRenderer", "RenderTarget", "SceneStats", "read_image", "scene_state", "state_token",
@@ -126,7 +127,7 @@ class SceneStats:
 
 
 class SceneRenderer:
-    """The previewer's scene on one moderngl context: floor, body, neural layer (in drawing order).
+    """The previewer's scene on one moderngl context: floor, body, neural layer, camera path (in drawing order).
 
     Args:
         ctx: the window's context (wrapped with ``create_context(headless=False)``) or a headless one.
@@ -140,6 +141,7 @@ class SceneRenderer:
     def __init__(self, ctx: moderngl.Context, samples: int | None = None, background=BACKGROUND,
                  snapshot_samples: int = 4, render_scale: float = 1.0) -> None:
         self.ctx = ctx
+        make_current(ctx)  # moderngl reads (and caches) ctx.info from whichever context is current
         self.renderer_name = str(ctx.info.get("GL_RENDERER", ""))
         if samples is None:
             samples = 0 if is_software_renderer(self.renderer_name) else 4
@@ -152,10 +154,11 @@ class SceneRenderer:
             self.floor = FloorGrid(ctx)
             self.body = BodyMesh(ctx)
             self.palette_layer = PaletteLayer(ctx)
+            self.path_lines = LineSet(ctx)
             self.present_program = build_program(ctx, "viewer_fullscreen.vert", "viewer_present.frag")
             self.present_program["u_image"].value = 0
             self.present_vao = ctx.vertex_array(self.present_program, [])
-        self.renderables = [self.floor, self.body, self.palette_layer]
+        self.renderables = [self.floor, self.body, self.palette_layer, self.path_lines]
         self.stats = SceneStats()
         self._window_targets: OrderedDict[tuple[int, int], RenderTarget] = OrderedDict()
         self._released = False
