@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
@@ -255,7 +255,6 @@ class CameraPath:
     height: int = 720
     fps: float = 30.0
     constant_speed: bool = False
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         keyframes = tuple(self.keyframes)

@@ -8,6 +8,7 @@ The parts it holds, each in its own module:
   quality, and the render worker's requests and results (the torch work stays on its thread);
 * :class:`~garmentnerf.viewer.exporting.Exports` -- snapshots and videos;
 * :class:`~garmentnerf.viewer.sequence.MotionMenu` -- the motions offered, posed in the background;
+* :class:`~garmentnerf.viewer.path_editor.PathEditor` -- the camera path: keyframes, looking through it;
 * the panels (:mod:`~garmentnerf.viewer.panels`), which change state only through actions.
 
 One UI frame (:meth:`App._frame`): window frame, background results, input, timeline, panels, scene
@@ -40,6 +41,7 @@ from garmentnerf.viewer.exporting import Exports
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import NeuralView
+from garmentnerf.viewer.path_editor import PathEditor, path_lines
 from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.renderables import FULL_VIEW
 from garmentnerf.viewer.scene_gl import SceneRenderer, read_image, state_token
@@ -118,6 +120,8 @@ class App(Closeable):
         self.controller = OrbitController()
         self.controller.aim_home(sequence.centers)
         self.controller.reset()
+        self.path_editor = PathEditor()
+        self.path_error = ""  # the Camera path panel's last error (cleared by the next success)
         self.show_ui, self.show_help, self.scrubbing, self.goto_frame = True, False, False, 0
         self.status = StatusLine()
         self.fixed_dt, self.clock = fixed_dt, clock
@@ -143,7 +147,8 @@ class App(Closeable):
         self._resolved_shortcuts = resolve(imgui)
         self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock)
         self.exports = Exports(self.scene, self.controller, self.timeline, self.neural_view, lambda: self.sequence,
-                               self._sync_scene, self.status.show, snapshot_dir, snapshot_size)
+                               self._sync_scene, self.status.show, snapshot_dir, snapshot_size,
+                               view_camera=self.view_camera, camera_path=self.camera_path)
 
     def _action_table(self) -> dict:
         """Action name -> what it does: the shortcuts table's names (every one must be here)."""
@@ -160,6 +165,8 @@ class App(Closeable):
             "toggle_ui": lambda: setattr(self, "show_ui", not self.show_ui),
             "toggle_help": lambda: setattr(self, "show_help", not self.show_help),
             "quit": lambda: self.window.request_close(), "next_view_mode": lambda: self.neural_view.next_mode(),
+            "add_keyframe": self.add_keyframe,
+            "toggle_path_view": lambda: self.set_path_view(not self.path_editor.look_through),
         }
         missing = [s.action for s in SHORTCUTS if s.action not in actions]
         if missing:
@@ -272,7 +279,7 @@ class App(Closeable):
         """Synchronise the scene, ask the worker for the view, draw (if anything changed) and show it."""
         fb_w, fb_h = self.window.framebuffer_size
         self._sync_scene()
-        camera = self.controller.camera(fb_w, fb_h)
+        camera = self.view_camera(fb_w, fb_h)
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
         self.neural_view.update(camera, self.timeline.frame, self.playback_meter if self.timeline.playing else None)
@@ -296,12 +303,28 @@ class App(Closeable):
         center = self.sequence.centers[frame]
         self.scene.set_body((self._sequence_serial, frame), self.sequence.frame(frame), self.sequence.faces, center)
         self.controller.update_anchor(center)
+        self._sync_path_lines()
+
+    def _sync_path_lines(self) -> None:
+        """The scene draws the camera path (uploaded only when it or the shown frame changed), unless
+        it is hidden or the window looks through it."""
+        editor = self.path_editor
+        path = self.camera_path() if editor.show and not editor.look_through else None
+        if path is None:
+            self.scene.path_lines.set_lines("none", np.zeros((0, 3)), np.zeros((0, 3)))
+            return
+        frame = self.timeline.frame
+        key = (editor.version, path.width, path.height, path.fps, frame)
+        if key != self.scene.path_lines.key:
+            self.scene.path_lines.set_lines(key, *path_lines(path, path.width / path.height, frame))
 
     # ---- input ------------------------------------------------------------------------------------------
     def _handle_input(self) -> None:
         """Shortcuts run their actions; mouse gestures move the camera (both ignored while imgui wants them)."""
         for action in pressed_actions(imgui, self._resolved_shortcuts):
             self.do(action)
+        if self.path_editor.look_through and self.gestures.grabbing(imgui):
+            self._leave_path_view()  # orbiting takes the camera back, from where the path had it
         self.gestures.update(imgui, self.controller, self.window.window_size[1])
 
     def handle_key(self, key: str) -> str | None:
@@ -318,6 +341,95 @@ class App(Closeable):
         if fn is None:
             raise ValueError(f"unknown viewer action '{action}' (known: {', '.join(self.actions)})")
         fn()
+
+    # ---- the camera path --------------------------------------------------------------------------------
+    def camera_path(self, size: tuple[int, int] | None = None, fps: float | None = None):
+        """The edited :class:`~garmentnerf.render.camera_path.CameraPath` at ``size`` (default: the
+        video export's) and ``fps`` (default: the clip's); None without keyframes."""
+        return self.path_editor.path(size or self.exports.settings.size, fps or self.sequence.fps)
+
+    def view_camera(self, width: int, height: int):
+        """The camera the window shows at ``width`` x ``height``: the path's at the timeline frame
+        while looking through it, else the orbit controller's."""
+        path = self.camera_path() if self.path_editor.look_through else None
+        if path is None:
+            return self.controller.camera(width, height)
+        return path.camera_at(self.timeline.frame, width, height)
+
+    def _path_status(self, text: str, error: bool = False) -> None:
+        self.path_error = text if error else ""
+        self.status.show(text)
+
+    def add_keyframe(self) -> None:
+        """A keyframe of the window's view at the timeline frame (replacing one there)."""
+        frame = self.timeline.frame
+        index = self.path_editor.add(self.view_camera(*self.window.framebuffer_size), frame)
+        self._path_status(f"keyframe {index} at frame {frame} ({len(self.path_editor.keyframes)} keyframes)")
+
+    def set_path_view(self, on: bool) -> None:
+        if on and not self.path_editor.keyframes:
+            self._path_status("no camera path yet: add a keyframe first (K)", error=True)
+            return
+        self.path_editor.look_through = bool(on)
+
+    def _leave_path_view(self) -> None:
+        """Stop looking through the path; the orbit controller continues from the path's view."""
+        camera = self.view_camera(*self.window.framebuffer_size)
+        self.path_editor.look_through = False
+        fov = math.degrees(2.0 * math.atan(0.5 * camera.height / camera.K[1, 1]))
+        self.controller.look_from(camera.center, camera.R[2], fov)
+
+    def go_to_keyframe(self, index: int) -> None:
+        """Pause at keyframe ``index``'s frame and (unless looking through the path) orbit to its view."""
+        key = self.path_editor.keyframes[index]
+        self.timeline.pause()
+        self.timeline.set_frame(int(round(key.frame)))
+        if not self.path_editor.look_through:
+            self.controller.look_from(key.position, key.camera_to_world[:3, 2], key.fov_y)
+
+    def replace_keyframe_view(self, index: int) -> None:
+        self.path_editor.replace_view(index, self.view_camera(*self.window.framebuffer_size))
+
+    def move_keyframe(self, index: int, frame: int) -> None:
+        top = self.timeline.last_frame
+        if not 0 <= frame <= top:
+            self._path_status(f"frame {frame} is outside the clip (0..{top})", error=True)
+            return
+        try:
+            self.path_editor.move(index, frame)
+        except ValueError as exc:
+            self._path_status(str(exc), error=True)
+
+    def remove_keyframe(self, index: int) -> None:
+        self.path_editor.remove(index)
+        if not self.path_editor.keyframes:
+            self.path_editor.look_through = False
+
+    def clear_keyframes(self) -> None:
+        self.path_editor.clear()
+
+    def save_camera_path(self, overwrite: bool = False) -> Path | None:
+        """Write the path to the panel's file (never over an existing file unless ``overwrite``)."""
+        try:
+            path = self.path_editor.save(self.exports.settings.size, self.sequence.fps, overwrite)
+        except (OSError, ValueError) as exc:
+            self._path_status(f"cannot save the camera path: {exc}", error=True)
+            return None
+        self._path_status(f"camera path saved: {path}")
+        return path
+
+    def load_camera_path(self) -> bool:
+        """Read the panel's file (ours or nerfstudio's camera_path.json); its size becomes the video
+        export size. Keyframes outside this clip are refused (the current path stays)."""
+        editor = self.path_editor
+        try:
+            path = editor.load(num_frames=self.sequence.num_frames, motion=self.sequence.name)
+        except (OSError, ValueError) as exc:
+            self._path_status(f"cannot load the camera path: {exc}", error=True)
+            return False
+        self.exports.set_video_size(path.width, path.height)
+        self._path_status(f"camera path loaded: {len(path.keyframes)} keyframes from {editor.file}")
+        return True
 
     # ---- actions ----------------------------------------------------------------------------------------
     def set_frame(self, frame: int) -> None:

@@ -116,6 +116,18 @@ class OrbitController:
         self.azimuth = VIEW_DIRECTIONS[name]
         self.elevation = self._clamp_elevation(self.home.elevation)
 
+    def look_from(self, eye, forward, fov_y: float | None = None) -> None:
+        """Put the camera at ``eye`` (3,) looking along ``forward`` (3,), keeping the distance to the
+        target (a view with roll comes back level: the turntable keeps +Z up); ``fov_y`` degrees."""
+        f = np.asarray(forward, dtype=np.float64)
+        f = f / max(np.linalg.norm(f), 1e-12)
+        back = -f  # from the target to the eye
+        self.elevation = self._clamp_elevation(math.degrees(math.asin(max(-1.0, min(1.0, back[2])))))
+        self.azimuth = _wrap_degrees(math.degrees(math.atan2(back[0], -back[1])))
+        self.target = np.asarray(eye, dtype=np.float64) + self.distance * f - self.anchor
+        if fov_y is not None and math.isfinite(fov_y):
+            self.fov_y = float(fov_y)
+
     # ---- mouse gestures (pixels are window units) ---------------------------------------------
     def orbit(self, dx: float, dy: float) -> None:
         """Drag right turns the character to its left-to-right (camera azimuth decreases); drag down
@@ -217,6 +229,15 @@ class MouseGestures:
                     controller.pan(dx, dy, viewport_height)
         if not io.want_capture_mouse and io.mouse_wheel and math.isfinite(io.mouse_wheel):
             controller.zoom(io.mouse_wheel)
+
+    @staticmethod
+    def grabbing(imgui) -> bool:
+        """Whether this UI frame starts a gesture (a click or a wheel turn where imgui does not want
+        the mouse): the window looking through a camera path hands the camera back then."""
+        io = imgui.get_io()
+        if io.want_capture_mouse:
+            return False
+        return any(imgui.is_mouse_clicked(b) for b in (0, 1, 2)) or bool(io.mouse_wheel)
 
     def cancel(self) -> None:
         """Drop a drag in progress (e.g. the window was minimised)."""

@@ -1,4 +1,4 @@
-"""The control panel (top left): motion, camera, display, neural render, palette, snapshot, export.
+"""The control panel (top left): motion, camera, camera path, display, neural render, palette, snapshot, export.
 
 Each section reads the app's state and changes it only through actions (methods of the app, its
 neural view, its exports) or the panel rows the renderables draw themselves (``gui(imgui)``);
@@ -12,6 +12,7 @@ from garmentnerf.viewer.export_panel import ERROR_COLOR, export_section, snapsho
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import GROUND_TRUTH_MODES, VIEW_MODES
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
+from garmentnerf.viewer.path_panel import camera_path_section
 from garmentnerf.viewer.scene_gl import MIN_RENDER_SCALE
 
 _PANEL_FLAGS = imgui.WindowFlags_.no_saved_settings
@@ -30,6 +31,7 @@ def draw_controls(app) -> tuple[float, float, float, float] | None:
         covered = (pos.x, pos.y, pos.x + size.x, pos.y + size.y)
         _motion_section(app)
         _camera_section(app, em)
+        camera_path_section(app, em)
         _display_section(app)
         _neural_section(app, em)
         _palette_section(app)

@@ -36,7 +36,7 @@ from garmentnerf.io_utils import atomic_write_path, next_free_path
 #: Largest image side we accept (GL limits may be lower; the renderer checks those).
 MAX_SIDE = 16384
 #: Export modes: label per key, in menu order.
-EXPORT_MODES = {"turntable": "Turntable", "range": "Timeline range"}
+EXPORT_MODES = {"turntable": "Turntable", "range": "Timeline range", "path": "Camera path"}
 #: Render quality limits of exports (fraction of the training pixel density, as ``render --quality``).
 MIN_QUALITY, MAX_QUALITY = 0.25, 4.0
 #: Neural snapshots render at least at the training density (never at the preview's quality).
@@ -193,6 +193,15 @@ def plan_range(controller, size: tuple[int, int], first: int, last: int, centers
         view.update_anchor(centers[frame])
         plan.append((frame, view.camera(w, h)))
     return plan
+
+
+def plan_path(path, size: tuple[int, int], num_frames: int, motion: str = "the clip") -> Plan:
+    """The frames a :class:`~garmentnerf.render.camera_path.CameraPath` spans, each seen from the
+    path's camera at ``size`` (W, H): what ``garmentnerf render --camera-path`` renders from the
+    saved path. ValueError when a keyframe lies outside the ``num_frames`` clip."""
+    path.check_motion(num_frames, motion)
+    frames = path.frames()
+    return list(zip(frames, path.cameras(frames, (int(size[0]), int(size[1])))))
 
 
 # ---- one job -----------------------------------------------------------------------------------------

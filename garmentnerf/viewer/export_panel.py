@@ -71,6 +71,8 @@ def export_section(app, em: float) -> None:
         if changed:
             s.turntable_frames = min(MAX_VIDEO_FRAMES, max(1, count))
         _, s.turntable_plays = imgui.checkbox("Motion plays during the turn", s.turntable_plays)
+    elif s.mode == "path":
+        imgui.text_disabled("the frames and cameras of the Camera path section")
     else:
         changed, frames = imgui.input_int2("Frames A..B", [s.range_first, s.range_last])
         if changed:
@@ -92,7 +94,11 @@ def export_section(app, em: float) -> None:
         if changed:
             s.quality = q
     imgui.end_disabled()
-    count = s.turntable_frames if s.mode == "turntable" else s.range_last - s.range_first + 1
+    if s.mode == "path":
+        path = app.camera_path(s.size)
+        count = len(path.frames()) if path is not None else 0
+    else:
+        count = s.turntable_frames if s.mode == "turntable" else s.range_last - s.range_first + 1
     what = "the network's image" if neural else "the GL scene"
     imgui.text_disabled(f"{count} frames at {app.sequence.fps:g} fps, {what}")
     job = exports.job

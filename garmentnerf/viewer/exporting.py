@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from garmentnerf.viewer.export_jobs import (MAX_QUALITY, MIN_SNAPSHOT_QUALITY, ExportCancelled, ExportJob,
-                                            ExportSettings, check_size, open_video, plan_range, plan_turntable,
-                                            snapshot_name, video_name, write_png)
+                                            ExportSettings, check_size, open_video, plan_path, plan_range,
+                                            plan_turntable, snapshot_name, video_name, write_png)
 from garmentnerf.viewer.render_thread import ThreadSession
 
 
@@ -203,11 +203,18 @@ class Exports:
         prepare_scene: makes the window's GL context current and the scene show the current frame.
         status: shows one line on the status line.
         directory: where snapshots and videos go; snapshot_size: (W, H) of snapshots.
+        view_camera: ``view_camera(width, height)``, the camera the window shows (default: the
+            controller's; the app's looks through the camera path when asked to).
+        camera_path: ``camera_path(size, fps)``, the edited
+            :class:`~garmentnerf.render.camera_path.CameraPath` or None (the "path" export mode).
     """
 
     def __init__(self, scene, controller, timeline, neural_view, clip: Callable, prepare_scene: Callable[[], None],
-                 status: Callable[[str], None], directory: str | Path, snapshot_size: tuple[int, int]) -> None:
+                 status: Callable[[str], None], directory: str | Path, snapshot_size: tuple[int, int],
+                 view_camera: Callable | None = None, camera_path: Callable | None = None) -> None:
         self.scene, self.controller, self.timeline, self.neural_view = scene, controller, timeline, neural_view
+        self._view_camera = view_camera or controller.camera
+        self._camera_path = camera_path or (lambda size, fps: None)
         self._clip, self._prepare_scene, self._status = clip, prepare_scene, status
         self.directory = Path(directory)
         self.snapshot_size = (int(snapshot_size[0]), int(snapshot_size[1]))
@@ -277,12 +284,12 @@ class Exports:
         clip, frame = self._clip(), self.timeline.frame
         if not self.snapshot_is_neural():
             self._prepare_scene()
-            image = self.scene.render_image(self.controller.camera(w, h), samples=self.scene.snapshot_samples)
+            image = self.scene.render_image(self._view_camera(w, h), samples=self.scene.snapshot_samples)
             return ExportJob.completed("snapshot", write_png(image, directory / snapshot_name(clip.name, frame)))
         self.controller.update_anchor(clip.centers[frame])  # the camera the window shows
         quality = min(MAX_QUALITY, max(MIN_SNAPSHOT_QUALITY, self.snapshot_quality))
         view, path = self.neural_view, directory / snapshot_name(clip.name, frame)
-        job = ExportJob("snapshot", [(frame, self.controller.camera(w, h))], path, source="neural", quality=quality,
+        job = ExportJob("snapshot", [(frame, self._view_camera(w, h))], path, source="neural", quality=quality,
                         palette=view.palette.copy(), motion=view.motion, fps=clip.fps, composition=view.composition)
         return self._submit(job)
 
@@ -304,6 +311,12 @@ class Exports:
         clip, frame = self._clip(), self.timeline.frame
         s.check(clip.num_frames)
         self.controller.update_anchor(clip.centers[frame])
+        if s.mode == "path":
+            path = self._camera_path(s.size, clip.fps)
+            if path is None:
+                raise ValueError("the camera path has no keyframes: add some in the Camera path panel")
+            plan = plan_path(path, s.size, clip.num_frames, clip.name)
+            return plan, f"path_f{plan[0][0]:04d}-{plan[-1][0]:04d}"
         if s.mode == "turntable":
             plan = plan_turntable(self.controller, s.size, s.turntable_frames, frame, clip.num_frames,
                                   s.turntable_plays, clip.centers)

@@ -217,6 +217,71 @@ class BodyMesh:
         self.program.release()
 
 
+class LineSet:
+    """Coloured line segments in the world (the camera path and its keyframe cameras): one vertex
+    buffer, re-uploaded only when :meth:`set_lines` gets a new ``key``; depth tested, so the body hides
+    what is behind it."""
+
+    def __init__(self, ctx: moderngl.Context) -> None:
+        self.ctx = ctx
+        self.visible = True
+        self.program = build_program(ctx, "viewer_lines.vert", "viewer_lines.frag")
+        self.vbo: moderngl.Buffer | None = None
+        self.vao: moderngl.VertexArray | None = None
+        self.vertex_count = 0
+        self.key: object = None
+        self._pending: np.ndarray | None = None
+
+    def set_lines(self, key: object, positions: np.ndarray, colors: np.ndarray) -> bool:
+        """Show segments from ``positions`` (2N, 3) (each pair a segment) in ``colors`` (2N, 3); a
+        no-op when ``key`` is the shown key. Returns whether an upload was scheduled."""
+        if key is not None and key == self.key:
+            return False
+        positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+        colors = np.asarray(colors, dtype=np.float32).reshape(-1, 3)
+        if len(positions) % 2 or colors.shape != positions.shape:
+            raise ValueError(f"line positions must be (2N, 3) with a colour each, got {positions.shape} and "
+                             f"{colors.shape}")
+        self._pending = np.ascontiguousarray(np.concatenate([positions, colors], axis=1))
+        self.key = key
+        return True
+
+    def prepare(self, view: ViewParams | None = None) -> None:
+        if self._pending is None:
+            return
+        data, self._pending = self._pending, None
+        if self.vbo is None or self.vbo.size < max(data.nbytes, 24):
+            self._release_buffers()
+            self.vbo = self.ctx.buffer(reserve=max(data.nbytes, 24), dynamic=True)
+            self.vao = self.ctx.vertex_array(self.program, [(self.vbo, "3f 3f", "in_position", "in_color")])
+        if data.nbytes:
+            self.vbo.write(data.tobytes())
+        self.vertex_count = len(data)
+
+    def pass_state(self) -> PassState:
+        return OPAQUE
+
+    def draw(self, view: ViewParams) -> None:
+        if not self.visible or self.vao is None or self.vertex_count == 0:
+            return
+        self.program["u_view"].write(mat4_bytes(view.view))
+        self.program["u_proj"].write(mat4_bytes(view.proj))
+        self.vao.render(moderngl.LINES, vertices=self.vertex_count)
+
+    def gui(self, imgui) -> None:
+        pass  # the camera-path panel switches it
+
+    def _release_buffers(self) -> None:
+        for obj in (self.vao, self.vbo):
+            if obj is not None:
+                obj.release()
+        self.vao = self.vbo = None
+
+    def release(self) -> None:
+        self._release_buffers()
+        self.program.release()
+
+
 class FloorGrid:
     """The ground plane z = 0: grid lines, axes, a contact shadow under the body, faded at the edges."""
 

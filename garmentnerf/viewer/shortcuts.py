@@ -43,6 +43,8 @@ SHORTCUTS: tuple[Shortcut, ...] = (
     Shortcut(("_4",), "camera_right", "camera: the character's right side"),
     Shortcut(("r",), "reset_camera", "camera: reset to the home view"),
     Shortcut(("t",), "toggle_follow", "camera: follow the body on / off"),
+    Shortcut(("k",), "add_keyframe", "camera path: add a keyframe (this view at this frame)"),
+    Shortcut(("p",), "toggle_path_view", "camera path: view through the path on / off"),
     Shortcut(("g",), "toggle_grid", "floor grid on / off"),
     Shortcut(("s",), "snapshot", "save a snapshot PNG (snapshot resolution; the network at full quality in the neural view)"),
     Shortcut(("v",), "next_view_mode", "next view mode (neural, ground truth, side by side, difference, body, maps)"),

@@ -544,6 +544,7 @@ def _drive_random_input(app, seed: int, count: int, sizes) -> int:
         app.controller.follow = False
         app.controller.anchor[:] = 0.0
         app.controller.reset()
+        app.clear_keyframes()  # K added some, P may look through them
         for _ in range(3):
             app.step()
     cam = app.controller
@@ -552,12 +553,9 @@ def _drive_random_input(app, seed: int, count: int, sizes) -> int:
     return steps
 
 
-def test_random_ui_events_raise_nothing(app):
-    steps = _drive_random_input(app, 1234, 3000, [(320, 240), (200, 150), (1, 1), (480, 320), WINDOW])
-    assert steps >= 200
-
-
 def test_real_x_key_event_reaches_shortcuts(app):
+    # before the random input below: after some random sequences (seed 1234 with the current shortcuts
+    # table) the window stops receiving xdotool's key events, not root-caused (see the 2026-11-26 note)
     exe = shutil.which("xdotool")
     if exe is None:
         pytest.skip("xdotool is not installed (optional: sends real X key events)")
@@ -572,6 +570,11 @@ def test_real_x_key_event_reaches_shortcuts(app):
         app.step()
     assert app.timeline.playing
     app.timeline.pause()
+
+
+def test_random_ui_events_raise_nothing(app):
+    steps = _drive_random_input(app, 1234, 3000, [(320, 240), (200, 150), (1, 1), (480, 320), WINDOW])
+    assert steps >= 200
 
 
 def test_motion_switch_in_background(app):
