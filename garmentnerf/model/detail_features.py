@@ -39,6 +39,12 @@ def sample_image_features(feature_map: torch.Tensor, pixels: torch.Tensor, mode:
     return out[0, :, 0].T
 
 
+def soft_normal_weights(cos_front: torch.Tensor, cos_back: torch.Tensor) -> torch.Tensor:
+    """(N, 2) the ``soft_normal`` blend weights of the front and back reads: ``(cos + 1) / 2`` per
+    reference camera, normalised to unit L2 norm (the authors' code); ``cos_*`` (N,)."""
+    return F.normalize(torch.stack([cos_front, cos_back], dim=-1).add(1.0).mul(0.5), p=2, dim=-1)
+
+
 def select_detail_features(front: torch.Tensor, back: torch.Tensor, mode: str = "visibility", *,
                            front_visible: torch.Tensor | None = None, cos_front: torch.Tensor | None = None,
                            cos_back: torch.Tensor | None = None) -> torch.Tensor:
@@ -61,6 +67,6 @@ def select_detail_features(front: torch.Tensor, back: torch.Tensor, mode: str = 
     if mode == "soft_normal":
         if cos_front is None or cos_back is None:
             raise ValueError("detail selection 'soft_normal' needs cos_front and cos_back")
-        w = F.normalize(torch.stack([cos_front, cos_back], dim=-1).add(1.0).mul(0.5), p=2, dim=-1)
+        w = soft_normal_weights(cos_front, cos_back)
         return w[:, :1] * front + w[:, 1:] * back
     raise ValueError(f"unknown detail selection {mode!r} (known: 'visibility', 'soft_normal')")

@@ -90,7 +90,7 @@ from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 from garmentnerf.geometry.triangles import interpolate
 from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.detail_features import sample_image_features, select_detail_features
+from garmentnerf.model.detail_features import sample_image_features, select_detail_features, soft_normal_weights
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
@@ -486,8 +486,7 @@ class GarmentAnimationNeRF(nn.Module):
             to_cam = F.normalize(centre - closest.detach().cpu().float(), dim=-1)
             cos.append((normal.cpu().float() * to_cam).sum(-1).to(dev))
         feats = select_detail_features(reads[0], reads[1], "soft_normal", cos_front=cos[0], cos_back=cos[1])
-        w = F.normalize(torch.stack(cos, -1).add(1.0).mul(0.5), p=2, dim=-1)[:, 0]
-        return feats, w
+        return feats, soft_normal_weights(cos[0], cos[1])[:, 0]
 
     def evaluate_samples(self, frame: FrameFeatures, positions: torch.Tensor, *,
                          sample_filter: SampleFilter | None = None, precision: str = "float32",
