@@ -85,4 +85,13 @@ def render_body_layer(camera_pass, body, vertices: torch.Tensor, camera: Camera,
     return color, coverage
 
 
-__all__ = ["BodySurfacePixels", "body_surface", "render_body_layer", "BODY_LAYER_SUPERSAMPLE"]
+def frame_body_layer(body_pass, body, features, camera: Camera, appearance) -> tuple[torch.Tensor, torch.Tensor]:
+    """The body layer of a frame (its :class:`~garmentnerf.model.frame_context.FrameFeatures`: the
+    posed body and its vertex normals) seen by ``camera``, drawn by ``body_pass`` (a
+    :class:`~garmentnerf.gl.body_layer_pass.BodyLayerPass`, the GL side of :func:`render_body_layer`)
+    at :data:`BODY_LAYER_SUPERSAMPLE`: what the render session and the trainer both compose with."""
+    return body_pass.render(features.posed_vertices, features.vertex_normals, body.faces, body.uv, body.uv_faces,
+                            camera, appearance, BODY_LAYER_SUPERSAMPLE)
+
+
+__all__ = ["BodySurfacePixels", "body_surface", "render_body_layer", "frame_body_layer", "BODY_LAYER_SUPERSAMPLE"]

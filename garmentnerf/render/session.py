@@ -459,15 +459,13 @@ class RenderSession(Closeable):
         (drawn and shaded by :class:`~garmentnerf.gl.body_layer_pass.BodyLayerPass`, the GL side of
         :func:`~garmentnerf.render.body_layer.render_body_layer`; needs a body appearance)."""
         from garmentnerf.gl.body_layer_pass import BodyLayerPass
-        from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
+        from garmentnerf.render.body_layer import frame_body_layer
 
         if self.body_appearance is None:
             raise ValueError("this session composes without a body layer (composition 'nerf')")
         if self._body_pass is None:
             self._body_pass = BodyLayerPass(self.gl_ctx)
-        body = self.body
-        return self._body_pass.render(features.posed_vertices, features.vertex_normals, body.faces, body.uv,
-                                      body.uv_faces, camera, self.body_appearance, BODY_LAYER_SUPERSAMPLE)
+        return frame_body_layer(self._body_pass, self.body, features, camera, self.body_appearance)
 
     def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
         """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which

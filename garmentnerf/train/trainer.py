@@ -634,15 +634,12 @@ class Trainer(Closeable):
         frame's body (``feats``: posed vertices and normals) rasterised in ``camera`` and drawn with
         the frozen body appearance."""
         from garmentnerf.gl.body_layer_pass import BodyLayerPass
-        from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
+        from garmentnerf.render.body_layer import frame_body_layer
 
         if self._body_pass is None:
             self._body_pass = BodyLayerPass(self.data.frames.ctx)
-        body = self.model.body
         with torch.no_grad():
-            color, coverage = self._body_pass.render(feats.posed_vertices, feats.vertex_normals, body.faces, body.uv,
-                                                     body.uv_faces, camera, self.body_appearance,
-                                                     BODY_LAYER_SUPERSAMPLE)
+            color, coverage = frame_body_layer(self._body_pass, self.model.body, feats, camera, self.body_appearance)
         maps = out.maps.with_body(color.to(self.device), coverage.to(self.device))
         return maps.compose(out.palette, out.background)[0]
 
