@@ -115,6 +115,7 @@ class App(Closeable):
         # -- state --------------------------------------------------------------------------------------
         self.timeline = Timeline(sequence.num_frames, sequence.fps, playing=playing)
         self.playback_meter = PlaybackMeter()  # motion vs neural frames per second while playing (overlay)
+        self.play_every_frame = False  # playing waits for each neural frame instead of dropping (set_play_every_frame)
         self.controller = OrbitController()
         self.controller.aim_home(sequence.centers)
         self.controller.reset()
@@ -251,9 +252,15 @@ class App(Closeable):
         return self.fixed_dt if self.fixed_dt is not None else min(MAX_STEP_SECONDS, max(0.0, now - last))
 
     def _advance(self, advance: bool, dt: float, now: float) -> None:
-        """Move the timeline on by ``dt`` (not while scrubbing) and count the frames playback shows."""
+        """Move the timeline on by ``dt`` (not while scrubbing) and count the frames playback shows.
+        With :attr:`play_every_frame` the timeline waits on a frame until the neural image of the
+        next one is finished (one frame at most per UI frame)."""
         if advance and not self.scrubbing:
-            self.timeline.advance(dt)
+            hold = None
+            if self.play_every_frame and self.timeline.playing:
+                nxt = (self.timeline.frame + 1) % self.timeline.num_frames
+                hold = 1 if self.neural_view.frame_ready(nxt) else 0
+            self.timeline.advance(dt, max_frames=hold)
         if self.timeline.playing:
             self.playback_meter.frame_shown(self.timeline.frame, now)
         else:
@@ -275,7 +282,7 @@ class App(Closeable):
         camera = self.controller.camera(fb_w, fb_h)
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
-        self.neural_view.update(camera, self.timeline.frame, self.playback_meter if self.timeline.playing else None)
+        self.neural_view.update(camera, self.timeline, self.playback_meter)
         # while the view moves the scene is drawn smaller (SceneScale); the neural request is not
         now = self.clock()
         self.scene_scale.view_changed((state_token((camera.K, camera.R, camera.t)), self.timeline.frame), now)
@@ -323,6 +330,13 @@ class App(Closeable):
     def set_frame(self, frame: int) -> None:
         """Show ``frame`` (clamped to the clip); playback continues if it was playing."""
         self.timeline.set_frame(frame)
+
+    def set_play_every_frame(self, on: bool) -> None:
+        """Play every frame: the timeline waits for each frame's neural image instead of dropping
+        frames to keep the clip's time (for reviewing the motion at full quality)."""
+        self.play_every_frame = bool(on)
+        if self.neural_view.renderer is not None:
+            self.neural_view.renderer.set_every_frame(on)
 
     def set_follow(self, follow: bool) -> None:
         self.controller.set_follow(follow, self.sequence.centers[self.timeline.frame])

@@ -57,7 +57,10 @@ class NeuralView:
         self.last_result: dict = {}                     # the newest result's figures (overlay, stats hook)
         self.results: deque = deque(maxlen=64)          # the result sink: worker thread -> UI thread
         self.renderer = None                            # the NeuralRenderer (None without a run)
+        self.shown = None                               # the NeuralResult on the layer (its frame: the image's)
+        self._newest = None                             # the newest result delivered
         self._last_request = None
+        self._sent_clock = None                         # the PlayheadClock of the last request
         self._clip_serial = 0
         if run is not None:
             self._start()
@@ -76,16 +79,24 @@ class NeuralView:
             names = run.scene.camera_names("train") or run.scene.camera_names()
             self.gt_camera = names[0] if names else None
         self.set_mode(self.mode)
-        self.renderer = NeuralRenderer(run, self._sink, self.motion)
+        self.renderer = NeuralRenderer(run, self._sink, self.motion, clock=self._clock)
 
     def _sink(self, result, request) -> None:
-        """Worker thread: hand the maps to the layer (thread-safe) and queue the result for the UI."""
+        """Worker thread: queue the result for the UI thread (which chooses what the layer shows)."""
+        self.results.append(result)
+
+    def _show(self, result, playback_meter=None) -> None:
+        """Put ``result`` on the palette layer (thread-safe; uploaded at the next draw)."""
+        if result is self.shown:
+            return
         layer = self.scene.palette_layer
         layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
-                     body=result.body)
+                     body=result.body, origin=result.origin, map_size=result.render_size)
         if result.ground_truth is not None:
             layer.submit_ground_truth(result.ground_truth)
-        self.results.append(result)
+        self.shown = result
+        if playback_meter is not None:
+            playback_meter.neural_received(result.frame, self._clock())
 
     # ---- actions ----------------------------------------------------------------------------------
     def ground_truth_available(self) -> bool:
@@ -166,15 +177,24 @@ class NeuralView:
         self.scene.palette_layer.submit_ground_truth(None)
 
     # ---- per UI frame -----------------------------------------------------------------------------
-    def update(self, camera, frame: int, playback_meter=None) -> None:
-        """Drain finished renders into the statistics and the quality controller (``playback_meter``:
-        counts them while playing), and request the view of ``camera`` at ``frame`` when it changed."""
+    def update(self, camera, timeline, playback_meter=None) -> None:
+        """Drain finished renders into the statistics and the quality controller, request the view
+        of ``camera`` at the ``timeline``'s frame when it changed, and show the right finished frame.
+
+        The request carries the timeline's :class:`~garmentnerf.viewer.playback.PlayheadClock`:
+        while it plays, the request names the clock, not the frame, and is sent again only when the
+        timeline left it (a seek, a speed change). ``playback_meter`` counts the neural frames shown
+        while playing.
+        """
         if self.renderer is None:
             return
+        from garmentnerf.viewer.playback import PlayheadClock
+
+        frame = timeline.frame
+        playhead = PlayheadClock.of(timeline, self._clock())
         while self.results:
             result = self.results.popleft()
-            if playback_meter is not None:
-                playback_meter.neural_received(result.frame, self._clock())
+            self._newest = result
             self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
             self.last_result = {"renders": self.renderer.stats.renders, "quality": result.quality,
                                 "render_size": list(result.render_size), "frame": result.frame,
@@ -182,29 +202,67 @@ class NeuralView:
                                 "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
         if self.mode == "body":
             return
+        from garmentnerf.viewer.worker import NeuralRequest
+
         gt = self.gt_camera if self.mode in GROUND_TRUTH_MODES and self.ground_truth_available() else None
         cam = self.run.scene.camera(gt).camera if gt is not None else camera
         now = self._clock()
-        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height, frame, self.motion,
-               self._clip_serial)
+        playing = playhead is not None and playhead.playing
+        # a playing clip is not a moving view: it plays at the level's still quality (rendered ahead)
+        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height,
+               None if playing else frame, self.motion, self._clip_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
-        request_key = (key, q, gt, self.quality.preset, self.composition)
-        if request_key != self._last_request:
-            from garmentnerf.viewer.worker import NeuralRequest
+        request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead)
+        request_key = (request.view_key, self._clip_serial, None if playing else frame, playing)
+        drifted = playing and (self._sent_clock is None or self._sent_clock.drifted(playhead))
+        if request_key != self._last_request or drifted:
+            self._last_request, self._sent_clock = request_key, playhead
+            self.renderer.request(request)
+        self._choose_shown(request.view_key, frame, playhead, playback_meter if playing else None)
 
-            self._last_request = request_key
-            self.renderer.request(NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset,
-                                                self.composition))
+    def _choose_shown(self, view_key, frame: int, playhead, playback_meter) -> None:
+        """Show the finished frame of this view at ``frame`` if the render-ahead cache has it, else
+        the newest result unless it lies ahead of the playhead (rendered ahead, shown when the
+        playhead reaches it)."""
+        cached = self.renderer.finished.get(view_key, frame)
+        if cached is not None:
+            self._show(cached, playback_meter)
+            return
+        newest = self._newest
+        if newest is None or newest is self.shown:
+            return
+        if playhead is not None and newest.view_key == view_key:
+            from garmentnerf.viewer.playback import frames_ahead
+
+            ahead = frames_ahead(newest.frame, frame, playhead.n_frames, playhead.loop)
+            if 0 < ahead <= (playhead.n_frames // 2 if playhead.loop else playhead.n_frames):
+                return
+        self._show(newest, playback_meter)
+
+    @property
+    def shown_frame(self) -> int | None:
+        """The clip frame the neural image shows (None before the first)."""
+        return None if self.shown is None else self.shown.frame
+
+    def frame_ready(self, frame: int) -> bool:
+        """Whether the image of ``frame`` for the current view is finished (play every frame waits for it)."""
+        if self.renderer is None or self.mode == "body":
+            return True
+        view = self.renderer.finished.view
+        newest = self._newest
+        return (self.renderer.finished.get(view, frame) is not None
+                or (newest is not None and newest.view_key == view and newest.frame == frame))
 
     def busy(self) -> bool:
-        """Whether the worker renders, a result waits to be drained, or the view is still moving."""
-        return self.renderer is not None and not self.settled()
+        """Whether the worker renders a request, a result waits to be drained, or the view is still
+        moving (rendering ahead does not count: the window may wait for events meanwhile)."""
+        return self.renderer is not None and not (self.renderer.worker.idle() and not self.results
+                                                  and not self.quality.moving(self._clock()))
 
     def settled(self) -> bool:
-        """The worker is idle, every result drained and the view still (True without a run)."""
-        return self.renderer is None or (self.renderer.worker.idle() and not self.results
-                                         and not self.quality.moving(self._clock()))
+        """Not :meth:`busy`, and the worker has finished rendering ahead (True without a run)."""
+        return self.renderer is None or (not self.busy() and self.renderer.worker.quiet() and not self.results)
 
     @property
     def has_image(self) -> bool:
@@ -220,7 +278,11 @@ class NeuralView:
             return None
         st = self.renderer.stats
         return {"renders": st.renders, "dropped": st.dropped, "errors": st.errors, "last_error": st.last_error,
-                "last_ms": st.last_ms, "layer_has_image": self.has_image, **self.last_result}
+                "last_ms": st.last_ms, "started": st.started, "abandoned": st.abandoned,
+                "completed_share": st.completed_share, "shown_frame": self.shown_frame,
+                "render_s": self.renderer.render_time.seconds,
+                "finished_frames": len(self.renderer.finished.frames(self.renderer.finished.view)),
+                "layer_has_image": self.has_image, **self.last_result}
 
     def stop(self) -> None:
         if self.renderer is not None:

@@ -73,6 +73,23 @@ def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, ma
     return out
 
 
+def crop_to_content(layers: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Maps packed by :func:`pack_maps` and their depth, cut to the smallest rectangle outside which
+    both are exactly 0 (the character's rectangle of a culled preset: everything else is empty).
+
+    Returns:
+        (layers (2 + P, h', w', 4), depth (h', w'), (x0, y0)): copies of the rectangle and its top-left
+        pixel; a 1 x 1 rectangle at (0, 0) when everything is 0. :meth:`PaletteLayer.submit` with
+        ``origin=(x0, y0)`` and the full size shows exactly what the uncut maps show.
+    """
+    filled = np.any(layers != 0, axis=(0, 3)) | (depth != 0)
+    rows, cols = np.flatnonzero(filled.any(axis=1)), np.flatnonzero(filled.any(axis=0))
+    if rows.size == 0:
+        return layers[:, :1, :1].copy(), depth[:1, :1].copy(), (0, 0)
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return layers[:, y0:y1, x0:x1].copy(), depth[y0:y1, x0:x1].copy(), (x0, y0)
+
+
 def pack_frame(maps) -> np.ndarray:
     """:func:`pack_maps` of a :class:`~garmentnerf.model.palette.DecomposedMaps` (batch 1, CPU;
     a body layer attached to it is not packed: the layer draws its own, :class:`BodyView`)."""
@@ -121,6 +138,8 @@ class _PaletteMaps:
     image_size: tuple[int, int]  # (W, H) of the camera the maps belong to (its aspect is kept)
     tag: object = None
     body: BodyView | None = None  # the body to draw under the garment (the raster_body composition)
+    origin: tuple[int, int] = (0, 0)        # top-left pixel of ``layers`` in the full maps
+    map_size: tuple[int, int] | None = None  # (w, h) of the full maps (None: the size of ``layers``)
 
 
 def _texture(ctx: moderngl.Context, size: tuple[int, int], components: int, dtype: str, filter_: int,
@@ -177,6 +196,7 @@ class PaletteLayer:
         self._body_tex: moderngl.Texture | None = None  # the pass's texture of the shown body
         self._body_key: tuple | None = None   # (BodyView, size) the texture holds
         self.uploads = 0
+        self._filled: tuple[int, int, int, int] | None = None  # (x, y, w, h) of the textures possibly not 0
         self._lock = threading.Lock()
         self._pending: _PaletteMaps | None = None
         self._pending_gt: np.ndarray | None = None
@@ -215,17 +235,28 @@ class PaletteLayer:
         self._body_key = None
 
     def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None,
-               body: BodyView | None = None) -> None:
-        """Queue maps packed by :func:`pack_maps` with their depth (h, w) and the output size (W, H);
-        ``body``: the result's body, drawn under the garment (needs :meth:`set_body_model`)."""
-        layers = np.ascontiguousarray(layers, dtype=np.float32)
+               body: BodyView | None = None, origin: tuple[int, int] = (0, 0),
+               map_size: tuple[int, int] | None = None) -> None:
+        """Queue maps packed by :func:`pack_maps` (float32, or float16: converted at the upload)
+        with their depth (h, w) and the output size (W, H); ``body``: the result's body, drawn under
+        the garment (needs :meth:`set_body_model`). A rectangle cut by :func:`crop_to_content` is
+        passed with its ``origin`` (x0, y0) in the full maps of ``map_size`` (w, h): only it is
+        uploaded (the rest of the textures is cleared to 0)."""
+        layers = np.ascontiguousarray(layers)
+        if layers.dtype not in (np.float16, np.float32):
+            layers = layers.astype(np.float32)
         depth = np.ascontiguousarray(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0))
         if layers.ndim != 4 or layers.shape[-1] != 4 or layers.shape[0] < 3 or depth.shape != layers.shape[1:3]:
             raise ValueError(f"palette layer needs (2 + P, h, w, 4) maps and (h, w) depth, got {layers.shape} "
                              f"and {depth.shape}")
         if body is not None and (layers.shape[0] < 4 or self._body_model is None):
             raise ValueError("a body layer needs a garment and a body color and set_body_model() first")
-        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, body)
+        h, w = depth.shape
+        full = (w, h) if map_size is None else (int(map_size[0]), int(map_size[1]))
+        x0, y0 = int(origin[0]), int(origin[1])
+        if x0 < 0 or y0 < 0 or x0 + w > full[0] or y0 + h > full[1]:
+            raise ValueError(f"a {w}x{h} rectangle at ({x0}, {y0}) does not fit maps of {full[0]}x{full[1]}")
+        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, body, (x0, y0), full)
         with self._lock:
             self._pending = item
 
@@ -263,14 +294,23 @@ class PaletteLayer:
         if item is None:
             return
         L, h, w, _ = item.layers.shape
-        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers) != (w, h, L):
+        W, H = item.map_size
+        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers) != (W, H, L):
             self._release_maps()
-            self.maps_tex = self.ctx.texture_array((w, h, L), 4, dtype="f4")
+            self.maps_tex = self.ctx.texture_array((W, H, L), 4, dtype="f4")
             self.maps_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             self.maps_tex.repeat_x = self.maps_tex.repeat_y = False
-            self.depth_tex = _texture(self.ctx, (w, h), 1, "f4", moderngl.NEAREST)
-        self.maps_tex.write(item.layers)
-        self.depth_tex.write(item.depth)
+            self.depth_tex = _texture(self.ctx, (W, H), 1, "f4", moderngl.NEAREST)
+            self._filled = (0, 0, W, H)  # new textures: contents undefined
+        rect = (*item.origin, w, h)
+        old = self._filled
+        if old is not None and (old[0] < rect[0] or old[1] < rect[1] or old[0] + old[2] > rect[0] + w
+                                or old[1] + old[3] > rect[1] + h):  # what the new maps do not cover: 0
+            self.maps_tex.write(np.zeros((L, old[3], old[2], 4), np.float32), viewport=(old[0], old[1], 0, old[2], old[3], L))
+            self.depth_tex.write(np.zeros((old[3], old[2]), np.float32), viewport=old)
+        self.maps_tex.write(np.ascontiguousarray(item.layers, dtype=np.float32), viewport=(*item.origin, 0, w, h, L))
+        self.depth_tex.write(item.depth, viewport=rect)
+        self._filled = rect
         self.image_size = item.image_size
         self.tag = item.tag
         self.body = item.body

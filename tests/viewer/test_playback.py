@@ -1,0 +1,385 @@
+"""Playback you can watch (issue 28): which frame the worker renders while the clip plays, the
+render-ahead cache of finished frames, and the worker's standing requests.
+
+Pure scheduling first (analytic cases), then the cache and the palette layer's partial upload,
+then the real :class:`~garmentnerf.viewer.worker.NeuralRenderer` and
+:class:`~garmentnerf.viewer.neural_view.NeuralView` on the tiny untrained run (headless GL, no
+window), with the model's render counted by a wrapper around the real
+:meth:`RenderSession.render <garmentnerf.render.session.RenderSession.render>`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from garmentnerf.viewer.finished_frames import FinishedFrames, result_nbytes
+from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, frames_ahead, frames_behind,
+                                         next_unrendered, predict_target_frame, render_superseded, wrap_position)
+from garmentnerf.viewer.timeline import Timeline
+from garmentnerf.viewer.worker import NOTHING, NeuralResult, RenderWorker
+
+
+# ==== scheduling (pure) =================================================================================
+def test_predict_target_frame_is_where_the_playhead_will_be():
+    # 10.2 frames + 30 fps x 0.5 s = 25.2 -> frame 25
+    assert predict_target_frame(10.2, 30.0, 0.5, 100, loop=True) == 25
+    # a 20-frame loop wraps: 25.2 mod 20 = 5.2; without looping the clip stops on its last frame
+    assert predict_target_frame(10.2, 30.0, 0.5, 20, loop=True) == 5
+    assert predict_target_frame(10.2, 30.0, 0.5, 20, loop=False) == 19
+    # paused, nothing measured yet, a nonsense duration: the playhead's own frame
+    assert predict_target_frame(10.2, 0.0, 0.5, 20, loop=True) == 10
+    assert predict_target_frame(10.2, 30.0, 0.0, 20, loop=True) == 10
+    assert predict_target_frame(10.2, 30.0, float("nan"), 20, loop=True) == 10
+    # double speed (60 frames/s) and a render of 1/60 s: exactly one frame on
+    assert predict_target_frame(3.0, 60.0, 1.0 / 60.0, 20, loop=True) == 4
+    # several loops ahead: 0 + 30 x 2.05 = 61.5 -> 61 mod 20 = 1
+    assert predict_target_frame(0.0, 30.0, 2.05, 20, loop=True) == 1
+
+
+def test_frame_arithmetic_round_the_loop():
+    assert wrap_position(-0.5, 10, loop=True) == pytest.approx(9.5)
+    assert wrap_position(12.25, 10, loop=False) == 9.0 and wrap_position(-3.0, 10, loop=False) == 0.0
+    assert frame_of(9.999, 10, loop=True) == 9 and frame_of(10.0, 10, loop=True) == 0
+    assert frames_ahead(2, 8, 10, loop=True) == 4 and frames_ahead(8, 8, 10, loop=True) == 0
+    assert frames_ahead(2, 8, 10, loop=False) == -6
+    assert frames_behind(5, 8, 10, loop=True) == 3 and frames_behind(8, 5, 10, loop=True) == 0
+    assert frames_behind(9, 1, 10, loop=True) == 2  # the playhead wrapped past frame 9
+    assert frames_behind(9, 1, 10, loop=False) == 0 and frames_behind(1, 9, 10, loop=False) == 8
+
+
+def test_next_unrendered_wraps_only_when_looping():
+    done = {3, 4, 5, 0}
+    assert next_unrendered(3, done, 8, loop=True) == 6
+    assert next_unrendered(3, set(), 8, loop=True) == 3
+    assert next_unrendered(6, {6, 7, 0}, 8, loop=True) == 1  # 6, 7 done, wraps to 0 (done), then 1
+    assert next_unrendered(6, {6, 7}, 8, loop=True) == 0
+    assert next_unrendered(6, {6, 7}, 8, loop=False) is None
+    assert next_unrendered(0, set(range(8)), 8, loop=True) is None
+    assert next_unrendered(42, set(), 8, loop=False) == 7  # clamped into the clip
+
+
+def test_a_render_is_superseded_only_when_it_can_no_longer_be_shown():
+    # another view: always
+    assert render_superseded(10, False, 10, 30.0, 1.0, 100, True)
+    # paused: another frame supersedes, the same one does not
+    assert render_superseded(10, True, 11, 0.0, 1.0, 100, True)
+    assert not render_superseded(10, True, 10, 0.0, 1.0, 100, True)
+    # playing, render time 0.5 s at 30 fps = 15 frames: a render 10 frames late is finished,
+    # one the playhead left 17 frames behind (a seek) is not
+    assert not render_superseded(10, True, 20, 30.0, 0.5, 100, True)
+    assert not render_superseded(10, True, 26, 30.0, 0.5, 100, True)  # 16 = 15 + 1: still kept
+    assert render_superseded(10, True, 27, 30.0, 0.5, 100, True)
+    # a frame ahead of the playhead is what render-ahead is for
+    assert not render_superseded(40, True, 20, 30.0, 0.5, 100, True)
+    # round the loop, 30 x 0.2 + 1 = 7 frames allowed: target 98, the playhead wrapped to 3 (5 behind)
+    # is late, to 6 (8 behind) a seek
+    assert not render_superseded(98, True, 3, 30.0, 0.2, 100, True)
+    assert render_superseded(98, True, 6, 30.0, 0.2, 100, True)
+
+
+def test_playhead_clock_extrapolates_and_notices_seeks():
+    clock = PlayheadClock(position=10.0, time=100.0, fps=30.0, n_frames=50, loop=True)
+    assert clock.playing and clock.frame == 10
+    assert clock.position_at(100.5) == pytest.approx(25.0)
+    assert clock.frame_at(101.5) == 5  # 10 + 45 = 55 -> 5
+    assert clock.position_at(99.0) == pytest.approx(10.0)  # never backwards
+    # the timeline 1 s later at 40.5 frames: on time; at 45: a seek; another rate: a change
+    assert not clock.drifted(PlayheadClock(40.5, 101.0, 30.0, 50, True))
+    assert clock.drifted(PlayheadClock(45.0, 101.0, 30.0, 50, True))
+    assert clock.drifted(PlayheadClock(40.0, 101.0, 60.0, 50, True))
+    # round the loop: expected 49.5 at t = 101.318.., the timeline shows 0.2 -> 0.7 frames apart
+    assert not clock.drifted(PlayheadClock(0.2, 100.0 + 39.5 / 30.0, 30.0, 50, True))
+    paused = PlayheadClock(7.4, 0.0, 0.0, 50, True)
+    assert not paused.playing and paused.position_at(1e6) == pytest.approx(7.4)
+    assert not paused.drifted(PlayheadClock(7.0, 5.0, 0.0, 50, True))
+    assert paused.drifted(PlayheadClock(8.0, 5.0, 0.0, 50, True))
+    assert paused.drifted(clock)  # play state changed
+    tl = Timeline(num_frames=50, fps=30.0, playing=True)
+    tl.set_speed(2.0)
+    tl.set_frame(12)
+    assert PlayheadClock.of(tl, 3.0) == PlayheadClock(12.0, 3.0, 60.0, 50, True)
+    tl.pause()
+    assert PlayheadClock.of(tl, 3.0).fps == 0.0
+
+
+def test_render_time_is_a_moving_average():
+    rt = RenderTime(smoothing=0.5)
+    assert rt.seconds == 0.0
+    rt.observe(1.0)
+    assert rt.seconds == 1.0
+    rt.observe(2.0)
+    assert rt.seconds == 1.5
+    rt.observe(float("nan"))
+    rt.observe(-1.0)
+    assert rt.seconds == 1.5 and rt.measured == 2
+
+
+def test_timeline_waits_on_a_frame_when_told():
+    tl = Timeline(num_frames=10, fps=10.0, playing=True)
+    tl.set_frame(3)
+    assert not tl.advance(0.55, max_frames=0) and tl.frame == 3 and tl.position < 4.0  # held on frame 3
+    assert tl.advance(0.55, max_frames=1) and tl.frame == 4  # 5.5 frames of time, one frame allowed
+    assert tl.position == pytest.approx(5.0, abs=1e-5) and tl.position < 5.0  # just before frame 5
+    assert tl.advance(0.55) and tl.frame == 0  # no limit: + 5.5 frames = 10.49.. wraps to 0.49
+
+
+# ==== the render-ahead cache (pure) ====================================================================
+def _result(frame: int, nbytes: int, key="view") -> NeuralResult:
+    """A finished frame whose maps take ``nbytes`` bytes (float16, 1 x 1 pixel layers)."""
+    layers = np.zeros((nbytes // 8, 1, 1, 4), np.float16)
+    return NeuralResult(layers, np.zeros((0, 0), np.float32), (1, 1), (1, 1), 1.0, frame, {}, True, view_key=key)
+
+
+def test_finished_frames_respect_their_memory_bound_and_keep_the_frames_just_ahead():
+    mb = 2**20
+    cache = FinishedFrames(budget_mb=3.5)  # 3.5 frames of 1 MiB
+    cache.set_view("v")
+    assert result_nbytes(_result(0, mb)) == mb
+    for f in range(10):
+        cache.put("v", f, _result(f, mb), playhead_frame=0, n_frames=10)
+        assert cache.nbytes <= cache.budget_bytes
+    assert cache.frames("v") == {0, 1, 2}  # nearest ahead of the playhead
+    # the playhead at 8: ahead of it come 8, 9, then 0, 1 (looping)
+    for f in (8, 9):
+        cache.put("v", f, _result(f, mb), playhead_frame=8, n_frames=10)
+    assert cache.frames("v") == {8, 9, 0} and cache.nbytes == 3 * mb
+    assert not cache.worth_rendering(1, 8, 10)  # full, and 1 lies farther ahead than 0
+    assert cache.worth_rendering(1, 9, 10)  # playhead at 9: 8 is farthest ahead now, 1 is nearer
+    assert not cache.worth_rendering(5, 8, 10)
+    cache.set_budget_mb(1.0)
+    assert cache.nbytes <= cache.budget_bytes and len(cache.frames("v")) == 1
+    cache.set_budget_mb(0.0)
+    assert cache.frames("v") == set() and not cache.worth_rendering(3, 0, 10)
+
+
+def test_finished_frames_hold_one_view():
+    cache = FinishedFrames(budget_mb=10.0)
+    assert cache.set_view("a")
+    cache.put("a", 1, _result(1, 64, "a"), 0, 5)
+    assert not cache.put("b", 2, _result(2, 64, "b"), 0, 5)  # another view's result is not kept
+    assert cache.get("a", 1) is not None and cache.get("b", 1) is None and cache.frames("b") == set()
+    assert not cache.set_view("a") and cache.frames("a") == {1}  # the same view: nothing dropped
+    assert cache.set_view("b") and cache.frames("a") == set() and cache.nbytes == 0 and cache.invalidations == 1
+
+
+# ==== the palette layer's partial upload ==================================================================
+def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_context):
+    from garmentnerf.viewer.palette_layer import PaletteLayer, crop_to_content
+
+    rng = np.random.default_rng(0)
+    H, W = 24, 32
+
+    def maps(y0, y1, x0, x1):
+        layers = np.zeros((4, H, W, 4), np.float32)
+        depth = np.zeros((H, W), np.float32)
+        layers[:, y0:y1, x0:x1] = rng.uniform(0.1, 1.0, (4, y1 - y0, x1 - x0, 4))
+        depth[y0:y1, x0:x1] = 3.0
+        return layers, depth
+
+    layer = PaletteLayer(gl_context)
+    try:
+        for box in ((2, 20, 3, 12), (10, 14, 20, 30), (0, 24, 0, 32), (5, 6, 5, 6)):
+            layers, depth = maps(*box)
+            cut, cut_depth, origin = crop_to_content(layers, depth)
+            assert origin == (box[2], box[0]) and cut.shape == (4, box[1] - box[0], box[3] - box[2], 4)
+            layer.submit(cut.astype(np.float16), cut_depth, (W, H), origin=origin, map_size=(W, H))
+            layer.prepare()
+            got = np.frombuffer(layer.maps_tex.read(), np.float32).reshape(4, H, W, 4)
+            # what was shown before is gone, the new rectangle is there (float16-rounded)
+            np.testing.assert_allclose(got, layers.astype(np.float16).astype(np.float32), rtol=0, atol=0)
+            got_depth = np.frombuffer(layer.depth_tex.read(), np.float32).reshape(H, W)
+            np.testing.assert_array_equal(got_depth, depth)
+        empty = crop_to_content(np.zeros((4, H, W, 4), np.float32), np.zeros((H, W), np.float32))
+        assert empty[0].shape == (4, 1, 1, 4) and empty[2] == (0, 0)
+        with pytest.raises(ValueError, match="does not fit"):
+            layer.submit(cut, cut_depth, (W, H), origin=(W, 0), map_size=(W, H))
+    finally:
+        layer.release()
+
+
+# ==== the worker's standing requests ========================================================================
+def test_a_standing_request_renders_until_its_follow_up_ends_it_and_a_late_render_is_finished():
+    rendered, delivered = [], []
+    todo = [3, 2, 1]  # what the standing request still has to render
+
+    def render(request, generation):
+        if not todo:
+            return NOTHING
+        frame = todo.pop()
+        rendered.append(frame)
+        for _ in range(10):
+            time.sleep(0.02)
+            if worker.should_cancel(generation):
+                return None
+        return frame
+
+    worker = RenderWorker(render, lambda result, request, gen: delivered.append((request, result)),
+                          superseded=lambda running, newest: newest == "seek",
+                          follow_up=lambda request: 0.0 if todo else None)
+    try:
+        worker.request("play")
+        deadline = time.monotonic() + 5
+        while not worker.quiet() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert delivered == [("play", 1), ("play", 2), ("play", 3)]
+        assert worker.idle() and worker.quiet()
+        assert (worker.stats.started, worker.stats.renders, worker.stats.abandoned) == (3, 3, 0)
+        # a newer request that does not supersede (same view, playhead moved a little): the render finishes
+        todo[:] = [5, 4]
+        worker.request("play")
+        time.sleep(0.06)
+        worker.request("play, a bit later")
+        assert worker.wait_idle(5)
+        deadline = time.monotonic() + 5
+        while not worker.quiet() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert worker.stats.abandoned == 0 and [r for _, r in delivered[3:]] == [4, 5]
+        # one that does (a seek): abandoned between chunks
+        todo[:] = [7, 6]
+        worker.request("play")
+        time.sleep(0.06)
+        worker.request("seek")
+        deadline = time.monotonic() + 5
+        while not worker.quiet() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert worker.stats.abandoned == 1 and delivered[-1] == ("seek", 7)
+        assert worker.stats.completed_share == pytest.approx(worker.stats.renders / worker.stats.started)
+    finally:
+        worker.stop()
+
+
+# ==== the real worker and neural view on the tiny untrained run (headless GL, no window) ===================
+@pytest.fixture
+def counted_renders(monkeypatch):
+    """The frames :meth:`RenderSession.render` (the one camera-to-image entry point: every model
+    evaluation of the previewer goes through it) was called for, in order."""
+    from garmentnerf.render.session import RenderSession
+
+    real = RenderSession.render
+    calls: list[int] = []
+
+    def render(self, frame, *args, **kwargs):
+        calls.append(int(frame))
+        return real(self, frame, *args, **kwargs)
+
+    monkeypatch.setattr(RenderSession, "render", render)
+    return calls
+
+
+def _neural_view(gl_context, run_dir, preset="interactive"):
+    from garmentnerf.train.run import load_run
+    from garmentnerf.viewer.neural_view import NeuralView
+    from garmentnerf.viewer.scene_gl import SceneRenderer
+
+    scene = SceneRenderer(gl_context, samples=0)
+    view = NeuralView(scene, load_run(run_dir), None, lambda text: None, time.perf_counter)
+    view.quality.dynamic = False  # the level's own quality, whatever moves
+    view.quality.set_preset(preset)
+    return scene, view
+
+
+def _settle(view, camera, timeline, timeout=180.0):
+    """Update the view (as the window does once per UI frame) until the worker has rendered ahead."""
+    deadline = time.monotonic() + timeout
+    view.update(camera, timeline)
+    while not view.settled() and time.monotonic() < deadline:
+        time.sleep(0.01)
+        view.update(camera, timeline)
+    view.update(camera, timeline)
+    assert view.settled(), view.error()
+
+
+def test_render_ahead_scrub_recolour_and_what_invalidates_it(gl_context, untrained_run, tiny_scene, counted_renders):
+    from garmentnerf.conventions import orbit_camera
+
+    n = 3  # the tiny scene's training sequence
+    scene, view = _neural_view(gl_context, untrained_run)
+    renderer = view.renderer
+    try:
+        timeline = Timeline(num_frames=n, fps=30.0, playing=False)
+        camera = orbit_camera(0.0, 5.0, 3.0, width=64, height=48)
+        _settle(view, camera, timeline)
+        # paused on frame 0: the frame itself, then the rest of the clip rendered ahead, each once
+        assert counted_renders == [0, 1, 2] and renderer.stats.renders == 3 and renderer.stats.errors == 0
+        key = renderer.finished.view
+        assert renderer.finished.frames(key) == {0, 1, 2} and view.shown_frame == 0
+        assert renderer.finished.nbytes <= renderer.finished.budget_bytes
+        # a scrub to a rendered frame shows it at once and makes no model call
+        timeline.set_frame(2)
+        view.update(camera, timeline)
+        assert view.shown_frame == 2
+        _settle(view, camera, timeline)
+        assert counted_renders == [0, 1, 2] and view.shown_frame == 2
+        # recolouring: every rendered frame shows the new palette, nothing is rendered again
+        before = []
+        for f in range(n):
+            timeline.set_frame(f)
+            view.update(camera, timeline)
+            assert view.shown_frame == f
+            before.append(scene.render_image(camera, samples=0).astype(int))
+        assert max(np.abs(before[f] - before[0]).max() for f in range(1, n)) > 0  # the frames differ
+        invalidations = renderer.finished.invalidations
+        view.set_palette_color(0, (1.0, 0.0, 0.0))
+        view.set_palette_color(1, (0.0, 0.0, 1.0))
+        for f in range(n):
+            timeline.set_frame(f)
+            view.update(camera, timeline)
+            after = scene.render_image(camera, samples=0).astype(int)
+            assert np.abs(after - before[f]).max() > 10, f
+        _settle(view, camera, timeline)
+        assert counted_renders == [0, 1, 2] and renderer.finished.frames(key) == {0, 1, 2}
+        assert renderer.finished.invalidations == invalidations  # a palette change invalidates nothing
+        # an orbit invalidates: the new view is rendered again (from the playhead's frame)
+        timeline.set_frame(1)
+        moved = orbit_camera(30.0, 5.0, 3.0, width=64, height=48)
+        _settle(view, moved, timeline)
+        assert renderer.finished.invalidations == invalidations + 1 and renderer.finished.view != key
+        assert counted_renders[3:] == [1, 2, 0] and renderer.finished.frames(renderer.finished.view) == {0, 1, 2}
+        # so does another quality level (another quality and preset) ...
+        view.quality.set_preset("balanced")
+        view.update(moved, timeline)
+        assert renderer.finished.invalidations == invalidations + 2
+        _settle(view, moved, timeline)
+        assert counted_renders[6:] == [1, 2, 0]
+        # ... and the memory bound holds: room for one frame and a half keeps one
+        one = max(renderer.finished.nbytes // 3, 1)
+        renderer.set_finished_mb(1.5 * one / 2**20)
+        assert len(renderer.finished.frames(renderer.finished.view)) == 1
+        assert renderer.finished.nbytes <= renderer.finished.budget_bytes
+        _settle(view, moved, timeline)
+        assert counted_renders[9:] == [] and renderer.finished.nbytes <= renderer.finished.budget_bytes
+        # another motion invalidates too
+        renderer.set_render_ahead(False)
+        view.set_motion("walk")
+        view.update(moved, timeline)
+        assert renderer.finished.invalidations == invalidations + 3
+    finally:
+        view.stop()
+        scene.release()
+
+
+def test_playing_over_rendered_frames_shows_each_in_step_with_the_timeline(gl_context, untrained_run, counted_renders):
+    from garmentnerf.conventions import orbit_camera
+
+    n = 3
+    scene, view = _neural_view(gl_context, untrained_run)
+    renderer = view.renderer
+    try:
+        timeline = Timeline(num_frames=n, fps=30.0, playing=True)
+        camera = orbit_camera(0.0, 5.0, 3.0, width=64, height=48)
+        _settle(view, camera, timeline)  # the timeline does not advance here: the worker renders ahead
+        assert sorted(counted_renders) == [0, 1, 2] and renderer.stats.abandoned == 0
+        assert renderer.stats.completed_share == 1.0
+        shown = []
+        for _ in range(12):  # a 60 Hz UI playing the 30 fps clip: every frame shown, in step
+            timeline.advance(1.0 / 60.0)
+            view.update(camera, timeline)
+            assert view.shown_frame == timeline.frame
+            shown.append(view.shown_frame)
+        assert shown == [0, 1, 1, 2, 2, 0, 0, 1, 1, 2, 2, 0] and len(counted_renders) == 3
+    finally:
+        view.stop()
+        scene.release()
