@@ -1,19 +1,24 @@
 """The render worker: one background thread that renders the newest request (the neural garment)
-and hands each result to a sink (the neural view's, which queues it for the palette layer).
+and hands each result to a sink (the neural view's, which queues it for the UI thread).
 
 Requests coalesce: while a render runs, newer requests replace each other and only the newest is
 rendered next, so a moving camera never builds a queue. Each request gets a generation number; the
 render function may call :meth:`RenderWorker.should_cancel` with it and give up early (return None)
-when a newer request has arrived, which keeps a slow high-resolution render from blocking the next view.
+when a newer request makes its work worthless (``superseded``; by default any newer request does).
 Progress is guaranteed, though: once the screen has gone ``max_stale_s`` without a new result, the
 render in flight is no longer cancelled and is shown even if a newer request exists (a camera that
 moves every UI frame would otherwise cancel every render, and the layer would never update).
-No GL here: the GL thread uploads what the sink received.
+A request may *stand* (``follow_up``): after its render the worker asks whether to render it again
+(the next frame of a playing clip, the next frame to render ahead) before any idle work.
+No GL here: the GL thread uploads what the UI thread chose to show.
 
 :class:`NeuralRenderer` is the neural layer's worker: it runs
 :meth:`garmentnerf.render.session.RenderSession.render` for the newest :class:`NeuralRequest`
-(frame, camera, quality), cancels a superseded render between chunks of samples, and hands the
-decomposed maps (packed for the palette shader) to the GL thread. Its session and that session's
+(camera, quality, and the timeline's playhead clock), chooses which frame
+(:mod:`~garmentnerf.viewer.playback`: the one the playhead will be at when the render ends, then
+the frames ahead), cancels a superseded render between chunks of samples, and keeps finished
+frames (the decomposed maps packed for the palette shader) in its render-ahead cache
+(:class:`~garmentnerf.viewer.finished_frames.FinishedFrames`). Its session and that session's
 headless GL context live on the worker thread (:class:`~garmentnerf.viewer.render_thread.ThreadSession`).
 """
 
