@@ -233,10 +233,9 @@ class NeuralView:
         if newest is None or newest is self.shown:
             return
         if playhead is not None and newest.view_key == view_key:
-            from garmentnerf.viewer.playback import frames_ahead
+            from garmentnerf.viewer.playback import show_newest
 
-            ahead = frames_ahead(newest.frame, frame, playhead.n_frames, playhead.loop)
-            if 0 < ahead <= (playhead.n_frames // 2 if playhead.loop else playhead.n_frames):
+            if not show_newest(newest.frame, frame, playhead.n_frames, playhead.loop):
                 return
         self._show(newest, playback_meter)
 

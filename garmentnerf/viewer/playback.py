@@ -108,6 +108,14 @@ def render_superseded(target: int, same_view: bool, playhead_frame: int, fps: fl
     return frames_behind(target, playhead_frame, n_frames, loop) > fps * max(render_s, 0.0) + 1.0
 
 
+def show_newest(newest_frame: int, playhead_frame: int, n_frames: int, loop: bool) -> bool:
+    """Whether the newest finished frame of the shown view may be shown while the playhead is on
+    another frame that is not rendered: yes unless it lies ahead of the playhead (rendered ahead:
+    it is shown when the playhead gets there). Looping, "ahead" is at most half a clip forwards."""
+    ahead = frames_ahead(newest_frame, playhead_frame, n_frames, loop)
+    return not 0 < ahead <= (n_frames // 2 if loop else n_frames)
+
+
 @dataclass(frozen=True)
 class PlayheadClock:
     """Where the playhead is: at ``position`` (frames) at clock time ``time`` (seconds), moving at
@@ -175,4 +183,4 @@ class RenderTime:
 
 
 __all__ = ["PlayheadClock", "RenderTime", "DRIFT_FRAMES", "wrap_position", "frame_of", "predict_target_frame",
-           "frames_ahead", "frames_behind", "next_unrendered", "render_superseded"]
+           "frames_ahead", "frames_behind", "next_unrendered", "render_superseded", "show_newest"]

@@ -414,13 +414,20 @@ class NeuralRenderer:
                                                                                            n_frames))
         return target if wanted else None
 
+    @staticmethod
+    def _clip_frames(session, request: NeuralRequest) -> int:
+        """Frames of the clip the request plays: the session's motion, or the first ones of it the
+        playhead clock names (a bench plays part of a clip)."""
+        n = session.num_frames
+        return n if request.playhead is None else max(1, min(n, request.playhead.n_frames))
+
     def _follow_up(self, request: NeuralRequest) -> float | None:
         """The standing request (:class:`RenderWorker`): 0 while it has a frame to render; while a
         clip plays, ask again in :data:`POLL_SECONDS`; else None."""
         session = self._thread_session.current
         if request is _CLOSE or session is None:
             return None
-        if self._next_target(request, session.num_frames, self._clock()) is not None:
+        if self._next_target(request, self._clip_frames(session, request), self._clock()) is not None:
             return 0.0
         return POLL_SECONDS if request.playhead is not None and request.playhead.playing else None
 
@@ -464,7 +471,7 @@ class NeuralRenderer:
         from garmentnerf.viewer.palette_layer import BodyView, crop_to_content, pack_frame
 
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
-        frame = self._next_target(request, session.num_frames, self._clock())
+        frame = self._next_target(request, self._clip_frames(session, request), self._clock())
         if frame is None:
             return NOTHING
         self._target = (request.view_key, frame)
@@ -524,7 +531,7 @@ class NeuralRenderer:
 
     def _deliver(self, result: NeuralResult, request: NeuralRequest, generation: int) -> None:
         session = self._thread_session.current
-        n = session.num_frames if session is not None else result.frame + 1
+        n = self._clip_frames(session, request) if session is not None else result.frame + 1
         clock = request.playhead
         playhead = clock.frame_at(self._clock()) if clock is not None else result.frame
         self.finished.put(result.view_key, result.frame, result, playhead, n)

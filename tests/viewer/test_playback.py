@@ -383,3 +383,12 @@ def test_playing_over_rendered_frames_shows_each_in_step_with_the_timeline(gl_co
     finally:
         view.stop()
         scene.release()
+
+
+def test_the_newest_frame_is_shown_unless_it_lies_ahead():
+    from garmentnerf.viewer.playback import show_newest
+
+    assert show_newest(5, 5, 10, loop=True) and show_newest(3, 5, 10, loop=True)  # on it, or behind: shown
+    assert not show_newest(7, 5, 10, loop=True)  # rendered ahead: waits for the playhead
+    assert show_newest(1, 5, 10, loop=True)      # 6 frames "ahead" of a 10-frame loop: behind it really
+    assert not show_newest(9, 5, 10, loop=False) and show_newest(1, 5, 10, loop=False)
