@@ -32,6 +32,15 @@ VIEW_MODES = {"neural": "Neural render", "ground_truth": "Ground truth", "side_b
 GROUND_TRUTH_MODES = ("ground_truth", "side_by_side", "difference")
 
 
+def submit_result(layer, result) -> None:
+    """Put a :class:`~garmentnerf.viewer.worker.NeuralResult` on a
+    :class:`~garmentnerf.viewer.palette_layer.PaletteLayer` (its maps, depth, body, ground truth)."""
+    layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
+                 body=result.body, origin=result.origin, map_size=result.render_size)
+    if result.ground_truth is not None:
+        layer.submit_ground_truth(result.ground_truth)
+
+
 class NeuralView:
     """See the module docstring.
 
@@ -89,11 +98,7 @@ class NeuralView:
         """Put ``result`` on the palette layer (thread-safe; uploaded at the next draw)."""
         if result is self.shown:
             return
-        layer = self.scene.palette_layer
-        layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
-                     body=result.body, origin=result.origin, map_size=result.render_size)
-        if result.ground_truth is not None:
-            layer.submit_ground_truth(result.ground_truth)
+        submit_result(self.scene.palette_layer, result)
         self.shown = result
         if playback_meter is not None:
             playback_meter.neural_received(result.frame, self._clock())

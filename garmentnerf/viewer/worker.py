@@ -363,6 +363,12 @@ class NeuralRenderer:
     def stats(self) -> WorkerStats:
         return self.worker.stats
 
+    @property
+    def session(self):
+        """The worker's :class:`~garmentnerf.render.session.RenderSession` (None before the first
+        render); use it from another thread only while the worker is idle (a bench)."""
+        return self._thread_session.current
+
     def request(self, request: NeuralRequest) -> int:
         """Ask for ``request``; the render-ahead cache switches to its view (dropping another view's frames)."""
         if request is not _CLOSE:
