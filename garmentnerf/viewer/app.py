@@ -82,6 +82,8 @@ class App(Closeable):
         run: a run folder or :class:`~garmentnerf.train.run.LoadedRun` whose neural garment to show
             (None: body only). ``motion`` None then means the run scene's first training sequence;
             body and shape come from the run.
+        watch: show each new checkpoint of the run's folder as it lands (loaded off the UI thread,
+            :mod:`~garmentnerf.viewer.checkpoint_watch`).
         dynamic_scene: while the view moves, draw the scene at the scale that fits
             :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
             once more at ``render_scale`` when it is still); False: always at ``render_scale``.
@@ -96,7 +98,7 @@ class App(Closeable):
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
                  title: str = "garmentnerf view", clock=time.perf_counter, run=None,
-                 dynamic_scene: bool = True) -> None:
+                 dynamic_scene: bool = True, watch: bool = False) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -142,7 +144,7 @@ class App(Closeable):
             self.window.close()
             raise
         self._resolved_shortcuts = resolve(imgui)
-        self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock)
+        self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock, watch=watch)
         self.exports = Exports(self.scene, self.controller, self.timeline, self.neural_view, lambda: self.sequence,
                                self._sync_scene, self.status.show, snapshot_dir, snapshot_size)
 

@@ -50,10 +50,14 @@ class NeuralView:
         motion: the motion spec the worker's session renders (a scene sequence or motion name).
         status: shows one line on the window's status line.
         clock: seconds (the quality controller's time base).
+        watch: show each new checkpoint of the run's folder as it lands
+            (:class:`~garmentnerf.viewer.checkpoint_watch.CheckpointWatcher`; loaded off the UI thread).
     """
 
-    def __init__(self, scene, run, motion, status: Callable[[str], None], clock: Callable[[], float]) -> None:
+    def __init__(self, scene, run, motion, status: Callable[[str], None], clock: Callable[[], float],
+                 watch: bool = False) -> None:
         self.scene, self.run, self.motion = scene, run, motion
+        self.watcher = None                             # the CheckpointWatcher (watch=True with a run)
         self._status, self._clock = status, clock
         self.mode = "neural" if run is not None else "body"
         self.quality = QualityController()
@@ -66,6 +70,7 @@ class NeuralView:
         self.last_result: dict = {}                     # the newest result's figures (overlay, stats hook)
         self.results: deque = deque(maxlen=64)          # the result sink: worker thread -> UI thread
         self.renderer = None                            # the NeuralRenderer (None without a run)
+        self._watch = bool(watch)
         self.shown = None                               # the NeuralResult on the layer (its frame: the image's)
         self._newest = None                             # the newest result delivered
         self._last_request = None
@@ -89,6 +94,30 @@ class NeuralView:
             self.gt_camera = names[0] if names else None
         self.set_mode(self.mode)
         self.renderer = NeuralRenderer(run, self._sink, self.motion, clock=self._clock)
+        if self._watch:
+            from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
+
+            self.watcher = CheckpointWatcher(run)
+
+    @property
+    def weights_step(self) -> int:
+        """The training step of the weights the worker renders with (the newest checkpoint loaded)."""
+        return int(getattr(self.run, "step", 0) or 0)
+
+    def _take_checkpoint(self) -> None:
+        """A newer checkpoint the watcher loaded goes to the worker; the learned palette follows it
+        (and the palette shown too, unless it was edited)."""
+        run = self.watcher.poll() if self.watcher is not None else None
+        if run is None:
+            return
+        edited = self.palette is not None and not np.array_equal(self.palette, self.learned_palette)
+        self.run = run
+        self.renderer.set_run(run)
+        self.learned_palette = run.palette().detach().cpu().numpy().astype(np.float32)
+        if not edited:
+            self.palette = self.learned_palette.copy()
+            self.scene.palette_layer.set_palette(self.palette)
+        self._status(f"checkpoint step {run.step} loaded: showing it")
 
     def _sink(self, result, request) -> None:
         """Worker thread: queue the result for the UI thread (which chooses what the layer shows)."""
@@ -195,6 +224,8 @@ class NeuralView:
             return
         from garmentnerf.viewer.playback import PlayheadClock
 
+        self._take_checkpoint()
+
         frame = timeline.frame
         playhead = PlayheadClock.of(timeline, self._clock())
         while self.results:
@@ -218,7 +249,8 @@ class NeuralView:
                None if playing else frame, self.motion, self._clip_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
-        request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead)
+        request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead,
+                                self.weights_step)
         request_key = (request.view_key, self._clip_serial, None if playing else frame, playing)
         drifted = playing and (self._sent_clock is None or self._sent_clock.drifted(playhead))
         if request_key != self._last_request or drifted:
@@ -284,10 +316,13 @@ class NeuralView:
         return {"renders": st.renders, "dropped": st.dropped, "errors": st.errors, "last_error": st.last_error,
                 "last_ms": st.last_ms, "started": st.started, "abandoned": st.abandoned,
                 "completed_share": st.completed_share, "shown_frame": self.shown_frame,
-                "render_s": self.renderer.render_time.seconds,
+                "render_s": self.renderer.render_time.seconds, "weights_step": self.weights_step,
+                "shown_step": None if self.shown is None else self.shown.weights_step,
                 "finished_frames": len(self.renderer.finished.frames(self.renderer.finished.view)),
                 "layer_has_image": self.has_image, **self.last_result}
 
     def stop(self) -> None:
+        if self.watcher is not None:
+            self.watcher.close()
         if self.renderer is not None:
             self.renderer.stop()

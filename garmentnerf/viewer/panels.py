@@ -201,6 +201,13 @@ def _neural_stats(app) -> None:
     imgui.text_disabled(f"renders {st.renders} of {st.started} started"
                         + (f" ({100 * share:.0f}%)" if share is not None else "")
                         + f", superseded {st.dropped}, errors {st.errors}")
+    if view.watcher is not None or view.weights_step:
+        shown_step = view.shown.weights_step if view.shown is not None else None
+        line = f"weights: step {view.weights_step}" + (
+            f" (image: step {shown_step})" if shown_step is not None and shown_step != view.weights_step else "")
+        imgui.text_disabled(line + (", watching the run" if view.watcher is not None else ""))
+        if view.watcher is not None and view.watcher.error:
+            imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), view.watcher.error[:120])
     shown = view.shown_frame
     if shown is not None:
         tl = app.timeline

@@ -262,15 +262,17 @@ class NeuralRequest:
     preset: str = VIEWER_LEVELS[-1]
     composition: str = "auto"
     playhead: PlayheadClock | None = None
+    weights_step: int | None = None
 
     @functools.cached_property
     def view_key(self) -> tuple:
         """Everything but the frame (and the playhead) that decides the image: camera, quality,
-        motion, ground-truth camera, preset, composition. Not the palette (a shader uniform)."""
+        motion, ground-truth camera, preset, composition, the weights' training step. Not the
+        palette (a shader uniform)."""
         cam = self.camera
         camera = None if cam is None else (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height,
                                            float(cam.near), float(cam.far))
-        return (camera, self.quality, self.motion, self.gt_camera, self.preset, self.composition)
+        return (camera, self.quality, self.motion, self.gt_camera, self.preset, self.composition, self.weights_step)
 
 
 @dataclass
@@ -288,7 +290,8 @@ class NeuralResult:
         ground_truth: (H, W, 3) of the request's scene camera, or None; counts: sample counts.
         body: the posed body the palette layer draws under the garment
             (:class:`~garmentnerf.viewer.palette_layer.BodyView`; the ``raster_body`` composition), or None.
-        view_key: the request's :attr:`NeuralRequest.view_key`.
+        view_key: the request's :attr:`NeuralRequest.view_key`; weights_step: the training step of
+            the weights it was rendered with.
     """
 
     layers: Any
@@ -305,6 +308,7 @@ class NeuralResult:
     body: Any = None
     origin: tuple[int, int] = (0, 0)
     view_key: Any = None
+    weights_step: int | None = None
 
 
 class NeuralRenderer:
@@ -356,6 +360,7 @@ class NeuralRenderer:
         self._last_request: NeuralRequest | None = None
         self._target: tuple | None = None        # (view key, frame) of the render in flight (worker thread)
         self._last_done: tuple | None = None     # (view key, frame) of the last delivered render
+        self._pending_run = None                 # a newer checkpoint's run, switched to before the next render
         self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural", idle_work=self._precompute,
                                    superseded=self._superseded, follow_up=self._follow_up)
 
@@ -375,6 +380,25 @@ class NeuralRenderer:
             self.finished.set_view(request.view_key)
             self._last_request = request
         return self.worker.request(request)
+
+    def set_run(self, run) -> None:
+        """Render with ``run`` (a newer checkpoint of the run, :mod:`~garmentnerf.viewer.checkpoint_watch`)
+        from the next render on; the worker switches between two renders. Requests should name its
+        step (``weights_step``) so that frames of the old weights are not shown as new ones."""
+        self._pending_run = run
+        self.worker.wake_idle()
+
+    def _switch_run(self) -> None:
+        """Worker thread: adopt the run :meth:`set_run` left (the session's model and caches)."""
+        run, self._pending_run = self._pending_run, None
+        if run is None:
+            return
+        self.run = run
+        self._thread_session.run = run
+        session = self._thread_session.current
+        if session is not None:
+            session.set_run(run)
+        self._last_done = None
 
     def set_every_frame(self, on: bool) -> None:
         """Play every frame: the worker renders the playhead's frame, not a predicted one."""
@@ -476,6 +500,7 @@ class NeuralRenderer:
             return None
         from garmentnerf.viewer.palette_layer import BodyView, crop_to_content, pack_frame
 
+        self._switch_run()
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
         frame = self._next_target(request, self._clip_frames(session, request), self._clock())
         if frame is None:
@@ -498,7 +523,7 @@ class NeuralRenderer:
         self.render_time.observe(time.perf_counter() - start)
         return NeuralResult(layers.astype("float16"), depth, nf.output_size, nf.render_size, nf.quality, frame,
                             nf.timings, nf.cached_frame, self._ground_truth(session, request, frame), nf.preset,
-                            dict(nf.counts), body, origin, request.view_key)
+                            dict(nf.counts), body, origin, request.view_key, getattr(self.run, "step", None))
 
     def _precompute(self) -> bool:
         """Idle work: the next frame of the clip nearest to the playhead (see
@@ -507,6 +532,7 @@ class NeuralRenderer:
         last = self._last_request
         if last is not None and last.playhead is not None and last.playhead.playing:
             return False
+        self._switch_run()
         session = self._thread_session.current
         return session is not None and session.precompute_next() is not None
 
