@@ -249,27 +249,33 @@ class NeuralView:
                None if playing else frame, self.motion, self._clip_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
-        request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead,
-                                self.weights_step)
+        # the still request (the level's quality) is the one rendered ahead and kept; a moving view's
+        # coarser one is shown and forgotten. A scrub onto a rendered frame asks for nothing coarser.
+        still = NeuralRequest(frame, cam, self.quality.full, self.motion, gt, self.quality.preset, self.composition,
+                              playhead, self.weights_step)
+        request = still
+        if q != self.quality.full and (playing or self.renderer.finished.get(still.view_key, frame) is None):
+            request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead,
+                                    self.weights_step, keep=False)
         request_key = (request.view_key, self._clip_serial, None if playing else frame, playing)
         drifted = playing and (self._sent_clock is None or self._sent_clock.drifted(playhead))
         if request_key != self._last_request or drifted:
             self._last_request, self._sent_clock = request_key, playhead
             self.renderer.request(request)
-        self._choose_shown(request.view_key, frame, playhead, playback_meter if playing else None)
+        self._choose_shown(still.view_key, request.view_key, frame, playhead, playback_meter if playing else None)
 
-    def _choose_shown(self, view_key, frame: int, playhead, playback_meter) -> None:
-        """Show the finished frame of this view at ``frame`` if the render-ahead cache has it, else
-        the newest result unless it lies ahead of the playhead (rendered ahead, shown when the
-        playhead reaches it)."""
-        cached = self.renderer.finished.get(view_key, frame)
+    def _choose_shown(self, still_key, request_key, frame: int, playhead, playback_meter) -> None:
+        """Show the finished frame of the still view at ``frame`` if the render-ahead cache has it,
+        else the newest result unless it is of this view and lies ahead of the playhead (rendered
+        ahead: shown when the playhead reaches it)."""
+        cached = self.renderer.finished.get(still_key, frame)
         if cached is not None:
             self._show(cached, playback_meter)
             return
         newest = self._newest
         if newest is None or newest is self.shown:
             return
-        if playhead is not None and newest.view_key == view_key:
+        if playhead is not None and newest.view_key in (still_key, request_key):
             from garmentnerf.viewer.playback import show_newest
 
             if not show_newest(newest.frame, frame, playhead.n_frames, playhead.loop):

@@ -252,7 +252,10 @@ class NeuralRequest:
     camera whose ground truth to load (or None). ``playhead``: the timeline's
     :class:`~garmentnerf.viewer.playback.PlayheadClock` (None: render ``frame`` once, nothing ahead);
     with it the worker renders the frame the playhead will be at when the render ends, then the
-    frames ahead of it (render-ahead, see :class:`NeuralRenderer`)."""
+    frames ahead of it (render-ahead, see :class:`NeuralRenderer`). ``weights_step``: the training
+    step of the weights to render with (part of the view). ``keep``: the render-ahead cache switches
+    to this view and keeps its frames (False: a moving view's coarse request, shown once and
+    forgotten, nothing rendered ahead)."""
 
     frame: int
     camera: Any
@@ -263,6 +266,7 @@ class NeuralRequest:
     composition: str = "auto"
     playhead: PlayheadClock | None = None
     weights_step: int | None = None
+    keep: bool = True
 
     @functools.cached_property
     def view_key(self) -> tuple:
@@ -375,9 +379,11 @@ class NeuralRenderer:
         return self._thread_session.current
 
     def request(self, request: NeuralRequest) -> int:
-        """Ask for ``request``; the render-ahead cache switches to its view (dropping another view's frames)."""
+        """Ask for ``request``; the render-ahead cache switches to its view (dropping another view's
+        frames) unless the request is not to be kept (a moving view)."""
         if request is not _CLOSE:
-            self.finished.set_view(request.view_key)
+            if request.keep:
+                self.finished.set_view(request.view_key)
             self._last_request = request
         return self.worker.request(request)
 
@@ -427,7 +433,7 @@ class NeuralRenderer:
             frame = min(max(0, int(request.frame if clock is None else clock.frame)), n_frames - 1)
             if frame not in done:
                 return frame
-            if clock is None or not self.render_ahead:
+            if clock is None or not self.render_ahead or not request.keep:
                 return None
             ahead = next_unrendered(frame, done, n_frames, clock.loop)
             return ahead if ahead is not None and self.finished.worth_rendering(ahead, frame, n_frames) else None
@@ -440,8 +446,8 @@ class NeuralRenderer:
         if target == predicted:
             return target
         playhead_frame = frame_of(head, n_frames, clock.loop)
-        wanted = self.every_frame or (self.render_ahead and self.finished.worth_rendering(target, playhead_frame,
-                                                                                           n_frames))
+        wanted = request.keep and (self.every_frame or (self.render_ahead and self.finished.worth_rendering(
+            target, playhead_frame, n_frames)))
         return target if wanted else None
 
     @staticmethod

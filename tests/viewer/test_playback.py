@@ -392,3 +392,40 @@ def test_the_newest_frame_is_shown_unless_it_lies_ahead():
     assert not show_newest(7, 5, 10, loop=True)  # rendered ahead: waits for the playhead
     assert show_newest(1, 5, 10, loop=True)      # 6 frames "ahead" of a 10-frame loop: behind it really
     assert not show_newest(9, 5, 10, loop=False) and show_newest(1, 5, 10, loop=False)
+
+
+def test_scrubbing_over_rendered_frames_with_dynamic_quality_keeps_them(gl_context, untrained_run, counted_renders):
+    """With the quality coarser while the view changes (the default), a scrub is a changing view; a
+    scrub onto rendered frames shows them and asks for nothing coarser, so the rendered clip stays;
+    one onto a frame not rendered shows a coarse render first and keeps the level's one."""
+    from garmentnerf.conventions import orbit_camera
+
+    scene, view = _neural_view(gl_context, untrained_run)
+    view.quality.dynamic = True
+    renderer = view.renderer
+    try:
+        timeline = Timeline(num_frames=3, fps=30.0, playing=False)
+        camera = orbit_camera(0.0, 5.0, 3.0, width=64, height=48)
+        _settle(view, camera, timeline)
+        key, calls, invalidations = renderer.finished.view, len(counted_renders), renderer.finished.invalidations
+        assert renderer.finished.frames(key) == {0, 1, 2} and key[1] == view.quality.full
+        for f in (2, 1, 0, 2, 1):
+            timeline.set_frame(f)
+            view.update(camera, timeline)
+            assert view.shown_frame == f and view.shown.quality == view.quality.full
+            assert view.quality.moving(time.perf_counter())  # a scrub is a changing view ...
+        _settle(view, camera, timeline)
+        assert len(counted_renders) == calls  # ... but no model call, and the rendered clip stays
+        assert renderer.finished.invalidations == invalidations and renderer.finished.frames(key) == {0, 1, 2}
+        # as if the bound had dropped them (the newest result, frame 2, stays on hand): a scrub onto
+        # frame 0 renders it, then the clip again
+        assert view.shown_frame == 1
+        renderer.finished.clear()
+        timeline.set_frame(0)
+        _settle(view, camera, timeline)
+        assert counted_renders[calls] == 0 and set(counted_renders[calls:]) == {0, 1, 2}, counted_renders[calls:]
+        assert renderer.finished.invalidations == invalidations and renderer.finished.frames(key) == {0, 1, 2}
+        assert view.shown_frame == 0 and view.shown.quality == view.quality.full
+    finally:
+        view.stop()
+        scene.release()
