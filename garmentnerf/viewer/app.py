@@ -235,6 +235,7 @@ class App(Closeable):
         scene_start = self.clock()
         self._draw_scene()
         scene_time = self.clock() - scene_start
+        self._advance_every_frame(advance, dt)
         self.window.draw_ui()
         image = read_image(self.window.ctx.screen, *self.window.framebuffer_size) if capture else None
         work = self.clock() - start
@@ -254,19 +255,25 @@ class App(Closeable):
         return self.fixed_dt if self.fixed_dt is not None else min(MAX_STEP_SECONDS, max(0.0, now - last))
 
     def _advance(self, advance: bool, dt: float, now: float) -> None:
-        """Move the timeline on by ``dt`` (not while scrubbing) and count the frames playback shows.
-        With :attr:`play_every_frame` the timeline waits on a frame until the neural image of the
-        next one is finished (one frame at most per UI frame)."""
-        if advance and not self.scrubbing:
-            hold = None
-            if self.play_every_frame and self.timeline.playing:
-                nxt = (self.timeline.frame + 1) % self.timeline.num_frames
-                hold = 1 if self.neural_view.frame_ready(nxt) else 0
-            self.timeline.advance(dt, max_frames=hold)
+        """Move the timeline on by ``dt`` (not while scrubbing; with :attr:`play_every_frame` after
+        the scene is drawn, :meth:`_advance_every_frame`) and count the frames playback shows."""
+        if advance and not self.scrubbing and not self.play_every_frame:
+            self.timeline.advance(dt)
         if self.timeline.playing:
             self.playback_meter.frame_shown(self.timeline.frame, now)
         else:
             self.playback_meter.reset()
+
+    def _advance_every_frame(self, advance: bool, dt: float) -> None:
+        """Play every frame: after the neural view chose this UI frame's image, move on by at most
+        one frame, and only once the image shown is the timeline's frame and the next one's is
+        finished (the next UI frame shows it); otherwise wait on this frame."""
+        if not (advance and self.play_every_frame and self.timeline.playing) or self.scrubbing:
+            return
+        tl, view = self.timeline, self.neural_view
+        nxt = (tl.frame + 1) % tl.num_frames
+        caught_up = view.renderer is None or view.mode == "body" or view.shown_frame == tl.frame
+        tl.advance(dt, max_frames=1 if caught_up and view.frame_ready(nxt) else 0)
 
     def _receive_background_work(self) -> None:
         """A motion posed in the background is shown; an export that ended is reported."""

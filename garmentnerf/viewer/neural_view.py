@@ -75,6 +75,7 @@ class NeuralView:
         self._newest = None                             # the newest result delivered
         self._last_request = None
         self._sent_clock = None                         # the PlayheadClock of the last request
+        self._keys = None                               # (still, requested) view keys of the last update
         self._clip_serial = 0
         if run is not None:
             self._start()
@@ -262,23 +263,26 @@ class NeuralView:
         if request_key != self._last_request or drifted:
             self._last_request, self._sent_clock = request_key, playhead
             self.renderer.request(request)
+        self._keys = (still.view_key, request.view_key)
         self._choose_shown(still.view_key, request.view_key, frame, playhead, playback_meter if playing else None)
 
     def _choose_shown(self, still_key, request_key, frame: int, playhead, playback_meter) -> None:
         """Show the finished frame of the still view at ``frame`` if the render-ahead cache has it,
-        else the newest result unless it is of this view and lies ahead of the playhead (rendered
-        ahead: shown when the playhead reaches it)."""
+        else the newest result unless it was rendered ahead of another frame (its own frame is
+        shown from the cache) or lies ahead of the playhead (predicted: shown when the playhead
+        reaches it)."""
         cached = self.renderer.finished.get(still_key, frame)
         if cached is not None:
             self._show(cached, playback_meter)
             return
         newest = self._newest
-        if newest is None or newest is self.shown:
+        if newest is None or newest is self.shown or (newest.ahead and newest.frame != frame):
             return
-        if playhead is not None and newest.view_key in (still_key, request_key):
+        if playhead is not None:
             from garmentnerf.viewer.playback import show_newest
 
-            if not show_newest(newest.frame, frame, playhead.n_frames, playhead.loop):
+            # paused, "ahead" is later in the clip (a frame rendered ahead is never shown early)
+            if not show_newest(newest.frame, frame, playhead.n_frames, playhead.loop and playhead.playing):
                 return
         self._show(newest, playback_meter)
 
@@ -288,13 +292,14 @@ class NeuralView:
         return None if self.shown is None else self.shown.frame
 
     def frame_ready(self, frame: int) -> bool:
-        """Whether the image of ``frame`` for the current view is finished (play every frame waits for it)."""
-        if self.renderer is None or self.mode == "body":
+        """Whether the image of ``frame`` for the view last requested is finished (play every frame
+        waits for it): rendered ahead for the still view, or the newest result of that view."""
+        if self.renderer is None or self.mode == "body" or self._keys is None:
             return True
-        view = self.renderer.finished.view
+        still_key, request_key = self._keys
         newest = self._newest
-        return (self.renderer.finished.get(view, frame) is not None
-                or (newest is not None and newest.view_key == view and newest.frame == frame))
+        return (self.renderer.finished.get(still_key, frame) is not None
+                or (newest is not None and newest.view_key in (still_key, request_key) and newest.frame == frame))
 
     def busy(self) -> bool:
         """Whether the worker renders a request, a result waits to be drained, or the view is still

@@ -295,7 +295,8 @@ class NeuralResult:
         body: the posed body the palette layer draws under the garment
             (:class:`~garmentnerf.viewer.palette_layer.BodyView`; the ``raster_body`` composition), or None.
         view_key: the request's :attr:`NeuralRequest.view_key`; weights_step: the training step of
-            the weights it was rendered with.
+            the weights it was rendered with; ahead: rendered ahead of the frame the request wanted
+            (shown only from the render-ahead cache, when the playhead gets there).
     """
 
     layers: Any
@@ -313,6 +314,7 @@ class NeuralResult:
     origin: tuple[int, int] = (0, 0)
     view_key: Any = None
     weights_step: int | None = None
+    ahead: bool = False
 
 
 class NeuralRenderer:
@@ -422,8 +424,10 @@ class NeuralRenderer:
         self.worker.wake_idle()
 
     # ---- which frame (worker thread) ------------------------------------------------------------------
-    def _next_target(self, request: NeuralRequest, n_frames: int, now: float) -> int | None:
-        """The frame to render next for ``request`` (see the class docstring), or None."""
+    def _next_target(self, request: NeuralRequest, n_frames: int, now: float) -> tuple[int, bool] | None:
+        """(frame, ahead) to render next for ``request`` (see the class docstring), or None:
+        ``ahead`` False for the frame the request itself wants (paused: its frame; playing: the
+        predicted one), True for a frame rendered ahead of it."""
         key = request.view_key
         done = self.finished.frames(key)
         if self._last_done is not None and self._last_done[0] == key:
@@ -432,11 +436,12 @@ class NeuralRenderer:
         if clock is None or not clock.playing:
             frame = min(max(0, int(request.frame if clock is None else clock.frame)), n_frames - 1)
             if frame not in done:
-                return frame
+                return frame, False
             if clock is None or not self.render_ahead or not request.keep:
                 return None
             ahead = next_unrendered(frame, done, n_frames, clock.loop)
-            return ahead if ahead is not None and self.finished.worth_rendering(ahead, frame, n_frames) else None
+            worth = ahead is not None and self.finished.worth_rendering(ahead, frame, n_frames)
+            return (ahead, True) if worth else None
         head = clock.position_at(now)
         render_s = 0.0 if self.every_frame else self.render_time.seconds
         predicted = predict_target_frame(head, clock.fps, render_s, n_frames, clock.loop)
@@ -444,11 +449,11 @@ class NeuralRenderer:
         if target is None:
             return None
         if target == predicted:
-            return target
+            return target, False
         playhead_frame = frame_of(head, n_frames, clock.loop)
         wanted = request.keep and (self.every_frame or (self.render_ahead and self.finished.worth_rendering(
             target, playhead_frame, n_frames)))
-        return target if wanted else None
+        return (target, True) if wanted else None
 
     @staticmethod
     def _clip_frames(session, request: NeuralRequest) -> int:
@@ -508,9 +513,10 @@ class NeuralRenderer:
 
         self._switch_run()
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
-        frame = self._next_target(request, self._clip_frames(session, request), self._clock())
-        if frame is None:
+        target = self._next_target(request, self._clip_frames(session, request), self._clock())
+        if target is None:
             return NOTHING
+        frame, ahead = target
         self._target = (request.view_key, frame)
         session.frames.set_playhead(frame)
         session.set_composition(request.composition)
@@ -529,7 +535,7 @@ class NeuralRenderer:
         self.render_time.observe(time.perf_counter() - start)
         return NeuralResult(layers.astype("float16"), depth, nf.output_size, nf.render_size, nf.quality, frame,
                             nf.timings, nf.cached_frame, self._ground_truth(session, request, frame), nf.preset,
-                            dict(nf.counts), body, origin, request.view_key, getattr(self.run, "step", None))
+                            dict(nf.counts), body, origin, request.view_key, getattr(self.run, "step", None), ahead)
 
     def _precompute(self) -> bool:
         """Idle work: the next frame of the clip nearest to the playhead (see

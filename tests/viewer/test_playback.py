@@ -429,3 +429,46 @@ def test_scrubbing_over_rendered_frames_with_dynamic_quality_keeps_them(gl_conte
     finally:
         view.stop()
         scene.release()
+
+
+# ==== the window (Xvfb) ======================================================================================
+def test_window_render_bar_and_play_every_frame(xvfb, untrained_run, tmp_path):
+    """The timeline bar shows the rendered-ahead frames in their own colour across the slider; with
+    "play every frame" playback never skips a frame: it waits on a frame until the next one's image
+    is finished (after an orbit nothing is), then shows each in step with the timeline."""
+    from garmentnerf.viewer.app import App
+    from garmentnerf.viewer.panels import RENDERED_COLOR
+
+    with App(motion=None, run=untrained_run, size=(480, 320), samples=0, vsync=False, playing=False,
+             snapshot_dir=tmp_path) as viewer:
+        view, tl = viewer.neural_view, viewer.timeline
+        assert viewer.wait_for_neural(180), view.error()
+        viewer.run_until(view.settled, 180)
+        viewer.step()
+        assert view.renderer.finished.frames(view.renderer.finished.view) == set(range(tl.num_frames))
+        image = viewer.read_framebuffer().astype(int)
+        blue = (np.abs(image - np.array(RENDERED_COLOR[:3]) * 255).max(-1) <= 3)
+        rows, cols = np.nonzero(blue[-60:])
+        assert len(cols) > 0 and cols.max() - cols.min() > 0.8 * 480, (len(cols), cols.min(), cols.max())
+        # play every frame after an orbit: the new view has nothing rendered, the timeline waits
+        viewer.set_play_every_frame(True)
+        viewer.fixed_dt = 2.0 / tl.fps  # two motion frames per UI frame: playing normally would skip one
+        viewer.controller.orbit(40.0, 0.0)
+        start = tl.frame
+        tl.play()
+        visited, waits = [start], 0
+        deadline = time.monotonic() + 180
+        while len(visited) < 7 and time.monotonic() < deadline:
+            drawn = tl.frame
+            viewer.step()
+            assert view.shown_frame == drawn  # the image of the frame the timeline showed
+            if tl.frame == visited[-1]:
+                waits += 1
+            else:
+                assert tl.frame == (visited[-1] + 1) % tl.num_frames, (visited, tl.frame)  # never a skip
+                visited.append(tl.frame)
+            time.sleep(0.005)
+        assert len(visited) == 7 and waits > 0 and view.renderer.stats.errors == 0, (visited, waits)
+        tl.pause()
+        viewer.fixed_dt = None
+        viewer.set_play_every_frame(False)
