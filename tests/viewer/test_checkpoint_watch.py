@@ -134,6 +134,35 @@ def test_the_neural_view_shows_the_new_checkpoint(gl_context, run_copy):
         np.testing.assert_allclose(view.learned_palette, view.run.palette().numpy())
         np.testing.assert_allclose(view.palette, view.learned_palette)  # unedited: follows the learned one
         assert np.abs(scene.render_image(camera, samples=0).astype(int) - old_image).max() > 10
+        assert view.run.model is not run.model and run.step == 0  # the first model was not written to
     finally:
         view.stop()
         scene.release()
+
+
+def test_the_window_watches_the_run_and_snapshots_use_the_new_checkpoint(xvfb, run_copy, tmp_path):
+    """``garmentnerf view --run RUN`` (App(watch=True)): a checkpoint landing while the window runs
+    is shown without restarting it, the overlay's figures name its step, and a snapshot taken
+    afterwards renders with it (the export thread switches to the new weights)."""
+    from PIL import Image
+
+    from garmentnerf.viewer.app import App
+
+    run = run_copy
+    with App(motion=None, run=run, size=(320, 240), samples=0, vsync=False, playing=False,
+             snapshot_dir=tmp_path / "shots", watch=True) as viewer:
+        view = viewer.neural_view
+        view.watcher.poll_seconds = 0.05
+        assert viewer.wait_for_neural(180), view.error()
+        before = np.asarray(Image.open(viewer.snapshot(96, 72)).convert("RGB")).astype(int)
+        assert viewer.exports.exporter.run is run
+        _write_checkpoint(run.root, _trained_further(run, seed=3), 12)
+        assert viewer.run_until(lambda: view.weights_step == 12, 60)
+        assert "step 12" in viewer.status.message()
+        viewer.run_until(view.settled, 180)
+        viewer.step()
+        stats = viewer.stats()["neural"]
+        assert stats["weights_step"] == stats["shown_step"] == 12 and stats["errors"] == 0
+        after = np.asarray(Image.open(viewer.snapshot(96, 72)).convert("RGB")).astype(int)
+        assert viewer.exports.exporter.run is view.run and view.run.step == 12
+        assert np.abs(after - before).max() > 10
