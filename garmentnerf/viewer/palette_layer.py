@@ -73,16 +73,28 @@ def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, ma
     return out
 
 
+def empty_texels(layers: int) -> np.ndarray:
+    """(L, 4) float32: what the layers of :func:`pack_maps` hold where the maps are empty
+    (:meth:`~garmentnerf.model.palette.DecomposedMaps.placed`: mask, radiance and offsets 0, the
+    ``P = L - 2`` blend weights uniform)."""
+    P = layers - 2
+    out = np.zeros((layers, 4), np.float32)
+    out[1, :P] = np.float32(1.0) / np.float32(P)
+    return out
+
+
 def crop_to_content(layers: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Maps packed by :func:`pack_maps` and their depth, cut to the smallest rectangle outside which
-    both are exactly 0 (the character's rectangle of a culled preset: everything else is empty).
+    the maps are empty (:func:`empty_texels`) and the depth 0: the character's rectangle of a culled
+    preset (everything else is empty).
 
     Returns:
         (layers (2 + P, h', w', 4), depth (h', w'), (x0, y0)): copies of the rectangle and its top-left
-        pixel; a 1 x 1 rectangle at (0, 0) when everything is 0. :meth:`PaletteLayer.submit` with
+        pixel; a 1 x 1 rectangle at (0, 0) when everything is empty. :meth:`PaletteLayer.submit` with
         ``origin=(x0, y0)`` and the full size shows exactly what the uncut maps show.
     """
-    filled = np.any(layers != 0, axis=(0, 3)) | (depth != 0)
+    empty = empty_texels(layers.shape[0])[:, None, None, :]
+    filled = np.any(layers != empty, axis=(0, 3)) | (depth != 0)
     rows, cols = np.flatnonzero(filled.any(axis=1)), np.flatnonzero(filled.any(axis=0))
     if rows.size == 0:
         return layers[:, :1, :1].copy(), depth[:1, :1].copy(), (0, 0)
@@ -196,7 +208,7 @@ class PaletteLayer:
         self._body_tex: moderngl.Texture | None = None  # the pass's texture of the shown body
         self._body_key: tuple | None = None   # (BodyView, size) the texture holds
         self.uploads = 0
-        self._filled: tuple[int, int, int, int] | None = None  # (x, y, w, h) of the textures possibly not 0
+        self._filled: tuple[int, int, int, int] | None = None  # (x, y, w, h) of the textures possibly not empty
         self._lock = threading.Lock()
         self._pending: _PaletteMaps | None = None
         self._pending_gt: np.ndarray | None = None
@@ -241,7 +253,7 @@ class PaletteLayer:
         with their depth (h, w) and the output size (W, H); ``body``: the result's body, drawn under
         the garment (needs :meth:`set_body_model`). A rectangle cut by :func:`crop_to_content` is
         passed with its ``origin`` (x0, y0) in the full maps of ``map_size`` (w, h): only it is
-        uploaded (the rest of the textures is cleared to 0)."""
+        uploaded (the rest of the textures is set to :func:`empty_texels`)."""
         layers = np.ascontiguousarray(layers)
         if layers.dtype not in (np.float16, np.float32):
             layers = layers.astype(np.float32)
@@ -305,8 +317,9 @@ class PaletteLayer:
         rect = (*item.origin, w, h)
         old = self._filled
         if old is not None and (old[0] < rect[0] or old[1] < rect[1] or old[0] + old[2] > rect[0] + w
-                                or old[1] + old[3] > rect[1] + h):  # what the new maps do not cover: 0
-            self.maps_tex.write(np.zeros((L, old[3], old[2], 4), np.float32), viewport=(old[0], old[1], 0, old[2], old[3], L))
+                                or old[1] + old[3] > rect[1] + h):  # what the new maps do not cover: empty
+            fill = np.ascontiguousarray(np.broadcast_to(empty_texels(L)[:, None, None, :], (L, old[3], old[2], 4)))
+            self.maps_tex.write(fill, viewport=(old[0], old[1], 0, old[2], old[3], L))
             self.depth_tex.write(np.zeros((old[3], old[2]), np.float32), viewport=old)
         self.maps_tex.write(np.ascontiguousarray(item.layers, dtype=np.float32), viewport=(*item.origin, 0, w, h, L))
         self.depth_tex.write(item.depth, viewport=rect)

@@ -174,6 +174,7 @@ def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_c
 
     def maps(y0, y1, x0, x1):
         layers = np.zeros((4, H, W, 4), np.float32)
+        layers[1, ..., :2] = 0.5  # empty maps: uniform blend weights (DecomposedMaps.placed)
         depth = np.zeros((H, W), np.float32)
         layers[:, y0:y1, x0:x1] = rng.uniform(0.1, 1.0, (4, y1 - y0, x1 - x0, 4))
         depth[y0:y1, x0:x1] = 3.0
@@ -192,7 +193,8 @@ def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_c
             np.testing.assert_allclose(got, layers.astype(np.float16).astype(np.float32), rtol=0, atol=0)
             got_depth = np.frombuffer(layer.depth_tex.read(), np.float32).reshape(H, W)
             np.testing.assert_array_equal(got_depth, depth)
-        empty = crop_to_content(np.zeros((4, H, W, 4), np.float32), np.zeros((H, W), np.float32))
+        blank, _ = maps(0, 0, 0, 0)
+        empty = crop_to_content(blank, np.zeros((H, W), np.float32))
         assert empty[0].shape == (4, 1, 1, 4) and empty[2] == (0, 0)
         with pytest.raises(ValueError, match="does not fit"):
             layer.submit(cut, cut_depth, (W, H), origin=(W, 0), map_size=(W, H))
