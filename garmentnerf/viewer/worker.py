@@ -442,7 +442,7 @@ class NeuralRenderer:
             ahead = next_unrendered(frame, done, n_frames, clock.loop)
             worth = ahead is not None and self.finished.worth_rendering(ahead, frame, n_frames)
             return (ahead, True) if worth else None
-        head = clock.position_at(now)
+        head = self._playhead_position(clock, now)
         render_s = 0.0 if self.every_frame else self.render_time.seconds
         predicted = predict_target_frame(head, clock.fps, render_s, n_frames, clock.loop)
         target = next_unrendered(predicted, done, n_frames, clock.loop)
@@ -454,6 +454,11 @@ class NeuralRenderer:
         wanted = request.keep and (self.every_frame or (self.render_ahead and self.finished.worth_rendering(
             target, playhead_frame, n_frames)))
         return (target, True) if wanted else None
+
+    def _playhead_position(self, clock: PlayheadClock, now: float) -> float:
+        """Where the playhead is now: extrapolated at the clock's rate, or, playing every frame (the
+        timeline waits for each image), where the clock was sent."""
+        return clock.position if self.every_frame else clock.position_at(now)
 
     @staticmethod
     def _clip_frames(session, request: NeuralRequest) -> int:
@@ -482,8 +487,8 @@ class NeuralRenderer:
         same = newest.view_key == key
         if clock is None:
             return render_superseded(frame, same, newest.frame, 0.0, 0.0, max(frame, newest.frame) + 1, False)
-        return render_superseded(frame, same, clock.frame_at(self._clock()), clock.fps, self.render_time.seconds,
-                                 clock.n_frames, clock.loop)
+        head = frame_of(self._playhead_position(clock, self._clock()), clock.n_frames, clock.loop)
+        return render_superseded(frame, same, head, clock.fps, self.render_time.seconds, clock.n_frames, clock.loop)
 
     # ---- rendering (worker thread) --------------------------------------------------------------------
     def _ground_truth(self, session, request: NeuralRequest, frame: int):
@@ -577,7 +582,8 @@ class NeuralRenderer:
         session = self._thread_session.current
         n = self._clip_frames(session, request) if session is not None else result.frame + 1
         clock = request.playhead
-        playhead = clock.frame_at(self._clock()) if clock is not None else result.frame
+        playhead = (frame_of(self._playhead_position(clock, self._clock()), clock.n_frames, clock.loop)
+                    if clock is not None else result.frame)
         self.finished.put(result.view_key, result.frame, result, playhead, n)
         self._last_done = (result.view_key, result.frame)
         self.last = result

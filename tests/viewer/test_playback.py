@@ -167,6 +167,7 @@ def test_finished_frames_hold_one_view():
 
 # ==== the palette layer's partial upload ==================================================================
 def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_context):
+    from garmentnerf.gl.context import make_current
     from garmentnerf.viewer.palette_layer import PaletteLayer, crop_to_content
 
     rng = np.random.default_rng(0)
@@ -180,6 +181,7 @@ def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_c
         depth[y0:y1, x0:x1] = 3.0
         return layers, depth
 
+    make_current(gl_context)  # a window test may have left its own context current
     layer = PaletteLayer(gl_context)
     try:
         for box in ((2, 20, 3, 12), (10, 14, 20, 30), (0, 24, 0, 32), (5, 6, 5, 6)):
