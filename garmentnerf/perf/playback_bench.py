@@ -60,6 +60,8 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
     camera = orbit_view(25.0, width=size[0], height=size[1], radius=3.6)
     scene = SceneRenderer(gl_context, samples=0)
     scene.palette_layer.set_palette(run.palette().detach().cpu().numpy())
+    if getattr(run, "body_appearance", None) is not None:  # the window draws the body layer itself
+        scene.palette_layer.set_body_model(run.model.body, run.body_appearance)
     rows: dict[str, dict] = {}
     total_started = total_renders = 0
     n = fps = None

@@ -83,6 +83,29 @@ def empty_texels(layers: int) -> np.ndarray:
     return out
 
 
+def uncovered(old: tuple[int, int, int, int] | None, new: tuple[int, int, int, int]) -> list[tuple[int, int, int, int]]:
+    """The parts of rectangle ``old`` (x, y, w, h) outside rectangle ``new``: at most four
+    rectangles (the rows above and below ``new``, then the columns beside it), none when ``old``
+    is None or inside ``new``."""
+    if old is None:
+        return []
+    ox0, oy0, ox1, oy1 = old[0], old[1], old[0] + old[2], old[1] + old[3]
+    nx0, ny0, nx1, ny1 = new[0], new[1], new[0] + new[2], new[1] + new[3]
+    parts = []
+    top, bottom = min(oy1, max(oy0, ny0)), max(oy0, min(oy1, ny1))  # old's rows beside new: [top, bottom)
+    if top > oy0:
+        parts.append((ox0, oy0, ox1 - ox0, top - oy0))
+    if oy1 > bottom:
+        parts.append((ox0, bottom, ox1 - ox0, oy1 - bottom))
+    if bottom > top:
+        left, right = min(ox1, max(ox0, nx0)), max(ox0, min(ox1, nx1))
+        if left > ox0:
+            parts.append((ox0, top, left - ox0, bottom - top))
+        if ox1 > right:
+            parts.append((right, top, ox1 - right, bottom - top))
+    return [p for p in parts if p[2] > 0 and p[3] > 0]
+
+
 def crop_to_content(layers: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Maps packed by :func:`pack_maps` and their depth, cut to the smallest rectangle outside which
     the maps are empty (:func:`empty_texels`) and the depth 0: the character's rectangle of a culled
@@ -249,7 +272,7 @@ class PaletteLayer:
     def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None,
                body: BodyView | None = None, origin: tuple[int, int] = (0, 0),
                map_size: tuple[int, int] | None = None) -> None:
-        """Queue maps packed by :func:`pack_maps` (float32, or float16: converted at the upload)
+        """Queue maps packed by :func:`pack_maps` (float32, or float16: uploaded to half-float textures)
         with their depth (h, w) and the output size (W, H); ``body``: the result's body, drawn under
         the garment (needs :meth:`set_body_model`). A rectangle cut by :func:`crop_to_content` is
         passed with its ``origin`` (x0, y0) in the full maps of ``map_size`` (w, h): only it is
@@ -307,21 +330,21 @@ class PaletteLayer:
             return
         L, h, w, _ = item.layers.shape
         W, H = item.map_size
-        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers) != (W, H, L):
+        dtype = "f2" if item.layers.dtype == np.float16 else "f4"
+        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers,
+                                     self.maps_tex.dtype) != (W, H, L, dtype):
             self._release_maps()
-            self.maps_tex = self.ctx.texture_array((W, H, L), 4, dtype="f4")
+            self.maps_tex = self.ctx.texture_array((W, H, L), 4, dtype=dtype)
             self.maps_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             self.maps_tex.repeat_x = self.maps_tex.repeat_y = False
             self.depth_tex = _texture(self.ctx, (W, H), 1, "f4", moderngl.NEAREST)
             self._filled = (0, 0, W, H)  # new textures: contents undefined
         rect = (*item.origin, w, h)
-        old = self._filled
-        if old is not None and (old[0] < rect[0] or old[1] < rect[1] or old[0] + old[2] > rect[0] + w
-                                or old[1] + old[3] > rect[1] + h):  # what the new maps do not cover: empty
-            fill = np.ascontiguousarray(np.broadcast_to(empty_texels(L)[:, None, None, :], (L, old[3], old[2], 4)))
-            self.maps_tex.write(fill, viewport=(old[0], old[1], 0, old[2], old[3], L))
-            self.depth_tex.write(np.zeros((old[3], old[2]), np.float32), viewport=old)
-        self.maps_tex.write(np.ascontiguousarray(item.layers, dtype=np.float32), viewport=(*item.origin, 0, w, h, L))
+        empty = empty_texels(L).astype(item.layers.dtype)[:, None, None, :]
+        for x, y, sw, sh in uncovered(self._filled, rect):  # what the new maps do not cover: empty
+            self.maps_tex.write(np.ascontiguousarray(np.broadcast_to(empty, (L, sh, sw, 4))), viewport=(x, y, 0, sw, sh, L))
+            self.depth_tex.write(np.zeros((sh, sw), np.float32), viewport=(x, y, sw, sh))
+        self.maps_tex.write(item.layers, viewport=(*item.origin, 0, w, h, L))
         self.depth_tex.write(item.depth, viewport=rect)
         self._filled = rect
         self.image_size = item.image_size

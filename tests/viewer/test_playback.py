@@ -190,7 +190,8 @@ def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_c
             assert origin == (box[2], box[0]) and cut.shape == (4, box[1] - box[0], box[3] - box[2], 4)
             layer.submit(cut.astype(np.float16), cut_depth, (W, H), origin=origin, map_size=(W, H))
             layer.prepare()
-            got = np.frombuffer(layer.maps_tex.read(), np.float32).reshape(4, H, W, 4)
+            assert layer.maps_tex.dtype == "f2"  # half floats are uploaded as they are kept
+            got = np.frombuffer(layer.maps_tex.read(), np.float16).reshape(4, H, W, 4).astype(np.float32)
             # what was shown before is gone, the new rectangle is there (float16-rounded)
             np.testing.assert_allclose(got, layers.astype(np.float16).astype(np.float32), rtol=0, atol=0)
             got_depth = np.frombuffer(layer.depth_tex.read(), np.float32).reshape(H, W)
@@ -476,3 +477,21 @@ def test_window_render_bar_and_play_every_frame(xvfb, untrained_run, tmp_path):
         tl.pause()
         viewer.fixed_dt = None
         viewer.set_play_every_frame(False)
+
+
+def test_uncovered_parts_of_a_rectangle_match_a_pixel_mask():
+    from garmentnerf.viewer.palette_layer import uncovered
+
+    rng = np.random.default_rng(3)
+    assert uncovered(None, (0, 0, 4, 4)) == [] and uncovered((1, 1, 2, 2), (0, 0, 4, 4)) == []
+    assert uncovered((0, 0, 4, 4), (1, 1, 2, 2)) == [(0, 0, 4, 1), (0, 3, 4, 1), (0, 1, 1, 2), (3, 1, 1, 2)]
+    for _ in range(500):
+        old = (*rng.integers(0, 12, 2), *rng.integers(1, 10, 2))
+        new = (*rng.integers(0, 12, 2), *rng.integers(1, 10, 2))
+        want = np.zeros((24, 24), bool)
+        want[old[1]:old[1] + old[3], old[0]:old[0] + old[2]] = True
+        want[new[1]:new[1] + new[3], new[0]:new[0] + new[2]] = False
+        got = np.zeros((24, 24), int)
+        for x, y, w, h in uncovered(old, new):
+            got[y:y + h, x:x + w] += 1
+        np.testing.assert_array_equal(got, want.astype(int), err_msg=f"{old} {new}")  # exactly once each
