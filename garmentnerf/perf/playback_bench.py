@@ -149,6 +149,7 @@ def _play_rendered(renderer, key, n: int, fps: float, scene, camera, submit_resu
         submit_result(scene.palette_layer, result)
         scale.view_changed(i, start)
         drawn_scale = scale.scale(start)
+        scene.palette_layer.moving = drawn_scale < 1.0  # as the window does
         drawn = camera if drawn_scale == 1.0 else camera.resized(max(1, round(camera.width * drawn_scale)),
                                                                  max(1, round(camera.height * drawn_scale)))
         draw_start = time.perf_counter()

@@ -296,6 +296,7 @@ class App(Closeable):
         now = self.clock()
         self.scene_scale.view_changed((state_token((camera.K, camera.R, camera.t)), self.timeline.frame), now)
         scale = self.scene_draw_scale = self.scene_scale.scale(now)
+        self.scene.palette_layer.moving = scale < 1.0
         drawn = camera if scale == 1.0 else camera.resized(max(1, round(rw * scale)), max(1, round(rh * scale)))
         target = self.scene.window_target(drawn.width, drawn.height)
         side_by_side = self.neural_view.mode == "side_by_side"

@@ -26,6 +26,7 @@ import numpy as np
 
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.shaders import build_program
+from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
 from garmentnerf.viewer.renderables import PassState, ViewParams
 
 #: View modes of the palette layer (what the neural layer shows).
@@ -199,6 +200,9 @@ class PaletteLayer:
         map_view: what ``maps`` mode shows (:data:`MAP_VIEWS`).
         use_depth: write the network's depth (composite with the rasterised body by depth); off:
             drawn over everything by its mask.
+        moving: the view is changing (the window draws its scene smaller meanwhile): the body layer
+            is drawn without supersampling (a quarter of the fragments: a playing clip shows a new
+            body every frame), and supersampled again once the view is still.
         opaque: compose over :attr:`background` (as compose() does) instead of blending over the scene.
     """
 
@@ -229,7 +233,8 @@ class PaletteLayer:
         self._body_model = None               # (faces, uv, uv_faces, appearance) of set_body_model
         self._body_pass = None                # the BodyLayerPass, made at the first body
         self._body_tex: moderngl.Texture | None = None  # the pass's texture of the shown body
-        self._body_key: tuple | None = None   # (BodyView, size) the texture holds
+        self._body_key: tuple | None = None   # (BodyView, size, supersample) the texture holds
+        self.moving = False                   # the view changes (drawn smaller): the body layer is not supersampled
         self.uploads = 0
         self._filled: tuple[int, int, int, int] | None = None  # (x, y, w, h) of the textures possibly not empty
         self._lock = threading.Lock()
@@ -358,16 +363,18 @@ class PaletteLayer:
         x0, y0, x1, y1 = self._rects(view, self.composition())[0][1]
         size = (max(1, round((x1 - x0) * 0.5 * view.camera.width)),
                 max(1, round((y1 - y0) * 0.5 * view.camera.height)))
-        if self._body_key is not None and self._body_key[0] is self.body and self._body_key[1] == size:
+        supersample = 1 if self.moving else BODY_LAYER_SUPERSAMPLE
+        key = self._body_key
+        if key is not None and key[0] is self.body and key[1:] == (size, supersample):
             return
         if self._body_pass is None:
             self._body_pass = BodyLayerPass(self.ctx, max_sizes=2)
         faces, uv, uv_faces, appearance = self._body_model
         self._body_tex = self._body_pass.draw(self.body.vertices, self.body.normals, faces, uv, uv_faces,
-                                              self.body.camera.resized(*size), appearance)
+                                              self.body.camera.resized(*size), appearance, supersample)
         self._body_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._body_tex.repeat_x = self._body_tex.repeat_y = False
-        self._body_key = (self.body, size)
+        self._body_key = (self.body, size, supersample)
         self.body_draws += 1
 
     def composition(self) -> Composition:

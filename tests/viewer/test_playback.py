@@ -495,3 +495,66 @@ def test_uncovered_parts_of_a_rectangle_match_a_pixel_mask():
         for x, y, w, h in uncovered(old, new):
             got[y:y + h, x:x + w] += 1
         np.testing.assert_array_equal(got, want.astype(int), err_msg=f"{old} {new}")  # exactly once each
+
+
+def test_the_body_layer_is_not_supersampled_while_the_view_moves(gl_context, body, walk_clip):
+    """A playing clip brings a new body every frame: while the view moves the palette layer draws
+    the body layer at one sample per pixel (what a separate pass draws with supersample 1), once
+    still at the usual 2 x 2 again; an unchanged state draws nothing."""
+    import torch
+
+    from garmentnerf.body.surface import vertex_normals
+    from garmentnerf.conventions import orbit_camera
+    from garmentnerf.gl.body_layer_pass import BodyLayerPass
+    from garmentnerf.gl.context import make_current
+    from garmentnerf.model.body_appearance import BodyAppearance
+    from garmentnerf.viewer.palette_layer import BodyView, PaletteLayer, pack_maps
+    from garmentnerf.viewer.renderables import ViewParams
+
+    make_current(gl_context)
+    posed, _ = walk_clip
+    verts = posed.vertices[0].float()
+    normals = vertex_normals(verts[None], torch.as_tensor(np.asarray(body.faces), dtype=torch.long))[0]
+    camera = orbit_camera(0.0, 5.0, 3.0, width=64, height=48)
+    appearance = BodyAppearance(texture_size=8)
+    H, W = 48, 64
+    weights = np.zeros((2, H, W), np.float32)
+    weights[0] = 1.0
+    maps = pack_maps(np.ones((3, H, W), np.float32), np.zeros((2, 3, H, W), np.float32), weights,
+                     np.zeros((H, W), np.float32))
+    layer = PaletteLayer(gl_context)
+    reference = BodyLayerPass(gl_context)
+    try:
+        layer.set_body_model(body, appearance)
+        layer.submit(maps, np.zeros((H, W), np.float32), (W, H),
+                     body=BodyView(verts.numpy(), normals.numpy(), camera))
+        view = ViewParams.of(camera)
+
+        def drawn(supersample):
+            want = reference.draw(verts.numpy(), normals.numpy(), np.asarray(body.faces), np.asarray(body.uv),
+                                  np.asarray(body.uv_faces), camera, appearance, supersample)
+            return np.frombuffer(want.read(), np.float32)
+
+        layer.prepare(view)
+        assert layer.body_draws == 1
+        still = np.frombuffer(layer._body_tex.read(), np.float32)
+        np.testing.assert_array_equal(still, drawn(2))
+        layer.prepare(view)
+        assert layer.body_draws == 1  # nothing changed: not drawn again
+        layer.moving = True
+        layer.prepare(view)
+        assert layer.body_draws == 2
+        moving = np.frombuffer(layer._body_tex.read(), np.float32)
+        np.testing.assert_array_equal(moving, drawn(1))
+        assert np.abs(moving - still).max() > 0  # the edges differ: really one sample per pixel
+        layer.moving = False
+        layer.prepare(view)
+        assert layer.body_draws == 3
+        np.testing.assert_array_equal(np.frombuffer(layer._body_tex.read(), np.float32), drawn(2))
+        layer.submit(maps, np.zeros((H, W), np.float32), (W, H),  # the next frame's body (another result)
+                     body=BodyView(verts.numpy(), normals.numpy(), camera))
+        layer.prepare(view)
+        assert layer.body_draws == 4
+    finally:
+        reference.release()
+        layer.release()
