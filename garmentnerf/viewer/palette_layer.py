@@ -37,6 +37,9 @@ NEEDS_GROUND_TRUTH = ("ground_truth", "difference")
 MAP_VIEWS = ("mask", "weights", "radiance")
 #: Most palette colors the shader handles.
 MAX_PALETTE = 4
+#: The maps' textures grow in steps of this many texels (and never shrink): the maps of a clip's
+#: frames differ in size by a few pixels, and a new texture costs a clear of all of it.
+MAP_CAPACITY_STEP = 64
 
 
 @dataclass(frozen=True)
@@ -227,6 +230,7 @@ class PaletteLayer:
         self.depth_tex: moderngl.Texture | None = None
         self.gt_tex: moderngl.Texture | None = None
         self.image_size: tuple[int, int] | None = None
+        self.map_size: tuple[int, int] | None = None  # (w, h) of the maps shown (the textures may be larger)
         self.tag: object = None
         self.body: BodyView | None = None     # the shown result's body (None: no body layer)
         self.body_draws = 0                   # body layers drawn so far (tests: a still view draws none)
@@ -336,14 +340,18 @@ class PaletteLayer:
         L, h, w, _ = item.layers.shape
         W, H = item.map_size
         dtype = "f2" if item.layers.dtype == np.float16 else "f4"
-        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers,
-                                     self.maps_tex.dtype) != (W, H, L, dtype):
+        tex = self.maps_tex
+        if tex is None or tex.layers != L or tex.dtype != dtype or tex.width < W or tex.height < H:
+            # grown, never shrunk: the maps of a clip's frames differ in size by a few pixels
+            cap = (max(W, tex.width if tex is not None else 0), max(H, tex.height if tex is not None else 0))
+            cap = (-(-cap[0] // MAP_CAPACITY_STEP) * MAP_CAPACITY_STEP, -(-cap[1] // MAP_CAPACITY_STEP) * MAP_CAPACITY_STEP)
             self._release_maps()
-            self.maps_tex = self.ctx.texture_array((W, H, L), 4, dtype=dtype)
+            self.maps_tex = self.ctx.texture_array((*cap, L), 4, dtype=dtype)
             self.maps_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             self.maps_tex.repeat_x = self.maps_tex.repeat_y = False
-            self.depth_tex = _texture(self.ctx, (W, H), 1, "f4", moderngl.NEAREST)
-            self._filled = (0, 0, W, H)  # new textures: contents undefined
+            self.depth_tex = _texture(self.ctx, cap, 1, "f4", moderngl.NEAREST)
+            self._filled = (0, 0, *cap)  # new textures: contents undefined
+        self.map_size = (W, H)
         rect = (*item.origin, w, h)
         empty = empty_texels(L).astype(item.layers.dtype)[:, None, None, :]
         for x, y, sw, sh in uncovered(self._filled, rect):  # what the new maps do not cover: empty
@@ -434,6 +442,9 @@ class PaletteLayer:
         p["u_near"].value = float(view.camera.near)
         p["u_far"].value = float(view.camera.far)
         p["u_rect"].value = tuple(float(v) for v in rect)
+        cw, ch = self.maps_tex.width, self.maps_tex.height
+        p["u_map_extent"].value = (self.map_size[0] / cw, self.map_size[1] / ch)
+        p["u_map_half_texel"].value = (0.5 / cw, 0.5 / ch)
         self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4)
 
     def _release_maps(self) -> None:

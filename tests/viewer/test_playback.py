@@ -190,12 +190,19 @@ def test_a_cut_out_rectangle_uploads_to_the_same_textures_as_the_whole_maps(gl_c
             assert origin == (box[2], box[0]) and cut.shape == (4, box[1] - box[0], box[3] - box[2], 4)
             layer.submit(cut.astype(np.float16), cut_depth, (W, H), origin=origin, map_size=(W, H))
             layer.prepare()
-            assert layer.maps_tex.dtype == "f2"  # half floats are uploaded as they are kept
-            got = np.frombuffer(layer.maps_tex.read(), np.float16).reshape(4, H, W, 4).astype(np.float32)
+            tex = layer.maps_tex
+            assert tex.dtype == "f2" and layer.map_size == (W, H)  # half floats are uploaded as they are kept
+            cw, ch = tex.width, tex.height  # the textures' capacity (grown in steps, never shrunk)
+            got = np.frombuffer(tex.read(), np.float16).reshape(4, ch, cw, 4)[:, :H, :W].astype(np.float32)
             # what was shown before is gone, the new rectangle is there (float16-rounded)
             np.testing.assert_allclose(got, layers.astype(np.float16).astype(np.float32), rtol=0, atol=0)
-            got_depth = np.frombuffer(layer.depth_tex.read(), np.float32).reshape(H, W)
+            got_depth = np.frombuffer(layer.depth_tex.read(), np.float32).reshape(ch, cw)[:H, :W]
             np.testing.assert_array_equal(got_depth, depth)
+        # a slightly smaller frame (another frame of the clip) keeps the textures
+        tex = layer.maps_tex
+        layer.submit(cut.astype(np.float16), cut_depth, (W, H), origin=(0, 0), map_size=(W - 3, H - 2))
+        layer.prepare()
+        assert layer.maps_tex is tex and layer.map_size == (W - 3, H - 2)
         blank, _ = maps(0, 0, 0, 0)
         empty = crop_to_content(blank, np.zeros((H, W), np.float32))
         assert empty[0].shape == (4, 1, 1, 4) and empty[2] == (0, 0)
@@ -558,3 +565,45 @@ def test_the_body_layer_is_not_supersampled_while_the_view_moves(gl_context, bod
     finally:
         reference.release()
         layer.release()
+
+
+def test_maps_in_a_larger_texture_draw_as_maps_of_their_own_size(gl_context):
+    """After a larger frame the textures keep their size; the next, smaller maps must still draw
+    exactly as they do in textures of their own size (the edge sampled as clamp-to-edge)."""
+    from garmentnerf.conventions import orbit_camera
+    from garmentnerf.gl.context import make_current
+    from garmentnerf.viewer.palette_layer import PaletteLayer
+    from garmentnerf.viewer.renderables import ViewParams
+
+    make_current(gl_context)
+    rng = np.random.default_rng(5)
+    H, W = 64, 128  # a multiple of the capacity step: the first layer's textures are exactly this size
+    maps = rng.uniform(0.05, 1.0, (4, H, W, 4)).astype(np.float16)
+    depth = np.full((H, W), 2.0, np.float32)
+    camera = orbit_camera(0.0, 5.0, 3.0, width=160, height=120)
+    view = ViewParams.of(camera)
+    fbo = gl_context.simple_framebuffer((160, 120), components=4, dtype="f4")
+    images = []
+    for first in (None, (4, 130, 200, 4)):
+        layer = PaletteLayer(gl_context)
+        try:
+            layer.opaque = True
+            layer.set_palette([(0.9, 0.1, 0.2), (0.1, 0.8, 0.3)])
+            if first is not None:
+                layer.submit(rng.uniform(0, 1, first).astype(np.float16), np.ones(first[1:3], np.float32), (W, H))
+                layer.prepare()
+            layer.submit(maps, depth, (W, H))
+            layer.prepare()
+            size = (layer.maps_tex.width, layer.maps_tex.height)
+            assert size == (W, H) if first is None else size[0] > W and size[1] > H
+            fbo.use()
+            fbo.clear(0.0, 0.0, 0.0, 0.0)
+            layer.draw(view)
+            images.append(np.frombuffer(fbo.read(components=4, dtype="f4"), np.float32).reshape(120, 160, 4))
+        finally:
+            layer.release()
+    fbo.release()
+    assert images[0].max() > 0
+    # the same texels with the same weights: equal up to the rounding of the scaled coordinate (a
+    # border mixed with the empty texels beyond the maps would be off by a large part of a colour)
+    np.testing.assert_allclose(images[1], images[0], rtol=0, atol=1e-4)
