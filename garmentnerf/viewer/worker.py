@@ -117,16 +117,17 @@ class RenderWorker:
             self._cond.notify()
             return self._generation
 
-    def should_cancel(self, generation: int) -> bool:
+    def should_cancel(self, generation: int, progress: bool = True) -> bool:
         """True when the render of ``generation`` should give up: a newer request supersedes it
-        (``superseded``) *and* the screen got a result less than ``max_stale_s`` ago (otherwise
-        finishing it is the better choice)."""
+        (``superseded``) *and*, with ``progress``, the screen got a result less than
+        ``max_stale_s`` ago (otherwise finishing it is the better choice; a render nobody would
+        see before it is needed, e.g. one ahead of the playhead, passes ``progress=False``)."""
         with self._cond:
             if self._stop:
                 return True
             if generation == self._generation:
                 return False
-            if time.monotonic() - self._last_delivery >= self.max_stale_s:
+            if progress and time.monotonic() - self._last_delivery >= self.max_stale_s:
                 return False
             running, newest = self._running, self._newest
         return True if self._superseded is None else bool(self._superseded(running, newest))
@@ -367,6 +368,7 @@ class NeuralRenderer:
         self._target: tuple | None = None        # (view key, frame) of the render in flight (worker thread)
         self._last_done: tuple | None = None     # (view key, frame) of the last delivered render
         self._pending_run = None                 # a newer checkpoint's run, switched to before the next render
+        self._run_lock = threading.Lock()
         self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural", idle_work=self._precompute,
                                    superseded=self._superseded, follow_up=self._follow_up)
 
@@ -393,12 +395,14 @@ class NeuralRenderer:
         """Render with ``run`` (a newer checkpoint of the run, :mod:`~garmentnerf.viewer.checkpoint_watch`)
         from the next render on; the worker switches between two renders. Requests should name its
         step (``weights_step``) so that frames of the old weights are not shown as new ones."""
-        self._pending_run = run
+        with self._run_lock:
+            self._pending_run = run
         self.worker.wake_idle()
 
     def _switch_run(self) -> None:
         """Worker thread: adopt the run :meth:`set_run` left (the session's model and caches)."""
-        run, self._pending_run = self._pending_run, None
+        with self._run_lock:
+            run, self._pending_run = self._pending_run, None
         if run is None:
             return
         self.run = run
@@ -513,7 +517,7 @@ class NeuralRenderer:
 
         if request is _CLOSE:
             self._thread_session.close()
-            return None
+            return NOTHING
         from garmentnerf.viewer.palette_layer import BodyView, crop_to_content, pack_frame
 
         self._switch_run()
@@ -528,7 +532,8 @@ class NeuralRenderer:
         start = time.perf_counter()
         try:
             nf = session.render(frame, request.camera, request.quality, preset=request.preset,
-                                should_cancel=lambda: self.worker.should_cancel(generation), body_layer=False)
+                                should_cancel=lambda: self.worker.should_cancel(generation, progress=not ahead),
+                                body_layer=False)
         except RenderCancelled:
             return None
         finally:

@@ -263,6 +263,19 @@ def test_a_standing_request_renders_until_its_follow_up_ends_it_and_a_late_rende
         worker.stop()
 
 
+def test_a_render_nobody_waits_for_is_abandoned_even_when_the_screen_is_stale():
+    worker = RenderWorker(lambda request, generation: NOTHING, lambda *args: None, max_stale_s=0.0,
+                          superseded=lambda running, newest: newest == "orbit")
+    try:
+        first = worker.request("render ahead")
+        second = worker.request("orbit")
+        assert not worker.should_cancel(first)  # no result for max_stale_s: finish what would be shown
+        assert worker.should_cancel(first, progress=False)  # a frame ahead would not be: give it up
+        assert not worker.should_cancel(second, progress=False)  # the newest request is never superseded
+    finally:
+        worker.stop()
+
+
 # ==== the real worker and neural view on the tiny untrained run (headless GL, no window) ===================
 @pytest.fixture
 def counted_renders(monkeypatch):
