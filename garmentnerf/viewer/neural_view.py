@@ -5,8 +5,12 @@ one until changed), the scene camera whose ground truth is shown, the quality co
 :class:`~garmentnerf.viewer.worker.NeuralRenderer` and its result sink. Per UI frame the app calls
 :meth:`NeuralView.update`: finished renders are drained into the statistics and the quality
 controller, and when the view, the frame or the quality changed the newest request goes to the
-worker (which coalesces them). Results reach the GL thread through the palette layer's thread-safe
-``submit``; the torch work never runs on the UI thread.
+worker (which coalesces them; the request carries the timeline's playhead clock, so the worker
+chooses the frame, :mod:`~garmentnerf.viewer.playback`). Then the UI thread chooses what the layer
+shows: the finished frame at the playhead from the render-ahead cache
+(:class:`~garmentnerf.viewer.finished_frames.FinishedFrames`), else the newest result unless it lies
+ahead of the playhead, and hands it to the palette layer's ``submit``; the torch work never runs
+on the UI thread. A newer checkpoint of the run (``watch``) is taken over here too.
 
 Modes: ``neural`` (the network's image, composited into the scene; optionally with the rasterised
 body by depth), ``ground_truth``, ``side_by_side`` (network | ground truth, fitted beside the
@@ -244,7 +248,7 @@ class NeuralView:
         gt = self.gt_camera if self.mode in GROUND_TRUTH_MODES and self.ground_truth_available() else None
         cam = self.run.scene.camera(gt).camera if gt is not None else camera
         now = self._clock()
-        playing = playhead is not None and playhead.playing
+        playing = playhead.playing
         # a playing clip is not a moving view: it plays at the level's still quality (rendered ahead)
         key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height,
                None if playing else frame, self.motion, self._clip_serial)
@@ -278,13 +282,11 @@ class NeuralView:
         newest = self._newest
         if newest is None or newest is self.shown or (newest.ahead and newest.frame != frame):
             return
-        if playhead is not None:
-            from garmentnerf.viewer.playback import show_newest
+        from garmentnerf.viewer.playback import show_newest
 
-            # paused, "ahead" is later in the clip (a frame rendered ahead is never shown early)
-            if not show_newest(newest.frame, frame, playhead.n_frames, playhead.loop and playhead.playing):
-                return
-        self._show(newest, playback_meter)
+        # paused, "ahead" is later in the clip (a frame rendered ahead is never shown early)
+        if show_newest(newest.frame, frame, playhead.n_frames, playhead.loop and playhead.playing):
+            self._show(newest, playback_meter)
 
     @property
     def shown_frame(self) -> int | None:
