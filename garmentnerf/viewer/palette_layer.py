@@ -110,6 +110,26 @@ def uncovered(old: tuple[int, int, int, int] | None, new: tuple[int, int, int, i
     return [p for p in parts if p[2] > 0 and p[3] > 0]
 
 
+def filled_quad(rect: tuple[float, float, float, float], filled: tuple[int, int, int, int] | None,
+                map_size: tuple[int, int]) -> tuple[tuple[float, float, float, float], tuple[float, float, float, float]]:
+    """The part of the NDC ``rect`` (x0, y0, x1, y1; the whole maps, rows top-first) that can show
+    anything: the texels ``filled`` (x, y, w, h; None: all) grown by one texel (the bilinear
+    footprint), as (NDC rect, the quad's v_uv rect (u0, v0, u1, v1), v up). Blended over the scene,
+    empty maps add nothing, so drawing only this part shows the same image with fewer fragments."""
+    W, H = map_size
+    if filled is None:
+        return rect, (0.0, 0.0, 1.0, 1.0)
+    fx, fy, fw, fh = filled
+    tx0, tx1 = max(0, fx - 1), min(W, fx + fw + 1)
+    ty0, ty1 = max(0, fy - 1), min(H, fy + fh + 1)
+    if tx1 <= tx0 or ty1 <= ty0:
+        return rect, (0.0, 0.0, 1.0, 1.0)
+    u0, u1, v0, v1 = tx0 / W, tx1 / W, 1.0 - ty1 / H, 1.0 - ty0 / H
+    x0, y0, x1, y1 = rect
+    return ((x0 + u0 * (x1 - x0), y0 + v0 * (y1 - y0), x0 + u1 * (x1 - x0), y0 + v1 * (y1 - y0)),
+            (u0, v0, u1, v1))
+
+
 def crop_to_content(layers: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Maps packed by :func:`pack_maps` and their depth, cut to the smallest rectangle outside which
     the maps are empty (:func:`empty_texels`) and the depth 0: the character's rectangle of a culled
@@ -410,7 +430,10 @@ class PaletteLayer:
         if with_body:
             self._body_tex.use(location=3)
         for mode, rect in self._rects(view, how):
-            self._draw_rect(view, how, mode, rect, with_body)
+            uv_rect = (0.0, 0.0, 1.0, 1.0)
+            if mode == "neural" and not how.opaque and not how.side_by_side:
+                rect, uv_rect = filled_quad(rect, self._filled, self.map_size)
+            self._draw_rect(view, how, mode, rect, with_body, uv_rect)
 
     def _rects(self, view: ViewParams, how: Composition) -> list[tuple[str, tuple[float, float, float, float]]]:
         """(mode, NDC rect) of each image drawn: the neural one first."""
@@ -423,7 +446,8 @@ class PaletteLayer:
                     ("ground_truth", fit_rect((middle, y0, x1, y1), vw, vh, self.image_size))]
         return [(how.mode, fit_rect((-1.0, -1.0, 1.0, 1.0), vw, vh, self.image_size))]
 
-    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect, with_body: bool) -> None:
+    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect, with_body: bool,
+                   uv_rect=(0.0, 0.0, 1.0, 1.0)) -> None:
         p = self.program
         pal = np.zeros((MAX_PALETTE, 3), dtype=np.float32)
         n = min(self.palette.shape[0], MAX_PALETTE)
@@ -442,6 +466,7 @@ class PaletteLayer:
         p["u_near"].value = float(view.camera.near)
         p["u_far"].value = float(view.camera.far)
         p["u_rect"].value = tuple(float(v) for v in rect)
+        p["u_uv_rect"].value = tuple(float(v) for v in uv_rect)
         cw, ch = self.maps_tex.width, self.maps_tex.height
         p["u_map_extent"].value = (self.map_size[0] / cw, self.map_size[1] / ch)
         p["u_map_half_texel"].value = (0.5 / cw, 0.5 / ch)

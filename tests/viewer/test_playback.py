@@ -620,3 +620,48 @@ def test_maps_in_a_larger_texture_draw_as_maps_of_their_own_size(gl_context):
     # the same texels with the same weights: equal up to the rounding of the scaled coordinate (a
     # border mixed with the empty texels beyond the maps would be off by a large part of a colour)
     np.testing.assert_allclose(images[1], images[0], rtol=0, atol=1e-4)
+
+
+def test_the_neural_layer_draws_only_where_its_maps_are_filled_and_shows_the_same(gl_context):
+    """Blended over the scene, empty maps add nothing: the quad drawn over the filled texels (grown
+    by the bilinear footprint) gives the image the whole quad gives."""
+    from garmentnerf.conventions import orbit_camera
+    from garmentnerf.gl.context import make_current
+    from garmentnerf.viewer import palette_layer as pl
+    from garmentnerf.viewer.renderables import ViewParams
+
+    make_current(gl_context)
+    rng = np.random.default_rng(7)
+    H, W = 48, 80
+    layers = np.zeros((4, H, W, 4), np.float32)
+    layers[1, ..., :2] = 0.5
+    layers[:, 10:30, 20:45] = rng.uniform(0.05, 1.0, (4, 20, 25, 4))
+    depth = np.zeros((H, W), np.float32)
+    depth[10:30, 20:45] = 2.0
+    cut, cut_depth, origin = pl.crop_to_content(layers, depth)
+    camera = orbit_camera(0.0, 5.0, 3.0, width=200, height=150)
+    view = ViewParams.of(camera)
+    fbo = gl_context.simple_framebuffer((200, 150), components=4, dtype="f4")
+    layer = pl.PaletteLayer(gl_context)
+    images = []
+    try:
+        layer.set_palette([(0.9, 0.1, 0.2), (0.1, 0.8, 0.3)])
+        layer.submit(cut.astype(np.float16), cut_depth, (W, H), origin=origin, map_size=(W, H))
+        layer.prepare()
+        quad = pl.filled_quad(pl.fit_rect((-1.0, -1.0, 1.0, 1.0), 200, 150, (W, H)), layer._filled, (W, H))
+        assert quad[1] != (0.0, 0.0, 1.0, 1.0)  # a part of the image
+        for filled in (layer._filled, None):  # None: the whole quad
+            layer._filled = filled
+            fbo.use()
+            fbo.clear(0.2, 0.3, 0.4, 1.0)  # a scene behind it
+            gl_context.enable(gl_context.BLEND)
+            gl_context.blend_func = gl_context.ONE, gl_context.ONE_MINUS_SRC_ALPHA
+            layer.draw(view)
+            gl_context.disable(gl_context.BLEND)
+            images.append(np.frombuffer(fbo.read(components=4, dtype="f4"), np.float32).reshape(150, 200, 4))
+    finally:
+        layer.release()
+        fbo.release()
+    changed = np.abs(images[1] - np.array([0.2, 0.3, 0.4, 1.0], np.float32)).max(-1) > 1e-3
+    assert changed.sum() > 500
+    np.testing.assert_allclose(images[0], images[1], rtol=0, atol=1e-4)
