@@ -71,7 +71,7 @@ class NeuralView:
         self.learned_palette: np.ndarray | None = None  # (P, 3) in [0, 1]
         self.palette: np.ndarray | None = None          # (P, 3): what the shader composes with
         self.gt_camera: str | None = None
-        self.last_result: dict = {}                     # the newest result's figures (overlay, stats hook)
+        self.last_result: dict = {}                     # the shown result's figures (overlay, stats hook)
         self.results: deque = deque(maxlen=64)          # the result sink: worker thread -> UI thread
         self.renderer = None                            # the NeuralRenderer (None without a run)
         self._watch = bool(watch)
@@ -134,6 +134,11 @@ class NeuralView:
             return
         submit_result(self.scene.palette_layer, result)
         self.shown = result
+        # the overlay's figures are the shown image's: where its time went
+        self.last_result = {"renders": self.renderer.stats.renders, "quality": result.quality,
+                            "render_size": list(result.render_size), "frame": result.frame,
+                            "cached_frame": result.cached_frame,
+                            "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
         if playback_meter is not None:
             playback_meter.neural_received(result.frame, self._clock())
 
@@ -237,10 +242,6 @@ class NeuralView:
             result = self.results.popleft()
             self._newest = result
             self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
-            self.last_result = {"renders": self.renderer.stats.renders, "quality": result.quality,
-                                "render_size": list(result.render_size), "frame": result.frame,
-                                "cached_frame": result.cached_frame,
-                                "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
         if self.mode == "body":
             return
         from garmentnerf.viewer.worker import NeuralRequest
