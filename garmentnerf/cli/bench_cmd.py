@@ -3,7 +3,9 @@
 Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.perf.foundation_bench.foundation_benchmark`).
 
 With ``--run DIR``: every render preset on the run's model, then playback figures
-(:func:`garmentnerf.perf.preset_bench.preset_benchmark`, which says what is measured and how).
+(:func:`garmentnerf.perf.preset_bench.preset_benchmark`, which says what is measured and how),
+the previewer's render-ahead among them (``playback.render_ahead``, ``playback.completed_share``:
+:mod:`garmentnerf.perf.playback_bench`; ``--playback-frames`` limits the clip).
 ``--plot`` draws ms/frame (log) against PSNR per preset (:func:`garmentnerf.perf.plot.write_plot`).
 
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
@@ -47,7 +49,8 @@ def register(sub) -> None:
     p.add_argument("--repeats", type=int, default=2, help="with --run: renders per view (fastest counts)")
     p.add_argument("--sequence", default=None, help="with --run: scene sequence (default: the first training one)")
     p.add_argument("--playback-frames", type=int, default=24, metavar="N",
-                   help="with --run: precomputed frames played per preset for the playback figure (default: 24)")
+                   help="with --run: frames played per preset for the playback figures: precomputed playback, and the "
+                        "previewer's render-ahead of the clip's first N frames (default: 24)")
     p.add_argument("--training", action="store_true",
                    help="with --run: time NeRF training steps of the run's recipe per MLP precision, side by side, "
                         "instead of the render presets")
@@ -134,6 +137,15 @@ def run_bench(args: argparse.Namespace) -> int:
         results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
                                    sequence=args.sequence, playback_frames=args.playback_frames)
         _print_presets(results)
+        ahead, share = results["playback"]["render_ahead"], results["playback"]["completed_share"]
+        print(f"render-ahead of {ahead['frames']} frames at {ahead['fps']:g} fps, still {ahead['camera'][0]}x"
+              f"{ahead['camera'][1]} camera; completed share of started renders "
+              + (f"{share:.2f}" if share is not None else "n/a"))
+        for name, row in ahead["presets"].items():
+            clip = f"{row['seconds_for_clip']:7.1f} s" if row["seconds_for_clip"] is not None else "timeout"
+            fps = f"{row['fps_after']:5.1f}" if row["fps_after"] is not None else "  n/a"
+            print(f"  {name:12s} clip rendered ahead in {clip}, then {fps} fps; max lag {row['max_lag_frames']} "
+                  f"frames (render {1e3 * row['render_s']:.0f} ms)")
         if args.json:
             with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
                 tmp.write_text(json.dumps(results, indent=1))

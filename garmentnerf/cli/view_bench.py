@@ -22,6 +22,10 @@ what the machine can do rather than the display's refresh:
   awaited; median (and each) of ``RenderSession.render``'s total time, the render size, and the
   worker's wall time per render.
 
+Render-ahead is switched off for these figures (a still view would otherwise keep the worker
+rendering the rest of the clip, which the recolor test counts and the preset times share the CPU
+with); ``garmentnerf bench --run`` measures it (``playback.render_ahead``).
+
 The JSON (``--json PATH``, written atomically) holds the same figures; numbers that could not be
 measured are null.
 """
@@ -208,6 +212,8 @@ def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.
               "neural": view.renderer is not None}
     if view.run is not None:
         result["run"] = str(getattr(view.run, "root", getattr(view.run, "path", "")) or "")
+    if view.renderer is not None:
+        view.renderer.set_render_ahead(False)  # see the module docstring
     for _ in range(3):
         app.step()
     if view.renderer is not None:

@@ -36,6 +36,9 @@ def register(sub) -> None:
                       help="a training run folder: show its neural garment (default: the bundled demo run when "
                            "installed, else the body only)")
     view.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
+    view.add_argument("--no-watch", action="store_true",
+                      help="with --run: do not show new checkpoints as the run trains (default: the newest "
+                           "checkpoint is loaded in the background as it lands, and shown)")
     view.add_argument("--body-only", action="store_true", help="show only the body (no run, not even the demo)")
     view.add_argument("--motion", default=None,
                       help="motion name (see 'garmentnerf motion list'), names joined by ',', a motion/AMASS "
@@ -114,6 +117,7 @@ def run_view(args: argparse.Namespace) -> int:
                              betas=betas, run=run, size=size, samples=args.msaa,
                              render_scale=args.render_scale, vsync=not (args.no_vsync or bench),
                              dynamic_scene=not args.fixed_scene_scale,
+                             watch=args.run is not None and not args.no_watch and not bench,
                              snapshot_dir=args.snapshot_dir, snapshot_size=snapshot_size,
                              playing=not args.paused and not bench)
     except app_module.NoDisplayError:

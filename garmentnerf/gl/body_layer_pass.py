@@ -60,8 +60,15 @@ class BodyLayerPass(GLObjectsOwner):
         self.resolve["u_source"].value = 0
         self._programs: dict[int, moderngl.Program] = {}  # by shading degree
         self.program: moderngl.Program | None = None  # the program of the last render
-        self._buffer: moderngl.Buffer | None = None
         self._vao: moderngl.VertexArray | None = None
+        self._position_buffer: moderngl.Buffer | None = None  # per corner, rewritten for each frame
+        self._normal_buffer: moderngl.Buffer | None = None
+        self._uv_buffer: moderngl.Buffer | None = None        # per corner, written once per topology
+        self._topology: tuple | None = None  # the (faces, uv, uv_faces) objects the buffers were made for
+        self._corner_index: np.ndarray | None = None  # (3F,) the vertex of each corner
+        self._max_vertex = -1
+        self._positions: np.ndarray | None = None  # (3F, 3) float32 gathered per corner (kept, refilled)
+        self._normals: np.ndarray | None = None
         self._albedo: moderngl.Texture | None = None
         self._targets: TargetCache[SupersampleTargets] = TargetCache(lambda key: SupersampleTargets(ctx, *key),
                                                                    max(1, int(max_sizes)))
@@ -85,37 +92,65 @@ class BodyLayerPass(GLObjectsOwner):
                 self._vao = None
 
     def _upload_mesh(self, vertices, normals, faces, uv, uv_faces) -> int:
-        """Interleave position, normal and UV per corner; returns the vertex count. The same five
-        objects as the last upload (a frame seen from another camera) upload nothing: the arrays
+        """Position, normal and UV per corner (three vertex buffers); returns the vertex count. The
+        same five objects as the last upload (a frame seen from another camera) upload nothing; the
+        same ``faces``, ``uv`` and ``uv_faces`` (another frame of the body: a playing clip) upload
+        only the positions and normals, gathered per corner into arrays kept for it. The arrays
         are read as they are at the call, not copied, so a caller must not change them in place."""
         inputs = (vertices, normals, faces, uv, uv_faces)
         if self._vao is not None and self._mesh_inputs is not None and \
                 all(a is b for a, b in zip(inputs, self._mesh_inputs)):
             return self._mesh_count
-        verts, tris = check_mesh_arrays(vertices, faces)
+        verts = as_numpy(vertices, np.float32)
+        topology = (faces, uv, uv_faces)
+        if self._topology is None or not all(a is b for a, b in zip(topology, self._topology)):
+            self._set_topology(verts, topology)
+        elif verts.ndim != 2 or verts.shape[1] != 3 or len(verts) <= self._max_vertex:
+            check_mesh_arrays(verts, faces)  # raises, naming the problem
         normals = as_numpy(normals, np.float32)
-        uv = as_numpy(uv, np.float32)
-        uv_tris = as_numpy(uv_faces, np.int64)
         if normals.shape != verts.shape:
             raise ValueError(f"normals must have the shape of vertices {verts.shape}, got {normals.shape}")
+        np.take(verts, self._corner_index, axis=0, out=self._positions)
+        np.take(normals, self._corner_index, axis=0, out=self._normals)
+        if self._vao is None:
+            self._vao = self.ctx.vertex_array(self.program, [(self._position_buffer, "3f", "in_position"),
+                                                             (self._normal_buffer, "3f", "in_normal"),
+                                                             (self._uv_buffer, "2f", "in_uv")])
+        self._position_buffer.write(self._positions)
+        self._normal_buffer.write(self._normals)
+        self._mesh_inputs, self._mesh_count = inputs, len(self._corner_index)
+        return self._mesh_count
+
+    def _set_topology(self, verts: np.ndarray, topology: tuple) -> None:
+        """Check a new mesh topology (``faces``, ``uv``, ``uv_faces``) and make its buffers: the
+        corners' vertex index and their UVs (uploaded once), and the position and normal buffers
+        the frames fill."""
+        faces, uv, uv_faces = topology
+        verts, tris = check_mesh_arrays(verts, faces)
+        uv = as_numpy(uv, np.float32)
+        uv_tris = as_numpy(uv_faces, np.int64)
         if uv.ndim != 2 or uv.shape[1] != 2 or uv_tris.shape != tris.shape:
             raise ValueError(f"uv must be (Nuv, 2) and uv_faces {tris.shape}, got {uv.shape} and {uv_tris.shape}")
-        corners = np.concatenate([verts[tris.reshape(-1)], normals[tris.reshape(-1)], uv[uv_tris.reshape(-1)]],
-                                 axis=1)
-        data = np.ascontiguousarray(corners, dtype=np.float32)
-        if self._buffer is None or self._buffer.size < data.nbytes:
-            if self._vao is not None:
-                self._vao.release()
-                self._vao = None
-            if self._buffer is not None:
-                self._buffer.release()
-            self._buffer = self.ctx.buffer(reserve=max(2 * data.nbytes, 64), dynamic=True)
-        if self._vao is None:
-            self._vao = self.ctx.vertex_array(self.program, [(self._buffer, "3f 3f 2f", "in_position", "in_normal",
-                                                              "in_uv")])
-        self._buffer.write(data)
-        self._mesh_inputs, self._mesh_count = inputs, len(data)
-        return len(data)
+        if uv_tris.size and (uv_tris.min() < 0 or uv_tris.max() >= len(uv)):
+            raise ValueError(f"uv_faces index out of range [0, {len(uv)})")
+        self._release_mesh()
+        self._corner_index = np.ascontiguousarray(tris.reshape(-1))
+        self._max_vertex = int(tris.max()) if tris.size else -1
+        n = len(self._corner_index)
+        self._positions = np.empty((n, 3), np.float32)
+        self._normals = np.empty((n, 3), np.float32)
+        self._uv_buffer = self.ctx.buffer(np.ascontiguousarray(uv[uv_tris.reshape(-1)]).tobytes() or b"\0" * 8)
+        self._position_buffer = self.ctx.buffer(reserve=max(self._positions.nbytes, 12), dynamic=True)
+        self._normal_buffer = self.ctx.buffer(reserve=max(self._normals.nbytes, 12), dynamic=True)
+        self._topology = topology
+
+    def _release_mesh(self) -> None:
+        """Free the mesh's buffers and the vertex array reading them (a new topology, or the end)."""
+        for obj in (self._vao, self._position_buffer, self._normal_buffer, self._uv_buffer):
+            if obj is not None:
+                obj.release()
+        self._vao = self._position_buffer = self._normal_buffer = self._uv_buffer = None
+        self._topology = self._mesh_inputs = None
 
     def _upload_appearance(self, appearance) -> None:
         albedo = appearance.albedo.detach().to("cpu", torch.float32)  # (3, T, T), row 0 is v = 0
@@ -186,7 +221,8 @@ class BodyLayerPass(GLObjectsOwner):
 
     def _release_objects(self) -> None:
         self._targets.release()
-        for obj in (self._vao, self._buffer, self._albedo, self.resolve_vao, self.resolve, *self._programs.values()):
+        self._release_mesh()
+        for obj in (self._albedo, self.resolve_vao, self.resolve, *self._programs.values()):
             if obj is not None:
                 obj.release()
 

@@ -14,7 +14,9 @@ cores are shared, so the minimum is the least noisy), then the median over the v
 measured. Each row also gives the share of rays that hit nothing (no sample placed). Then the
 playback figures (:func:`playback_benchmark`): neural frames per second per preset over a
 precomputed clip window, the precompute cost per frame, and the scrub latency to a ready and to a
-cold frame.
+cold frame; and the previewer's render-ahead per preset
+(:func:`garmentnerf.perf.playback_bench.render_ahead_benchmark`: ``playback.render_ahead`` and
+``playback.completed_share``).
 """
 
 from __future__ import annotations
@@ -121,6 +123,11 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
                                                               if row["psnr"] is not None else ""))
         _add_reference_ratios(results)
         playback = playback_benchmark(session, cams[0].camera, chosen, playback_frames, log=log)
+        from garmentnerf.perf.playback_bench import render_ahead_benchmark
+
+        ahead = render_ahead_benchmark(run, sequence, chosen, playback_frames, ctx, log=log)
+        playback["completed_share"] = ahead.pop("completed_share")
+        playback["render_ahead"] = ahead
         previewer = previewer_view_benchmark(session, frame_ids[0], log=log)
         return {"kind": "preset_benchmark", "run": str(run_dir), "step": run.step, "created": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)}, "torch_threads": torch.get_num_threads(),

@@ -260,6 +260,18 @@ class RenderSession(Closeable):
         self.composition = resolve_composition(composition, self.run)
         self.body_appearance = self.run.body_appearance if self.composition == "raster_body" else None
 
+    def set_run(self, run) -> None:
+        """Render with ``run``'s model from now on: a newer checkpoint of the same run (the same model
+        config, body and projector; the previewer's checkpoint watcher,
+        :func:`~garmentnerf.viewer.checkpoint_watch.load_checkpoint_run`). The frame cache is
+        cleared: its features come from the old weights."""
+        if run.config != self.config:
+            raise ValueError("set_run needs a run of the same model config (a checkpoint of the same run)")
+        self.run = run
+        self.model = run.model.eval()
+        self.set_composition(self.composition)
+        self.frames.clear()
+
     # ---- motion -----------------------------------------------------------------------------------
     def set_motion(self, motion) -> None:
         """Switch to another motion (clears the frame cache)."""

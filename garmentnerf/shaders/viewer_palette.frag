@@ -23,6 +23,9 @@
 // u_body (sampler2D, RGBA32F, with u_has_body; drawn by garmentnerf.gl.body_layer_pass at the size
 //   the layer is shown at, rows as u_maps): the rasterised body's color a premultiplied by its
 //   coverage (rgb), and the coverage alpha_b (a)
+// The maps fill the part u_map_extent (w / W, h / H) of u_maps and u_depth (the textures grow and are
+// kept while frames of a clip differ in size by a few pixels); a map coordinate is clamped half a
+// texel inside it, which samples exactly as clamp-to-edge on textures of the maps' own size.
 // Changing a color only changes u_palette: recoloring never re-runs the network.
 //
 // Modes (u_mode): 0 neural, 1 ground truth (u_gt), 2 difference |neural over u_background - gt| x
@@ -51,6 +54,8 @@ uniform int u_use_depth;
 uniform float u_depth_bias;
 uniform float u_near;
 uniform float u_far;
+uniform vec2 u_map_extent;
+uniform vec2 u_map_half_texel;
 
 in vec2 v_uv;
 
@@ -59,17 +64,23 @@ layout(location = 0) out vec4 out_color;
 const vec3 MAP_COLORS[MAX_PALETTE] = vec3[](vec3(1.0, 0.25, 0.2), vec3(0.2, 0.55, 1.0),
                                              vec3(0.3, 0.9, 0.3), vec3(0.95, 0.85, 0.2));
 
+// uv over the shown image -> the coordinate of u_maps and u_depth (see u_map_extent above).
+vec2 map_uv(vec2 uv) {
+    return clamp(uv * u_map_extent, u_map_half_texel, u_map_extent - u_map_half_texel);
+}
+
 // The character premultiplied by its coverage (returned in alpha): c = result + (1 - alpha) background.
 vec3 premultiplied(vec2 uv, out float alpha) {
-    vec4 rm = texture(u_maps, vec3(uv, 0.0));
-    vec4 w = texture(u_maps, vec3(uv, 1.0));
+    vec2 muv = map_uv(uv);
+    vec4 rm = texture(u_maps, vec3(muv, 0.0));
+    vec4 w = texture(u_maps, vec3(muv, 1.0));
     int garment_colors = u_has_body == 1 ? u_palette_size - 1 : u_palette_size;
     vec3 base = vec3(0.0);
     for (int i = 0; i < MAX_PALETTE; ++i) {
         if (i >= garment_colors) {
             break;
         }
-        vec3 o = texture(u_maps, vec3(uv, 2.0 + float(i))).rgb;
+        vec3 o = texture(u_maps, vec3(muv, 2.0 + float(i))).rgb;
         base += w[i] * (u_palette[i] + o);
     }
     if (u_has_body == 0) {
@@ -101,12 +112,12 @@ void main() {
         vec3 c = fg + (1.0 - m) * u_background;
         result = vec4(clamp(abs(c - texture(u_gt, uv).rgb) * u_diff_gain, 0.0, 1.0), 1.0);
     } else if (u_mode == 3) {
-        vec4 rm = texture(u_maps, vec3(uv, 0.0));
+        vec4 rm = texture(u_maps, vec3(map_uv(uv), 0.0));
         vec3 c;
         if (u_map == 0) {
             c = vec3(rm.a);
         } else if (u_map == 1) {
-            vec4 w = texture(u_maps, vec3(uv, 1.0));
+            vec4 w = texture(u_maps, vec3(map_uv(uv), 1.0));
             c = vec3(0.0);
             for (int i = 0; i < MAX_PALETTE; ++i) {
                 if (i >= u_palette_size) {
@@ -124,7 +135,7 @@ void main() {
     }
     result *= u_opacity;
     if (u_use_depth == 1) {
-        float z = texture(u_depth, uv).r;
+        float z = texture(u_depth, map_uv(uv)).r;
         gl_FragDepth = z > 0.0 ? ndc_depth(max(z - u_depth_bias, u_near)) : 0.99999;
     } else {
         gl_FragDepth = gl_FragCoord.z;

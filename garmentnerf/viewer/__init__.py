@@ -8,8 +8,14 @@ contexts can live in one process):
   process's window system (GLFW init/terminate, EGL release).
 * :mod:`~garmentnerf.viewer.neural_view` -- view modes, palette, ground-truth camera, quality, and the
   render worker's requests and results.
-* :mod:`~garmentnerf.viewer.worker` -- the render worker thread (coalescing requests) and the
-  neural renderer that runs the render session on it.
+* :mod:`~garmentnerf.viewer.worker` -- the render worker thread (coalescing requests, standing
+  requests) and the neural renderer that runs the render session on it.
+* :mod:`~garmentnerf.viewer.playback` -- which frame the worker renders while the clip plays
+  (predicted from its render time), when a render is superseded; pure logic.
+* :mod:`~garmentnerf.viewer.finished_frames` -- the render-ahead cache: finished frames of one view
+  (palette maps, so recolouring stays live) under a memory bound.
+* :mod:`~garmentnerf.viewer.checkpoint_watch` -- the newest checkpoint of a run that is training,
+  loaded off the UI thread.
 * :mod:`~garmentnerf.viewer.render_thread` -- a render session (and its GL context) that lives on its
   own thread: the one helper of the worker and the exporter.
 * :mod:`~garmentnerf.viewer.scene_gl` -- the scene renderer: render targets and the GL passes.

@@ -84,6 +84,8 @@ class App(Closeable):
         run: a run folder or :class:`~garmentnerf.train.run.LoadedRun` whose neural garment to show
             (None: body only). ``motion`` None then means the run scene's first training sequence;
             body and shape come from the run.
+        watch: show each new checkpoint of the run's folder as it lands (loaded off the UI thread,
+            :mod:`~garmentnerf.viewer.checkpoint_watch`).
         dynamic_scene: while the view moves, draw the scene at the scale that fits
             :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
             once more at ``render_scale`` when it is still); False: always at ``render_scale``.
@@ -98,7 +100,7 @@ class App(Closeable):
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
                  title: str = "garmentnerf view", clock=time.perf_counter, run=None,
-                 dynamic_scene: bool = True) -> None:
+                 dynamic_scene: bool = True, watch: bool = False) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -117,6 +119,7 @@ class App(Closeable):
         # -- state --------------------------------------------------------------------------------------
         self.timeline = Timeline(sequence.num_frames, sequence.fps, playing=playing)
         self.playback_meter = PlaybackMeter()  # motion vs neural frames per second while playing (overlay)
+        self.play_every_frame = False  # playing waits for each neural frame instead of dropping (set_play_every_frame)
         self.controller = OrbitController()
         self.controller.aim_home(sequence.centers)
         self.controller.reset()
@@ -145,7 +148,7 @@ class App(Closeable):
             self.window.close()
             raise
         self._resolved_shortcuts = resolve(imgui)
-        self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock)
+        self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock, watch=watch)
         self.exports = Exports(self.scene, self.controller, self.timeline, self.neural_view, lambda: self.sequence,
                                self._sync_scene, self.status.show, snapshot_dir, snapshot_size,
                                view_camera=self.view_camera, camera_path=self.camera_path)
@@ -239,6 +242,7 @@ class App(Closeable):
         scene_start = self.clock()
         self._draw_scene()
         scene_time = self.clock() - scene_start
+        self._advance_every_frame(advance, dt)
         self.window.draw_ui()
         image = read_image(self.window.ctx.screen, *self.window.framebuffer_size) if capture else None
         work = self.clock() - start
@@ -258,13 +262,25 @@ class App(Closeable):
         return self.fixed_dt if self.fixed_dt is not None else min(MAX_STEP_SECONDS, max(0.0, now - last))
 
     def _advance(self, advance: bool, dt: float, now: float) -> None:
-        """Move the timeline on by ``dt`` (not while scrubbing) and count the frames playback shows."""
-        if advance and not self.scrubbing:
+        """Move the timeline on by ``dt`` (not while scrubbing; with :attr:`play_every_frame` after
+        the scene is drawn, :meth:`_advance_every_frame`) and count the frames playback shows."""
+        if advance and not self.scrubbing and not self.play_every_frame:
             self.timeline.advance(dt)
         if self.timeline.playing:
             self.playback_meter.frame_shown(self.timeline.frame, now)
         else:
             self.playback_meter.reset()
+
+    def _advance_every_frame(self, advance: bool, dt: float) -> None:
+        """Play every frame: after the neural view chose this UI frame's image, move on by at most
+        one frame, and only once the image shown is the timeline's frame and the next one's is
+        finished (the next UI frame shows it); otherwise wait on this frame."""
+        if not (advance and self.play_every_frame and self.timeline.playing) or self.scrubbing:
+            return
+        tl, view = self.timeline, self.neural_view
+        nxt = (tl.frame + 1) % tl.num_frames
+        caught_up = view.renderer is None or view.mode == "body" or view.shown_frame == tl.frame
+        tl.advance(dt, max_frames=1 if caught_up and view.frame_ready(nxt) else 0)
 
     def _receive_background_work(self) -> None:
         """A motion posed in the background is shown; an export that ended is reported."""
@@ -282,11 +298,12 @@ class App(Closeable):
         camera = self.view_camera(fb_w, fb_h)
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
-        self.neural_view.update(camera, self.timeline.frame, self.playback_meter if self.timeline.playing else None)
+        self.neural_view.update(camera, self.timeline, self.playback_meter)
         # while the view moves the scene is drawn smaller (SceneScale); the neural request is not
         now = self.clock()
         self.scene_scale.view_changed((state_token((camera.K, camera.R, camera.t)), self.timeline.frame), now)
         scale = self.scene_draw_scale = self.scene_scale.scale(now)
+        self.scene.palette_layer.moving = scale < 1.0
         drawn = camera if scale == 1.0 else camera.resized(max(1, round(rw * scale)), max(1, round(rh * scale)))
         target = self.scene.window_target(drawn.width, drawn.height)
         side_by_side = self.neural_view.mode == "side_by_side"
@@ -435,6 +452,13 @@ class App(Closeable):
     def set_frame(self, frame: int) -> None:
         """Show ``frame`` (clamped to the clip); playback continues if it was playing."""
         self.timeline.set_frame(frame)
+
+    def set_play_every_frame(self, on: bool) -> None:
+        """Play every frame: the timeline waits for each frame's neural image instead of dropping
+        frames to keep the clip's time (for reviewing the motion at full quality)."""
+        self.play_every_frame = bool(on)
+        if self.neural_view.renderer is not None:
+            self.neural_view.renderer.set_every_frame(on)
 
     def set_follow(self, follow: bool) -> None:
         self.controller.set_follow(follow, self.sequence.centers[self.timeline.frame])

@@ -145,6 +145,26 @@ def _neural_section(app, em: float) -> None:
             view.set_cache_mb(mb)
         imgui.text_disabled(f"{len(status['ready'])} / {status['frames']} frames ready, "
                             f"{status['bytes'] / 2**20:.0f} MiB (half precision)")
+        renderer = view.renderer
+        changed, on = imgui.checkbox("Render ahead", renderer.render_ahead)
+        if changed:
+            renderer.set_render_ahead(on)
+        if imgui.is_item_hovered():
+            imgui.set_tooltip("while the camera is still, render the frames after the playhead at this quality; "
+                              "playing over them shows every frame at the clip's rate (blue bar under the timeline)")
+        imgui.same_line()
+        changed, on = imgui.checkbox("Play every frame", app.play_every_frame)
+        if changed:
+            app.set_play_every_frame(on)
+        if imgui.is_item_hovered():
+            imgui.set_tooltip("playing waits for each frame's neural image instead of dropping frames to keep time")
+        imgui.set_next_item_width(-6 * em)
+        changed, mb = imgui.slider_float("Rendered", status["finished_budget_bytes"] / 2**20, 0.0, 8192.0,
+                                         "%.0f MiB", imgui.SliderFlags_.logarithmic)
+        if changed:
+            renderer.set_finished_mb(mb)
+        imgui.text_disabled(f"{len(status['finished'])} / {status['frames']} frames rendered, "
+                            f"{status['finished_bytes'] / 2**20:.0f} MiB")
     error = view.error()
     if error:
         imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), "render failed:")

@@ -355,6 +355,9 @@ class Exports:
             self._status(f"{self.job.label}: cancelling ...")
 
     def _submit(self, job: ExportJob) -> ExportJob:
+        if self.exporter is not None and self.exporter.run is not self.neural_view.run and not self.exporter.busy:
+            self.exporter.close()  # a newer checkpoint is shown (checkpoint_watch): export with it
+            self.exporter = None
         if self.exporter is None:
             self.exporter = Exporter(self.neural_view.run)
         self.exporter.submit(job)

@@ -5,8 +5,12 @@ one until changed), the scene camera whose ground truth is shown, the quality co
 :class:`~garmentnerf.viewer.worker.NeuralRenderer` and its result sink. Per UI frame the app calls
 :meth:`NeuralView.update`: finished renders are drained into the statistics and the quality
 controller, and when the view, the frame or the quality changed the newest request goes to the
-worker (which coalesces them). Results reach the GL thread through the palette layer's thread-safe
-``submit``; the torch work never runs on the UI thread.
+worker (which coalesces them; the request carries the timeline's playhead clock, so the worker
+chooses the frame, :mod:`~garmentnerf.viewer.playback`). Then the UI thread chooses what the layer
+shows: the finished frame at the playhead from the render-ahead cache
+(:class:`~garmentnerf.viewer.finished_frames.FinishedFrames`), else the newest result unless it lies
+ahead of the playhead, and hands it to the palette layer's ``submit``; the torch work never runs
+on the UI thread. A newer checkpoint of the run (``watch``) is taken over here too.
 
 Modes: ``neural`` (the network's image, composited into the scene; optionally with the rasterised
 body by depth), ``ground_truth``, ``side_by_side`` (network | ground truth, fitted beside the
@@ -32,6 +36,15 @@ VIEW_MODES = {"neural": "Neural render", "ground_truth": "Ground truth", "side_b
 GROUND_TRUTH_MODES = ("ground_truth", "side_by_side", "difference")
 
 
+def submit_result(layer, result) -> None:
+    """Put a :class:`~garmentnerf.viewer.worker.NeuralResult` on a
+    :class:`~garmentnerf.viewer.palette_layer.PaletteLayer` (its maps, depth, body, ground truth)."""
+    layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
+                 body=result.body, origin=result.origin, map_size=result.render_size)
+    if result.ground_truth is not None:
+        layer.submit_ground_truth(result.ground_truth)
+
+
 class NeuralView:
     """See the module docstring.
 
@@ -41,10 +54,14 @@ class NeuralView:
         motion: the motion spec the worker's session renders (a scene sequence or motion name).
         status: shows one line on the window's status line.
         clock: seconds (the quality controller's time base).
+        watch: show each new checkpoint of the run's folder as it lands
+            (:class:`~garmentnerf.viewer.checkpoint_watch.CheckpointWatcher`; loaded off the UI thread).
     """
 
-    def __init__(self, scene, run, motion, status: Callable[[str], None], clock: Callable[[], float]) -> None:
+    def __init__(self, scene, run, motion, status: Callable[[str], None], clock: Callable[[], float],
+                 watch: bool = False) -> None:
         self.scene, self.run, self.motion = scene, run, motion
+        self.watcher = None                             # the CheckpointWatcher (watch=True with a run)
         self._status, self._clock = status, clock
         self.mode = "neural" if run is not None else "body"
         self.quality = QualityController()
@@ -54,10 +71,15 @@ class NeuralView:
         self.learned_palette: np.ndarray | None = None  # (P, 3) in [0, 1]
         self.palette: np.ndarray | None = None          # (P, 3): what the shader composes with
         self.gt_camera: str | None = None
-        self.last_result: dict = {}                     # the newest result's figures (overlay, stats hook)
+        self.last_result: dict = {}                     # the shown result's figures (overlay, stats hook)
         self.results: deque = deque(maxlen=64)          # the result sink: worker thread -> UI thread
         self.renderer = None                            # the NeuralRenderer (None without a run)
+        self._watch = bool(watch)
+        self.shown = None                               # the NeuralResult on the layer (its frame: the image's)
+        self._newest = None                             # the newest result delivered
         self._last_request = None
+        self._sent_clock = None                         # the PlayheadClock of the last request
+        self._keys = None                               # (still, requested) view keys of the last update
         self._clip_serial = 0
         if run is not None:
             self._start()
@@ -76,16 +98,49 @@ class NeuralView:
             names = run.scene.camera_names("train") or run.scene.camera_names()
             self.gt_camera = names[0] if names else None
         self.set_mode(self.mode)
-        self.renderer = NeuralRenderer(run, self._sink, self.motion)
+        self.renderer = NeuralRenderer(run, self._sink, self.motion, clock=self._clock)
+        if self._watch:
+            from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
+
+            self.watcher = CheckpointWatcher(run)
+
+    @property
+    def weights_step(self) -> int:
+        """The training step of the weights the worker renders with (the newest checkpoint loaded)."""
+        return int(getattr(self.run, "step", 0) or 0)
+
+    def _take_checkpoint(self) -> None:
+        """A newer checkpoint the watcher loaded goes to the worker; the learned palette follows it
+        (and the palette shown too, unless it was edited)."""
+        run = self.watcher.poll() if self.watcher is not None else None
+        if run is None:
+            return
+        edited = self.palette is not None and not np.array_equal(self.palette, self.learned_palette)
+        self.run = run
+        self.renderer.set_run(run)
+        self.learned_palette = run.palette().detach().cpu().numpy().astype(np.float32)
+        if not edited:
+            self.palette = self.learned_palette.copy()
+            self.scene.palette_layer.set_palette(self.palette)
+        self._status(f"checkpoint step {run.step} loaded: showing it")
 
     def _sink(self, result, request) -> None:
-        """Worker thread: hand the maps to the layer (thread-safe) and queue the result for the UI."""
-        layer = self.scene.palette_layer
-        layer.submit(result.layers, result.depth, result.image_size, tag=(result.frame, result.quality),
-                     body=result.body)
-        if result.ground_truth is not None:
-            layer.submit_ground_truth(result.ground_truth)
+        """Worker thread: queue the result for the UI thread (which chooses what the layer shows)."""
         self.results.append(result)
+
+    def _show(self, result, playback_meter=None) -> None:
+        """Put ``result`` on the palette layer (thread-safe; uploaded at the next draw)."""
+        if result is self.shown:
+            return
+        submit_result(self.scene.palette_layer, result)
+        self.shown = result
+        # the overlay's figures are the shown image's: where its time went
+        self.last_result = {"renders": self.renderer.stats.renders, "quality": result.quality,
+                            "render_size": list(result.render_size), "frame": result.frame,
+                            "cached_frame": result.cached_frame,
+                            "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
+        if playback_meter is not None:
+            playback_meter.neural_received(result.frame, self._clock())
 
     # ---- actions ----------------------------------------------------------------------------------
     def ground_truth_available(self) -> bool:
@@ -166,45 +221,98 @@ class NeuralView:
         self.scene.palette_layer.submit_ground_truth(None)
 
     # ---- per UI frame -----------------------------------------------------------------------------
-    def update(self, camera, frame: int, playback_meter=None) -> None:
-        """Drain finished renders into the statistics and the quality controller (``playback_meter``:
-        counts them while playing), and request the view of ``camera`` at ``frame`` when it changed."""
+    def update(self, camera, timeline, playback_meter=None) -> None:
+        """Drain finished renders into the statistics and the quality controller, request the view
+        of ``camera`` at the ``timeline``'s frame when it changed, and show the right finished frame.
+
+        The request carries the timeline's :class:`~garmentnerf.viewer.playback.PlayheadClock`:
+        while it plays, the request names the clock, not the frame, and is sent again only when the
+        timeline left it (a seek, a speed change). ``playback_meter`` counts the neural frames shown
+        while playing.
+        """
         if self.renderer is None:
             return
+        from garmentnerf.viewer.playback import PlayheadClock
+
+        self._take_checkpoint()
+
+        frame = timeline.frame
+        playhead = PlayheadClock.of(timeline, self._clock())
         while self.results:
             result = self.results.popleft()
-            if playback_meter is not None:
-                playback_meter.neural_received(result.frame, self._clock())
+            self._newest = result
             self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
-            self.last_result = {"renders": self.renderer.stats.renders, "quality": result.quality,
-                                "render_size": list(result.render_size), "frame": result.frame,
-                                "cached_frame": result.cached_frame,
-                                "timings": {k: round(float(v), 2) for k, v in result.timings.items()}}
         if self.mode == "body":
             return
+        from garmentnerf.viewer.worker import NeuralRequest
+
         gt = self.gt_camera if self.mode in GROUND_TRUTH_MODES and self.ground_truth_available() else None
         cam = self.run.scene.camera(gt).camera if gt is not None else camera
         now = self._clock()
-        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height, frame, self.motion,
-               self._clip_serial)
+        playing = playhead.playing
+        # a playing clip is not a moving view: it plays at the level's still quality (rendered ahead)
+        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height,
+               None if playing else frame, self.motion, self._clip_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
-        request_key = (key, q, gt, self.quality.preset, self.composition)
-        if request_key != self._last_request:
-            from garmentnerf.viewer.worker import NeuralRequest
+        # the still request (the level's quality) is the one rendered ahead and kept; a moving view's
+        # coarser one is shown and forgotten. A scrub onto a rendered frame asks for nothing coarser.
+        still = NeuralRequest(frame, cam, self.quality.full, self.motion, gt, self.quality.preset, self.composition,
+                              playhead, self.weights_step)
+        request = still
+        if q != self.quality.full and (playing or self.renderer.finished.get(still.view_key, frame) is None):
+            request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead,
+                                    self.weights_step, keep=False)
+        request_key = (request.view_key, self._clip_serial, None if playing else frame, playing)
+        drifted = playing and (self._sent_clock is None or self._sent_clock.drifted(playhead))
+        if request_key != self._last_request or drifted:
+            self._last_request, self._sent_clock = request_key, playhead
+            self.renderer.request(request)
+        self._keys = (still.view_key, request.view_key)
+        self._choose_shown(still.view_key, request.view_key, frame, playhead, playback_meter if playing else None)
 
-            self._last_request = request_key
-            self.renderer.request(NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset,
-                                                self.composition))
+    def _choose_shown(self, still_key, request_key, frame: int, playhead, playback_meter) -> None:
+        """Show the finished frame of the still view at ``frame`` if the render-ahead cache has it,
+        else the newest result unless it was rendered ahead of another frame (its own frame is
+        shown from the cache) or lies ahead of the playhead (predicted: shown when the playhead
+        reaches it)."""
+        cached = self.renderer.finished.get(still_key, frame)
+        if cached is not None:
+            self._show(cached, playback_meter)
+            return
+        newest = self._newest
+        if newest is None or newest is self.shown or (newest.ahead and newest.frame != frame):
+            return
+        from garmentnerf.viewer.playback import show_newest
+
+        # paused, "ahead" is later in the clip (a frame rendered ahead is never shown early)
+        if show_newest(newest.frame, frame, playhead.n_frames, playhead.loop and playhead.playing):
+            self._show(newest, playback_meter)
+
+    @property
+    def shown_frame(self) -> int | None:
+        """The clip frame the neural image shows (None before the first)."""
+        return None if self.shown is None else self.shown.frame
+
+    def frame_ready(self, frame: int) -> bool:
+        """Whether the image of ``frame`` for the view last requested is finished (play every frame
+        waits for it): rendered ahead for the still view, or the newest result of that view."""
+        if self.renderer is None or self.mode == "body" or self._keys is None:
+            return True
+        still_key, request_key = self._keys
+        newest = self._newest
+        return (self.renderer.finished.get(still_key, frame) is not None
+                or (newest is not None and newest.view_key in (still_key, request_key) and newest.frame == frame))
 
     def busy(self) -> bool:
-        """Whether the worker renders, a result waits to be drained, or the view is still moving."""
-        return self.renderer is not None and not self.settled()
+        """Whether the worker renders a request, a result waits to be drained, or the view is still
+        moving (rendering ahead does not count: the window may wait for events meanwhile)."""
+        return self.renderer is not None and not (self.renderer.worker.idle() and not self.results
+                                                  and not self.quality.moving(self._clock()))
 
     def settled(self) -> bool:
-        """The worker is idle, every result drained and the view still (True without a run)."""
-        return self.renderer is None or (self.renderer.worker.idle() and not self.results
-                                         and not self.quality.moving(self._clock()))
+        """Not :meth:`busy`, and the worker has finished rendering ahead (True without a run)."""
+        return self.renderer is None or (not self.busy() and self.renderer.worker.quiet() and not self.results)
 
     @property
     def has_image(self) -> bool:
@@ -220,8 +328,15 @@ class NeuralView:
             return None
         st = self.renderer.stats
         return {"renders": st.renders, "dropped": st.dropped, "errors": st.errors, "last_error": st.last_error,
-                "last_ms": st.last_ms, "layer_has_image": self.has_image, **self.last_result}
+                "last_ms": st.last_ms, "started": st.started, "abandoned": st.abandoned,
+                "completed_share": st.completed_share, "shown_frame": self.shown_frame,
+                "render_s": self.renderer.render_time.seconds, "weights_step": self.weights_step,
+                "shown_step": None if self.shown is None else self.shown.weights_step,
+                "finished_frames": len(self.renderer.finished.frames(self.renderer.finished.view)),
+                "layer_has_image": self.has_image, **self.last_result}
 
     def stop(self) -> None:
+        if self.watcher is not None:
+            self.watcher.close()
         if self.renderer is not None:
             self.renderer.stop()

@@ -26,6 +26,7 @@ import numpy as np
 
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.shaders import build_program
+from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
 from garmentnerf.viewer.renderables import PassState, ViewParams
 
 #: View modes of the palette layer (what the neural layer shows).
@@ -36,6 +37,9 @@ NEEDS_GROUND_TRUTH = ("ground_truth", "difference")
 MAP_VIEWS = ("mask", "weights", "radiance")
 #: Most palette colors the shader handles.
 MAX_PALETTE = 4
+#: The maps' textures grow in steps of this many texels (and never shrink): the maps of a clip's
+#: frames differ in size by a few pixels, and a new texture costs a clear of all of it.
+MAP_CAPACITY_STEP = 64
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,78 @@ def pack_maps(radiance: np.ndarray, offsets: np.ndarray, weights: np.ndarray, ma
     out[1, ..., :P] = weights.transpose(1, 2, 0)
     out[2:2 + P, ..., :3] = offsets.transpose(0, 2, 3, 1)
     return out
+
+
+def empty_texels(layers: int) -> np.ndarray:
+    """(L, 4) float32: what the layers of :func:`pack_maps` hold where the maps are empty
+    (:meth:`~garmentnerf.model.palette.DecomposedMaps.placed`: mask, radiance and offsets 0, the
+    ``P = L - 2`` blend weights uniform)."""
+    P = layers - 2
+    out = np.zeros((layers, 4), np.float32)
+    out[1, :P] = np.float32(1.0) / np.float32(P)
+    return out
+
+
+def uncovered(old: tuple[int, int, int, int] | None, new: tuple[int, int, int, int]) -> list[tuple[int, int, int, int]]:
+    """The parts of rectangle ``old`` (x, y, w, h) outside rectangle ``new``: at most four
+    rectangles (the rows above and below ``new``, then the columns beside it), none when ``old``
+    is None or inside ``new``."""
+    if old is None:
+        return []
+    ox0, oy0, ox1, oy1 = old[0], old[1], old[0] + old[2], old[1] + old[3]
+    nx0, ny0, nx1, ny1 = new[0], new[1], new[0] + new[2], new[1] + new[3]
+    parts = []
+    top, bottom = min(oy1, max(oy0, ny0)), max(oy0, min(oy1, ny1))  # old's rows beside new: [top, bottom)
+    if top > oy0:
+        parts.append((ox0, oy0, ox1 - ox0, top - oy0))
+    if oy1 > bottom:
+        parts.append((ox0, bottom, ox1 - ox0, oy1 - bottom))
+    if bottom > top:
+        left, right = min(ox1, max(ox0, nx0)), max(ox0, min(ox1, nx1))
+        if left > ox0:
+            parts.append((ox0, top, left - ox0, bottom - top))
+        if ox1 > right:
+            parts.append((right, top, ox1 - right, bottom - top))
+    return [p for p in parts if p[2] > 0 and p[3] > 0]
+
+
+def filled_quad(rect: tuple[float, float, float, float], filled: tuple[int, int, int, int] | None,
+                map_size: tuple[int, int]) -> tuple[tuple[float, float, float, float], tuple[float, float, float, float]]:
+    """The part of the NDC ``rect`` (x0, y0, x1, y1; the whole maps, rows top-first) that can show
+    anything: the texels ``filled`` (x, y, w, h; None: all) grown by one texel (the bilinear
+    footprint), as (NDC rect, the quad's v_uv rect (u0, v0, u1, v1), v up). Blended over the scene,
+    empty maps add nothing, so drawing only this part shows the same image with fewer fragments."""
+    W, H = map_size
+    if filled is None:
+        return rect, (0.0, 0.0, 1.0, 1.0)
+    fx, fy, fw, fh = filled
+    tx0, tx1 = max(0, fx - 1), min(W, fx + fw + 1)
+    ty0, ty1 = max(0, fy - 1), min(H, fy + fh + 1)
+    if tx1 <= tx0 or ty1 <= ty0:
+        return rect, (0.0, 0.0, 1.0, 1.0)
+    u0, u1, v0, v1 = tx0 / W, tx1 / W, 1.0 - ty1 / H, 1.0 - ty0 / H
+    x0, y0, x1, y1 = rect
+    return ((x0 + u0 * (x1 - x0), y0 + v0 * (y1 - y0), x0 + u1 * (x1 - x0), y0 + v1 * (y1 - y0)),
+            (u0, v0, u1, v1))
+
+
+def crop_to_content(layers: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Maps packed by :func:`pack_maps` and their depth, cut to the smallest rectangle outside which
+    the maps are empty (:func:`empty_texels`) and the depth 0: the character's rectangle of a culled
+    preset (everything else is empty).
+
+    Returns:
+        (layers (2 + P, h', w', 4), depth (h', w'), (x0, y0)): copies of the rectangle and its top-left
+        pixel; a 1 x 1 rectangle at (0, 0) when everything is empty. :meth:`PaletteLayer.submit` with
+        ``origin=(x0, y0)`` and the full size shows exactly what the uncut maps show.
+    """
+    empty = empty_texels(layers.shape[0])[:, None, None, :]
+    filled = np.any(layers != empty, axis=(0, 3)) | (depth != 0)
+    rows, cols = np.flatnonzero(filled.any(axis=1)), np.flatnonzero(filled.any(axis=0))
+    if rows.size == 0:
+        return layers[:, :1, :1].copy(), depth[:1, :1].copy(), (0, 0)
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return layers[:, y0:y1, x0:x1].copy(), depth[y0:y1, x0:x1].copy(), (x0, y0)
 
 
 def pack_frame(maps) -> np.ndarray:
@@ -121,6 +197,8 @@ class _PaletteMaps:
     image_size: tuple[int, int]  # (W, H) of the camera the maps belong to (its aspect is kept)
     tag: object = None
     body: BodyView | None = None  # the body to draw under the garment (the raster_body composition)
+    origin: tuple[int, int] = (0, 0)        # top-left pixel of ``layers`` in the full maps
+    map_size: tuple[int, int] | None = None  # (w, h) of the full maps (None: the size of ``layers``)
 
 
 def _texture(ctx: moderngl.Context, size: tuple[int, int], components: int, dtype: str, filter_: int,
@@ -145,6 +223,9 @@ class PaletteLayer:
         map_view: what ``maps`` mode shows (:data:`MAP_VIEWS`).
         use_depth: write the network's depth (composite with the rasterised body by depth); off:
             drawn over everything by its mask.
+        moving: the view is changing (the window draws its scene smaller meanwhile): the body layer
+            is drawn without supersampling (a quarter of the fragments: a playing clip shows a new
+            body every frame), and supersampled again once the view is still.
         opaque: compose over :attr:`background` (as compose() does) instead of blending over the scene.
     """
 
@@ -169,14 +250,17 @@ class PaletteLayer:
         self.depth_tex: moderngl.Texture | None = None
         self.gt_tex: moderngl.Texture | None = None
         self.image_size: tuple[int, int] | None = None
+        self.map_size: tuple[int, int] | None = None  # (w, h) of the maps shown (the textures may be larger)
         self.tag: object = None
         self.body: BodyView | None = None     # the shown result's body (None: no body layer)
         self.body_draws = 0                   # body layers drawn so far (tests: a still view draws none)
         self._body_model = None               # (faces, uv, uv_faces, appearance) of set_body_model
         self._body_pass = None                # the BodyLayerPass, made at the first body
         self._body_tex: moderngl.Texture | None = None  # the pass's texture of the shown body
-        self._body_key: tuple | None = None   # (BodyView, size) the texture holds
+        self._body_key: tuple | None = None   # (BodyView, size, supersample) the texture holds
+        self.moving = False                   # the view changes (drawn smaller): the body layer is not supersampled
         self.uploads = 0
+        self._filled: tuple[int, int, int, int] | None = None  # (x, y, w, h) of the textures possibly not empty
         self._lock = threading.Lock()
         self._pending: _PaletteMaps | None = None
         self._pending_gt: np.ndarray | None = None
@@ -215,17 +299,28 @@ class PaletteLayer:
         self._body_key = None
 
     def submit(self, layers: np.ndarray, depth: np.ndarray, image_size: tuple[int, int], tag: object = None,
-               body: BodyView | None = None) -> None:
-        """Queue maps packed by :func:`pack_maps` with their depth (h, w) and the output size (W, H);
-        ``body``: the result's body, drawn under the garment (needs :meth:`set_body_model`)."""
-        layers = np.ascontiguousarray(layers, dtype=np.float32)
+               body: BodyView | None = None, origin: tuple[int, int] = (0, 0),
+               map_size: tuple[int, int] | None = None) -> None:
+        """Queue maps packed by :func:`pack_maps` (float32, or float16: uploaded to half-float textures)
+        with their depth (h, w) and the output size (W, H); ``body``: the result's body, drawn under
+        the garment (needs :meth:`set_body_model`). A rectangle cut by :func:`crop_to_content` is
+        passed with its ``origin`` (x0, y0) in the full maps of ``map_size`` (w, h): only it is
+        uploaded (the rest of the textures is set to :func:`empty_texels`)."""
+        layers = np.ascontiguousarray(layers)
+        if layers.dtype not in (np.float16, np.float32):
+            layers = layers.astype(np.float32)
         depth = np.ascontiguousarray(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0))
         if layers.ndim != 4 or layers.shape[-1] != 4 or layers.shape[0] < 3 or depth.shape != layers.shape[1:3]:
             raise ValueError(f"palette layer needs (2 + P, h, w, 4) maps and (h, w) depth, got {layers.shape} "
                              f"and {depth.shape}")
         if body is not None and (layers.shape[0] < 4 or self._body_model is None):
             raise ValueError("a body layer needs a garment and a body color and set_body_model() first")
-        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, body)
+        h, w = depth.shape
+        full = (w, h) if map_size is None else (int(map_size[0]), int(map_size[1]))
+        x0, y0 = int(origin[0]), int(origin[1])
+        if x0 < 0 or y0 < 0 or x0 + w > full[0] or y0 + h > full[1]:
+            raise ValueError(f"a {w}x{h} rectangle at ({x0}, {y0}) does not fit maps of {full[0]}x{full[1]}")
+        item = _PaletteMaps(layers, depth, (int(image_size[0]), int(image_size[1])), tag, body, (x0, y0), full)
         with self._lock:
             self._pending = item
 
@@ -263,14 +358,28 @@ class PaletteLayer:
         if item is None:
             return
         L, h, w, _ = item.layers.shape
-        if self.maps_tex is None or (self.maps_tex.width, self.maps_tex.height, self.maps_tex.layers) != (w, h, L):
+        W, H = item.map_size
+        dtype = "f2" if item.layers.dtype == np.float16 else "f4"
+        tex = self.maps_tex
+        if tex is None or tex.layers != L or tex.dtype != dtype or tex.width < W or tex.height < H:
+            # grown, never shrunk: the maps of a clip's frames differ in size by a few pixels
+            cap = (max(W, tex.width if tex is not None else 0), max(H, tex.height if tex is not None else 0))
+            cap = (-(-cap[0] // MAP_CAPACITY_STEP) * MAP_CAPACITY_STEP, -(-cap[1] // MAP_CAPACITY_STEP) * MAP_CAPACITY_STEP)
             self._release_maps()
-            self.maps_tex = self.ctx.texture_array((w, h, L), 4, dtype="f4")
+            self.maps_tex = self.ctx.texture_array((*cap, L), 4, dtype=dtype)
             self.maps_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             self.maps_tex.repeat_x = self.maps_tex.repeat_y = False
-            self.depth_tex = _texture(self.ctx, (w, h), 1, "f4", moderngl.NEAREST)
-        self.maps_tex.write(item.layers)
-        self.depth_tex.write(item.depth)
+            self.depth_tex = _texture(self.ctx, cap, 1, "f4", moderngl.NEAREST)
+            self._filled = (0, 0, *cap)  # new textures: contents undefined
+        self.map_size = (W, H)
+        rect = (*item.origin, w, h)
+        empty = empty_texels(L).astype(item.layers.dtype)[:, None, None, :]
+        for x, y, sw, sh in uncovered(self._filled, rect):  # what the new maps do not cover: empty
+            self.maps_tex.write(np.ascontiguousarray(np.broadcast_to(empty, (L, sh, sw, 4))), viewport=(x, y, 0, sw, sh, L))
+            self.depth_tex.write(np.zeros((sh, sw), np.float32), viewport=(x, y, sw, sh))
+        self.maps_tex.write(item.layers, viewport=(*item.origin, 0, w, h, L))
+        self.depth_tex.write(item.depth, viewport=rect)
+        self._filled = rect
         self.image_size = item.image_size
         self.tag = item.tag
         self.body = item.body
@@ -282,16 +391,18 @@ class PaletteLayer:
         x0, y0, x1, y1 = self._rects(view, self.composition())[0][1]
         size = (max(1, round((x1 - x0) * 0.5 * view.camera.width)),
                 max(1, round((y1 - y0) * 0.5 * view.camera.height)))
-        if self._body_key is not None and self._body_key[0] is self.body and self._body_key[1] == size:
+        supersample = 1 if self.moving else BODY_LAYER_SUPERSAMPLE
+        key = self._body_key
+        if key is not None and key[0] is self.body and key[1:] == (size, supersample):
             return
         if self._body_pass is None:
             self._body_pass = BodyLayerPass(self.ctx, max_sizes=2)
         faces, uv, uv_faces, appearance = self._body_model
         self._body_tex = self._body_pass.draw(self.body.vertices, self.body.normals, faces, uv, uv_faces,
-                                              self.body.camera.resized(*size), appearance)
+                                              self.body.camera.resized(*size), appearance, supersample)
         self._body_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._body_tex.repeat_x = self._body_tex.repeat_y = False
-        self._body_key = (self.body, size)
+        self._body_key = (self.body, size, supersample)
         self.body_draws += 1
 
     def composition(self) -> Composition:
@@ -319,7 +430,10 @@ class PaletteLayer:
         if with_body:
             self._body_tex.use(location=3)
         for mode, rect in self._rects(view, how):
-            self._draw_rect(view, how, mode, rect, with_body)
+            uv_rect = (0.0, 0.0, 1.0, 1.0)
+            if mode == "neural" and not how.opaque and not how.side_by_side:
+                rect, uv_rect = filled_quad(rect, self._filled, self.map_size)
+            self._draw_rect(view, how, mode, rect, with_body, uv_rect)
 
     def _rects(self, view: ViewParams, how: Composition) -> list[tuple[str, tuple[float, float, float, float]]]:
         """(mode, NDC rect) of each image drawn: the neural one first."""
@@ -332,7 +446,8 @@ class PaletteLayer:
                     ("ground_truth", fit_rect((middle, y0, x1, y1), vw, vh, self.image_size))]
         return [(how.mode, fit_rect((-1.0, -1.0, 1.0, 1.0), vw, vh, self.image_size))]
 
-    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect, with_body: bool) -> None:
+    def _draw_rect(self, view: ViewParams, how: Composition, mode: str, rect, with_body: bool,
+                   uv_rect=(0.0, 0.0, 1.0, 1.0)) -> None:
         p = self.program
         pal = np.zeros((MAX_PALETTE, 3), dtype=np.float32)
         n = min(self.palette.shape[0], MAX_PALETTE)
@@ -351,6 +466,10 @@ class PaletteLayer:
         p["u_near"].value = float(view.camera.near)
         p["u_far"].value = float(view.camera.far)
         p["u_rect"].value = tuple(float(v) for v in rect)
+        p["u_uv_rect"].value = tuple(float(v) for v in uv_rect)
+        cw, ch = self.maps_tex.width, self.maps_tex.height
+        p["u_map_extent"].value = (self.map_size[0] / cw, self.map_size[1] / ch)
+        p["u_map_half_texel"].value = (0.5 / cw, 0.5 / ch)
         self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4)
 
     def _release_maps(self) -> None:

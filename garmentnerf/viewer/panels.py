@@ -14,6 +14,7 @@ import time
 from garmentnerf.viewer.control_panel import draw_controls
 from garmentnerf.viewer.export_panel import ERROR_COLOR, export_progress
 from garmentnerf.viewer.gui_libs import imgui
+from garmentnerf.viewer.playback import frames_behind
 from garmentnerf.viewer.shortcuts import MOUSE_HELP, help_rows
 from garmentnerf.viewer.timeline import MAX_SPEED, MIN_SPEED
 
@@ -129,8 +130,16 @@ def ready_runs(ready: list[int]) -> list[tuple[int, int]]:
     return runs
 
 
+#: Colours of the timeline's bars: frames whose per-frame work is precomputed, frames rendered
+#: ahead (finished images), and the mark of the frame the neural image shows.
+PRECOMPUTED_COLOR = (0.35, 0.75, 0.4, 1.0)
+RENDERED_COLOR = (0.35, 0.6, 1.0, 1.0)
+SHOWN_COLOR = (1.0, 0.7, 0.2, 1.0)
+
+
 def _render_bar(app) -> None:
-    """A video editor's render bar under the frame slider: which frames are precomputed."""
+    """A video editor's render bars under the frame slider: which frames are precomputed (green),
+    which are rendered ahead (blue), and a mark at the frame the neural image shows (orange)."""
     renderer = app.neural_view.renderer
     status = renderer.cache_status() if renderer is not None else None
     if not status or status["frames"] < 1:
@@ -139,11 +148,19 @@ def _render_bar(app) -> None:
     width, n = hi.x - lo.x, status["frames"]
     top = hi.y + 1.0
     draw = imgui.get_window_draw_list()
-    color = imgui.get_color_u32(imgui.ImVec4(0.35, 0.75, 0.4, 1.0))
-    for first, last in ready_runs(status["ready"]):
-        draw.add_rect_filled(imgui.ImVec2(lo.x + width * first / n, top),
-                             imgui.ImVec2(lo.x + width * (last + 1) / n, top + 3.0), color)
-    imgui.dummy(imgui.ImVec2(0.0, 4.0))
+    for row, (frames, color) in enumerate(((status["ready"], PRECOMPUTED_COLOR),
+                                           (status["finished"], RENDERED_COLOR))):
+        y = top + 4.0 * row
+        u32 = imgui.get_color_u32(imgui.ImVec4(*color))
+        for first, last in ready_runs(frames):
+            draw.add_rect_filled(imgui.ImVec2(lo.x + width * first / n, y),
+                                 imgui.ImVec2(lo.x + width * (last + 1) / n, y + 3.0), u32)
+    shown = app.neural_view.shown_frame
+    if shown is not None and shown < n:
+        x = lo.x + width * (shown + 0.5) / n
+        draw.add_rect_filled(imgui.ImVec2(x - 1.5, lo.y), imgui.ImVec2(x + 1.5, top + 7.0),
+                             imgui.get_color_u32(imgui.ImVec4(*SHOWN_COLOR)))
+    imgui.dummy(imgui.ImVec2(0.0, 8.0))
 
 
 # ---- stats overlay (top right) ------------------------------------------------------------------
@@ -180,7 +197,31 @@ def _neural_stats(app) -> None:
         imgui.text_disabled("  ".join(f"{k} {v:.0f}" for k, v in stages) + " ms")
     else:
         imgui.text_disabled("neural: waiting for the first frame ...")
-    imgui.text_disabled(f"renders {st.renders}, superseded {st.dropped}, errors {st.errors}")
+    share = st.completed_share
+    imgui.text_disabled(f"renders {st.renders} of {st.started} started"
+                        + (f" ({100 * share:.0f}%)" if share is not None else "")
+                        + f", superseded {st.dropped}, errors {st.errors}")
+    if view.watcher is not None or view.weights_step:
+        shown_step = view.shown.weights_step if view.shown is not None else None
+        line = f"weights: step {view.weights_step}" + (
+            f" (image: step {shown_step})" if shown_step is not None and shown_step != view.weights_step else "")
+        imgui.text_disabled(line + (", watching the run" if view.watcher is not None else ""))
+        if view.watcher is not None and view.watcher.error:
+            imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), view.watcher.error[:120])
+    shown = view.shown_frame
+    if shown is not None:
+        tl = app.timeline
+        behind = frames_behind(shown, tl.frame, tl.num_frames, tl.loop)
+        line = f"image: frame {shown}, playhead {tl.frame}" + (f" ({behind} behind)" if behind else " (in step)")
+        if behind:
+            imgui.text_colored(imgui.ImVec4(*SHOWN_COLOR), line)
+        else:
+            imgui.text_disabled(line)
+        status = view.renderer.cache_status()
+        if status is not None:
+            imgui.text_disabled(f"rendered ahead {len(status['finished'])} / {status['frames']} frames "
+                                f"({status['finished_bytes'] / 2**20:.0f} MiB), render "
+                                f"{1000 * view.renderer.render_time.seconds:.0f} ms")
     if app.timeline.playing:
         motion_fps, neural_fps = app.playback_meter.rates(app.clock())
         dropping = neural_fps < 0.9 * motion_fps

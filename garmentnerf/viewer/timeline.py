@@ -72,12 +72,16 @@ class Timeline:
         self.num_frames, self.fps = num_frames, fps
         self.position = float(min(self.frame, num_frames - 1)) if keep_frame else 0.0
 
-    def advance(self, dt: float) -> bool:
-        """Move on by ``dt`` seconds of UI time when playing."""
+    def advance(self, dt: float, max_frames: int | None = None) -> bool:
+        """Move on by ``dt`` seconds of UI time when playing; with ``max_frames`` by at most that
+        many frames (0: stay on this frame, the position stopping just before the next one)."""
         before = self.frame
         if not self.playing or not math.isfinite(dt) or dt <= 0.0:
             return False
-        self.position += dt * self.fps * self.speed
+        step = dt * self.fps * self.speed
+        if max_frames is not None:
+            step = min(step, math.floor(self.position) + max(0, int(max_frames)) + 1 - 1e-6 - self.position)
+        self.position += max(step, 0.0)
         if self.position >= self.num_frames:
             if self.loop:
                 self.position = math.fmod(self.position, self.num_frames)

@@ -275,6 +275,16 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
     bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
                              log=lambda *a: None)
     row = next(r for r in bench["presets"] if r["preset"] == "interactive")
+    # render-ahead (issue 28): the previewer's worker rendered the tiny clip's 3 frames once each for
+    # the still camera while it played (none abandoned), then played them back at the clip's rate
+    ahead = bench["playback"]["render_ahead"]
+    assert ahead["frames"] == 3 and ahead["camera"] == [1280, 800] and set(ahead["presets"]) == {"reference",
+                                                                                                  "interactive"}
+    for name, r in ahead["presets"].items():
+        assert r["renders"] == r["started"] == 3 and r["completed_share"] == 1.0, (name, r)
+        assert r["seconds_for_clip"] > 0 and 0 <= r["max_lag_frames"] < 3, (name, r)
+        assert r["frames_shown"] == 6 and 0 < r["fps_after"] <= 1.05 * ahead["fps"], (name, r)
+    assert bench["playback"]["completed_share"] == 1.0
     # the previewer-view figures: the whole frame casts every ray, the rectangle only some, with the
     # same samples at the same density; the character density is the session's rule
     for view in bench["previewer_view"]["views"]:
