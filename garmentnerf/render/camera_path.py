@@ -278,6 +278,11 @@ class CameraPath:
         object.__setattr__(self, "constant_speed", bool(self.constant_speed))
 
     @cached_property
+    def token(self) -> tuple:
+        """A hashable value equal for paths that place every camera alike (size and fps aside)."""
+        return (self.constant_speed,) + tuple((k.frame, k.fov_y, k.camera_to_world.tobytes()) for k in self.keyframes)
+
+    @cached_property
     def interpolator(self) -> PathInterpolator:
         return PathInterpolator(self.keyframes, self.constant_speed)
 

@@ -298,7 +298,8 @@ class App(Closeable):
         camera = self.view_camera(fb_w, fb_h)
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
-        self.neural_view.update(camera, self.timeline, self.playback_meter)
+        path = self.camera_path() if self.path_editor.look_through else None
+        self.neural_view.update(camera, self.timeline, self.playback_meter, camera_path=path)
         # while the view moves the scene is drawn smaller (SceneScale); the neural request is not
         now = self.clock()
         self.scene_scale.view_changed((state_token((camera.K, camera.R, camera.t)), self.timeline.frame), now)

@@ -221,9 +221,11 @@ class NeuralView:
         self.scene.palette_layer.submit_ground_truth(None)
 
     # ---- per UI frame -----------------------------------------------------------------------------
-    def update(self, camera, timeline, playback_meter=None) -> None:
+    def update(self, camera, timeline, playback_meter=None, camera_path=None) -> None:
         """Drain finished renders into the statistics and the quality controller, request the view
         of ``camera`` at the ``timeline``'s frame when it changed, and show the right finished frame.
+        ``camera_path``: the window looks through this path (each frame its own camera, at
+        ``camera``'s size; see :class:`~garmentnerf.viewer.worker.NeuralRequest`).
 
         The request carries the timeline's :class:`~garmentnerf.viewer.playback.PlayheadClock`:
         while it plays, the request names the clock, not the frame, and is sent again only when the
@@ -248,21 +250,24 @@ class NeuralView:
 
         gt = self.gt_camera if self.mode in GROUND_TRUTH_MODES and self.ground_truth_available() else None
         cam = self.run.scene.camera(gt).camera if gt is not None else camera
+        path = camera_path if gt is None else None
         now = self._clock()
         playing = playhead.playing
-        # a playing clip is not a moving view: it plays at the level's still quality (rendered ahead)
-        key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height,
-               None if playing else frame, self.motion, self._clip_serial)
+        # a playing clip is not a moving view: it plays at the level's still quality (rendered ahead);
+        # nor is a path the window looks through, whose camera moves with the frame
+        where = ("path", path.token, cam.width, cam.height) if path is not None else (
+            cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height)
+        key = (where, None if playing else frame, self.motion, self._clip_serial)
         self.quality.view_changed(key, now)
         q = self.quality.quality(now)
         # the still request (the level's quality) is the one rendered ahead and kept; a moving view's
         # coarser one is shown and forgotten. A scrub onto a rendered frame asks for nothing coarser.
         still = NeuralRequest(frame, cam, self.quality.full, self.motion, gt, self.quality.preset, self.composition,
-                              playhead, self.weights_step)
+                              playhead, self.weights_step, camera_path=path)
         request = still
         if q != self.quality.full and (playing or self.renderer.finished.get(still.view_key, frame) is None):
             request = NeuralRequest(frame, cam, q, self.motion, gt, self.quality.preset, self.composition, playhead,
-                                    self.weights_step, keep=False)
+                                    self.weights_step, keep=False, camera_path=path)
         request_key = (request.view_key, self._clip_serial, None if playing else frame, playing)
         drifted = playing and (self._sent_clock is None or self._sent_clock.drifted(playhead))
         if request_key != self._last_request or drifted:

@@ -256,7 +256,10 @@ class NeuralRequest:
     frames ahead of it (render-ahead, see :class:`NeuralRenderer`). ``weights_step``: the training
     step of the weights to render with (part of the view). ``keep``: the render-ahead cache switches
     to this view and keeps its frames (False: a moving view's coarse request, shown once and
-    forgotten, nothing rendered ahead)."""
+    forgotten, nothing rendered ahead). ``camera_path``: a
+    :class:`~garmentnerf.render.camera_path.CameraPath` the window looks through: each frame is then
+    seen by the path's camera at that frame (at ``camera``'s size), and the path, not ``camera``,
+    is part of the view, so a clip played along the path renders ahead like a still camera."""
 
     frame: int
     camera: Any
@@ -268,6 +271,13 @@ class NeuralRequest:
     playhead: PlayheadClock | None = None
     weights_step: int | None = None
     keep: bool = True
+    camera_path: Any = None
+
+    def camera_for(self, frame: int):
+        """The camera of ``frame``: the path's there (at the request camera's size), else ``camera``."""
+        if self.camera_path is None:
+            return self.camera
+        return self.camera_path.camera_at(frame, self.camera.width, self.camera.height)
 
     @functools.cached_property
     def view_key(self) -> tuple:
@@ -275,8 +285,11 @@ class NeuralRequest:
         motion, ground-truth camera, preset, composition, the weights' training step. Not the
         palette (a shader uniform)."""
         cam = self.camera
-        camera = None if cam is None else (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width, cam.height,
-                                           float(cam.near), float(cam.far))
+        if self.camera_path is not None:
+            camera = ("path", self.camera_path.token, cam.width, cam.height)
+        else:
+            camera = None if cam is None else (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.width,
+                                               cam.height, float(cam.near), float(cam.far))
         return (camera, self.quality, self.motion, self.gt_camera, self.preset, self.composition, self.weights_step)
 
 
@@ -531,7 +544,7 @@ class NeuralRenderer:
         session.set_composition(request.composition)
         start = time.perf_counter()
         try:
-            nf = session.render(frame, request.camera, request.quality, preset=request.preset,
+            nf = session.render(frame, request.camera_for(frame), request.quality, preset=request.preset,
                                 should_cancel=lambda: self.worker.should_cancel(generation, progress=not ahead),
                                 body_layer=False)
         except RenderCancelled:

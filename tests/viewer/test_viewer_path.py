@@ -202,3 +202,52 @@ def test_a_path_export_equals_the_headless_render_of_the_saved_path(app, tmp_pat
         assert diff.mean() <= 1.0 and diff.max() <= 8, (diff.mean(), diff.max())
     # and the frames differ from one another: the camera moved along the path
     assert np.abs(window_frames[0] - window_frames[2]).mean() > 2.0
+
+
+def test_playing_along_a_path_renders_each_frame_from_its_own_camera_and_ahead(gl_context, untrained_run,
+                                                                                monkeypatch):
+    """Looking through a path, the worker renders each frame with the path's camera at that frame,
+    and renders the clip ahead along it as for a still camera: played back, no new render."""
+    import time
+
+    from garmentnerf.render.session import RenderSession
+    from garmentnerf.train.run import load_run
+    from garmentnerf.viewer.neural_view import NeuralView
+    from garmentnerf.viewer.scene_gl import SceneRenderer
+    from garmentnerf.viewer.timeline import Timeline
+
+    real = RenderSession.render
+    calls = []
+
+    def render(self, frame, camera, *args, **kwargs):
+        calls.append((int(frame), camera))
+        return real(self, frame, camera, *args, **kwargs)
+
+    monkeypatch.setattr(RenderSession, "render", render)
+    path = CameraPath((Keyframe.from_camera(_view(-40.0), 0), Keyframe.from_camera(_view(70.0), 2)), 64, 48)
+    scene = SceneRenderer(gl_context, samples=0)
+    view = NeuralView(scene, load_run(untrained_run), None, lambda text: None, time.perf_counter)
+    view.quality.dynamic = False
+    view.quality.set_preset("interactive")
+    try:
+        timeline = Timeline(num_frames=3, fps=30.0, playing=True)
+        window_camera = _view(0.0, size=(64, 48))  # the orbit camera: not what is rendered
+        deadline = time.monotonic() + 180
+        view.update(window_camera, timeline, camera_path=path)
+        while not view.settled() and time.monotonic() < deadline:
+            time.sleep(0.01)
+            view.update(window_camera, timeline, camera_path=path)
+        assert view.settled(), view.error()
+        assert sorted(f for f, _ in calls) == [0, 1, 2]
+        for frame, camera in calls:
+            expected = path.camera_at(frame, 64, 48)
+            np.testing.assert_array_equal(camera.R, expected.R)
+            np.testing.assert_array_equal(camera.t, expected.t)
+        for _ in range(6):  # playing on along the path: every frame shown from the frames rendered ahead
+            timeline.advance(1.0 / 30.0)
+            view.update(window_camera, timeline, camera_path=path)
+            assert view.shown_frame == timeline.frame
+        assert len(calls) == 3
+    finally:
+        view.stop()
+        scene.release()
