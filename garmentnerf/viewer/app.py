@@ -41,6 +41,7 @@ from garmentnerf.viewer.exporting import Exports
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import NeuralView
+from garmentnerf.render.camera_path import Keyframe
 from garmentnerf.viewer.path_editor import PathEditor, path_lines
 from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.renderables import FULL_VIEW
@@ -392,10 +393,9 @@ class App(Closeable):
 
     def _leave_path_view(self) -> None:
         """Stop looking through the path; the orbit controller continues from the path's view."""
-        camera = self.view_camera(*self.window.framebuffer_size)
+        view = Keyframe.from_camera(self.view_camera(*self.window.framebuffer_size), self.timeline.frame)
         self.path_editor.look_through = False
-        fov = math.degrees(2.0 * math.atan(0.5 * camera.height / camera.K[1, 1]))
-        self.controller.look_from(camera.center, camera.R[2], fov)
+        self.controller.look_from(view.position, view.camera_to_world[:3, 2], view.fov_y)
 
     def go_to_keyframe(self, index: int) -> None:
         """Pause at keyframe ``index``'s frame and (unless looking through the path) orbit to its view."""
