@@ -10,7 +10,7 @@ import trimesh
 from garmentnerf.body.model import BodyModel
 from garmentnerf.body.surface import VELOCITY_SCALE, canonical_velocities
 from garmentnerf.gl.uv_raster import sample_uv_map
-from garmentnerf.info_maps import InfoMapRenderer
+from garmentnerf.gl.info_maps import InfoMapRenderer
 
 FPS = 30.0
 

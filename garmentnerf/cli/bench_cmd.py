@@ -5,7 +5,7 @@ Without ``--run``: the foundation GL/geometry passes (:func:`garmentnerf.perf.fo
 With ``--run DIR``: every render preset on the run's model, then playback figures
 (:func:`garmentnerf.perf.preset_bench.preset_benchmark`, which says what is measured and how),
 the previewer's render-ahead among them (``playback.render_ahead``, ``playback.completed_share``:
-:mod:`garmentnerf.perf.playback_bench`; ``--playback-frames`` limits the clip).
+:mod:`garmentnerf.viewer.playback_bench`; ``--playback-frames`` limits the clip).
 ``--plot`` draws ms/frame (log) against PSNR per preset (:func:`garmentnerf.perf.plot.write_plot`).
 
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
@@ -132,10 +132,12 @@ def run_bench(args: argparse.Namespace) -> int:
     if getattr(args, "run", None):
         from garmentnerf.perf.plot import write_plot
         from garmentnerf.perf.preset_bench import preset_benchmark
+        from garmentnerf.viewer.playback_bench import render_ahead_benchmark
 
         presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
         results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
-                                   sequence=args.sequence, playback_frames=args.playback_frames)
+                                   sequence=args.sequence, playback_frames=args.playback_frames,
+                                   render_ahead=render_ahead_benchmark)
         _print_presets(results)
         ahead, share = results["playback"]["render_ahead"], results["playback"]["completed_share"]
         print(f"render-ahead of {ahead['frames']} frames at {ahead['fps']:g} fps, still {ahead['camera'][0]}x"

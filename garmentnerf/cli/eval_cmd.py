@@ -101,7 +101,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from garmentnerf.eval.gallery import Gallery
     from garmentnerf.io_utils import atomic_write_path
     from garmentnerf.cli.common import check_output_file, parse_device
-    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.presets import get_render_preset
     from garmentnerf.train.run import load_run
 
     # everything that can be wrong with the arguments fails before the model loads

@@ -41,7 +41,7 @@ def register(sub) -> None:
 
 def run_maps(args: argparse.Namespace) -> int:
     from garmentnerf.gl.context import create_context
-    from garmentnerf.info_maps import InfoMapRenderer
+    from garmentnerf.gl.info_maps import InfoMapRenderer
     from garmentnerf.io_utils import atomic_write_path
 
     out = refuse_existing(args.out, args.overwrite)

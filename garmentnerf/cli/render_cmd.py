@@ -152,7 +152,7 @@ def _checked_render_args(args: argparse.Namespace):
     """(output size or None (the default), render preset, background color or None, camera path or
     None); everything that can be wrong with the arguments fails here, before the model loads."""
     from garmentnerf.cli.common import check_output_dir, parse_device
-    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.presets import get_render_preset
     from garmentnerf.render.colors import parse_hex_color
     from garmentnerf.render.session import DEFAULT_PRESET
 

@@ -16,7 +16,7 @@ what the machine can do rather than the display's refresh:
   frame; the latency is the number of frames until the garment's pixels change (1 = the next frame).
   The worker must not render again for it (palette edits are a shader uniform): ``worker_renders``
   counts the renders that happened during the recolor test (expected 0).
-* **Neural frame time per quality level** (:data:`garmentnerf.perf.presets.VIEWER_LEVELS`, render
+* **Neural frame time per quality level** (:data:`garmentnerf.render.presets.VIEWER_LEVELS`, render
   presets): with the
   dynamic resolution off, the camera steps a little and the full-quality render of the preset is
   awaited; median (and each) of ``RenderSession.render``'s total time, the render size, and the
@@ -163,7 +163,7 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
     renderer = app.neural_view.renderer
     if renderer is None:
         return {}
-    from garmentnerf.perf.presets import VIEWER_LEVELS, get_render_preset
+    from garmentnerf.render.presets import VIEWER_LEVELS, get_render_preset
 
     q = app.neural_view.quality
     saved = (q.preset, q.dynamic)

@@ -129,6 +129,4 @@ def make_rigged_scene(root, *, garment: str = "skirt", motion: str = "walk", fra
                              f"{'garment' if pal['garment'] is None else 'body'} pixel; palette_init not set")
         scene.palette_init = pal
         scene.save()
-    from garmentnerf.train.run import load_scene
-
-    return load_scene(root)
+    return Scene.load(root)

@@ -566,7 +566,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         device: torch device when a run folder is given.
         lpips_backbone: AlexNet weights for LPIPS (default ``$GARMENTNERF_LPIPS_ALEXNET``).
         tof: compute tOF.
-        preset: the render preset (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`; default
+        preset: the render preset (:data:`~garmentnerf.render.presets.RENDER_PRESETS`; default
             ``reference``, the paper's sampling), rendered at its quality (resolution scale).
         quality: render at this multiple of the pixel density the model was trained at instead of
             the preset's (a model trained at twice the density, rendered at 0.5, casts the rays of
@@ -583,7 +583,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         ValueError: unknown split or resolution, run without a scene, baseline on another split,
             bad selection.
     """
-    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.presets import get_render_preset
 
     t_start = time.perf_counter()
     render_preset = get_render_preset(preset)
@@ -653,7 +653,7 @@ class _Methods:
     nearest: dict
     """Evaluated camera -> ``{"camera": nearest training camera, "angle_deg": ...}``."""
     preset: Any
-    """The :class:`~garmentnerf.perf.presets.RenderPreset` the model renders with."""
+    """The :class:`~garmentnerf.render.presets.RenderPreset` the model renders with."""
     quality: float
     """The pixel density it renders at, as a multiple of the trained density."""
     background: tuple[float, float, float]

@@ -489,14 +489,14 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
         the report's path.
     """
     from garmentnerf.gl.context import create_context
-    from garmentnerf.train.run import load_scene
+    from garmentnerf.data.scene import Scene
     from garmentnerf.train.settings import model_config_for
 
     t0 = time.perf_counter()
     say = log or (lambda m: print(f"garmentnerf report: {m}", file=sys.stderr))
     _check_schedule(preset, iterations, generator_iterations)
     scene_path = _scene_folder(scene)
-    scene_obj = load_scene(scene_path)
+    scene_obj = Scene.load(scene_path)
     out = _report_file(out, overwrite)
     runs_dir = Path(runs_dir) if runs_dir is not None else out.with_name(out.stem + "_runs")
     base_cfg = model_config_for(preset)

@@ -29,12 +29,12 @@ from garmentnerf.gl.context import current
 from garmentnerf.gl.mesh_arrays import as_numpy, check_mesh_arrays
 from garmentnerf.gl.resources import GLObjectsOwner, SupersampleTargets, TargetCache
 from garmentnerf.gl.shaders import build_program
-from garmentnerf.model.body_appearance import monomial_exponents
+from garmentnerf.body.shading import monomial_exponents
 
 
 def shading_sum_glsl(degree: int) -> str:
     """GLSL of ``S(n)``, the sum ``u_shading[k] * monomial_k(n)`` over
-    :func:`~garmentnerf.model.body_appearance.monomial_exponents`, written out term by term (a
+    :func:`~garmentnerf.body.shading.monomial_exponents`, written out term by term (a
     macro body for ``shaders/body_layer.frag``)."""
     terms = []
     for k, exponents in enumerate(monomial_exponents(degree)):

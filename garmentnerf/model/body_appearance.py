@@ -13,7 +13,7 @@ The model (per pixel of the body, before the palette)
     ``A``: a ``(3, T, T)`` albedo multiplier on the body atlas, bilinear, starting at 1, so the
     body's palette colour p_body tints it (recolouring the body multiplies the whole texture);
     ``S``: an RGB irradiance that is a polynomial of degree :data:`SHADING_DEGREE` in the unit
-    normal's coordinates (:func:`normal_monomials`). On the sphere the monomials of degree <= d
+    normal's coordinates (:func:`~garmentnerf.body.shading.normal_monomials`). On the sphere the monomials of degree <= d
     span exactly the real spherical harmonics of degree <= d, so ``S`` is SH lighting of that
     order written without any SH constants: degree 2 is the classic 9-coefficient irradiance
     (Ramamoorthi and Hanrahan); degree 4 also follows the terminator of a directional light.
@@ -28,13 +28,13 @@ Atlas convention
 
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.body.shading import monomial_exponents, normal_monomials
 from garmentnerf.io_utils import write_file_atomic
 
 #: Degree of the shading polynomial (see the module docstring).
@@ -43,24 +43,6 @@ SHADING_DEGREE = 4
 TEXTURE_SIZE = 256
 #: The file a run folder keeps its body appearance in.
 BODY_APPEARANCE_FILE = "body_appearance.safetensors"
-
-
-def monomial_exponents(degree: int) -> list[tuple[int, int, int]]:
-    """Exponents ``(a, b, c)`` of every monomial ``x^a y^b z^c`` with ``a + b + c <= degree``,
-    constant first, then by total degree (``(degree + 1)(degree + 2)(degree + 3) / 6`` of them)."""
-    if degree < 0:
-        raise ValueError(f"degree must be >= 0, got {degree}")
-    out = [e for e in itertools.product(range(degree + 1), repeat=3) if sum(e) <= degree]
-    return sorted(out, key=lambda e: (sum(e), tuple(-x for x in e)))
-
-
-def normal_monomials(normals: torch.Tensor, degree: int = SHADING_DEGREE) -> torch.Tensor:
-    """(N, 3) unit normals -> (N, K) the monomials of :func:`monomial_exponents` at each normal."""
-    powers = [torch.ones_like(normals)]
-    for _ in range(degree):
-        powers.append(powers[-1] * normals)
-    cols = [powers[a][:, 0] * powers[b][:, 1] * powers[c][:, 2] for a, b, c in monomial_exponents(degree)]
-    return torch.stack(cols, dim=-1)
 
 
 class BodyAppearance(nn.Module):
@@ -136,5 +118,5 @@ def load_body_appearance(path) -> BodyAppearance:
     return appearance.eval()
 
 
-__all__ = ["BodyAppearance", "normal_monomials", "monomial_exponents", "save_body_appearance",
+__all__ = ["BodyAppearance", "save_body_appearance",
            "load_body_appearance", "SHADING_DEGREE", "TEXTURE_SIZE", "BODY_APPEARANCE_FILE"]

@@ -54,7 +54,7 @@ class FrameInputs:
 
     Attributes:
         posed_vertices: (V, 3) float32 posed body vertices of frame t (world, metres).
-        info_maps: (3 + 3 k, R, R) float32 [N_t, V_t] (:meth:`garmentnerf.info_maps.InfoMaps.stacked`).
+        info_maps: (3 + 3 k, R, R) float32 [N_t, V_t] (:meth:`garmentnerf.gl.info_maps.InfoMaps.stacked`).
         reference_cameras: (front, back) cameras at the reference resolution S x S.
         reference_uv: (2, S, S, 2) body atlas UV seen at each reference pixel (0 in background).
         reference_mask: (2, S, S) bool, pixels that see the body.
@@ -204,7 +204,7 @@ class FrameInputBuilder:
 
     def __init__(self, ctx: "moderngl.Context", body: "BodyModel", references, cfg: "ModelConfig"):
         from garmentnerf.gl.camera_pass import CameraPass
-        from garmentnerf.info_maps import InfoMapRenderer
+        from garmentnerf.gl.info_maps import InfoMapRenderer
 
         self.ctx = ctx
         self.body = body

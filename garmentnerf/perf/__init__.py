@@ -1,7 +1,7 @@
 """Speed/accuracy settings of rendering (presets) and the benchmarks. The benchmarks (``*_bench``)
 import the layers they measure; nothing but the CLI imports a benchmark.
 
-- :mod:`~garmentnerf.perf.presets`: the render presets and the previewer's quality levels.
+- :mod:`~garmentnerf.render.presets`: the render presets and the previewer's quality levels.
 - :mod:`~garmentnerf.perf.preset_bench`: every preset measured on a trained run (speed, points,
   PSNR/SSIM) and playback figures (``garmentnerf bench --run``).
 - :mod:`~garmentnerf.perf.plot`: the speed/accuracy plot of those figures.

@@ -26,7 +26,7 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
     from garmentnerf.geometry.body_points import BodyPointProjector
     from garmentnerf.gl.camera_pass import CameraPass
     from garmentnerf.gl.context import context_info, create_context
-    from garmentnerf.info_maps import InfoMapRenderer
+    from garmentnerf.gl.info_maps import InfoMapRenderer
     from garmentnerf.motion.library import load_motion
 
     body = BodyModel.default()

@@ -1,7 +1,7 @@
 """The render presets measured on a trained run: speed, points evaluated and accuracy per preset,
 and playback figures (what ``garmentnerf bench --run`` prints and saves).
 
-:func:`preset_benchmark` renders every preset (:data:`garmentnerf.perf.presets.RENDER_PRESETS`,
+:func:`preset_benchmark` renders every preset (:data:`garmentnerf.render.presets.RENDER_PRESETS`,
 the table ``render --preset``, ``eval --preset`` and the previewer's quality levels use) on the
 run's model through :class:`~garmentnerf.render.session.RenderSession` like every other command,
 in one process so the ratios to ``reference`` compare like with like: ms per frame (one view of
@@ -15,7 +15,7 @@ measured. Each row also gives the share of rays that hit nothing (no sample plac
 playback figures (:func:`playback_benchmark`): neural frames per second per preset over a
 precomputed clip window, the precompute cost per frame, and the scrub latency to a ready and to a
 cold frame; and the previewer's render-ahead per preset
-(:func:`garmentnerf.perf.playback_bench.render_ahead_benchmark`: ``playback.render_ahead`` and
+(:func:`garmentnerf.viewer.playback_bench.render_ahead_benchmark`: ``playback.render_ahead`` and
 ``playback.completed_share``).
 """
 
@@ -64,7 +64,8 @@ def _pick(items, count):
 
 
 def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, repeats: int = 2,
-                     sequence: str | None = None, gl_context=None, log=print, playback_frames: int = 24) -> dict:
+                     sequence: str | None = None, gl_context=None, log=print, playback_frames: int = 24,
+                     render_ahead=None) -> dict:
     """Measure every preset on a run (see the module docstring) through
     :class:`~garmentnerf.render.session.RenderSession`, the path every command renders with.
 
@@ -78,6 +79,11 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
         gl_context: a moderngl context (None: a headless one is made and released).
         log: where progress lines go.
         playback_frames: precomputed frames played per preset (:func:`playback_benchmark`).
+        render_ahead: the previewer's render-ahead measurement,
+            ``render_ahead(run, sequence, presets, frames, gl_context, log=log) -> dict`` with a
+            ``completed_share`` (the CLI passes
+            :func:`garmentnerf.viewer.playback_bench.render_ahead_benchmark`; it lives with the
+            viewer it drives, above this layer); None: not measured.
     Returns:
         A JSON-ready dict (``presets``: one row per preset; ``playback``).
     """
@@ -123,11 +129,10 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
                                                               if row["psnr"] is not None else ""))
         _add_reference_ratios(results)
         playback = playback_benchmark(session, cams[0].camera, chosen, playback_frames, log=log)
-        from garmentnerf.perf.playback_bench import render_ahead_benchmark
-
-        ahead = render_ahead_benchmark(run, sequence, chosen, playback_frames, ctx, log=log)
-        playback["completed_share"] = ahead.pop("completed_share")
-        playback["render_ahead"] = ahead
+        if render_ahead is not None:
+            ahead = render_ahead(run, sequence, chosen, playback_frames, ctx, log=log)
+            playback["completed_share"] = ahead.pop("completed_share")
+            playback["render_ahead"] = ahead
         previewer = previewer_view_benchmark(session, frame_ids[0], log=log)
         return {"kind": "preset_benchmark", "run": str(run_dir), "step": run.step, "created": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)}, "torch_threads": torch.get_num_threads(),
@@ -146,9 +151,9 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
 
 
 def _chosen_presets(names) -> list:
-    """The :class:`~garmentnerf.perf.presets.RenderPreset` of ``names`` (default: all), with
+    """The :class:`~garmentnerf.render.presets.RenderPreset` of ``names`` (default: all), with
     ``reference`` first when it is not among them (ratios are to a reference measured in the same run)."""
-    from garmentnerf.perf.presets import RENDER_PRESET_NAMES, get_render_preset
+    from garmentnerf.render.presets import RENDER_PRESET_NAMES, get_render_preset
 
     chosen = [get_render_preset(n) for n in (list(names) if names else list(RENDER_PRESET_NAMES))]
     if "reference" not in [p.name for p in chosen]:
@@ -258,7 +263,7 @@ def playback_benchmark(session, camera, presets, frames: int = 24, log=print) ->
     time from a jump to the image, to a ready frame whose closest-point search is not bound
     (``scrub_ready_ms``) and to a frame not precomputed (``scrub_cold_ms``).
     """
-    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.presets import get_render_preset
 
     n = min(max(1, int(frames)), session.num_frames)
     start = max(0, (session.num_frames - n) // 2)
@@ -311,7 +316,7 @@ def previewer_view_benchmark(session, frame: int, size: tuple[int, int] = (1280,
     """
     import dataclasses
 
-    from garmentnerf.perf.presets import get_render_preset
+    from garmentnerf.render.presets import get_render_preset
     from garmentnerf.render.cameras import orbit_view
 
     full = get_render_preset("full")

@@ -20,9 +20,9 @@ The camera-to-maps entry point
     all call it.
 
 Presets
-    Where samples go is a render preset (:data:`garmentnerf.perf.presets.RENDER_PRESETS`: sampler,
+    Where samples go is a render preset (:data:`garmentnerf.render.presets.RENDER_PRESETS`: sampler,
     sample filter, early termination, precision, resolution); the session turns each preset it is
-    asked for into a :class:`~garmentnerf.perf.presets.SamplingPlan` once (measuring the
+    asked for into a :class:`~garmentnerf.render.presets.SamplingPlan` once (measuring the
     garment's height band on the run's scene the first time a culled preset is used) and passes
     it to the model. Default: :data:`DEFAULT_PRESET`.
 
@@ -342,16 +342,16 @@ class RenderSession(Closeable):
     @property
     def height_range(self):
         """The garment's height band of the run (measured on its scene once, on first use)."""
-        from garmentnerf.perf.presets import height_range_for_run
+        from garmentnerf.render.presets import height_range_for_run
 
         if self._height_range is None:
             self._height_range = height_range_for_run(self.run)
         return self._height_range
 
     def sampling(self, preset=DEFAULT_PRESET):
-        """The :class:`~garmentnerf.perf.presets.SamplingPlan` of ``preset`` (a name or a
-        :class:`~garmentnerf.perf.presets.RenderPreset`), made once per preset."""
-        from garmentnerf.perf.presets import get_render_preset
+        """The :class:`~garmentnerf.render.presets.SamplingPlan` of ``preset`` (a name or a
+        :class:`~garmentnerf.render.presets.RenderPreset`), made once per preset."""
+        from garmentnerf.render.presets import get_render_preset
 
         preset = get_render_preset(preset)
         plan = self._plans.get(preset.name)
@@ -410,7 +410,7 @@ class RenderSession(Closeable):
         Args:
             quality: fraction of the training pixel density (default: the preset's
                 ``resolution_scale``; ignored when ``scale`` is given).
-            preset: render preset name (:data:`~garmentnerf.perf.presets.RENDER_PRESETS`).
+            preset: render preset name (:data:`~garmentnerf.render.presets.RENDER_PRESETS`).
             scale: rendered pixels per output pixel (overrides ``quality``).
             should_cancel: polled between chunks; True raises RenderCancelled.
             body_layer: in the ``raster_body`` composition, attach the body layer to the maps at
@@ -482,9 +482,9 @@ class RenderSession(Closeable):
     def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
         """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which
         the frame's sampling box (the body box padded by ``cfg.bbox_padding``, as both samplers pad
-        it) can be seen, grown by :data:`~garmentnerf.perf.presets.CHARACTER_RECT_MARGIN` cells; one
+        it) can be seen, grown by :data:`~garmentnerf.render.presets.CHARACTER_RECT_MARGIN` cells; one
         cell in the corner when the box is out of view (nothing to render)."""
-        from garmentnerf.perf.presets import CHARACTER_RECT_MARGIN
+        from garmentnerf.render.presets import CHARACTER_RECT_MARGIN
 
         rect = box_rect(camera, self.sampling_box(features), cell=cell, margin_cells=CHARACTER_RECT_MARGIN)
         return rect if rect is not None else PixelRect(0, 0, cell, cell)

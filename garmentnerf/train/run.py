@@ -50,6 +50,7 @@ from pathlib import Path
 
 import torch
 
+from garmentnerf.data.scene import Scene
 from garmentnerf.io_utils import remove_stale_temporaries, write_file_atomic
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, BodyAppearance, load_body_appearance
 from garmentnerf.model.config import ModelConfig
@@ -63,7 +64,7 @@ CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
 
 __all__ = ["LoadedRun", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
-           "save_weights", "load_weights", "load_scene", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
+           "save_weights", "load_weights", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
            "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "remove_run_temporaries"]
 
 
@@ -109,24 +110,6 @@ def _relative_scene(run_dir: Path, scene_path) -> str | None:
         return os.path.relpath(scene_path.resolve(), run_dir.resolve())
     except ValueError:  # another drive (Windows)
         return str(scene_path.resolve())
-
-
-def load_scene(path):
-    """:meth:`Scene.load` with file checks.
-
-    Workaround: ``Scene.load``'s file check looks for a ``vertices`` array in ``garment.npz``
-    while :func:`~garmentnerf.data.garment_sequence.save_sequence` (what the simulation and
-    :mod:`garmentnerf.data.synthetic` write) stores ``vertices_q``; on exactly that complaint the
-    scene is re-read without the file check (the garment file is then validated when read).
-    """
-    from garmentnerf.data.scene import Scene, SceneError
-
-    try:
-        return Scene.load(path)
-    except SceneError as exc:
-        if "'vertices' array" not in str(exc):
-            raise
-        return Scene.load(path, check_files=False)
 
 
 def body_info_from_scene(scene) -> dict:
@@ -357,7 +340,7 @@ def save_run_model(run_dir, model, config: ModelConfig, scene_path, step: int, e
         scene = None
         if scene_path is not None:
             try:
-                scene = load_scene(scene_path)
+                scene = Scene.load(scene_path)
             except (OSError, ValueError):
                 scene = None
         body_info = body_info_from_scene(scene)
@@ -402,12 +385,12 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
         path = Path(scene)
         if not (path if path.suffix == ".json" else path / "scene.json").is_file():
             raise FileNotFoundError(f"{path}: no scene.json (scene given to load_run)")
-        loaded_scene = load_scene(path)
+        loaded_scene = Scene.load(path)
     elif info.get("scene"):
         path = Path(info["scene"])
         path = path if path.is_absolute() else (run_dir / path).resolve()
         if (path / "scene.json").is_file():
-            loaded_scene = load_scene(path)
+            loaded_scene = Scene.load(path)
     body, betas = _body_for(info, str(file))
     palette_init = info.get("palette_init")
     try:
@@ -424,7 +407,7 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
 def create_untrained_run(run_dir, scene_path, config: ModelConfig, seed: int = 0) -> Path:
     """An untrained model (seeded initialisation, palette from the scene's ``palette_init``) saved
     as a run; for tests and tools. Returns the run folder."""
-    scene = load_scene(scene_path) if scene_path is not None else None
+    scene = Scene.load(scene_path) if scene_path is not None else None
     torch.manual_seed(seed)
     model = build_model(config, scene.palette_init if scene is not None else None)
     return save_run_model(run_dir, model, config, scene_path, 0,

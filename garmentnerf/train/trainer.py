@@ -94,6 +94,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from garmentnerf.data.scene import Scene
 from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
@@ -105,7 +106,7 @@ from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_file
                                            rng_state, set_rng_state)
 from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
-from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model, load_scene,
+from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model,
                                    load_module_weights, load_weights, read_run_info, remove_run_temporaries,
                                    save_run_model, save_weights)
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
@@ -286,7 +287,7 @@ class Trainer(Closeable):
         self.scene_path = Path(scene_path)
         if not (self.scene_path / "scene.json").is_file() and not self.scene_path.suffix == ".json":
             raise FileNotFoundError(f"{self.scene_path / 'scene.json'}: missing (--scene must be a scene folder)")
-        self.scene = load_scene(self.scene_path)
+        self.scene = Scene.load(self.scene_path)
 
     def _settle_config(self, cfg: ModelConfig, resume_info: dict | None) -> dict[str, float]:
         """``self.cfg`` (``cfg`` with this run's iterations and loss weights), the step counts and the

@@ -112,7 +112,7 @@ def _neural_section(app, em: float) -> None:
     view = app.neural_view
     if view.run is None or not imgui.collapsing_header("Neural render", imgui.TreeNodeFlags_.default_open):
         return
-    from garmentnerf.perf.presets import VIEWER_LEVELS
+    from garmentnerf.render.presets import VIEWER_LEVELS
 
     _combo(em, "View (V)", list(VIEW_MODES), view.mode, view.set_mode, labels=list(VIEW_MODES.values()))
     if view.mode == "maps":

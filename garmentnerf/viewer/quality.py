@@ -21,7 +21,7 @@ Pure logic (no GL), driven by the app once per UI frame:
   by more than :attr:`hysteresis` (relative, +-20 % by default), and it is quantised to steps of
   1/16, so the resolution does not flicker between two neighbours.
 
-Quality levels are the render presets of :data:`garmentnerf.perf.presets.VIEWER_LEVELS`
+Quality levels are the render presets of :data:`garmentnerf.render.presets.VIEWER_LEVELS`
 (``interactive``, ``balanced``, ``full``: rows of the table ``garmentnerf bench`` measures and
 ``garmentnerf render --preset`` runs). The level's preset sets where samples go and the still
 quality (its ``resolution_scale``, also the cap of the moving one); with ``dynamic=False`` the
@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from garmentnerf.perf.presets import VIEWER_LEVELS, get_render_preset
+from garmentnerf.render.presets import VIEWER_LEVELS, get_render_preset
 
 #: Quantisation step of the moving quality (and of the moving scene scale).
 STEP = 1.0 / 16.0

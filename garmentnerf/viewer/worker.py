@@ -31,7 +31,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from garmentnerf.perf.presets import VIEWER_LEVELS
+from garmentnerf.render.presets import VIEWER_LEVELS
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB
 from garmentnerf.viewer.finished_frames import DEFAULT_FINISHED_MB, FinishedFrames
 from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, next_unrendered, predict_target_frame,

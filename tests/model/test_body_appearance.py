@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.model.body_appearance import (BodyAppearance, load_body_appearance, monomial_exponents,
-                                               normal_monomials, save_body_appearance)
+from garmentnerf.body.shading import monomial_exponents, normal_monomials
+from garmentnerf.model.body_appearance import BodyAppearance, load_body_appearance, save_body_appearance
 from garmentnerf.model.palette import DecomposedMaps, compose, composite_alpha
 
 

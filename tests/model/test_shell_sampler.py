@@ -341,7 +341,7 @@ def test_occlusion_cuts_rays_behind_the_skin(gl_context, verts, projector):
 
 
 def test_presets_render_through_their_sampling_plans(gl_context, model_and_frame):
-    from garmentnerf.perf.presets import RENDER_PRESETS, VIEWER_LEVELS, get_render_preset
+    from garmentnerf.render.presets import RENDER_PRESETS, VIEWER_LEVELS, get_render_preset
     from garmentnerf.render.session import padded_render_camera
 
     model, frame = model_and_frame

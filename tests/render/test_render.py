@@ -160,7 +160,7 @@ def test_character_rect_render_equals_the_whole_frame_inside_it(session):
     rays are cast."""
     import dataclasses
 
-    from garmentnerf.perf.presets import CHARACTER_RECT_MARGIN, RENDER_PRESETS
+    from garmentnerf.render.presets import CHARACTER_RECT_MARGIN, RENDER_PRESETS
 
     cam = orbit_view(20.0, width=256, height=192, radius=6.0)  # far: the character is small
     cropped_preset = RENDER_PRESETS["full"]
@@ -267,13 +267,14 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
     from PIL import Image
 
     from garmentnerf.perf.preset_bench import preset_benchmark
-    from garmentnerf.perf.presets import RENDER_PRESETS, VIEWER_LEVELS
+    from garmentnerf.render.presets import RENDER_PRESETS, VIEWER_LEVELS
     from garmentnerf.viewer.quality import QualityController
+    from garmentnerf.viewer.playback_bench import render_ahead_benchmark
     from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
     from garmentnerf.train.run import load_run
 
     bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
-                             log=lambda *a: None)
+                             log=lambda *a: None, render_ahead=render_ahead_benchmark)
     row = next(r for r in bench["presets"] if r["preset"] == "interactive")
     # render-ahead (issue 28): the previewer's worker rendered the tiny clip's 3 frames once each for
     # the still camera while it played (none abandoned), then played them back at the clip's rate

@@ -610,7 +610,7 @@ def test_run_frame_limit_and_quit(xvfb, body, walk, monkeypatch, tmp_path):
 
 # ==== dynamic resolution (pure logic) =========================================================================
 def test_quality_controller_moving_still_floor_and_hysteresis():
-    from garmentnerf.perf.presets import RENDER_PRESETS
+    from garmentnerf.render.presets import RENDER_PRESETS
     from garmentnerf.viewer.quality import QualityController
 
     q = QualityController(preset="full", target_ms=100.0, floor=0.125, settle_seconds=0.3)
@@ -747,7 +747,7 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     import math
     import sys
 
-    from garmentnerf.perf.presets import RENDER_PRESETS, VIEWER_LEVELS
+    from garmentnerf.render.presets import RENDER_PRESETS, VIEWER_LEVELS
 
     out = tmp_path / "view_bench.json"
     env = dict(os.environ)

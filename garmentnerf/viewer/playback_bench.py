@@ -41,7 +41,7 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
     Args:
         run: a :class:`~garmentnerf.train.run.LoadedRun`; motion: the motion spec its session renders
             (None: the run scene's first training sequence).
-        presets: :class:`~garmentnerf.perf.presets.RenderPreset` rows measured.
+        presets: :class:`~garmentnerf.render.presets.RenderPreset` rows measured.
         frames: the clip's first ``frames`` frames are played (fewer if the clip is shorter).
         gl_context: a moderngl context on this thread (the display side).
         size: the still camera's size (an orbit view at the previewer's default distance).
