@@ -1,7 +1,8 @@
-"""Speed/accuracy settings of rendering (presets) and the benchmarks. The benchmarks (``*_bench``)
-import the layers they measure; nothing but the CLI imports a benchmark.
+"""The benchmarks behind ``garmentnerf bench``. They import the layers they measure; nothing but
+the CLI imports a benchmark. The render presets they measure live with the render session
+(:mod:`garmentnerf.render.presets`); the previewer's render-ahead bench lives with the viewer it
+drives (:mod:`garmentnerf.viewer.playback_bench`) and reaches the preset bench as an argument.
 
-- :mod:`~garmentnerf.render.presets`: the render presets and the previewer's quality levels.
 - :mod:`~garmentnerf.perf.preset_bench`: every preset measured on a trained run (speed, points,
   PSNR/SSIM) and playback figures (``garmentnerf bench --run``).
 - :mod:`~garmentnerf.perf.plot`: the speed/accuracy plot of those figures.

@@ -4,6 +4,9 @@ snapshots and video export, so their images agree.
 * :mod:`~garmentnerf.render.session` -- :class:`RenderSession` (model + body + GL input builder +
   per-frame feature cache) and :class:`NeuralFrame` (the decomposed maps of one view, composed
   with any palette by :func:`garmentnerf.model.palette.compose`).
+* :mod:`~garmentnerf.render.presets` -- the render presets (speed/accuracy points) and the
+  previewer's quality levels: the one table bench, render, eval and the previewer use.
+* :mod:`~garmentnerf.render.camera_path` -- keyframed camera paths (interpolation, file format).
 * :mod:`~garmentnerf.render.frame_cache` -- the per-frame features of a clip, kept in half
   precision under a memory bound (what the session renders views from).
 * :mod:`~garmentnerf.render.screen_rect` -- the pixel rectangle a world box covers on screen (the
