@@ -31,22 +31,9 @@ Two levels, so that a viewer can cache what the camera does not change:
    for (training); a viewer composes them itself, once, at its output size.
 
 Detail-feature selection (``cfg.detail_selection``)
-    ``"visibility"`` (paper, the default): front map where b_t is visible from the front
-    reference camera, back map otherwise (seen by neither: back, as the authors' code). Visible
-    means: b_t projects inside the reference image, in front of the camera, and its camera depth
-    z is at most ``visibility_tolerance + z / f_x`` (default 2 cm plus one pixel's footprint at
-    that depth) behind the reference pass's depth at the pixel it falls in. The footprint term
-    keeps surfaces seen obliquely visible at any reference resolution; the 2 cm is below the
-    thickness of the torso and limbs (a finger is thinner: its back counts as visible, which is
-    harmless). Measured on the bundled body's torso (walk clip, reference views of 32 to 512
-    px): 98.5 % of front-facing points (normal y < -0.9) pick the front map and 3 % of the
-    back-facing ones -- all of those under the chin, where the front camera does see them --
-    while the neck points that the chin hides pick the back map.
-    ``"soft_normal"`` (authors' code): ``w = (cos + 1) / 2`` per camera with cos between the
-    interpolated posed vertex normal at b_t and the direction from b_t to the camera, the pair
-    L2-normalised (:func:`~garmentnerf.model.detail_features.select_detail_features`).
-    Both modes read the maps *bilinearly* (the authors' code reads the nearest pixel): features
-    then vary continuously with the sample and give gradients to G_en at every read.
+    ``"visibility"`` (paper, the default) or ``"soft_normal"`` (authors' code): the reads, the
+    visibility test and the blend are :func:`~garmentnerf.model.detail_features.read_detail_features`
+    (whose module says how each mode chooses).
 
 Gradients
     Flow into E, G_en, M_NeRF, M_D and the palette. The body geometry of a sample (b_t, h, b_o,
@@ -85,12 +72,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.conventions import Camera, project_points
+from garmentnerf.conventions import Camera
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 from garmentnerf.geometry.triangles import interpolate
 from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.detail_features import sample_image_features, select_detail_features, soft_normal_weights
+from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
@@ -101,8 +88,6 @@ from garmentnerf.model.uvh_field import UVHField, face_tangent_frames, local_off
 
 #: Default samples per chunk (per-sample work: projection, feature reads, MLP, compositing).
 DEFAULT_CHUNK_POINTS = 16384
-#: Default depth tolerance (metres) of the reference-camera visibility test.
-DEFAULT_VISIBILITY_TOLERANCE = 0.02
 
 #: Stages of :meth:`GarmentAnimationNeRF.prepare_frame` / the GL builder, in pipeline order.
 FRAME_STAGES = ("info_maps", "reference_passes", "surface", "reference_images", "encoders")
@@ -215,33 +200,6 @@ def palette_initial_colors(init, palette_size: int = 2) -> torch.Tensor:
     return out
 
 
-def reference_visibility(points: torch.Tensor, camera: Camera, depth: torch.Tensor,
-                         tolerance: float = DEFAULT_VISIBILITY_TOLERANCE) -> torch.Tensor:
-    """Which surface points a reference camera sees, from its depth pass (see the module docstring).
-
-    Args:
-        points: (N, 3) points on the body surface (b_t).
-        camera: the reference camera, at the resolution of ``depth``.
-        depth: (H, W) camera-space z of the closest body surface, +inf in background.
-        tolerance: metres a point may lie behind the surface seen at its pixel, on top of one
-            pixel's footprint ``z / f_x``.
-    Returns:
-        (N,) bool on the device of ``points``.
-    """
-    H, W = depth.shape
-    if (camera.width, camera.height) != (W, H):
-        raise ValueError(f"camera is {camera.width}x{camera.height} but the depth map is {W}x{H}")
-    pts = points.detach().to("cpu", torch.float64)
-    uv, z = project_points(camera, pts)
-    u, v = uv[:, 0], uv[:, 1]
-    inside = (z > 0) & (u >= -0.5) & (u < W - 0.5) & (v >= -0.5) & (v < H - 0.5)
-    col = torch.round(u.clamp(0, W - 1)).long()
-    row = torch.round(v.clamp(0, H - 1)).long()
-    surface = depth.detach().to("cpu", torch.float64)[row, col]  # +inf in background: visible
-    footprint = z.abs() / float(camera.K[0, 0])
-    return (inside & (z <= surface + tolerance + footprint)).to(points.device)
-
-
 def bfloat16_is_fast(device: torch.device | str) -> bool:
     """Whether ``device`` multiplies bfloat16 matrices much faster than float32 ones: a CUDA GPU
     that supports bfloat16, or a CPU with AMX-BF16 tiles (Intel Xeon from Sapphire Rapids on; on
@@ -272,7 +230,8 @@ class GarmentAnimationNeRF(nn.Module):
         body: the body model (its topology and template; the skin shell is used for projection).
         palette_init: see :func:`palette_initial_colors` (a scene's ``palette_init``).
         freeze_image_generator: start with G_img frozen (its pre-training is a separate stage).
-        visibility_tolerance: metres, see :func:`reference_visibility`.
+        visibility_tolerance: metres, see
+            :func:`~garmentnerf.model.detail_features.reference_visibility`.
         chunk_points: samples per chunk (see the module docstring).
         projector: a prebuilt :class:`BodyPointProjector` for ``body`` (built here if None;
             building it takes about 0.4 s for the bundled body).
@@ -469,24 +428,8 @@ class GarmentAnimationNeRF(nn.Module):
         """
         if frame.detail_features is None:
             raise ValueError("this model was built without the detail feature")
-        dev = frame.detail_features.device
-        reads = []
-        for i, cam in enumerate(frame.reference_cameras):
-            pix, _ = project_points(cam, closest.detach().to("cpu", torch.float32))
-            reads.append(sample_image_features(frame.detail_features[i], pix.to(dev)))
-        if self.cfg.detail_selection == "visibility":
-            visible = reference_visibility(closest, frame.reference_cameras[0], frame.reference_depth[0],
-                                           self.visibility_tolerance).to(dev)
-            return select_detail_features(reads[0], reads[1], "visibility", front_visible=visible), visible.float()
-        if normal is None:
-            raise ValueError("detail selection 'soft_normal' needs the normal at b_t")
-        cos = []
-        for cam in frame.reference_cameras:
-            centre = torch.as_tensor(cam.center, dtype=torch.float32)
-            to_cam = F.normalize(centre - closest.detach().cpu().float(), dim=-1)
-            cos.append((normal.cpu().float() * to_cam).sum(-1).to(dev))
-        feats = select_detail_features(reads[0], reads[1], "soft_normal", cos_front=cos[0], cos_back=cos[1])
-        return feats, soft_normal_weights(cos[0], cos[1])[:, 0]
+        return read_detail_features(frame.detail_features, frame.reference_cameras, frame.reference_depth, closest,
+                                    self.cfg.detail_selection, normal, self.visibility_tolerance)
 
     def evaluate_samples(self, frame: FrameFeatures, positions: torch.Tensor, *,
                          sample_filter: SampleFilter | None = None, precision: str = "float32",
@@ -691,6 +634,6 @@ class GarmentAnimationNeRF(nn.Module):
         return self.render(frame, camera, **kwargs)
 
 
-__all__ = ["GarmentAnimationNeRF", "RenderOutput", "RenderCancelled", "reference_visibility",
+__all__ = ["GarmentAnimationNeRF", "RenderOutput", "RenderCancelled",
            "palette_initial_colors", "bfloat16_is_fast", "FRAME_STAGES", "RENDER_STAGES", "PRECISIONS",
-           "DEFAULT_CHUNK_POINTS", "DEFAULT_VISIBILITY_TOLERANCE"]
+           "DEFAULT_CHUNK_POINTS"]

@@ -88,7 +88,7 @@ class LoadedRun:
     root: Path
     model: "GarmentAnimationNeRF"  # noqa: F821
     config: ModelConfig
-    scene: "Scene | None"  # noqa: F821
+    scene: Scene | None
     step: int
     info: dict
     betas: torch.Tensor | None = field(default=None)

@@ -10,11 +10,11 @@ from garmentnerf.body.surface import vertex_normals
 from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera, project_points
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.detail_features import sample_image_features
+from garmentnerf.model.detail_features import reference_visibility, sample_image_features
 from garmentnerf.model.frame_context import FrameInputBuilder, resolve_reference_cameras
 from garmentnerf.model.palette import compose
 from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnimationNeRF, RenderCancelled,
-                                        palette_initial_colors, reference_visibility)
+                                        palette_initial_colors)
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
