@@ -85,6 +85,7 @@ from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, c
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
 from garmentnerf.model.uvh_field import UVHField, face_tangent_frames, local_offset_direction
+from garmentnerf.model.volume_rendering import render_packed_segmented
 
 #: Default samples per chunk (per-sample work: projection, feature reads, MLP, compositing).
 DEFAULT_CHUNK_POINTS = 16384
@@ -508,8 +509,6 @@ class GarmentAnimationNeRF(nn.Module):
         ``points_projected``, ``rays_terminated``; stage times are added to ``timings`` when
         given. See :meth:`render` for the arguments.
         """
-        from garmentnerf.model.volume_rendering import render_packed_segmented
-
         cfg = self.cfg
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")

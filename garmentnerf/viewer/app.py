@@ -25,6 +25,7 @@ row 0 at the top.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -33,15 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
+from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.lifecycle import Closeable
+from garmentnerf.render.camera_path import Keyframe
+from garmentnerf.train.run import load_run
 from garmentnerf.viewer import panels
-from garmentnerf.viewer.panels import StatusLine
 from garmentnerf.viewer.camera import MouseGestures, OrbitController
 from garmentnerf.viewer.export_jobs import ExportJob, check_size
 from garmentnerf.viewer.exporting import Exports
-from garmentnerf.lifecycle import Closeable
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import NeuralView
-from garmentnerf.render.camera_path import Keyframe
+from garmentnerf.viewer.panels import StatusLine
 from garmentnerf.viewer.path_editor import PathEditor, path_lines
 from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.renderables import FULL_VIEW
@@ -109,8 +112,6 @@ class App(Closeable):
             raise NoDisplayError("no display available (neither DISPLAY nor WAYLAND_DISPLAY is set)")
         # -- data first: a bad motion name fails before a window opens --------------------------------
         if run is not None and not hasattr(run, "model"):
-            from garmentnerf.train.run import load_run
-
             run = load_run(run)
         body, betas, self.shape_label = body_and_shape(run, body, betas)
         self.motions = MotionMenu(body, betas, run)
@@ -454,6 +455,15 @@ class App(Closeable):
         """Show ``frame`` (clamped to the clip); playback continues if it was playing."""
         self.timeline.set_frame(frame)
 
+    def go_to_frame(self, frame: int) -> None:
+        """The timeline's "Go to" field: remember the number typed and show that frame."""
+        self.goto_frame = int(frame)
+        self.set_frame(frame)
+
+    def set_scrubbing(self, scrubbing: bool) -> None:
+        """Whether the user holds the timeline slider (the timeline then does not advance)."""
+        self.scrubbing = bool(scrubbing)
+
     def set_play_every_frame(self, on: bool) -> None:
         """Play every frame: the timeline waits for each frame's neural image instead of dropping
         frames to keep the clip's time (for reviewing the motion at full quality)."""
@@ -545,10 +555,6 @@ class App(Closeable):
         self.neural_view.stop()
         path = os.environ.get(ENV_STATS, "").strip()
         if path:
-            import json
-
-            from garmentnerf.io_utils import atomic_write_path
-
             with atomic_write_path(path) as tmp:
                 tmp.write_text(json.dumps(self.stats(), indent=1, default=str), encoding="utf-8")
         if self.window.handle is not None:

@@ -25,6 +25,8 @@ from garmentnerf.conventions import DEFAULT_FAR, Camera, look_at, orbit_camera
 
 #: View presets: azimuth in degrees (orbit_camera's convention).
 VIEW_DIRECTIONS: dict[str, float] = {"front": 0.0, "left": 90.0, "back": 180.0, "right": -90.0}
+#: The range of the orbit camera's vertical field of view, degrees.
+MIN_FOV_Y, MAX_FOV_Y = 10.0, 90.0
 
 
 def _wrap_degrees(angle: float) -> float:
@@ -156,6 +158,21 @@ class OrbitController:
     def set_distance(self, distance: float) -> None:
         if math.isfinite(distance):
             self.distance = self._clamp_distance(distance)
+
+    def set_azimuth(self, degrees: float) -> None:
+        """Azimuth in degrees (wrapped to (-180, 180])."""
+        if math.isfinite(degrees):
+            self.azimuth = _wrap_degrees(degrees)
+
+    def set_elevation(self, degrees: float) -> None:
+        """Elevation in degrees, clamped to +-:attr:`max_elevation`."""
+        if math.isfinite(degrees):
+            self.elevation = self._clamp_elevation(degrees)
+
+    def set_fov(self, degrees: float) -> None:
+        """Vertical field of view in degrees, clamped to [MIN_FOV_Y, MAX_FOV_Y]."""
+        if math.isfinite(degrees):
+            self.fov_y = min(MAX_FOV_Y, max(MIN_FOV_Y, float(degrees)))
 
     # ---- follow ---------------------------------------------------------------------------------
     def set_follow(self, follow: bool, body_position=None) -> None:

@@ -7,7 +7,8 @@ never through GL. Sizes are multiples of the font size, so the layout follows th
 
 from __future__ import annotations
 
-from garmentnerf.viewer.camera import VIEW_DIRECTIONS
+from garmentnerf.render.presets import VIEWER_LEVELS
+from garmentnerf.viewer.camera import MAX_FOV_Y, MIN_FOV_Y, VIEW_DIRECTIONS
 from garmentnerf.viewer.export_panel import ERROR_COLOR, export_section, snapshot_section
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import GROUND_TRUTH_MODES, VIEW_MODES
@@ -75,20 +76,20 @@ def _camera_section(app, em: float) -> None:
     imgui.set_next_item_width(-6 * em)
     changed, value = imgui.slider_float("Azimuth", cam.azimuth, -180.0, 180.0, "%.0f deg")
     if changed:
-        cam.azimuth = value
+        cam.set_azimuth(value)
     imgui.set_next_item_width(-6 * em)
     changed, value = imgui.slider_float("Elevation", cam.elevation, -cam.max_elevation, cam.max_elevation, "%.0f deg")
     if changed:
-        cam.elevation = value
+        cam.set_elevation(value)
     imgui.set_next_item_width(-6 * em)
     changed, value = imgui.slider_float("Distance", cam.distance, cam.min_distance, cam.max_distance, "%.2f m",
                                         imgui.SliderFlags_.logarithmic)
     if changed:
         cam.set_distance(value)
     imgui.set_next_item_width(-6 * em)
-    changed, value = imgui.slider_float("Field of view", cam.fov_y, 10.0, 90.0, "%.0f deg")
+    changed, value = imgui.slider_float("Field of view", cam.fov_y, MIN_FOV_Y, MAX_FOV_Y, "%.0f deg")
     if changed:
-        cam.fov_y = value
+        cam.set_fov(value)
     changed, follow = imgui.checkbox("Follow the body (T)", cam.follow)
     if changed:
         app.set_follow(follow)
@@ -102,7 +103,9 @@ def _display_section(app) -> None:
     changed, scale = imgui.slider_float("Render scale", app.scene.render_scale, MIN_RENDER_SCALE, 1.0, "%.2f")
     if changed:
         app.scene.set_render_scale(scale)
-    _, app.scene_scale.dynamic = imgui.checkbox("Smaller while moving", app.scene_scale.dynamic)
+    changed, on = imgui.checkbox("Smaller while moving", app.scene_scale.dynamic)
+    if changed:
+        app.scene_scale.set_dynamic(on)
     if imgui.is_item_hovered():
         imgui.set_tooltip(f"draw the scene at the scale that fits {app.scene_scale.target_ms:.0f} ms while the "
                           f"view moves, then sharp once it is still")
@@ -112,8 +115,6 @@ def _neural_section(app, em: float) -> None:
     view = app.neural_view
     if view.run is None or not imgui.collapsing_header("Neural render", imgui.TreeNodeFlags_.default_open):
         return
-    from garmentnerf.render.presets import VIEWER_LEVELS
-
     _combo(em, "View (V)", list(VIEW_MODES), view.mode, view.set_mode, labels=list(VIEW_MODES.values()))
     if view.mode == "maps":
         _combo(em, "Map", list(MAP_VIEWS), app.scene.palette_layer.map_view, view.set_map_view)
@@ -135,7 +136,9 @@ def _neural_section(app, em: float) -> None:
             imgui.text_disabled("no ground truth: pick a scene sequence")
     q = view.quality
     _combo(em, "Quality", list(VIEWER_LEVELS), q.preset, q.set_preset)
-    _, q.dynamic = imgui.checkbox("Coarser while moving", q.dynamic)
+    changed, on = imgui.checkbox("Coarser while moving", q.dynamic)
+    if changed:
+        q.set_dynamic(on)
     status = view.renderer.cache_status() if view.renderer is not None else None
     if status is not None:
         imgui.set_next_item_width(-6 * em)

@@ -6,8 +6,7 @@ methods (and the :class:`~garmentnerf.viewer.export_jobs.ExportSettings` the Exp
 
 from __future__ import annotations
 
-from garmentnerf.viewer.export_jobs import (EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY,
-                                            MIN_SNAPSHOT_QUALITY)
+from garmentnerf.viewer.export_jobs import EXPORT_MODES, MAX_QUALITY, MIN_QUALITY, MIN_SNAPSHOT_QUALITY
 from garmentnerf.viewer.gui_libs import imgui
 
 ERROR_COLOR = (1.0, 0.45, 0.4, 1.0)
@@ -64,13 +63,15 @@ def export_section(app, em: float) -> None:
     imgui.set_next_item_width(-6 * em)
     changed, index = imgui.combo("Mode", modes.index(s.mode), [EXPORT_MODES[m] for m in modes])
     if changed:
-        s.mode = modes[index]
+        exports.set_mode(modes[index])
     imgui.set_next_item_width(-6 * em)
     if s.mode == "turntable":
         changed, count = imgui.input_int("Frames", s.turntable_frames, 1, 10)
         if changed:
-            s.turntable_frames = min(MAX_VIDEO_FRAMES, max(1, count))
-        _, s.turntable_plays = imgui.checkbox("Motion plays during the turn", s.turntable_plays)
+            exports.set_turntable(count, s.turntable_plays)
+        changed, plays = imgui.checkbox("Motion plays during the turn", s.turntable_plays)
+        if changed:
+            exports.set_turntable(s.turntable_frames, plays)
     elif s.mode == "path":
         imgui.text_disabled("the frames and cameras of the Camera path section")
     else:
@@ -92,7 +93,7 @@ def export_section(app, em: float) -> None:
         changed, q = imgui.slider_float("Quality##export", s.quality, MIN_QUALITY, MAX_QUALITY, "%.2f",
                                         imgui.SliderFlags_.logarithmic)
         if changed:
-            s.quality = q
+            exports.set_video_quality(q)
     imgui.end_disabled()
     if s.mode == "path":
         path = app.camera_path(s.size)

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from garmentnerf.viewer.export_jobs import (MAX_QUALITY, MIN_SNAPSHOT_QUALITY, ExportCancelled, ExportJob,
-                                            ExportSettings, check_size, open_video, plan_path, plan_range,
+from garmentnerf.viewer.export_jobs import (EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY,
+                                            MIN_SNAPSHOT_QUALITY, ExportCancelled, ExportJob, ExportSettings, check_size, open_video, plan_path, plan_range,
                                             plan_turntable, snapshot_name, video_name, write_png)
 from garmentnerf.viewer.render_thread import ThreadSession
 
@@ -259,6 +259,22 @@ class Exports:
 
     def set_video_size(self, width: int, height: int) -> None:
         self.settings.size = self._checked_size(width, height, "video size") or self.settings.size
+
+    def set_mode(self, mode: str) -> None:
+        """The video export's mode, a key of :data:`EXPORT_MODES`."""
+        if mode not in EXPORT_MODES:
+            raise ValueError(f"unknown export mode '{mode}' (known: {', '.join(EXPORT_MODES)})")
+        self.settings.mode = mode
+
+    def set_turntable(self, frames: int, plays: bool) -> None:
+        """Frames of one turn (clamped to [1, MAX_VIDEO_FRAMES]) and whether the motion plays during it."""
+        self.settings.turntable_frames = min(MAX_VIDEO_FRAMES, max(1, int(frames)))
+        self.settings.turntable_plays = bool(plays)
+
+    def set_video_quality(self, quality: float) -> None:
+        """Render quality of neural videos, clamped to [MIN_QUALITY, MAX_QUALITY]."""
+        if math.isfinite(quality):
+            self.settings.quality = min(MAX_QUALITY, max(MIN_QUALITY, float(quality)))
 
     def set_range(self, first: int, last: int) -> None:
         """Timeline range of range exports, inclusive (clamped to the clip; ``last`` >= ``first``)."""

@@ -98,8 +98,7 @@ def draw_timeline(app) -> float:
     imgui.set_next_item_width(7 * em)
     changed, target = imgui.input_int("Go to", app.goto_frame, 1, 10, imgui.InputTextFlags_.enter_returns_true)
     if changed:
-        app.goto_frame = target
-        app.set_frame(target)
+        app.go_to_frame(target)
     imgui.same_line()
     imgui.text(f"frame {tl.frame:4d} / {tl.last_frame}   {tl.time:6.2f} s / {tl.num_frames / tl.fps:.2f} s   "
                f"{tl.fps:g} fps")
@@ -111,7 +110,7 @@ def draw_timeline(app) -> float:
         export_progress(app.exports.job)
     imgui.set_next_item_width(-1.0)
     changed, frame = imgui.slider_int("##frame", tl.frame, 0, tl.last_frame, "%d")
-    app.scrubbing = imgui.is_item_active()
+    app.set_scrubbing(imgui.is_item_active())
     if changed:
         app.set_frame(frame)
     _render_bar(app)

@@ -94,6 +94,14 @@ class PathEditor:
             self.constant_speed = bool(on)
             self._changed()
 
+    def set_show(self, on: bool) -> None:
+        """Draw the path in the scene, or not."""
+        self.show = bool(on)
+
+    def set_file(self, file: str) -> None:
+        """The file Save and Load use."""
+        self.file = str(file)
+
     def path(self, size: tuple[int, int], fps: float) -> CameraPath | None:
         """The path at render ``size`` (W, H) and ``fps``; None without keyframes. Made once per change."""
         if not self.keyframes:

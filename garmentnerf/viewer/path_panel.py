@@ -32,10 +32,14 @@ def camera_path_section(app, em: float) -> None:
     if imgui.is_item_hovered():
         imgui.set_tooltip("on: the camera moves at an even speed from the first keyframe's frame to the last's; "
                           "off: each keyframe is reached at its own frame")
-    _, editor.show = imgui.checkbox("Draw the path", editor.show)
+    changed, on = imgui.checkbox("Draw the path", editor.show)
+    if changed:
+        editor.set_show(on)
     _keyframe_list(app, em)
     imgui.set_next_item_width(-6 * em)
-    _, editor.file = imgui.input_text("File", editor.file)
+    changed, file = imgui.input_text("File", editor.file)
+    if changed:
+        editor.set_file(file)
     if imgui.button("Save"):
         app.save_camera_path()
     imgui.same_line()

@@ -58,6 +58,7 @@ class AdaptiveScale:
         max_jump: a single measurement changes the unit cost by at most this factor.
         settle_seconds: how long the view must be unchanged to count as still.
         unit_ms: the estimated cost at scale 1 (None until a draw was measured).
+        dynamic: lower the scale while the view moves (False: always the full scale).
     """
 
     target_ms: float = 120.0
@@ -67,9 +68,14 @@ class AdaptiveScale:
     max_jump: float = 2.0
     settle_seconds: float = 0.3
     unit_ms: float | None = None
+    dynamic: bool = True
     _moving_scale: float | None = field(default=None, repr=False)
     _last_change: float = field(default=-math.inf, repr=False)
     _view_key: object = field(default=None, repr=False)
+
+    def set_dynamic(self, dynamic: bool) -> None:
+        """Lower the scale while moving, or never (the panels' switch)."""
+        self.dynamic = bool(dynamic)
 
     def view_changed(self, key: object, now: float) -> bool:
         """Tell the controller what is shown (camera + frame, any hashable key); returns whether it
@@ -124,11 +130,9 @@ class QualityController(AdaptiveScale):
     Attributes (besides :class:`AdaptiveScale`'s; ``floor`` 0.25: below it a full-body view
     renders so few rays that the character all but vanishes while the view moves):
         preset: the quality level, a render preset name of :data:`VIEWER_LEVELS`.
-        dynamic: lower the quality while moving (False: always the preset's).
     """
 
     preset: str = "full"
-    dynamic: bool = True
 
     def __post_init__(self) -> None:
         self.set_preset(self.preset)
@@ -178,7 +182,6 @@ class SceneScale(AdaptiveScale):
     target_ms: float = 12.0
     floor: float = 0.35
     settle_seconds: float = 0.15
-    dynamic: bool = True
 
     def scale(self, now: float) -> float:
         """The scene's scale now, a fraction of the render size the user chose: 1 when the view is
