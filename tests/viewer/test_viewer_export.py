@@ -18,6 +18,7 @@ from garmentnerf.render.video import count_video_frames, to_uint8
 from garmentnerf.viewer.camera import OrbitController
 from garmentnerf.viewer.export_jobs import (ExportJob, ExportSettings, format_seconds, plan_range,
                                             plan_turntable, video_name)
+from support.viewer_app import small_neural_app
 
 SIZE = (48, 32)
 
@@ -114,12 +115,7 @@ def headless(run, gl_context):
 
 @pytest.fixture(scope="module")
 def neural_app(xvfb, run, tmp_path_factory):  # noqa: F811
-    from garmentnerf.viewer.app import App
-
-    folder = tmp_path_factory.mktemp("exports")
-    with App(motion=None, run=run, size=(240, 180), samples=0, vsync=False, playing=False,
-             snapshot_dir=folder, snapshot_size=SIZE) as viewer:
-        viewer.step()
+    with small_neural_app(run, tmp_path_factory.mktemp("exports"), SIZE) as viewer:
         yield viewer
 
 

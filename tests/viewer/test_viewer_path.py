@@ -16,6 +16,7 @@ from garmentnerf.render.camera_path import CameraPath, Keyframe, save_camera_pat
 from garmentnerf.viewer.camera import OrbitController
 from garmentnerf.viewer.export_jobs import ExportSettings, plan_path
 from garmentnerf.viewer.path_editor import PATH_COLOR, PathEditor, frustum_lines, path_lines
+from support.viewer_app import small_neural_app
 
 SIZE = (48, 32)
 
@@ -118,12 +119,7 @@ def run(untrained_run, tmp_path_factory):  # noqa: F811
 
 @pytest.fixture(scope="module")
 def app(xvfb, run, tmp_path_factory):  # noqa: F811
-    from garmentnerf.viewer.app import App
-
-    folder = tmp_path_factory.mktemp("path_exports")
-    with App(motion=None, run=run, size=(240, 180), samples=0, vsync=False, playing=False,
-             snapshot_dir=folder, snapshot_size=SIZE) as viewer:
-        viewer.step()
+    with small_neural_app(run, tmp_path_factory.mktemp("path_exports"), SIZE) as viewer:
         yield viewer
 
 
