@@ -39,6 +39,7 @@ opened.
 
 import functools
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -67,8 +68,6 @@ _pools: dict = {}
 
 def _pool(threads: int):
     """A thread pool of ``threads`` workers, kept for the process."""
-    from concurrent.futures import ThreadPoolExecutor
-
     with _load_lock:
         if threads not in _pools:
             _pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="face-bvh")
