@@ -9,6 +9,7 @@ import hashlib
 import os
 import tempfile
 import threading
+import time
 import zipfile
 from collections import OrderedDict
 from pathlib import Path
@@ -95,8 +96,6 @@ def temporary_pattern(name: str) -> str:
 def remove_stale_temporaries(folder: str | Path, name: str, min_age: float = STALE_TEMPORARY_SECONDS) -> list[Path]:
     """Delete the temporaries of writes of ``name`` into ``folder`` (see :func:`temporary_pattern`)
     that were killed: those not modified for ``min_age`` seconds. Returns what was deleted."""
-    import time
-
     folder = Path(folder)
     if not folder.is_dir():
         return []

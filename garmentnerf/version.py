@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+from importlib.metadata import version
+
 
 def package_version() -> str:
     """``"garmentnerf <version>"`` of the installed package, or ``"garmentnerf (source tree)"``."""
     try:
-        from importlib.metadata import version
-
         return f"garmentnerf {version('garmentnerf')}"
     except Exception:  # not installed
         return "garmentnerf (source tree)"

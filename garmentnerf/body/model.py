@@ -15,6 +15,7 @@ import torch
 from garmentnerf.body.asset import BodyAsset, default_asset_path
 from garmentnerf.body.skinning import (apply_transforms, blend_transforms, forward_kinematics, kinematic_levels,
                                        skinning_transforms)
+from garmentnerf.body.smpl import load_smpl_asset
 
 
 #: Largest magnitude of a shape coefficient accepted (the named presets stay within 1.31; at 10 the
@@ -83,8 +84,6 @@ class BodyModel:
         with ``uv_obj`` the UV layout .obj distributed with SMPL, which model files lack)."""
         path = Path(path)
         if path.suffix == ".pkl" or (path.suffix == ".npz" and _looks_like_smpl(path)):
-            from garmentnerf.body.smpl import load_smpl_asset
-
             return BodyModel(load_smpl_asset(path, uv_obj), dtype, device)
         return BodyModel(BodyAsset.load(path), dtype, device)
 

@@ -19,6 +19,9 @@ import argparse
 import json
 from pathlib import Path
 
+from garmentnerf.cli.common import check_output_file
+from garmentnerf.io_utils import atomic_write_path
+
 ROWS = [
     ("pose_clip_ms_per_frame", "pose the body (LBS, batched clip)", "ms/frame"),
     ("info_vertex_attributes_ms_per_frame", "info maps: per-vertex normals + velocities", "ms/frame"),
@@ -66,6 +69,7 @@ def register(sub) -> None:
 
 
 def _print_presets(results: dict) -> None:
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.perf.preset_bench import PAPER_STAGES
 
     print(f"{'preset':12s} {'ms/frame':>9s} {'speed-up':>8s} {'points':>10s} {'PSNR':>6s} {'SSIM':>6s}  "
@@ -79,7 +83,7 @@ def _print_presets(results: dict) -> None:
 
 
 def _run_training_bench(args: argparse.Namespace) -> int:
-    from garmentnerf.io_utils import atomic_write_path
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.perf.train_bench import training_benchmark
     from garmentnerf.train.settings import TRAINING_PRECISIONS
 
@@ -115,9 +119,6 @@ def _run_training_bench(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------------------------
 def run_bench(args: argparse.Namespace) -> int:
-    from garmentnerf.cli.common import check_output_file
-    from garmentnerf.io_utils import atomic_write_path
-
     if args.runs < 1:
         raise ValueError(f"--runs must be at least 1, got {args.runs}")
     if getattr(args, "plot", None) and not getattr(args, "run", None):
@@ -130,6 +131,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if getattr(args, "training", False):
         return _run_training_bench(args)
     if getattr(args, "run", None):
+        # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
         from garmentnerf.perf.plot import write_plot
         from garmentnerf.perf.preset_bench import preset_benchmark
         from garmentnerf.viewer.playback_bench import render_ahead_benchmark

@@ -39,6 +39,7 @@ def add_device_arg(parser: argparse.ArgumentParser) -> None:
 
 def load_body(args):
     """(BodyModel, betas) from --body and --shape."""
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.body.model import BodyModel
 
     from garmentnerf.body.model import BodyShapeError
@@ -61,12 +62,14 @@ def parse_shape(text: str | None, body) -> str | list[float] | None:
 
 
 def load_motion_arg(args, body, betas):
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.motion.library import load_motion
 
     return load_motion(args.motion, body, betas=betas, fps=args.fps)
 
 
 def check_frame(motion, frame: int) -> None:
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.motion.library import check_frame as _check
 
     _check(motion, frame)
@@ -76,6 +79,7 @@ def check_frame(motion, frame: int) -> None:
 def parse_device(text: str, flag: str = "--device"):
     """``torch.device`` of ``text``; ValueError naming ``flag`` for a name torch does not know or a
     device this torch build or machine does not have."""
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     import torch
 
     try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import errno
 import faulthandler
+import os
 import sys
 
 from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd, train_cmd,
@@ -43,8 +44,6 @@ def main(argv: list[str] | None = None) -> int:
         print("garmentnerf: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into e.g. `head`, which stopped reading
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except Exception as exc:  # noqa: BLE001 - the one place that turns errors into messages
@@ -56,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _is_user_error(exc: BaseException) -> bool:
     """Errors that describe bad input rather than a bug in garmentnerf."""
-    from garmentnerf.gl.context import GLUnavailableError
+    from garmentnerf.gl.context import GLUnavailableError  # lazy: keeps moderngl out of 'garmentnerf --help'
 
     if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS:
         return True

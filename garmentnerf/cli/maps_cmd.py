@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
 from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, load_body, load_motion_arg,
                                     refuse_existing)
+from garmentnerf.io_utils import atomic_write_path
 
 DESCRIPTION = """\
 Rasterise the body's UV-space info maps for one frame of a motion and save them as .npz:
@@ -40,9 +42,9 @@ def register(sub) -> None:
 
 
 def run_maps(args: argparse.Namespace) -> int:
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.gl.context import create_context
     from garmentnerf.gl.info_maps import InfoMapRenderer
-    from garmentnerf.io_utils import atomic_write_path
 
     out = refuse_existing(args.out, args.overwrite)
     if args.history < 0 or args.history > 8:
@@ -68,10 +70,6 @@ def run_maps(args: argparse.Namespace) -> int:
 
 
 def _write_preview(maps, path: Path) -> None:
-    import imageio.v3 as iio
-
-    from garmentnerf.io_utils import atomic_write_path
-
     normal = (maps.normal.numpy() * 0.5 + 0.5).clip(0, 1)
     tiles = [normal]
     vel = maps.velocity.numpy()

@@ -44,12 +44,13 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.sparse as sp
 import torch
+import trimesh
+import trimesh.remesh
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:  # pragma: no cover
-    import trimesh
-
     from garmentnerf.body.model import BodyModel
 
 __all__ = ["GARMENT_KINDS", "GARMENT_COLORS", "MIN_CLEARANCE", "Garment", "GarmentError", "make_garment",
@@ -154,8 +155,6 @@ class Garment:
         return int(self.faces.shape[0])
 
     def to_trimesh(self) -> "trimesh.Trimesh":
-        import trimesh
-
         return trimesh.Trimesh(self.vertices.astype(np.float64), self.faces, process=False)
 
     def edge_lengths(self) -> np.ndarray:
@@ -211,9 +210,6 @@ class _BodySurface:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, max_edge: float = 0.005):
-        import trimesh
-        import trimesh.remesh
-
         v, f = trimesh.remesh.subdivide_to_size(vertices, faces, max_edge=max_edge)
         mesh = trimesh.Trimesh(v, f, process=False)
         self.points = np.asarray(mesh.vertices)
@@ -374,8 +370,6 @@ def _vertex_neighbours(faces: np.ndarray, V: int) -> tuple[list[np.ndarray], np.
 
 
 def _laplacian_matrix(nbrs: list[np.ndarray]):
-    import scipy.sparse as sp
-
     rows, cols, vals = [], [], []
     for i, n in enumerate(nbrs):
         if len(n) == 0:
@@ -821,8 +815,6 @@ def garment_clearance(vertices: np.ndarray, body_vertices: np.ndarray, body_face
     the surface, which is what a clearance check needs (and avoids trimesh's slow ray-based
     inside test).
     """
-    import trimesh
-
     mesh = trimesh.Trimesh(np.asarray(body_vertices, np.float64), np.asarray(body_faces), process=False)
     p = np.asarray(vertices, np.float64)
     closest, dist, tri = trimesh.proximity.closest_point(mesh, p)

@@ -47,19 +47,33 @@ import json
 import math
 import multiprocessing
 import os
+import pickle
 import shutil
 import signal
 import sys
 import threading
 import time
+import traceback
 import zipfile
 from dataclasses import asdict, dataclass, field
+from multiprocessing.connection import wait
 from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter1d
+from tqdm import tqdm
 
-from garmentnerf.io_utils import STALE_TEMPORARY_SECONDS
+from garmentnerf.body.model import BodyModel
+from garmentnerf.data.cameras import default_rig
+from garmentnerf.data.garment_sequence import load_sequence, save_sequence
+from garmentnerf.data.garments import GARMENT_COLORS, GARMENT_KINDS, make_garment
+from garmentnerf.data.scene import Scene
+from garmentnerf.data.scene_images import SceneImages, palette_from_images
+from garmentnerf.data.scene_schema import MOTION_FILE, SCENE_FILE
+from garmentnerf.data.simulate import PENETRATION_BOUND_M, SimSettings, _chunk_path, simulate
+from garmentnerf.io_utils import STALE_TEMPORARY_SECONDS, remove_stale_temporaries, temporary_pattern
+from garmentnerf.motion.library import load_motion
 
 #: Seconds of the Gaussian that defines the "slow" root drift removed by :func:`remove_drift`.
 DRIFT_SIGMA_S = 1.0
@@ -139,8 +153,6 @@ def remove_drift(motion, sigma_s: float = DRIFT_SIGMA_S):
     of the hips stays; the cloth sees the same accelerations except the slow ones (a constant
     velocity changes nothing: the simulation has no air drag).
     """
-    from scipy.ndimage import gaussian_filter1d
-
     trans = motion.translation.detach().cpu().numpy().astype(np.float64)
     out = trans.copy()
     if len(trans) > 1:
@@ -156,8 +168,6 @@ def remove_drift(motion, sigma_s: float = DRIFT_SIGMA_S):
 
 def build_motion(spec: str, body, betas, fps: float, frames: int | None, in_place: bool):
     """The motion of one sequence: ``spec`` loaded, repeated to ``frames``, cut, optionally in place."""
-    from garmentnerf.motion.library import load_motion
-
     motion = load_motion(spec, body, betas, fps=fps)
     if frames:
         repeats = 1
@@ -255,7 +265,7 @@ def _folder_lock(folder: Path, wait_s: float, busy: str):
     Waits up to ``wait_s`` seconds for it, then raises ValueError(``busy``). Without ``fcntl``
     (not POSIX) nothing is locked.
     """
-    try:
+    try:  # local: POSIX only (see above)
         import fcntl
     except ImportError:  # pragma: no cover - POSIX only
         yield
@@ -279,8 +289,6 @@ def _folder_lock(folder: Path, wait_s: float, busy: str):
 def _remove_temporaries(folder: Path, name: str = "*", min_age: float = 0.0) -> None:
     """Delete the leftovers of killed atomic writes of ``name`` (a glob) in ``folder`` (see
     :func:`~garmentnerf.io_utils.remove_stale_temporaries`); call it holding the folder's writer lock."""
-    from garmentnerf.io_utils import remove_stale_temporaries
-
     remove_stale_temporaries(folder, name, min_age=min_age)
 
 
@@ -364,11 +372,6 @@ def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
         _stop_with_parent(parent)
         torch.set_num_threads(1)
-        from garmentnerf.body.model import BodyModel
-        from garmentnerf.data.garment_sequence import save_sequence
-        from garmentnerf.data.garments import make_garment
-        from garmentnerf.data.scene import Scene
-        from garmentnerf.data.simulate import SimSettings, simulate
 
         out_dir = _sim_dir(Path(root), sequence)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -411,9 +414,6 @@ def _stop_with_parent(parent: int, poll_s: float = 0.5, grace_s: float = 30.0) -
 
 def _send_error(conn, exc: BaseException) -> None:
     """Send a worker's exception (pickled, with its type, message and traceback as text)."""
-    import pickle
-    import traceback
-
     try:
         blob = pickle.dumps(exc)
     except Exception:  # noqa: BLE001 - an exception that does not pickle is sent as text
@@ -427,8 +427,6 @@ def _send_error(conn, exc: BaseException) -> None:
 
 def _worker_error(name: str, message: dict) -> BaseException:
     """The exception a worker sent, rebuilt (a RuntimeError naming its type when it does not unpickle)."""
-    import pickle
-
     exc = None
     if message.get("error") is not None:
         try:
@@ -442,8 +440,6 @@ def _worker_error(name: str, message: dict) -> BaseException:
 
 
 def _bound() -> float:
-    from garmentnerf.data.simulate import PENETRATION_BOUND_M
-
     return float(PENETRATION_BOUND_M)
 
 
@@ -459,8 +455,6 @@ def _chunk_seconds(folder: Path, frames: int, chunk_frames: int) -> tuple[float 
     """Mean wall-clock and CPU seconds per frame over the chunks of a finished simulation (each
     chunk records what computing it took, in whichever run computed it); None where a chunk or
     its record is missing (chunks deleted, or written before chunks recorded CPU time)."""
-    from garmentnerf.data.simulate import _chunk_path
-
     wall: float | None = 0.0
     cpu: float | None = 0.0
     for k in range(-(-frames // chunk_frames)):
@@ -477,9 +471,6 @@ def _sequence_stats(scene, name: str, chunk_frames: int) -> dict:
     """The ``simulation`` entry of a finished sequence, from its files alone (``garment.npz`` and
     the chunks under ``sim/``): the same whether the sequence finished in this run, in an
     interrupted one, or in pieces over several."""
-    from garmentnerf.data.garment_sequence import load_sequence
-    from garmentnerf.data.simulate import SimSettings
-
     seq = load_sequence(scene.garment_path(name))
     pen = np.asarray(seq.penetration_max_m, dtype=np.float32)
     seconds, cpu_seconds = _chunk_seconds(_sim_dir(scene.root, name), len(pen), chunk_frames)
@@ -494,9 +485,6 @@ def _is_interrupted_creation(root: Path, names: list[str]) -> bool:
     """True when ``root`` holds nothing but what a ``data make`` killed while writing the scene
     (before ``scene.json``) leaves: motion files of the planned sequences, and temporaries of
     them and of ``scene.json``. (An empty folder is such a folder.)"""
-    from garmentnerf.data.scene_schema import MOTION_FILE, SCENE_FILE
-    from garmentnerf.io_utils import temporary_pattern
-
     sequences = root / "sequences"
     folders = {sequences / n for n in names}
     for path in root.rglob("*"):
@@ -525,9 +513,6 @@ def make_scene(out: str | Path, spec: MakeSpec, *, settings=None, progress: bool
         FileExistsError: ``out`` holds other files than a scene.
         KeyboardInterrupt: interrupted (or a simulation process was killed); a re-run resumes.
     """
-    from garmentnerf.data.garments import GARMENT_KINDS
-    from garmentnerf.data.simulate import SimSettings
-
     root = Path(out)
     settings = settings or SimSettings()
     if spec.garment not in GARMENT_KINDS:
@@ -550,13 +535,6 @@ def make_scene(out: str | Path, spec: MakeSpec, *, settings=None, progress: bool
 def _make_locked(root: Path, spec: MakeSpec, settings, plan, progress: bool, keep_chunks: bool,
                  palette_frames: int):
     """:func:`make_scene` holding the scene folder's lock."""
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.data.cameras import default_rig
-    from garmentnerf.data.garments import GARMENT_COLORS
-    from garmentnerf.data.scene import Scene
-    from garmentnerf.data.scene_images import SceneImages, palette_from_images
-    from garmentnerf.data.scene_schema import SCENE_FILE
-
     names = [name for name, *_ in plan]
     wanted = _make_record(spec, settings)
     if (root / SCENE_FILE).is_file():
@@ -628,10 +606,6 @@ def _run_simulations(root: Path, todo: list[str], spec: MakeSpec, settings, work
     """Simulate the ``todo`` sequences, one process each, ``workers`` at a time; call
     ``on_finished(name)`` as soon as one has written its garment. A worker's error is raised
     here; on any exception (Ctrl-C, SIGTERM, an error) the running workers are stopped first."""
-    from multiprocessing.connection import wait
-
-    from tqdm import tqdm
-
     ctx = multiprocessing.get_context("spawn")
     waiting = list(todo)
     running: dict[str, tuple] = {}  # name -> (process, receiving end of its pipe, message or None)
@@ -696,8 +670,6 @@ def _stop_workers(procs: list, timeout_s: float = 30.0) -> None:
     """Stop the running simulation processes: SIGTERM (a worker still starting up holds it until
     it can stop cleanly; sent again each half second all the same), then SIGKILL after
     ``timeout_s``. A stopped worker abandons its chunk cleanly."""
-    from multiprocessing.connection import wait
-
     deadline = time.monotonic() + timeout_s
     alive = [p for p in procs if p.exitcode is None]
     while alive and time.monotonic() < deadline:

@@ -14,11 +14,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from garmentnerf.data.scene_images import SceneImages
+
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
     from garmentnerf.data.render_gt import GroundTruthRenderer
     from garmentnerf.data.scene import Scene
-    from garmentnerf.data.scene_images import SceneImages
 
 GARMENT_EDGE = (255, 220, 0)
 BODY_EDGE = (0, 220, 255)
@@ -149,8 +150,6 @@ def scene_contact_sheet(scene: "Scene", renderer: "GroundTruthRenderer | SceneIm
         cameras: camera names (default: the ``train`` cameras, at most 8 spread over the circle).
         frames: frame indices (default: 6 spread over the sequence).
     """
-    from garmentnerf.data.scene_images import SceneImages
-
     if cameras is None:
         names = scene.camera_names("train") or scene.camera_names()
         step = max(1, len(names) // 8)

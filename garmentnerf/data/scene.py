@@ -26,22 +26,21 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR
 from garmentnerf.data.cameras import CAMERA_SPLITS, NamedCamera, RigLookup, in_splits
+from garmentnerf.data.render_gt import SKIN_TONE, renderer_settings as default_settings
 from garmentnerf.data.scene_images import (FrameGeometry, GarmentArrays, SceneImages, palette_from_images,
                                            read_garment_arrays)
 from garmentnerf.data.scene_schema import (GARMENT_FILE, GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, MOTION_FILE,
                                            ROTATION_TOLERANCE, SCENE_FILE, SCENE_FORMAT, SCENE_VERSION,
                                            SEQUENCE_SPLITS, SchemaChecker, SceneError, SequenceInfo, parse_scene)
 from garmentnerf.io_utils import FileDigests, atomic_write_path
+from garmentnerf.motion.motion import Motion
 from garmentnerf.version import package_version
-
-if TYPE_CHECKING:  # pragma: no cover
-    from garmentnerf.motion.motion import Motion
 
 __all__ = ["Scene", "CACHE_DIR",
            # re-exported from scene_schema and scene_images, where they live
@@ -174,20 +173,14 @@ class Scene(RigLookup):
 
     @property
     def body_color(self) -> tuple[float, float, float]:
-        from garmentnerf.data.render_gt import SKIN_TONE
-
         return tuple(self.body.get("color", SKIN_TONE))
 
     def load_motion(self, sequence: str) -> "Motion":
-        from garmentnerf.motion.motion import Motion
-
         return Motion.load(self.motion_path(sequence))
 
     # ---- cache ----------------------------------------------------------------------------------
     def cache_key(self, sequence: str, camera: str, renderer_settings: dict | None = None) -> str:
         """16 hex digits identifying everything an image of (sequence, camera) depends on."""
-        from garmentnerf.data.render_gt import renderer_settings as default_settings
-
         settings = renderer_settings if renderer_settings is not None else default_settings()
         cam = self.camera(camera).camera
         files = {label: self.file_digests.digest(path) for label, path in (("motion", self.motion_path(sequence)),

@@ -23,13 +23,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from PIL import Image
 
+from garmentnerf.data.garment_sequence import load_sequence
+from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer, to_uint8
 from garmentnerf.data.scene_schema import GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, SceneError
+from garmentnerf.gl.context import create_context
 from garmentnerf.io_utils import atomic_write_path, npz_member_shape
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
-    from garmentnerf.data.render_gt import GroundTruthRenderer
     from garmentnerf.data.scene import Scene
     from garmentnerf.motion.motion import Motion
 
@@ -47,15 +50,8 @@ def read_garment_arrays(path: str | Path) -> GarmentArrays:
     """Read ``garment.npz``: the simulation's compressed format (``vertices_q``) through
     :mod:`garmentnerf.data.garment_sequence`, else the file's plain ``vertices`` and ``faces``."""
     path = Path(path)
-    loader = None
-    try:
-        from garmentnerf.data import garment_sequence  # written alongside; optional here
-
-        loader = getattr(garment_sequence, "load_sequence", None)
-    except ImportError:
-        pass
-    if loader is not None and npz_member_shape(path, GARMENT_QUANTISED_KEY) is not None:
-        seq = loader(path)
+    if npz_member_shape(path, GARMENT_QUANTISED_KEY) is not None:
+        seq = load_sequence(path)
         verts, faces = seq.vertices, seq.faces
     else:
         with np.load(path, allow_pickle=False) as npz:
@@ -120,9 +116,6 @@ class SceneImages:
     @property
     def renderer(self) -> "GroundTruthRenderer":
         if self._renderer is None:
-            from garmentnerf.data.render_gt import GroundTruthRenderer
-            from garmentnerf.gl.context import create_context
-
             self._own_ctx = create_context(headless=True)
             self._renderer = GroundTruthRenderer(self._own_ctx)
         return self._renderer
@@ -134,6 +127,8 @@ class SceneImages:
             if model != "anny":
                 raise SceneError(f"{self.scene.scene_file}: body.model is '{model}'; pass its BodyModel "
                                  f"(only the bundled anny body loads without a user file)")
+            # local: garmentnerf.body.model brings roma (1.5 s), which 'garmentnerf data info' and 'data grow'
+            # (reading scenes) never need; only images rendered without a given body get here
             from garmentnerf.body.model import BodyModel
 
             self._body = BodyModel.default()
@@ -191,8 +186,6 @@ class SceneImages:
     def image(self, sequence: str, camera: str, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(rgb (H, W, 3) float32 in [0, 1] with 8-bit steps, labels (H, W) uint8), from the
         cache when present, else rendered (and cached)."""
-        from garmentnerf.data.render_gt import to_uint8
-
         if not self.use_cache:
             rgb, labels = self.render(sequence, camera, frame)
             return to_uint8(rgb).astype(np.float32) / 255.0, labels
@@ -241,16 +234,12 @@ class SceneImages:
 
 
 def _read_png(path: Path, channels: int) -> np.ndarray:
-    from PIL import Image
-
     with Image.open(path) as im:
         im = im.convert("RGB" if channels == 3 else "L")
         return np.asarray(im, dtype=np.uint8).copy()
 
 
 def _write_png(path: Path, array: np.ndarray) -> None:
-    from PIL import Image
-
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write_path(path) as tmp:
         Image.fromarray(np.ascontiguousarray(array)).save(tmp, format="PNG", compress_level=3)
@@ -263,9 +252,7 @@ def palette_from_images(images: Iterable[tuple[np.ndarray, np.ndarray]], erode: 
     edges (blended with the background) do not darken the means. Returns
     ``{"garment": [r, g, b], "body": [r, g, b]}`` (a class never seen gives None).
     """
-    from scipy.ndimage import binary_erosion
-
-    from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT
+    from scipy.ndimage import binary_erosion  # local: making a scene only; 0.2 s on every import of data.scene
 
     sums = {LABEL_GARMENT: np.zeros(3), LABEL_BODY: np.zeros(3)}
     counts = {LABEL_GARMENT: 0, LABEL_BODY: 0}

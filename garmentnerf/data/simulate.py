@@ -62,6 +62,7 @@ import functools
 import hashlib
 import json
 import math
+import sys
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -69,8 +70,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+import trimesh
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
 
-from garmentnerf.data.garments import Garment, body_collision_faces
+from garmentnerf.data.garments import Garment, body_collision_faces, make_garment
 from garmentnerf.io_utils import atomic_write_path
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -231,6 +235,8 @@ class SimResult:
 def _warp():
     """Import warp and newton (quietly), check newton's version, define our kernel: once per
     process (a failed import is not cached, so installing newton and retrying works)."""
+    # local: newton costs 2.9 s and only the simulation processes need it (data make's own process
+    # reads SimSettings and the chunk files); a missing newton fails here with the message below
     try:
         import warp as wp
     except ImportError as exc:  # pragma: no cover - warp comes with newton
@@ -285,8 +291,6 @@ def frame_substeps(body0: np.ndarray, body1: np.ndarray, cloth: np.ndarray, sett
         body0, body1: (V, 3) the skin at the start and the end of the frame.
         cloth: (Vg, 3) the cloth particles at the start of the frame.
     """
-    from scipy.spatial import cKDTree
-
     base = int(settings.substeps)
     distance, _ = cKDTree(np.asarray(cloth, np.float64)).query(np.asarray(body0, np.float64),
                                                                distance_upper_bound=NEAR_CLOTH_M)
@@ -408,8 +412,6 @@ class _Trajectory:
 
     def __init__(self, garment: Garment, body: "BodyModel", motion: "Motion", betas: torch.Tensor,
                  faces: np.ndarray, settings: SimSettings):
-        import trimesh
-
         self.body, self.motion, self.betas = body, motion, betas
         rest = body.rest(betas)[0].detach().cpu().double().numpy()
         self.rest = rest
@@ -636,7 +638,6 @@ def _progress_bar(frames: int, description: str):
     """A tqdm bar over ``frames`` frames, or None when there are none to simulate."""
     if frames <= 0:
         return None
-    from tqdm.auto import tqdm
 
     return tqdm(total=frames, desc=description, unit="frame", leave=False)
 
@@ -730,8 +731,6 @@ def simulate(garment: Garment, body: "BodyModel", motion: "Motion", betas: torch
             bar.close()
             bar = None
         if out_path is not None:
-            import sys
-
             print(f"simulation interrupted; {len(chunks)} of {n_chunks} chunks are saved in {out_path} "
                   f"(run again with the same out_dir to resume)", file=sys.stderr)
         raise
@@ -755,8 +754,7 @@ def benchmark_simulation(body: "BodyModel", kinds=("skirt", "tshirt", "dress"), 
     Returns one dict per kind: ``kind``, ``vertices``, ``frames``, ``seconds_per_frame`` (wall),
     ``cpu_seconds_per_frame``, ``penetration_max_mm``, ``frames_with_penetration``.
     """
-    from garmentnerf.data.garments import make_garment
-    from garmentnerf.motion.library import load_motion
+    from garmentnerf.motion.library import load_motion  # local: benchmark only; brings roma (1.5 s)
 
     settings = settings or SimSettings(settle_hold_frames=5, settle_frames=10)
     clip = load_motion(motion, body, betas, fps=fps)

@@ -17,9 +17,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
+from garmentnerf.body.model import BodyModel
+from garmentnerf.body.skinning import apply_transforms, blend_transforms
+from garmentnerf.data.cameras import default_rig
+from garmentnerf.data.garment_sequence import save_sequence
+from garmentnerf.data.garments import make_garment
+from garmentnerf.data.render_gt import GroundTruthRenderer
 from garmentnerf.data.scene import Scene
 from garmentnerf.data.scene_images import SceneImages, palette_from_images
+from garmentnerf.motion.library import load_motion
 
 __all__ = ["make_rigged_scene", "rigged_garment_vertices"]
 
@@ -33,10 +41,6 @@ def rigged_garment_vertices(body, betas: torch.Tensor, garment_rest: np.ndarray,
         garment_rest: (Vg, 3) garment rest positions around ``body.rest(betas)``.
         posed: the :class:`~garmentnerf.body.model.PosedBody` of the motion (same betas).
     """
-    from scipy.spatial import cKDTree
-
-    from garmentnerf.body.skinning import apply_transforms, blend_transforms
-
     rest_v, _ = body.rest(betas)
     tree = cKDTree(rest_v.detach().cpu().numpy().astype(np.float64))
     _, nearest = tree.query(np.asarray(garment_rest, dtype=np.float64))
@@ -48,8 +52,6 @@ def rigged_garment_vertices(body, betas: torch.Tensor, garment_rest: np.ndarray,
 
 
 def _add_rigged_sequence(scene: Scene, name: str, split: str, motion, body, betas, garment) -> None:
-    from garmentnerf.data.garment_sequence import save_sequence
-
     scene.add_sequence(name, motion, split=split, description=motion.name, simulated=False)
     posed = motion.pose(body, betas)
     verts = rigged_garment_vertices(body, betas, garment.vertices, posed)
@@ -80,11 +82,6 @@ def make_rigged_scene(root, *, garment: str = "skirt", motion: str = "walk", fra
     Returns:
         the saved :class:`Scene`.
     """
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.data.cameras import default_rig
-    from garmentnerf.data.garments import make_garment
-    from garmentnerf.motion.library import load_motion
-
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     if views < 1:
@@ -114,8 +111,6 @@ def make_rigged_scene(root, *, garment: str = "skirt", motion: str = "walk", fra
     if palette == "images":
         renderer = None
         if gl_context is not None:
-            from garmentnerf.data.render_gt import GroundTruthRenderer
-
             renderer = GroundTruthRenderer(gl_context)
         images = SceneImages(scene, renderer=renderer, body_model=body)
         try:

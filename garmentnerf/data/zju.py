@@ -75,17 +75,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
+import torch
+from PIL import Image
+from scipy.spatial.transform import Rotation
 
+from garmentnerf.body.smpl import SMPL_TO_WORLD, smpl_rotvecs_to_world
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR, Camera
 from garmentnerf.data.cameras import NamedCamera, RigLookup, in_splits
+from garmentnerf.motion.motion import Motion
 from garmentnerf.safe_pickle import RefusedGlobal, load_npy_restricted
 
 if TYPE_CHECKING:  # pragma: no cover
-    import torch
-
     from garmentnerf.body.model import BodyModel
-    from garmentnerf.motion.motion import Motion
 
 ANNOTS_FILE = "annots.npy"
 #: Mask folders tried in order (Neural Body's later code prefers the CIHP parsing masks).
@@ -158,8 +161,6 @@ def _rodrigues(r: np.ndarray) -> np.ndarray:
 
 
 def _rotvec(Rm: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(Rm).as_rotvec()
 
 
@@ -326,8 +327,6 @@ def _checked_camera_splits(camera_splits: dict[str, str] | None, names: list[str
 
 def _image_size(image: Path, listed_as: str) -> tuple[int, int]:
     """(width, height) of an image the annotations list (``listed_as`` names where)."""
-    from PIL import Image
-
     try:
         with Image.open(image) as im:
             return im.size
@@ -470,8 +469,6 @@ class CaptureScene(RigLookup):
     # ---- images -----------------------------------------------------------------------------------
     def _undistort_maps(self, cam: CaptureCamera) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) float32 source x and y of every pinhole pixel in the raw image (``cv2.remap`` maps)."""
-        import cv2
-
         with self._undistort_maps_lock:
             maps = self._undistort_maps_by_camera.get(cam.index)
             if maps is None:
@@ -482,9 +479,6 @@ class CaptureScene(RigLookup):
 
     def load_image(self, sequence: str, camera: str, frame: int, undistort: bool = True) -> np.ndarray:
         """(H, W, 3) float32 RGB in [0, 1]; undistorted to the pinhole camera by default."""
-        import cv2
-        from PIL import Image
-
         path = self.image_path(sequence, camera, frame)
         try:
             with Image.open(path) as im:
@@ -502,9 +496,6 @@ class CaptureScene(RigLookup):
 
     def load_mask(self, sequence: str, camera: str, frame: int, undistort: bool = True) -> np.ndarray:
         """(H, W) bool person mask (non-zero pixels of the mask file); undistorted (nearest) by default."""
-        import cv2
-        from PIL import Image
-
         path = self.mask_path(sequence, camera, frame)
         if path is None:
             raise CaptureError(f"{self.root}: no mask for {self.image_path(sequence, camera, frame).name} of camera "
@@ -570,8 +561,6 @@ class CaptureScene(RigLookup):
     def _smpl_pose_arrays(self, sequence: str, body: "BodyModel", ground_offset: float,
                           frames: Sequence[int] | None) -> tuple[np.ndarray, np.ndarray, "torch.Tensor"]:
         """float64 (T, J, 3) rotation vectors and (T, 3) translations for ``body``, and the betas."""
-        from garmentnerf.body.smpl import SMPL_TO_WORLD, smpl_rotvecs_to_world
-
         frame_list = list(range(self.num_frames(sequence))) if frames is None else list(frames)
         if not frame_list:
             raise ValueError("smpl_motion needs at least one frame")
@@ -608,10 +597,6 @@ class CaptureScene(RigLookup):
             ground_offset: that file's :func:`~garmentnerf.body.smpl.smpl_ground_offset`.
             frames: frames of the sequence (default all).
         """
-        import torch
-
-        from garmentnerf.motion.motion import Motion
-
         rotations, translation, betas = self._smpl_pose_arrays(sequence, body, ground_offset, frames)
         motion = Motion(f"zju_{sequence}", list(body.joint_names), torch.as_tensor(rotations, dtype=torch.float32),
                         torch.as_tensor(translation, dtype=torch.float32), self.fps, "smpl")
@@ -620,8 +605,6 @@ class CaptureScene(RigLookup):
     def smpl_vertices(self, sequence: str, frame: int, body: "BodyModel", ground_offset: float) -> np.ndarray:
         """(V, 3) posed SMPL vertices of one frame in our world (posed in ``body.dtype`` from float64
         parameters)."""
-        import torch
-
         rot, trans, betas = self._smpl_pose_arrays(sequence, body, ground_offset, [frame])
         posed = body.pose(torch.as_tensor(rot, dtype=body.dtype), torch.as_tensor(trans, dtype=body.dtype), betas)
         return posed.vertices[0].detach().cpu().double().numpy()

@@ -108,11 +108,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
+import cv2
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer
+from garmentnerf.data.scene import SceneImages
 from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, interior, is_psnr_metric,
                                       masked_psnr, mean_psnr, psnr, sharpness_ratio, silhouette_iou, ssim,
                                       temporal_flow_error, to_grey_uint8)
+from garmentnerf.eval.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
+from garmentnerf.gl.context import create_context
+from garmentnerf.render.presets import get_render_preset
+from garmentnerf.render.session import RenderSession, resolve_composition
+from garmentnerf.train.frames import area_resize
+from garmentnerf.train.run import load_run
 
 if TYPE_CHECKING:
     from garmentnerf.eval.gallery import Gallery
@@ -340,16 +351,12 @@ def eval_size(config, camera, resolution: str = "model") -> tuple[int, int]:
 
 @functools.lru_cache(maxsize=4)
 def _stlpips_module(variant: str):
-    from garmentnerf.eval.perceptual import STLPIPS
-
     return STLPIPS(variant)
 
 
 def perceptual_metrics(lpips_backbone: str | None = None) -> tuple[list, dict[str, str]]:
     """(modules, unavailable): ``stlpips_alex`` when stlpips-pytorch is installed and
     ``lpips_alex`` when the AlexNet backbone is supplied; each missing one with its reason."""
-    from garmentnerf.eval.perceptual import LPIPS, lpips_available, stlpips_available
-
     modules, unavailable = [], {}
     ok, reason = lpips_available(lpips_backbone)
     if ok:
@@ -387,9 +394,6 @@ class _GroundTruth:
     """Ground-truth views at the evaluation size, composited as the trainer's targets."""
 
     def __init__(self, scene, ctx, body, background, cache_images: int = 64):
-        from garmentnerf.data.render_gt import GroundTruthRenderer
-        from garmentnerf.data.scene import SceneImages
-
         self.renderer = GroundTruthRenderer(ctx)
         self.images = SceneImages(scene, renderer=self.renderer, body_model=body)
         self.background = tuple(float(c) for c in background)
@@ -403,10 +407,6 @@ class _GroundTruth:
         if hit is not None:
             self._cache.move_to_end(key)
             return hit
-        import cv2
-        import torch
-
-        from garmentnerf.train.frames import area_resize
 
         rgb, labels = self.images.image(sequence, camera, frame)
         image = area_resize(rgb, size)
@@ -439,8 +439,6 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
         ``garment_outline_share``, ``silhouette_iou``, ``sharpness``; a figure whose region is
         empty in this view is left out.
     """
-    from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT
-
     truth = target.labels != 0
     garment = target.labels == LABEL_GARMENT
     margin = max(1, round(SHARPNESS_MARGIN * max(truth.shape) / 512))
@@ -583,8 +581,6 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         ValueError: unknown split or resolution, run without a scene, baseline on another split,
             bad selection.
     """
-    from garmentnerf.render.presets import get_render_preset
-
     t_start = time.perf_counter()
     render_preset = get_render_preset(preset)
     if quality is None:
@@ -593,7 +589,6 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         raise ValueError(f"quality must be a number > 0, got {quality!r}")
     _check_request(split, baseline, model, resolution)
     run = _loaded(run, device, scene)
-    from garmentnerf.render.session import resolve_composition
 
     composition = resolve_composition(composition, run)
     scene_obj, cfg = run.scene, run.config
@@ -608,19 +603,13 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
 
     own_ctx = None
     if gl_context is None:
-        from garmentnerf.gl.context import create_context
-
         gl_context = own_ctx = create_context(headless=True)
     session = gt = bar = None
     try:
         gt = _GroundTruth(scene_obj, gl_context, run.model.body, background)
         if progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=views.total, desc=f"eval {split}", unit="view", file=sys.stderr, dynamic_ncols=True)
         if model:
-            from garmentnerf.render.session import RenderSession
-
             session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])), composition=composition)
         if gallery is not None:
             gallery.plan(views.total)
@@ -703,8 +692,6 @@ def _check_request(split: str, baseline: bool, model: bool, resolution: str) -> 
 def _loaded(run, device: str, scene):
     """The loaded run (a folder is loaded), with its scene present."""
     if isinstance(run, (str, Path)):
-        from garmentnerf.train.run import load_run
-
         run = load_run(run, device=device, scene=scene)
     if run.scene is None:
         where = (run.info or {}).get("scene")

@@ -19,7 +19,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
+import imageio.v3 as iio
 import numpy as np
+
+from garmentnerf.io_utils import atomic_write_path
 
 __all__ = ["Gallery", "ERROR_FULL_SCALE", "error_image"]
 
@@ -35,8 +39,6 @@ CAPTION_PX = 22
 
 def error_image(pred: np.ndarray, target: np.ndarray, full_scale: float = ERROR_FULL_SCALE) -> np.ndarray:
     """(H, W, 3) uint8 color-mapped error of two (H, W, 3) images in [0, 1] (see the module docstring)."""
-    import cv2
-
     err = np.abs(np.asarray(pred, np.float32) - np.asarray(target, np.float32)).mean(axis=-1)
     level = np.clip(err / float(full_scale), 0.0, 1.0)
     bgr = cv2.applyColorMap(np.round(level * 255.0).astype(np.uint8), cv2.COLORMAP_INFERNO)
@@ -48,8 +50,6 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def _caption(text: str, width: int) -> np.ndarray:
-    import cv2
-
     band = np.zeros((CAPTION_PX, width, 3), np.uint8)
     cv2.putText(band, text, (4, CAPTION_PX - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (230, 230, 230), 1, cv2.LINE_AA)
     return band
@@ -133,10 +133,6 @@ class Gallery:
 
     def write(self, path: str | Path, overwrite: bool = False) -> Path:
         """Write :meth:`image` as a PNG, atomically (never over an existing file without ``overwrite``)."""
-        import imageio.v3 as iio
-
-        from garmentnerf.io_utils import atomic_write_path
-
         with atomic_write_path(path, overwrite=overwrite) as tmp:
             iio.imwrite(tmp, self.image(), extension=".png")
         return Path(path)

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+import cv2
 import numpy as np
 import torch
 
@@ -206,8 +207,6 @@ def gradient_energy(image, region: np.ndarray) -> float:
         ``sum(gx^2 + gy^2)`` over the region, with ``gx, gy`` the 3x3 Sobel derivatives
         (``cv2.Sobel``, reflected border) of ``0.299 R + 0.587 G + 0.114 B`` in float64.
     """
-    import cv2
-
     img = _as_float64_image(image, "image")
     luma = img[..., :3] @ np.array([0.299, 0.587, 0.114])
     gx = cv2.Sobel(luma, cv2.CV_64F, 1, 0, ksize=3)
@@ -230,8 +229,6 @@ def interior(region: np.ndarray, margin: int) -> np.ndarray:
     """(H, W) bool: the pixels of ``region`` at least ``margin`` pixels (chessboard distance)
     inside it (``cv2.erode`` with a ``(2 margin + 1)^2`` square; outside the image counts as
     outside the region)."""
-    import cv2
-
     region = np.asarray(region, dtype=bool)
     if margin <= 0:
         return region
@@ -251,8 +248,6 @@ def to_grey_uint8(frame) -> np.ndarray:
     does), then converted with ``cv2.COLOR_RGB2GRAY`` (0.299 R + 0.587 G + 0.114 B). uint8 RGB
     is converted directly; (H, W) frames are taken as grey already.
     """
-    import cv2
-
     if isinstance(frame, torch.Tensor):
         frame = frame.detach().cpu().numpy()
     a = np.asarray(frame)
@@ -273,8 +268,6 @@ def to_grey_uint8(frame) -> np.ndarray:
 
 def farneback_flow(prev_grey: np.ndarray, next_grey: np.ndarray) -> np.ndarray:
     """(H, W, 2) float32 Farneback flow from ``prev_grey`` to ``next_grey`` ((H, W) uint8)."""
-    import cv2
-
     return cv2.calcOpticalFlowFarneback(prev_grey, next_grey, None, *FARNEBACK_PARAMS)
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -44,8 +45,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from garmentnerf.data.scene import Scene
 from garmentnerf.eval.evaluate import SPLITS, _spread, evaluate_run
+from garmentnerf.eval.perceptual import lpips_available
+from garmentnerf.gl.context import create_context
 from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.train.checkpoints import latest_checkpoint
+from garmentnerf.train.run import RUN_FILE, load_run, read_run_info
+from garmentnerf.train.settings import MODEL_PRESETS, TrainConfig, model_config_for
+from garmentnerf.train.trainer import Trainer
 
 __all__ = ["Variant", "default_variants", "build_report", "train_variant", "render_markdown", "report_summary",
            "VARIANT_KINDS"]
@@ -124,8 +133,6 @@ def default_variants(scene, base_history: int, names: list[str] | None = None,
 
 
 def _parse_variant(name: str, train_cams: list[str], base_history: int) -> Variant:
-    import re
-
     m = re.fullmatch(r"k(\d+)", name)
     if m:
         k = int(m.group(1))
@@ -170,12 +177,6 @@ def train_variant(scene_path, run_dir, cfg, cameras=None, *, iterations: int | N
     Raises:
         ValueError: ``run_dir`` holds a run with other settings, or something that is not a run.
     """
-    from garmentnerf.model.config import ModelConfig
-    from garmentnerf.train.run import RUN_FILE, read_run_info
-    from garmentnerf.train.checkpoints import latest_checkpoint
-    from garmentnerf.train.settings import TrainConfig
-    from garmentnerf.train.trainer import Trainer
-
     run_dir = Path(run_dir)
     expected_cfg, gen, total = _expected(cfg, iterations, generator_iterations)
     resume = False
@@ -488,10 +489,6 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     Returns:
         the report's path.
     """
-    from garmentnerf.gl.context import create_context
-    from garmentnerf.data.scene import Scene
-    from garmentnerf.train.settings import model_config_for
-
     t0 = time.perf_counter()
     say = log or (lambda m: print(f"garmentnerf report: {m}", file=sys.stderr))
     _check_schedule(preset, iterations, generator_iterations)
@@ -504,7 +501,6 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     variant_list = default_variants(scene_obj, base_cfg.history, variants, tuple(views), tuple(histories))
     _, gen_full, _ = _expected(base_cfg, iterations, generator_iterations)
     n_iter = iterations if iterations is not None else base_cfg.iterations
-    from garmentnerf.eval.perceptual import lpips_available
     # an evaluation is reused only for the same frame selection and the same metric set
     request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0]),
                "resolution": REPORT_RESOLUTION}
@@ -527,8 +523,6 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
 
 def _check_schedule(preset: str, iterations: int | None, generator_iterations: int | None) -> None:
     """Raise ValueError for an unknown preset or a step count out of range (NeRF >= 1, G_img >= 0)."""
-    from garmentnerf.train.settings import MODEL_PRESETS
-
     if preset not in MODEL_PRESETS:
         raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
     if iterations is not None and iterations < 1:
@@ -625,8 +619,6 @@ class _ReportJob:
     def evaluate(self, v: Variant) -> tuple[dict[str, dict], int]:
         """One variant's results on every split (cached; the run is loaded once, only when a
         split must be computed) and its run's step."""
-        from garmentnerf.train.run import load_run, read_run_info
-
         run_dir = self.runs_dir / v.name
         run = None
         per: dict[str, dict] = {}
@@ -645,8 +637,6 @@ class _ReportJob:
 
     def baseline(self, step: int) -> dict:
         """The nearest-view baseline on ``unseen_view`` (cached with the ``full`` run's step)."""
-        from garmentnerf.train.run import load_run
-
         def compute_baseline():
             r = load_run(self.runs_dir / "full", device=self.device, scene=self.scene_path)
             return evaluate_run(r, "unseen_view", frames=self.frames, progress=self.progress, gl_context=self.ctx,

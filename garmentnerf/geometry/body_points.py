@@ -22,7 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
 import torch
+from scipy.sparse.csgraph import connected_components
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.geometry.projection import SurfaceProjector
@@ -68,9 +70,6 @@ def main_component_faces(faces: np.ndarray) -> np.ndarray:
     sample inside the head must be measured against the skin, not the eyeball it happens to be
     nearest to, or its sign would flip.
     """
-    import scipy.sparse
-    from scipy.sparse.csgraph import connected_components
-
     V = int(faces.max()) + 1
     rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
     cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])

@@ -39,6 +39,7 @@ opened.
 
 import functools
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -67,8 +68,6 @@ _pools: dict = {}
 
 def _pool(threads: int):
     """A thread pool of ``threads`` workers, kept for the process."""
-    from concurrent.futures import ThreadPoolExecutor
-
     with _load_lock:
         if threads not in _pools:
             _pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="face-bvh")
@@ -89,6 +88,8 @@ def _kernels():
 def _define_kernels():
     """See :func:`_kernels`. The compiled kernels are kept in warp's kernel cache, so only the
     first run on a machine compiles them."""
+    # local: warp (0.3 s to import) serves only this exact CPU search; on a GPU the body projection
+    # uses the dense torch search (BodyPointProjector's "auto") and never loads it
     import warp as wp
 
     if wp.config.log_level == wp.LOG_INFO:  # the default: hide the banner and module-load messages

@@ -13,10 +13,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import moderngl
 import numpy as np
 import torch
 
+from garmentnerf.body.surface import vertex_normals
 from garmentnerf.conventions import Camera, gl_projection_from_intrinsics
+from garmentnerf.gl.context import create_context, current, is_released
+from garmentnerf.gl.shaders import build_program
 
 _BIG = 1.0e37
 
@@ -24,8 +28,6 @@ _BIG = 1.0e37
 def inflate_surface(vertices: torch.Tensor, faces: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
     """(V, 3) float32 vertices pushed out along their unit (area-weighted) normals by ``margin``
     (metres: a scalar, or (V,) per vertex)."""
-    from garmentnerf.body.surface import vertex_normals
-
     v = vertices.detach().to("cpu", torch.float32)
     m = torch.as_tensor(margin, dtype=torch.float32).reshape(-1, 1) if torch.is_tensor(margin) else float(margin)
     return v + m * vertex_normals(v, faces.detach().cpu().long())
@@ -59,14 +61,10 @@ class ShellRaster:
     @property
     def ctx(self):
         if self._ctx is None:
-            from garmentnerf.gl.context import create_context
-
             self._ctx = create_context(headless=True)
         return self._ctx
 
     def _setup(self):
-        from garmentnerf.gl.shaders import build_program
-
         if self._program is None:
             self._program = build_program(self.ctx, "shell_bounds.vert", "shell_bounds.frag")
 
@@ -94,10 +92,6 @@ class ShellRaster:
         """Near/far ray distances of the closed shell ``(vertices, faces)`` seen by ``camera``:
         the nearest and farthest crossing of any face per pixel-centre ray; ``origin_inside``
         (the camera centre lies inside the shell): every ray starts at 0 and every ray hits."""
-        import moderngl
-
-        from garmentnerf.gl.context import current
-
         verts = vertices.detach().to("cpu", torch.float32).numpy()
         tris = faces.detach().cpu().numpy().astype(np.int64)
         W, H = camera.width, camera.height
@@ -143,11 +137,8 @@ class ShellRaster:
         self._buffers = []
 
     def release(self) -> None:
-        from garmentnerf.gl.context import is_released
-
         if self._ctx is None or is_released(self._ctx):
             return
-        from garmentnerf.gl.context import current
 
         with current(self._ctx):
             self._release_buffers()

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from safetensors import safe_open
+from safetensors.torch import save
 from torch import nn
 
 from garmentnerf.body.shading import monomial_exponents, normal_monomials
@@ -80,8 +82,6 @@ class BodyAppearance(nn.Module):
 
 def save_body_appearance(path, appearance: BodyAppearance) -> Path:
     """Write ``appearance`` to a ``.safetensors`` file atomically. Returns the path."""
-    from safetensors.torch import save
-
     tensors = {"albedo": appearance.albedo.detach().cpu().contiguous(),
                "shading": appearance.shading.detach().cpu().contiguous()}
     data = save(tensors, metadata={"format": "garmentnerf-body-appearance", "degree": str(appearance.degree)})
@@ -94,8 +94,6 @@ def load_body_appearance(path) -> BodyAppearance:
     Raises:
         ValueError: a file that is not one (the message names it).
     """
-    from safetensors import safe_open
-
     path = Path(path)
     try:
         with safe_open(str(path), framework="pt") as f:

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from garmentnerf.conventions import Camera
+from garmentnerf.gl.camera_pass import CameraPass
 
 if TYPE_CHECKING:  # pragma: no cover
     import moderngl
@@ -184,6 +185,8 @@ def resolve_reference_cameras(references) -> tuple[Camera, Camera]:
 
 
 def _slice_posed(posed: "PosedBody", start: int, stop: int) -> "PosedBody":
+    # local: the garmentnerf.model package imports this module and keeps 'import garmentnerf.model.config'
+    # light (0.03 s); garmentnerf.body.model brings roma (1.5 s)
     from garmentnerf.body.model import PosedBody
 
     return PosedBody(posed.vertices[start:stop], posed.joint_transforms[start:stop], posed.translation[start:stop],
@@ -203,7 +206,7 @@ class FrameInputBuilder:
     """
 
     def __init__(self, ctx: "moderngl.Context", body: "BodyModel", references, cfg: "ModelConfig"):
-        from garmentnerf.gl.camera_pass import CameraPass
+        # local: as in _slice_posed (gl.info_maps brings the body model and roma: 1.6 s)
         from garmentnerf.gl.info_maps import InfoMapRenderer
 
         self.ctx = ctx

@@ -20,7 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from garmentnerf.geometry.body_points import BodyPoints
+from garmentnerf.body.model import BodyModel
+from garmentnerf.data.scene import read_garment_arrays
+from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 
 #: Margins added to the measured garment heights (metres): above the garment, and below the skin
 #: (samples just inside the body carry the skin's density ramp).
@@ -118,10 +120,6 @@ def measure_height_range(scene, body=None, betas=None, projector=None, sequences
     corners of the skin face it projects to to its h; the maxima are spread over ``rings`` mesh
     rings (the garment moves between the sampled frames, and unseen motions swing it further),
     and ``margin_out`` is added (so bare skin gets ``margin_out``: the body's own density)."""
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.data.scene import read_garment_arrays
-    from garmentnerf.geometry.body_points import BodyPointProjector
-
     body = BodyModel.default() if body is None else body
     betas = body.betas(scene.body.get("shape", "average")) if betas is None else betas
     projector = BodyPointProjector(body) if projector is None else projector

@@ -31,6 +31,7 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
+import torch.nn.functional as F
 
 from garmentnerf.model.palette import DecomposedMaps
 
@@ -62,8 +63,6 @@ def palette_loss(palette: torch.Tensor, initial: torch.Tensor) -> torch.Tensor:
 
 def opacity_loss(opacity: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
     """L1 between opacity (B, h, w) and the mask (B, 1, H, W) area-averaged to (h, w)."""
-    import torch.nn.functional as F
-
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
     if opacity.ndim == 2:

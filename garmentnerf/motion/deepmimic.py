@@ -124,7 +124,7 @@ class DeepMimicClip:
 
 def deepmimic_dir() -> Path:
     """The folder of pybullet's DeepMimic clips."""
-    try:
+    try:  # local: a missing pybullet (built from source where it has no wheel) costs only these clips
         import pybullet_data
     except ImportError as exc:  # pragma: no cover - pybullet is a dependency
         raise DeepMimicError("the DeepMimic clips come with the 'pybullet' package, which is not installed "

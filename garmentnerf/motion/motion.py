@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from garmentnerf.body.smpl import SMPL_JOINT_NAMES
 from garmentnerf.io_utils import atomic_write_path
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -229,7 +230,6 @@ def skeleton_of(joint_names: list[str]) -> str | None:
     names = set(joint_names)
     if {"root", "upperleg01.L", "upperleg01.R", "spine01"} <= names:
         return "anny"
-    from garmentnerf.body.smpl import SMPL_JOINT_NAMES
 
     if set(SMPL_JOINT_NAMES[:22]) <= names:
         return "smpl"

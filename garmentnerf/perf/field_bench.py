@@ -14,6 +14,9 @@ import time
 
 import torch
 
+from garmentnerf.body.model import BodyModel
+from garmentnerf.geometry.body_points import BodyPointProjector
+from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.nerf_mlp import GarmentNeRF
 from garmentnerf.model.uvh_field import UVHField, face_tangent_frames, local_offset_direction
@@ -38,10 +41,6 @@ def field_benchmark(samples: int = 16384, rounds: int = 5, configs: dict[str, Mo
         ``{name: {"render_us_per_sample", "render_samples_per_s", "train_us_per_sample",
         "train_samples_per_s", "parameters"}}`` plus ``"samples"``.
     """
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.geometry.body_points import BodyPointProjector
-    from garmentnerf.gl.uv_raster import sample_uv_map
-
     configs = bundled_field_configs() if configs is None else configs
     g = torch.Generator().manual_seed(seed)
     body = BodyModel.default()

@@ -11,8 +11,20 @@ import platform
 
 import torch
 
+from garmentnerf.body.model import BodyModel
+from garmentnerf.body.surface import vertex_normals
+from garmentnerf.conventions import orbit_camera
+from garmentnerf.geometry.body_points import BodyPointProjector
+from garmentnerf.gl.body_layer_pass import BodyLayerPass
+from garmentnerf.gl.camera_pass import CameraPass
+from garmentnerf.gl.context import context_info, create_context
+from garmentnerf.gl.info_maps import InfoMapRenderer
+from garmentnerf.model.body_appearance import BodyAppearance
+from garmentnerf.motion.library import load_motion
+from garmentnerf.perf.field_bench import field_benchmark
 from garmentnerf.perf.projection_bench import near_surface_points
 from garmentnerf.perf.timing import median_ms
+from garmentnerf.render.body_layer import render_body_layer
 
 
 def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_points: int = 262144) -> dict:
@@ -20,15 +32,6 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
 
     Returns a dict of figures (milliseconds unless named otherwise) and the machine description.
     """
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.body.surface import vertex_normals
-    from garmentnerf.conventions import orbit_camera
-    from garmentnerf.geometry.body_points import BodyPointProjector
-    from garmentnerf.gl.camera_pass import CameraPass
-    from garmentnerf.gl.context import context_info, create_context
-    from garmentnerf.gl.info_maps import InfoMapRenderer
-    from garmentnerf.motion.library import load_motion
-
     body = BodyModel.default()
     motion = load_motion("walk", body)
     clip = motion.slice(0, min(clip_frames, motion.num_frames))
@@ -59,10 +62,6 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
         results["depth_range_512_ms"] = median_ms(lambda: cam_pass.render_depth_range(verts, body.faces, camera), runs)
         # the raster_body composition's body layer, 2 x 2 supersampled: GL-shaded against the plain
         # reference (camera pass + torch), side by side on a random appearance
-        from garmentnerf.gl.body_layer_pass import BodyLayerPass
-        from garmentnerf.model.body_appearance import BodyAppearance
-        from garmentnerf.render.body_layer import render_body_layer
-
         appearance = BodyAppearance()
         normals = vertex_normals(verts, body.faces)
         with torch.no_grad(), BodyLayerPass(ctx) as layer_pass:
@@ -85,7 +84,5 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
     results["projection_points_per_s"] = projection_points / (proj_ms / 1e3)
     ctx.release()
     # What a projected sample then costs in each field (ModelConfig.field), side by side.
-    from garmentnerf.perf.field_bench import field_benchmark
-
     results["fields"] = field_benchmark(rounds=max(3, runs // 4))
     return results

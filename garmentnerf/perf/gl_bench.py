@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import trimesh
 
 from garmentnerf.conventions import orbit_camera
 from garmentnerf.gl.camera_pass import CameraPass
@@ -57,8 +58,6 @@ def benchmark_gl_passes(ctx=None, runs: int = 20, warmup: int = 3, uv_resolution
 
     A headless context is made (and released) when ``ctx`` is None.
     """
-    import trimesh
-
     own = ctx is None
     if own:
         ctx = create_context(headless=True)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from PIL import Image, ImageDraw
+
 from garmentnerf.io_utils import atomic_write_path
 
 __all__ = ["write_plot"]
@@ -14,8 +16,6 @@ __all__ = ["write_plot"]
 def write_plot(results: dict, path, overwrite: bool = True) -> Path:
     """ms/frame (log x) against PSNR (or points per frame without ground truth), one labelled
     point per preset, as a PNG drawn with PIL."""
-    from PIL import Image, ImageDraw
-
     rows = [r for r in results["presets"] if r["ms_per_frame"]]
     use_psnr = all(r["psnr"] is not None for r in rows)
     ys = [r["psnr"] if use_psnr else math.log10(max(r["points_per_frame"], 1)) for r in rows]

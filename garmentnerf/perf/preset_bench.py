@@ -21,11 +21,24 @@ cold frame; and the previewer's render-ahead per preset
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
 import time
 
 import numpy as np
+import torch
+
+from garmentnerf.data.cameras import default_rig
+from garmentnerf.data.render_gt import GroundTruthRenderer
+from garmentnerf.data.scene import SceneImages
+from garmentnerf.eval.metrics import psnr, ssim
+from garmentnerf.gl.context import context_info, create_context
+from garmentnerf.model.pipeline import FRAME_STAGES, RENDER_STAGES
+from garmentnerf.render.cameras import orbit_view
+from garmentnerf.render.presets import RENDER_PRESET_NAMES, get_render_preset
+from garmentnerf.render.session import RenderSession
+from garmentnerf.train.run import load_run
 
 __all__ = ["PAPER_STAGES", "preset_benchmark", "playback_benchmark", "previewer_view_benchmark"]
 
@@ -87,12 +100,6 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
     Returns:
         A JSON-ready dict (``presets``: one row per preset; ``playback``).
     """
-    import torch
-
-    from garmentnerf.gl.context import context_info, create_context
-    from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
-
     for name, value in (("frames", frames), ("views", views), ("repeats", repeats),
                         ("playback-frames", playback_frames)):
         if value < 1:
@@ -109,9 +116,6 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
         frame_ids = _pick(list(range(session.num_frames)), frames)
         split, cams = _measured_views(run, views)
         if run.scene is not None and seq is not None:
-            from garmentnerf.data.render_gt import GroundTruthRenderer
-            from garmentnerf.data.scene import SceneImages
-
             images = SceneImages(run.scene, renderer=GroundTruthRenderer(ctx), body_model=session.body)
         band = session.height_range
         log(f"run {run_dir}: step {run.step}, {cfg.feature_image_resolution}^2 rays x {cfg.samples_per_ray} samples, "
@@ -153,8 +157,6 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
 def _chosen_presets(names) -> list:
     """The :class:`~garmentnerf.render.presets.RenderPreset` of ``names`` (default: all), with
     ``reference`` first when it is not among them (ratios are to a reference measured in the same run)."""
-    from garmentnerf.render.presets import RENDER_PRESET_NAMES, get_render_preset
-
     chosen = [get_render_preset(n) for n in (list(names) if names else list(RENDER_PRESET_NAMES))]
     if "reference" not in [p.name for p in chosen]:
         chosen.insert(0, get_render_preset("reference"))
@@ -167,7 +169,6 @@ def _measured_views(run, views: int) -> tuple[str, list]:
     if run.scene is not None:
         split = "unseen_view" if run.scene.camera_names("unseen_view") else "train"
         return split, _pick(run.scene.cameras(split), views)
-    from garmentnerf.data.cameras import default_rig
 
     size = run.config.image_resolution
     return "orbit", _pick(default_rig(width=size, height_px=size, references=False), views)
@@ -176,8 +177,6 @@ def _measured_views(run, views: int) -> tuple[str, list]:
 def _frame_stage_timings(session, frame_ids: list[int]) -> dict[int, dict[str, float]]:
     """ms of each frame stage per frame. They do not depend on the preset: measured once per frame
     (after a warm-up), then every render finds the frame in the session's cache."""
-    from garmentnerf.model.pipeline import FRAME_STAGES
-
     session.frame_features(frame_ids[0])
     session.clear_cache()
     return {f: {k: session.frame_features(f)[0].timings.get(k, 0.0) for k in FRAME_STAGES} for f in frame_ids}
@@ -187,9 +186,6 @@ def _measure_views(session, preset, frame_ids: list[int], cams: list, repeats: i
                    frame_timings: dict[int, dict[str, float]], gts: dict) -> list[dict]:
     """One entry per (frame, camera): the fastest of ``repeats`` renders with ``preset``, its
     timings and counts, and PSNR/SSIM where ``gts`` has the ground truth."""
-    from garmentnerf.eval.metrics import psnr, ssim
-    from garmentnerf.model.pipeline import RENDER_STAGES
-
     session.render(frame_ids[0], cams[0].camera, preset=preset)  # warm-up (GL objects, allocator)
     per_view = []
     for f in frame_ids:
@@ -219,8 +215,6 @@ def _measure_views(session, preset, frame_ids: list[int], cams: list, repeats: i
 
 def _preset_row(preset, cfg, per_view: list[dict]) -> dict:
     """A preset's row: the medians over its views of :func:`_measure_views`' entries."""
-    from garmentnerf.model.pipeline import FRAME_STAGES, RENDER_STAGES
-
     return {"preset": preset.name, "settings": preset.to_dict(), "samples_per_ray": preset.samples_per_ray(cfg),
             "ms_per_frame": _median([e["ms_per_frame"] for e in per_view]),
             "render_ms": _median([e["render_ms"] for e in per_view]),
@@ -263,8 +257,6 @@ def playback_benchmark(session, camera, presets, frames: int = 24, log=print) ->
     time from a jump to the image, to a ready frame whose closest-point search is not bound
     (``scrub_ready_ms``) and to a frame not precomputed (``scrub_cold_ms``).
     """
-    from garmentnerf.render.presets import get_render_preset
-
     n = min(max(1, int(frames)), session.num_frames)
     start = max(0, (session.num_frames - n) // 2)
     window = list(range(start, start + n))
@@ -314,11 +306,6 @@ def previewer_view_benchmark(session, frame: int, size: tuple[int, int] = (1280,
         ``{"size": [W, H], "frame": f, "views": [{"distance", "rows": {way: {"ms", "rendered",
         "rays", "rays_frame", "points", "scale"}}}]}`` (``ms``: median of ``repeats`` after one warm-up).
     """
-    import dataclasses
-
-    from garmentnerf.render.presets import get_render_preset
-    from garmentnerf.render.cameras import orbit_view
-
     full = get_render_preset("full")
     whole_frame = dataclasses.replace(full, name="full_whole_frame", character_rect=False)
     views = []

@@ -11,9 +11,12 @@ import time
 import numpy as np
 import torch
 
+from garmentnerf.body.model import BodyModel
+from garmentnerf.geometry.body_points import main_component_faces
 from garmentnerf.geometry.projection import DEFAULT_CHUNK_SIZE, SurfaceProjector
 from garmentnerf.geometry.projection_dense import (DEFAULT_DENSE_NEIGHBOURS, DEFAULT_MEMORY_BUDGET, RANKINGS,
                                                    DenseSurfaceProjector)
+from garmentnerf.motion.library import load_motion
 
 __all__ = ["benchmark_projection", "benchmark_dense_projection", "measure_dense_mismatch", "near_surface_points"]
 
@@ -46,7 +49,9 @@ def benchmark_projection(n_points: int = 262144, *, vertices: torch.Tensor | np.
         certificate failed and were retried), ``pairs_per_point`` (point-face tests) and the
         problem size.
     """
-    import trimesh  # only here: the module itself needs no mesh library
+    # local: only here: the rest of the module (foundation_bench's near_surface_points) needs no mesh
+    # library, and trimesh costs 0.8 s
+    import trimesh
 
     if n_points < 1:
         raise ValueError(f"n_points must be positive, got {n_points}")
@@ -93,10 +98,6 @@ def benchmark_projection(n_points: int = 262144, *, vertices: torch.Tensor | np.
 
 def _body_frame(frame: int = 10):
     """(faces (F, 3) long of the skin, posed vertices (V, 3) float64, V) of the bundled body walking."""
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.geometry.body_points import main_component_faces
-    from garmentnerf.motion.library import load_motion
-
     body = BodyModel.default()
     posed = load_motion("walk", body).pose(body)
     verts = posed.vertices[min(frame, posed.vertices.shape[0] - 1)].to(torch.float64)

@@ -38,6 +38,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
+from garmentnerf.model.config import ModelConfig
+from garmentnerf.train.run import MODEL_FILE, read_run_info
+from garmentnerf.train.settings import TrainConfig, training_precision
+from garmentnerf.train.trainer import Trainer
 
 __all__ = ["training_benchmark", "STAGES"]
 
@@ -143,14 +150,6 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
         precision's seconds per step over each one's. With ``before``, also ``"before": [row]``
         and ``"speedup_vs_before"``: each precision's seconds per step before over now.
     """
-    import torch
-
-    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
-    from garmentnerf.model.config import ModelConfig
-    from garmentnerf.train.run import MODEL_FILE, read_run_info
-    from garmentnerf.train.settings import TrainConfig, training_precision
-    from garmentnerf.train.trainer import Trainer
-
     if steps < 3 or rounds < 1:
         raise ValueError(f"steps must be >= 3 and rounds >= 1, got {steps} and {rounds}")
     run_dir = Path(run_dir)

@@ -39,6 +39,8 @@ from dataclasses import asdict, dataclass
 
 from garmentnerf.model.height_band import HeightRange, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
+from garmentnerf.model.samplers import BoxStratifiedSampler
+from garmentnerf.model.shell_sampler import ShellSampler
 
 SAMPLERS = ("box", "shell")
 
@@ -104,9 +106,6 @@ class RenderPreset:
             height_range: the garment's band (shell presets; default :meth:`HeightRange.default`).
             gl_context: moderngl context of the shell raster (None: a headless one of its own).
         """
-        from garmentnerf.model.samplers import BoxStratifiedSampler
-        from garmentnerf.model.shell_sampler import ShellSampler
-
         cfg = model.cfg
         n = self.samples_per_ray(cfg)
         if self.sampler == "box":

@@ -76,10 +76,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from garmentnerf.conventions import Camera
+from garmentnerf.conventions import Camera, camera_rays
+from garmentnerf.data.cameras import reference_cameras
+from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.lifecycle import Closeable
+from garmentnerf.model.frame_context import FrameInputBuilder
 from garmentnerf.model.palette import check_palette
+from garmentnerf.model.samplers import padded_box
+from garmentnerf.motion.library import load_motion
+from garmentnerf.motion.motion import Motion
+from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
+from garmentnerf.render.presets import CHARACTER_RECT_MARGIN, get_render_preset, height_range_for_run
 from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
 
 #: How a view is composed (module docstring, "the two compositions").
@@ -192,9 +200,6 @@ def resolve_motion(motion, body, betas, scene=None):
     that is one of the scene's sequences loads that sequence's motion (ground truth then exists
     for it); any other name goes to :func:`garmentnerf.motion.library.load_motion`.
     """
-    from garmentnerf.motion.library import load_motion
-    from garmentnerf.motion.motion import Motion
-
     if isinstance(motion, Motion):
         return motion, None
     if motion is None:
@@ -225,9 +230,6 @@ class RenderSession(Closeable):
 
     def __init__(self, run, gl_ctx, motion=None, *, cache_mb: float = DEFAULT_CACHE_MB,
                  cache_half: bool = False, composition: str = "auto") -> None:
-        from garmentnerf.data.cameras import reference_cameras
-        from garmentnerf.model.frame_context import FrameInputBuilder
-
         self.run = run
         self._body_pass = None  # the BodyLayerPass, made on first use
         self.set_composition(composition)
@@ -342,8 +344,6 @@ class RenderSession(Closeable):
     @property
     def height_range(self):
         """The garment's height band of the run (measured on its scene once, on first use)."""
-        from garmentnerf.render.presets import height_range_for_run
-
         if self._height_range is None:
             self._height_range = height_range_for_run(self.run)
         return self._height_range
@@ -351,8 +351,6 @@ class RenderSession(Closeable):
     def sampling(self, preset=DEFAULT_PRESET):
         """The :class:`~garmentnerf.render.presets.SamplingPlan` of ``preset`` (a name or a
         :class:`~garmentnerf.render.presets.RenderPreset`), made once per preset."""
-        from garmentnerf.render.presets import get_render_preset
-
         preset = get_render_preset(preset)
         plan = self._plans.get(preset.name)
         if plan is None or plan.preset != preset:
@@ -398,8 +396,6 @@ class RenderSession(Closeable):
     def sampling_box(self, features) -> torch.Tensor:
         """(2, 3) float64 the frame's sampling box: the body box padded by ``cfg.bbox_padding``, as
         both samplers pad it; no sample of the frame lies outside it."""
-        from garmentnerf.model.samplers import padded_box
-
         return padded_box(features.aabb.detach().to("cpu", torch.float64), self.config.bbox_padding)
 
     def render(self, frame: int, camera: Camera, quality: float | None = None, *, preset=DEFAULT_PRESET,
@@ -470,9 +466,6 @@ class RenderSession(Closeable):
         the posed body and its vertex normals) seen by ``camera`` at its size
         (drawn and shaded by :class:`~garmentnerf.gl.body_layer_pass.BodyLayerPass`, the GL side of
         :func:`~garmentnerf.render.body_layer.render_body_layer`; needs a body appearance)."""
-        from garmentnerf.gl.body_layer_pass import BodyLayerPass
-        from garmentnerf.render.body_layer import frame_body_layer
-
         if self.body_appearance is None:
             raise ValueError("this session composes without a body layer (composition 'nerf')")
         if self._body_pass is None:
@@ -484,8 +477,6 @@ class RenderSession(Closeable):
         the frame's sampling box (the body box padded by ``cfg.bbox_padding``, as both samplers pad
         it) can be seen, grown by :data:`~garmentnerf.render.presets.CHARACTER_RECT_MARGIN` cells; one
         cell in the corner when the box is out of view (nothing to render)."""
-        from garmentnerf.render.presets import CHARACTER_RECT_MARGIN
-
         rect = box_rect(camera, self.sampling_box(features), cell=cell, margin_cells=CHARACTER_RECT_MARGIN)
         return rect if rect is not None else PixelRect(0, 0, cell, cell)
 
@@ -527,8 +518,6 @@ def padded_render_camera(camera: Camera, scale: float, upsample: int) -> tuple[C
 def _camera_depth(distance: torch.Tensor, opacity: torch.Tensor, camera: Camera,
                   min_opacity: float = 0.05) -> np.ndarray:
     """Ray distances (h, w) -> camera-space z, 0 where the opacity is below ``min_opacity``."""
-    from garmentnerf.conventions import camera_rays
-
     _, dirs = camera_rays(camera, torch.float64)
     cos = (dirs @ torch.as_tensor(camera.R, dtype=torch.float64).T)[..., 2]  # z of the unit camera ray
     z = distance.double() * cos

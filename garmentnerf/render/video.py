@@ -20,7 +20,10 @@ import os
 import tempfile
 from pathlib import Path
 
+import imageio.v2 as iio
+import imageio_ffmpeg
 import numpy as np
+from PIL import Image
 
 from garmentnerf.io_utils import atomic_write_path, remove_stale_temporaries
 
@@ -35,8 +38,6 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 
 def write_png_exclusive(image: np.ndarray, path: str | Path) -> Path:
     """Write ``image`` to ``path`` atomically; FileExistsError if ``path`` exists (never overwrites)."""
-    from PIL import Image
-
     path = Path(path)
     with atomic_write_path(path, overwrite=False) as tmp:
         Image.fromarray(to_uint8(image)).save(tmp, format="PNG")
@@ -103,8 +104,6 @@ class VideoWriter:
         if (ph, pw) != (h, w):
             frame = np.pad(frame, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
         if self._gen is None:
-            import imageio_ffmpeg
-
             self._size = (pw, ph)
             self._gen = imageio_ffmpeg.write_frames(str(self._tmp), (pw, ph), fps=self.fps, codec="libx264",
                                                     quality=self.quality, macro_block_size=1,
@@ -148,8 +147,6 @@ class VideoWriter:
 
 def count_video_frames(path: str | Path) -> int:
     """Frames in a video file, decoded with imageio's ffmpeg reader (for tests and checks)."""
-    import imageio.v2 as iio
-
     with iio.get_reader(str(path), format="FFMPEG") as reader:
         return sum(1 for _ in reader)
 

@@ -18,11 +18,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from garmentnerf.body.surface import vertex_normals
+from garmentnerf.data.scene import SceneImages
+from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.model.body_appearance import BodyAppearance
+from garmentnerf.render.body_layer import body_surface
 
 
 #: Weight of the albedo prior ``mean((A(uv) - 1)^2)`` over a batch's samples: it settles the scale
@@ -53,8 +58,6 @@ class BodySamples:
 def interior_body_pixels(labels: np.ndarray, raster_mask: np.ndarray, body_label: int = 1) -> np.ndarray:
     """(H, W) bool: pixels labelled ``body_label`` and covered by the raster, together with their
     8 neighbours (a 3 x 3 erosion of both masks)."""
-    import cv2
-
     both = ((labels == body_label) & raster_mask).astype(np.uint8)
     return cv2.erode(both, np.ones((3, 3), np.uint8), borderValue=0).astype(bool)
 
@@ -64,11 +67,6 @@ def collect_body_samples(scene, body, cameras: list[str], gl_ctx, *, frame_strid
     """Body samples (see the module docstring) from ``cameras`` at every ``frame_stride``-th frame
     of the scene's training sequences, at most ``per_view`` random ones per image; the body is
     posed with the scene's shape, as its images show it."""
-    from garmentnerf.body.surface import vertex_normals
-    from garmentnerf.data.scene import SceneImages
-    from garmentnerf.gl.camera_pass import CameraPass
-    from garmentnerf.render.body_layer import body_surface
-
     if frame_stride < 1:
         raise ValueError(f"frame_stride must be >= 1, got {frame_stride}")
     rng = np.random.default_rng(seed)

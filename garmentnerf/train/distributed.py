@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 
 import torch
+import torch.distributed as dist
 
 __all__ = ["Distributed"]
 
@@ -27,8 +28,6 @@ class Distributed:
     """
 
     def __init__(self, device: str):
-        import torch.distributed as dist
-
         self.dist = dist
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))

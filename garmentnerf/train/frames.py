@@ -36,8 +36,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from garmentnerf.body.model import BodyModel
 from garmentnerf.conventions import Camera
+from garmentnerf.data.render_gt import GroundTruthRenderer
+from garmentnerf.data.scene import SceneImages
+from garmentnerf.gl.context import create_context
 from garmentnerf.lifecycle import Closeable
+from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES, FrameInputBuilder
 from garmentnerf.render.screen_rect import PixelRect, box_rect
 
 __all__ = ["SceneFrames", "SceneFramesFactory", "area_resize", "character_window"]
@@ -91,13 +96,7 @@ class SceneFrames(Closeable):
     """
 
     def __init__(self, scene, cfg, gl_context=None, body=None, cache_bytes: int = 2 << 30):
-        from garmentnerf.data.render_gt import GroundTruthRenderer
-        from garmentnerf.data.scene import SceneImages
-        from garmentnerf.model.frame_context import FrameInputBuilder
-
         if body is None:
-            from garmentnerf.body.model import BodyModel
-
             body = BodyModel.default()
         self.scene = scene
         self.cfg = cfg
@@ -105,8 +104,6 @@ class SceneFrames(Closeable):
         self.betas = body.betas(scene.body.get("shape", "average"))
         self._own_ctx = None
         if gl_context is None:
-            from garmentnerf.gl.context import create_context
-
             gl_context = self._own_ctx = create_context(headless=True)
         self.ctx = gl_context
         self.builder = FrameInputBuilder(gl_context, body, scene, cfg)
@@ -213,8 +210,6 @@ class SceneFrames(Closeable):
 
     def reference_targets(self, sequence: str, frame: int) -> torch.Tensor:
         """(2, 3, S, S) ground-truth front and back reference images at ``cfg.reference_resolution``."""
-        from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES
-
         frame = self.scene.check_frame(sequence, frame)
         S = self.cfg.reference_resolution
 

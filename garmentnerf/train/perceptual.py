@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.eval.perceptual import STLPIPS
+
 VGG19_WEIGHTS_ENV = "GARMENTNERF_VGG19"
 #: torchvision VGG19 ``features``: conv layer indices and channel counts ("M" = max-pool).
 _VGG19_LAYOUT = (64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512)
@@ -115,6 +117,5 @@ def make_perceptual(choice: str = "auto", vgg19_weights: str | Path | None = Non
                                     f"pass --vgg19-weights or set ${VGG19_WEIGHTS_ENV}")
         module = VGG19Loss(path)
         return module, f"vgg19:{Path(path).name}"
-    from garmentnerf.eval.perceptual import STLPIPS
 
     return STLPIPS("alex", reduction="mean"), "stlpips_alex"

@@ -49,11 +49,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from safetensors.torch import load_file, save
 
+from garmentnerf.body.model import BodyModel
 from garmentnerf.data.scene import Scene
 from garmentnerf.io_utils import remove_stale_temporaries, write_file_atomic
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, BodyAppearance, load_body_appearance
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.version import package_version
 
 RUN_FORMAT = "garmentnerf-run"
@@ -154,8 +157,6 @@ def read_run_info(run_dir) -> dict:
 
 
 def _body_for(info: dict, where: str):
-    from garmentnerf.body.model import BodyModel
-
     body_info = info.get("body") or {"model": "anny", "shape": "average"}
     if body_info.get("model", "anny") != "anny":
         raise ValueError(f"{where}: body model '{body_info.get('model')}' is not the bundled anny body; "
@@ -170,9 +171,6 @@ def _body_for(info: dict, where: str):
 
 def build_model(config: ModelConfig, palette_init=None, body=None, projector=None):
     """A fresh :class:`GarmentAnimationNeRF` for ``config`` (G_img frozen, eval mode)."""
-    from garmentnerf.body.model import BodyModel
-    from garmentnerf.model.pipeline import GarmentAnimationNeRF
-
     body = BodyModel.default() if body is None else body
     return GarmentAnimationNeRF(config, body, palette_init, projector=projector).eval()
 
@@ -208,8 +206,6 @@ def save_weights(path, model: torch.nn.Module, metadata: dict | None = None) -> 
 
     Serialised in memory first, so that a full disk is an :class:`OSError` naming ``path``.
     """
-    from safetensors.torch import save
-
     meta = {k: str(v) for k, v in (metadata or {}).items()}
     return write_file_atomic(path, save(_state_for_file(model), metadata=meta))
 
@@ -221,8 +217,6 @@ def load_module_weights(path, model: torch.nn.Module, prefix: str) -> None:
         FileNotFoundError / ValueError naming the file: missing or unreadable file, or tensors
         under ``prefix`` that are absent or shaped differently from ``model``'s.
     """
-    from safetensors.torch import load_file
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing")
@@ -259,8 +253,6 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
         FileNotFoundError: missing file; ValueError: unreadable file or keys/shapes that do not
         match the model (both name the file).
     """
-    from safetensors.torch import load_file
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing")

@@ -11,7 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
+import torch
+
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.pipeline import bfloat16_is_fast
 
 __all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
            "TRAINING_PRECISIONS", "tiny_config", "model_config_for", "loss_weight_names", "training_precision",
@@ -223,10 +226,6 @@ def show_setting(name: str, value) -> str:
 def training_precision(precision: str | None, device: str) -> str:
     """``precision`` (:data:`TRAINING_PRECISIONS`; None: ``auto``) as a run on ``device`` trains: ``auto`` is
     bfloat16 where bfloat16 is fast (:func:`~garmentnerf.model.pipeline.bfloat16_is_fast`), else float32."""
-    import torch
-
-    from garmentnerf.model.pipeline import bfloat16_is_fast
-
     if precision in (None, "auto"):
         return "bfloat16" if bfloat16_is_fast(torch.device(device)) else "float32"
     return precision

@@ -93,19 +93,25 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
 
 from garmentnerf.data.scene import Scene
+from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
+from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance, save_body_appearance
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, generator_losses
 from garmentnerf.model.samplers import padded_box
+from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
 from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
+from garmentnerf.train.perceptual import make_perceptual
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model,
                                    load_module_weights, load_weights, read_run_info, remove_run_temporaries,
                                    save_run_model, save_weights)
@@ -196,8 +202,6 @@ class Trainer(Closeable):
         if self._log is not None:
             self._log(message)
         else:
-            from tqdm import tqdm
-
             tqdm.write(f"garmentnerf train: {message}", file=sys.stderr)
 
     def _device(self) -> torch.device:
@@ -354,7 +358,6 @@ class Trainer(Closeable):
         torch.manual_seed(tc.seed)
         self.model = build_model(cfg, self.scene.palette_init).to(self.device)
         self.dist.broadcast_module(self.model)
-        from garmentnerf.train.perceptual import make_perceptual
 
         self.perceptual, self.perceptual_name = make_perceptual(tc.perceptual, tc.vgg19_weights, cfg.w_perceptual)
         if self.perceptual is not None:
@@ -379,8 +382,6 @@ class Trainer(Closeable):
         """The frozen body appearance the NeRF steps compose with (:attr:`TrainConfig.body_appearance`),
         or None; a new run reads the given file (and copies it into the run folder with its first
         checkpoint, where renders find it), a resume reads that copy."""
-        from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance
-
         if self.tc.body_appearance is None:
             return None
         copy = self.out / BODY_APPEARANCE_FILE
@@ -395,8 +396,6 @@ class Trainer(Closeable):
 
     def _save_body_appearance(self) -> None:
         """The run's copy of its body appearance, written with its first checkpoint (before ``run.json``)."""
-        from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, save_body_appearance
-
         if self.body_appearance is not None and not (self.out / BODY_APPEARANCE_FILE).is_file():
             save_body_appearance(self.out / BODY_APPEARANCE_FILE, self.body_appearance)
 
@@ -634,9 +633,6 @@ class Trainer(Closeable):
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
         frame's body (``feats``: posed vertices and normals) rasterised in ``camera`` and drawn with
         the frozen body appearance."""
-        from garmentnerf.gl.body_layer_pass import BodyLayerPass
-        from garmentnerf.render.body_layer import frame_body_layer
-
         if self._body_pass is None:
             self._body_pass = BodyLayerPass(self.data.frames.ctx)
         with torch.no_grad():
@@ -646,8 +642,6 @@ class Trainer(Closeable):
 
     def _writer(self):
         if self.writer is None and self.dist.main:
-            from torch.utils.tensorboard import SummaryWriter
-
             self.writer = SummaryWriter(str(self.out / TB_DIR), purge_step=self.step if self.step else None)
         return self.writer
 
@@ -668,8 +662,6 @@ class Trainer(Closeable):
 
     def train(self) -> TrainResult:
         """Train to the end (or to ``stop_after``); Ctrl-C saves a checkpoint and returns."""
-        from tqdm import tqdm
-
         tc = self.tc
         end = self.total_steps if tc.stop_after is None else min(self.total_steps, tc.stop_after)
         history: list[dict] = []

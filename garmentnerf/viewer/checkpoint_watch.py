@@ -21,6 +21,11 @@ import dataclasses
 import threading
 from pathlib import Path
 
+import torch
+
+from garmentnerf.train.checkpoints import latest_checkpoint
+from garmentnerf.train.run import build_model, load_weights
+
 #: Seconds between two looks at the run's checkpoints.
 DEFAULT_POLL_SECONDS = 2.0
 
@@ -33,10 +38,6 @@ def load_checkpoint_run(run, weights: str | Path, step: int):
     Raises:
         FileNotFoundError / ValueError (naming the file): missing, unreadable or mismatched weights.
     """
-    import torch
-
-    from garmentnerf.train.run import build_model, load_weights
-
     palette_init = run.info.get("palette_init")
     model = build_model(run.config, torch.tensor(palette_init, dtype=torch.float32) if palette_init is not None else None,
                         run.model.body, run.model.projector)
@@ -78,8 +79,6 @@ class CheckpointWatcher:
     def check(self) -> bool:
         """Look at the folder once (the thread does this every ``poll_seconds``); True when a newer
         checkpoint was loaded."""
-        from garmentnerf.train.checkpoints import latest_checkpoint
-
         found = latest_checkpoint(self.run.root)
         if found is None or found[0] <= self.step:
             return False

@@ -30,8 +30,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from garmentnerf.io_utils import atomic_write_path, next_free_path
+from garmentnerf.render.video import VideoWriter
 
 #: Largest image side we accept (GL limits may be lower; the renderer checks those).
 MAX_SIDE = 16384
@@ -94,8 +96,6 @@ def write_png(image: np.ndarray, path: str | Path, attempts: int = 20) -> Path:
     (another process snapshotting into the same folder), in which case the next free name is tried.
     Returns the path written.
     """
-    from PIL import Image
-
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
         raise ValueError(f"snapshot image must be (H, W, 3|4) uint8, got {image.dtype} {image.shape}")
@@ -114,8 +114,6 @@ def write_png(image: np.ndarray, path: str | Path, attempts: int = 20) -> Path:
 
 def open_video(path: Path, fps: float, attempts: int = 20):
     """A :class:`VideoWriter` on ``path`` or, if taken, the next free numbered name (never replaces)."""
-    from garmentnerf.render.video import VideoWriter
-
     for _ in range(attempts):
         try:
             return VideoWriter(next_free_path(path), fps)

@@ -37,10 +37,14 @@ from pathlib import Path
 
 import numpy as np
 
+from garmentnerf.model.pipeline import RenderCancelled
+from garmentnerf.render.video import to_uint8
 from garmentnerf.viewer.export_jobs import (EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY,
-                                            MIN_SNAPSHOT_QUALITY, ExportCancelled, ExportJob, ExportSettings, check_size, open_video, plan_path, plan_range,
+                                            MIN_SNAPSHOT_QUALITY, ExportCancelled, ExportJob, ExportSettings,
+                                            check_size, open_video, plan_path, plan_range,
                                             plan_turntable, snapshot_name, video_name, write_png)
 from garmentnerf.viewer.render_thread import ThreadSession
+from garmentnerf.viewer.scene_gl import SceneRenderer
 
 
 # ---- the export thread -------------------------------------------------------------------------------
@@ -111,8 +115,6 @@ class Exporter:
             self._thread_session.close()
 
     def _run(self, job: ExportJob) -> None:
-        from garmentnerf.model.pipeline import RenderCancelled
-
         job._start(job.clock())
         self._jobs_started += 1
         try:
@@ -157,8 +159,6 @@ class Exporter:
 
     # ---- renderers: render(frame, camera) -> (H, W, 3) uint8, on the export thread ---------------
     def _neural_renderer(self, job: ExportJob) -> Callable[[int, object], np.ndarray]:
-        from garmentnerf.render.video import to_uint8
-
         session = self._thread_session.session(job.motion)
         session.set_composition(job.composition)
 
@@ -171,8 +171,6 @@ class Exporter:
         return render
 
     def _body_renderer(self, job: ExportJob) -> Callable[[int, object], np.ndarray]:
-        from garmentnerf.viewer.scene_gl import SceneRenderer
-
         threads = self._thread_session
         scene = threads.helper("scene", lambda: SceneRenderer(threads.ctx, samples=0))
         options = job.scene_options

@@ -26,8 +26,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
+from garmentnerf.viewer.playback import PlayheadClock, show_newest
 from garmentnerf.viewer.quality import QualityController
+from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
 
 #: View modes: label per key, in menu order.
 VIEW_MODES = {"neural": "Neural render", "ground_truth": "Ground truth", "side_by_side": "Side by side",
@@ -85,8 +88,6 @@ class NeuralView:
             self._start()
 
     def _start(self) -> None:
-        from garmentnerf.viewer.worker import NeuralRenderer
-
         run, layer = self.run, self.scene.palette_layer
         self.learned_palette = run.palette().detach().cpu().numpy().astype(np.float32)
         self.palette = self.learned_palette.copy()
@@ -100,8 +101,6 @@ class NeuralView:
         self.set_mode(self.mode)
         self.renderer = NeuralRenderer(run, self._sink, self.motion, clock=self._clock)
         if self._watch:
-            from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
-
             self.watcher = CheckpointWatcher(run)
 
     @property
@@ -234,7 +233,6 @@ class NeuralView:
         """
         if self.renderer is None:
             return
-        from garmentnerf.viewer.playback import PlayheadClock
 
         self._take_checkpoint()
 
@@ -246,7 +244,6 @@ class NeuralView:
             self.quality.observe(result.quality, result.timings.get("render_total", result.timings.get("total", 0.0)))
         if self.mode == "body":
             return
-        from garmentnerf.viewer.worker import NeuralRequest
 
         gt = self.gt_camera if self.mode in GROUND_TRUTH_MODES and self.ground_truth_available() else None
         cam = self.run.scene.camera(gt).camera if gt is not None else camera
@@ -288,7 +285,6 @@ class NeuralView:
         newest = self._newest
         if newest is None or newest is self.shown or (newest.ahead and newest.frame != frame):
             return
-        from garmentnerf.viewer.playback import show_newest
 
         # paused, "ahead" is later in the clip (a frame rendered ahead is never shown early)
         if show_newest(newest.frame, frame, playhead.n_frames, playhead.loop and playhead.playing):

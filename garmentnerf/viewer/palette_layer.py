@@ -25,6 +25,7 @@ import moderngl
 import numpy as np
 
 from garmentnerf.conventions import Camera
+from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.gl.shaders import build_program
 from garmentnerf.render.body_layer import BODY_LAYER_SUPERSAMPLE
 from garmentnerf.viewer.renderables import PassState, ViewParams
@@ -386,8 +387,6 @@ class PaletteLayer:
         self.uploads += 1
 
     def _draw_body(self, view: ViewParams) -> None:
-        from garmentnerf.gl.body_layer_pass import BodyLayerPass
-
         x0, y0, x1, y1 = self._rects(view, self.composition())[0][1]
         size = (max(1, round((x1 - x0) * 0.5 * view.camera.width)),
                 max(1, round((y1 - y0) * 0.5 * view.camera.height)))

@@ -28,6 +28,15 @@ from __future__ import annotations
 import time
 from collections import deque
 
+import numpy as np
+
+from garmentnerf.render.cameras import orbit_view
+from garmentnerf.viewer.neural_view import submit_result
+from garmentnerf.viewer.playback import PlayheadClock, frames_behind, show_newest
+from garmentnerf.viewer.quality import SceneScale
+from garmentnerf.viewer.scene_gl import SceneRenderer
+from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
+
 #: The previewer's default window (the view the user watches).
 PREVIEWER_SIZE = (1280, 800)
 #: How often the simulated UI chooses what to show (Hz).
@@ -49,12 +58,6 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
     Returns:
         ``{"camera": [W, H], "frames": n, "fps": clip rate, "presets": {name: row}, "completed_share": x}``.
     """
-    from garmentnerf.render.cameras import orbit_view
-    from garmentnerf.viewer.neural_view import submit_result
-    from garmentnerf.viewer.playback import PlayheadClock, frames_behind, show_newest
-    from garmentnerf.viewer.scene_gl import SceneRenderer
-    from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
-
     if frames < 1:
         raise ValueError(f"render-ahead needs at least 1 frame, got {frames}")
     camera = orbit_view(25.0, width=size[0], height=size[1], radius=3.6)
@@ -128,10 +131,6 @@ def _play_rendered(renderer, key, n: int, fps: float, scene, camera, submit_resu
     drawn and finished as the window draws it (at the :class:`~garmentnerf.viewer.quality.SceneScale`
     of a view whose frame changes); ``fps_after`` (new frames shown per second), ``display_ms``
     (median time to show one) and ``scene_scale`` (the last scale drawn at)."""
-    import numpy as np
-
-    from garmentnerf.viewer.quality import SceneScale
-
     ctx = scene.ctx
     scale = SceneScale()
     shows, costs = [], []

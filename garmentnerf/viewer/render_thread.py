@@ -16,6 +16,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from garmentnerf.gl.context import create_context
+from garmentnerf.render.session import RenderSession
+
 
 class ThreadSession:
     """The owning thread's headless GL context, its render session and its helper objects.
@@ -39,8 +42,6 @@ class ThreadSession:
     def ctx(self):
         """This thread's headless moderngl context (made at the first use; never the window's)."""
         if self._ctx is None:
-            from garmentnerf.gl.context import create_context
-
             self._ctx = create_context(headless=True)
         return self._ctx
 
@@ -55,7 +56,6 @@ class ThreadSession:
         if self._session is None:
             if self.run is None:
                 raise ValueError("a neural render needs a run (garmentnerf view --run DIR)")
-            from garmentnerf.render.session import RenderSession
 
             self._session = RenderSession(self.run, self.ctx, motion, **self.session_options)
             self._motion = motion

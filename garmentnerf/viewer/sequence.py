@@ -19,6 +19,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from garmentnerf.body.model import BodyModel
+from garmentnerf.body.surface import vertex_normals
+from garmentnerf.motion.library import available_motions, load_motion
+from garmentnerf.render.session import resolve_motion
+
 
 @dataclass
 class BodySequence:
@@ -57,8 +62,6 @@ class BodySequence:
     @staticmethod
     def from_vertices(name: str, fps: float, vertices, faces) -> "BodySequence":
         """From (T, V, 3) positions and (F, 3) faces (normals computed here)."""
-        from garmentnerf.body.surface import vertex_normals
-
         verts = torch.as_tensor(np.asarray(vertices), dtype=torch.float32)
         if verts.ndim == 2:
             verts = verts[None]
@@ -76,8 +79,6 @@ class BodySequence:
     def load(body, betas, motion: str) -> "BodySequence":
         """Load ``motion`` (a name, names joined by ',', or a file; see
         :func:`garmentnerf.motion.library.load_motion`) and pose ``body`` with shape ``betas``."""
-        from garmentnerf.motion.library import load_motion
-
         clip = load_motion(motion, body, betas=betas)
         with torch.no_grad():
             posed = clip.pose(body, betas)
@@ -146,8 +147,6 @@ def body_and_shape(run, body, betas) -> tuple[Any, Any, str]:
         if getattr(run, "betas", None) is not None and betas is None:
             betas = run.betas
     if body is None:
-        from garmentnerf.body.model import BodyModel
-
         body = BodyModel.default()
     if betas is None or isinstance(betas, str):
         return body, body.betas(betas), betas or "average"
@@ -163,8 +162,6 @@ class MotionMenu:
     """
 
     def __init__(self, body, betas, run=None) -> None:
-        from garmentnerf.motion.library import available_motions
-
         self.body, self.betas, self.run = body, betas, run
         self._infos = {m.name: m for m in available_motions()}
         self._loader = SequenceLoader(self._load)
@@ -201,8 +198,6 @@ class MotionMenu:
         """(clip, its motion spec for the neural render), ``motion`` resolved as the run's render
         session resolves it (a scene sequence; None: the scene's first training sequence; else a
         library motion at the scene's frame rate)."""
-        from garmentnerf.render.session import resolve_motion
-
         clip, seq = resolve_motion(motion, self.body, self.betas, self.run.scene)
         with torch.no_grad():
             posed = clip.pose(self.body, self.betas)

@@ -24,6 +24,9 @@ import os
 import threading
 from pathlib import Path
 
+import imgui_bundle
+
+from garmentnerf.gl.context import GLUnavailableError, create_context
 from garmentnerf.viewer.gui_libs import glfw, imgui
 
 
@@ -75,7 +78,6 @@ class WindowSystem:
             if not handle:
                 if self._open_windows == 0:
                     glfw.terminate()
-                from garmentnerf.gl.context import GLUnavailableError
 
                 raise GLUnavailableError(f"cannot open a window with an OpenGL 3.3 core context{_glfw_error()}")
             self._open_windows += 1
@@ -133,8 +135,6 @@ def window_system() -> WindowSystem:
 
 
 def _font_path() -> str | None:
-    import imgui_bundle
-
     path = Path(imgui_bundle.__file__).parent / "assets" / "fonts" / "Roboto" / "Roboto-Regular.ttf"
     return str(path) if path.is_file() else None
 
@@ -165,8 +165,6 @@ class Window:
         try:
             glfw.make_context_current(self.handle)
             glfw.swap_interval(1 if vsync else 0)
-            from garmentnerf.gl.context import create_context
-
             self.ctx = create_context(headless=False)
             self.gl_renderer = str(self.ctx.info.get("GL_RENDERER", ""))
             self._init_imgui()

@@ -31,9 +31,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from garmentnerf.data.scene_images import SceneImages
+from garmentnerf.model.pipeline import RenderCancelled
 from garmentnerf.render.presets import VIEWER_LEVELS
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB
 from garmentnerf.viewer.finished_frames import DEFAULT_FINISHED_MB, FinishedFrames
+from garmentnerf.viewer.palette_layer import BodyView, crop_to_content, pack_frame
 from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, next_unrendered, predict_target_frame,
                                          render_superseded)
 from garmentnerf.viewer.render_thread import ThreadSession
@@ -517,8 +520,6 @@ class NeuralRenderer:
             return None
         key = (session.sequence, request.gt_camera, frame)
         if key not in self._gt_cache:
-            from garmentnerf.data.scene_images import SceneImages
-
             images = self._thread_session.helper("images", lambda: SceneImages(scene, body_model=session.body))
             rgb, _ = images.image(session.sequence, request.gt_camera, frame)
             self._gt_cache.clear()  # one image is enough: the view shows one frame
@@ -526,12 +527,9 @@ class NeuralRenderer:
         return self._gt_cache[key]
 
     def _render(self, request: NeuralRequest, generation: int):
-        from garmentnerf.model.pipeline import RenderCancelled
-
         if request is _CLOSE:
             self._thread_session.close()
             return NOTHING
-        from garmentnerf.viewer.palette_layer import BodyView, crop_to_content, pack_frame
 
         self._switch_run()
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
