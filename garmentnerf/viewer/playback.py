@@ -168,18 +168,37 @@ class PlayheadClock:
 
 @dataclass
 class RenderTime:
-    """The worker's expected render duration: an exponential moving average of measured ones
-    (seconds), ``seconds`` 0 until the first is measured."""
+    """The worker's expected render durations (seconds): exponential moving averages of the measured
+    ones, kept apart for the two kinds of render a clip mixes. ``seconds``: a frame whose per-frame
+    features were cached (the view's work only); ``cold_seconds``: a frame whose features the render
+    computed first (E, G_en and the body's bind on top: on the bundled model about as long again).
+    Predicting a cold frame with the warm figure makes it land late, behind the playhead. Each is 0
+    until measured; :meth:`expected` gives an unmeasured kind the other's figure."""
 
     smoothing: float = 0.3
     seconds: float = 0.0
     measured: int = 0
+    cold_seconds: float = 0.0
+    cold_measured: int = 0
 
-    def observe(self, seconds: float) -> None:
+    def observe(self, seconds: float, cold: bool = False) -> None:
+        """Add a measured render; ``cold``: its frame's features were computed by it."""
         if not (math.isfinite(seconds) and seconds >= 0.0):
             return
-        self.seconds = seconds if self.measured == 0 else (1 - self.smoothing) * self.seconds + self.smoothing * seconds
-        self.measured += 1
+        if cold:
+            self.cold_seconds = self._average(self.cold_seconds, self.cold_measured, seconds)
+            self.cold_measured += 1
+        else:
+            self.seconds = self._average(self.seconds, self.measured, seconds)
+            self.measured += 1
+
+    def expected(self, cold: bool) -> float:
+        """The expected duration of a render of a frame with (``cold`` False) or without cached features."""
+        mine, other = (self.cold_seconds, self.seconds) if cold else (self.seconds, self.cold_seconds)
+        return mine if (self.cold_measured if cold else self.measured) else other
+
+    def _average(self, mean: float, count: int, seconds: float) -> float:
+        return seconds if count == 0 else (1 - self.smoothing) * mean + self.smoothing * seconds
 
 
 __all__ = ["PlayheadClock", "RenderTime", "DRIFT_FRAMES", "wrap_position", "frame_of", "predict_target_frame",

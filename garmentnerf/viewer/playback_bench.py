@@ -18,6 +18,11 @@ the render-ahead cache first) is made at 60 Hz on the calling thread:
     headless context, at the scale the window draws a changing view at) and finished: frames shown
     (but the first) over the time from the first one's slot to the last one shown, so at most the
     clip's rate (a little below it over a short clip), lower when frames are late.
+``render_s``, ``render_s_cold``, ``lag_budget_frames``
+    the worker's expected render time of a frame whose features are cached and of one whose
+    features the render computes (:class:`~garmentnerf.viewer.playback.RenderTime`), and one
+    render time's worth of frames at the clip's rate (the longer of the two, rounded up): the
+    bound ``max_lag_frames`` should keep.
 ``renders``, ``started``, ``completed_share``
     the worker's renders finished and begun while the clip played (``completed_share`` over all
     presets: the issue's figure).
@@ -25,6 +30,7 @@ the render-ahead cache first) is made at 60 Hz on the calling thread:
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 
@@ -109,7 +115,9 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
                 renders = renderer.stats.renders - renders0
                 row = {"seconds_for_clip": done_s, "max_lag_frames": int(max_lag), "renders": renders,
                        "started": started, "completed_share": renders / started if started else None,
-                       "render_s": renderer.render_time.seconds}
+                       "render_s": renderer.render_time.expected(cold=False),
+                       "render_s_cold": renderer.render_time.expected(cold=True)}
+                row["lag_budget_frames"] = math.ceil(fps * max(row["render_s"], row["render_s_cold"]))
                 row.update(_play_rendered(renderer, key, n, fps, scene, camera, submit_result))
                 rows[preset.name] = row
                 total_started += started

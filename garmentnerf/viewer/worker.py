@@ -27,7 +27,7 @@ from __future__ import annotations
 import functools
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from dataclasses import dataclass
 from typing import Any
 
@@ -444,10 +444,12 @@ class NeuralRenderer:
         self.worker.wake_idle()
 
     # ---- which frame (worker thread) ------------------------------------------------------------------
-    def _next_target(self, request: NeuralRequest, n_frames: int, now: float) -> tuple[int, bool] | None:
+    def _next_target(self, request: NeuralRequest, n_frames: int, now: float,
+                     cached: Container[int]) -> tuple[int, bool] | None:
         """(frame, ahead) to render next for ``request`` (see the class docstring), or None:
         ``ahead`` False for the frame the request itself wants (paused: its frame; playing: the
-        predicted one), True for a frame rendered ahead of it."""
+        predicted one), True for a frame rendered ahead of it. ``cached``: the frames whose features
+        the session holds (a render of another frame computes them first: it takes longer)."""
         key = request.view_key
         done = self.finished.frames(key)
         if self._last_done is not None and self._last_done[0] == key:
@@ -463,7 +465,7 @@ class NeuralRenderer:
             worth = ahead is not None and self.finished.worth_rendering(ahead, frame, n_frames)
             return (ahead, True) if worth else None
         head = self._playhead_position(clock, now)
-        render_s = 0.0 if self.every_frame else self.render_time.seconds
+        render_s = 0.0 if self.every_frame else self._expected_render_s(head, clock, n_frames, cached)
         predicted = predict_target_frame(head, clock.fps, render_s, n_frames, clock.loop)
         target = next_unrendered(predicted, done, n_frames, clock.loop)
         if target is None:
@@ -474,6 +476,13 @@ class NeuralRenderer:
         wanted = request.keep and (self.every_frame or (self.render_ahead and self.finished.worth_rendering(
             target, playhead_frame, n_frames)))
         return (target, True) if wanted else None
+
+    def _expected_render_s(self, head: float, clock: PlayheadClock, n_frames: int, cached: Container[int]) -> float:
+        """How long a render started now will take: the warm figure when the frame it predicts has
+        its features cached, else the cold one (:class:`~garmentnerf.viewer.playback.RenderTime`)."""
+        warm = self.render_time.expected(cold=False)
+        frame = predict_target_frame(head, clock.fps, warm, n_frames, clock.loop)
+        return warm if frame in cached else self.render_time.expected(cold=True)
 
     def _playhead_position(self, clock: PlayheadClock, now: float) -> float:
         """Where the playhead is now: extrapolated at the clock's rate, or, playing every frame (the
@@ -493,7 +502,7 @@ class NeuralRenderer:
         session = self._thread_session.current
         if request is _CLOSE or session is None:
             return None
-        if self._next_target(request, self._clip_frames(session, request), self._clock()) is not None:
+        if self._next_target(request, self._clip_frames(session, request), self._clock(), session.frames) is not None:
             return 0.0
         return POLL_SECONDS if request.playhead is not None and request.playhead.playing else None
 
@@ -508,7 +517,9 @@ class NeuralRenderer:
         if clock is None:
             return render_superseded(frame, same, newest.frame, 0.0, 0.0, max(frame, newest.frame) + 1, False)
         head = frame_of(self._playhead_position(clock, self._clock()), clock.n_frames, clock.loop)
-        return render_superseded(frame, same, head, clock.fps, self.render_time.seconds, clock.n_frames, clock.loop)
+        # the longer figure: a render that is only late (a cold frame) is finished, not abandoned
+        render_s = max(self.render_time.expected(cold=False), self.render_time.expected(cold=True))
+        return render_superseded(frame, same, head, clock.fps, render_s, clock.n_frames, clock.loop)
 
     # ---- rendering (worker thread) --------------------------------------------------------------------
     def _ground_truth(self, session, request: NeuralRequest, frame: int):
@@ -533,7 +544,7 @@ class NeuralRenderer:
 
         self._switch_run()
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
-        target = self._next_target(request, self._clip_frames(session, request), self._clock())
+        target = self._next_target(request, self._clip_frames(session, request), self._clock(), session.frames)
         if target is None:
             return NOTHING
         frame, ahead = target
@@ -553,7 +564,7 @@ class NeuralRenderer:
         if nf.body is not None:  # the window draws the body layer at the size it shows it
             body = BodyView(nf.body[0].numpy(), nf.body[1].numpy(), nf.camera)
         layers, depth, origin = crop_to_content(pack_frame(nf.maps), nf.depth)
-        self.render_time.observe(time.perf_counter() - start)
+        self.render_time.observe(time.perf_counter() - start, cold=not nf.cached_frame)
         return NeuralResult(layers.astype("float16"), depth, nf.output_size, nf.render_size, nf.quality, frame,
                             nf.timings, nf.cached_frame, self._ground_truth(session, request, frame), nf.preset,
                             dict(nf.counts), body, origin, request.view_key, getattr(self.run, "step", None), ahead)

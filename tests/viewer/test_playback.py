@@ -115,6 +115,16 @@ def test_render_time_is_a_moving_average():
     rt.observe(float("nan"))
     rt.observe(-1.0)
     assert rt.seconds == 1.5 and rt.measured == 2
+    # cold renders (the frame's features computed too) are averaged apart; until one is measured a
+    # kind takes the other's figure
+    assert rt.expected(cold=True) == 1.5 and rt.expected(cold=False) == 1.5
+    rt.observe(4.0, cold=True)
+    rt.observe(2.0, cold=True)
+    assert rt.cold_seconds == 3.0 and rt.cold_measured == 2 and rt.seconds == 1.5
+    assert rt.expected(cold=True) == 3.0 and rt.expected(cold=False) == 1.5
+    fresh = RenderTime()
+    fresh.observe(2.0, cold=True)
+    assert fresh.expected(cold=False) == 2.0 and fresh.measured == 0
 
 
 def test_timeline_waits_on_a_frame_when_told():
