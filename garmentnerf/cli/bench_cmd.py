@@ -159,6 +159,7 @@ def run_bench(args: argparse.Namespace) -> int:
             write_plot(results, args.plot, overwrite=args.overwrite)
             print(f"wrote {args.plot}")
         return 0
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.perf.foundation_bench import foundation_benchmark
 
     results = foundation_benchmark(runs=args.runs)

@@ -113,6 +113,7 @@ def run_fit_appearance(args: argparse.Namespace) -> int:
     from garmentnerf.gl.context import create_context
     from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, save_body_appearance
     from garmentnerf.train.body_appearance import collect_body_samples, fit_body_appearance
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.train.run import load_run
 
     if args.frame_stride < 1:

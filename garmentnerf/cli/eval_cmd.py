@@ -125,6 +125,7 @@ def run_eval(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from None
     parse_device(args.device)
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.render.session import COMPOSITIONS, resolve_composition
 
     if args.composition not in COMPOSITIONS:

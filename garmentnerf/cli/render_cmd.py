@@ -163,6 +163,7 @@ def _checked_render_args(args: argparse.Namespace):
     size = parse_output_size(args.size) if args.size is not None else None
     camera_path = None
     if args.camera_path is not None:
+        # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
         from garmentnerf.render.camera_path import load_camera_path
 
         if args.camera is not None:

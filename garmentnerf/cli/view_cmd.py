@@ -91,6 +91,7 @@ def run_view(args: argparse.Namespace) -> int:
         raise ValueError("--json needs --bench")
     if args.json:
         check_output_file(args.json, "--json", args.overwrite)
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.viewer import app as app_module
 
     if not app_module.display_available():
@@ -102,6 +103,7 @@ def run_view(args: argparse.Namespace) -> int:
     if run_dir is None and not args.body_only and DEMO_RUN.joinpath("run.json").is_file():
         run_dir = DEMO_RUN
     if run_dir is not None and not args.body_only:
+        # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
         from garmentnerf.train.run import load_run
 
         run = load_run(run_dir, scene=args.scene)
