@@ -41,7 +41,6 @@ import functools
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-import numpy as np
 import torch
 
 from garmentnerf.geometry.triangles import FEATURE_TOL, face_frame_table
