@@ -150,7 +150,8 @@ def run_bench(args: argparse.Namespace) -> int:
             fps = f"{row['fps_after']:5.1f}" if row["fps_after"] is not None else "  n/a"
             print(f"  {name:12s} clip rendered ahead in {clip}, then {fps} fps; max lag {row['max_lag_frames']} "
                   f"frames (one render: {row['lag_budget_frames']} frames; {1e3 * row['render_s']:.0f} ms with the "
-                  f"frame's features cached, {1e3 * row['render_s_cold']:.0f} ms without)")
+                  f"frame's features cached, {1e3 * row['render_s_cold']:.0f} ms without; the longest "
+                  f"{row['longest_render_frames']} frames)")
         if args.json:
             with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
                 tmp.write_text(json.dumps(results, indent=1))

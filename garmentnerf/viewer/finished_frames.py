@@ -115,6 +115,27 @@ class FinishedFrames:
             entry = self._entries.get(int(frame))
             return None if entry is None else entry[0]
 
+    def latest_behind(self, key: Any, frame: int, n_frames: int, loop: bool) -> Any:
+        """The finished frame of view ``key`` nearest behind ``frame`` or on it (looping: within half
+        a clip behind), or None: what a playing clip shows while the playhead's own frame is not
+        rendered, so the image is the newest frame the playhead has reached, even when the UI's
+        redraws skipped the frame it was finished for."""
+        with self._lock:
+            if key != self._view:
+                return None
+            best, best_d = None, None
+            for f, entry in self._entries.items():
+                d = int(frame) - f
+                if loop:
+                    d %= n_frames
+                    if d > n_frames // 2:
+                        continue
+                elif d < 0:
+                    continue
+                if best_d is None or d < best_d:
+                    best, best_d = entry[0], d
+            return best
+
     # ---- use --------------------------------------------------------------------------------------
     def put(self, key: Any, frame: int, result: Any, playhead_frame: int, n_frames: int) -> bool:
         """Keep ``result`` (a compact NeuralResult) as frame ``frame`` of view ``key``, the playhead

@@ -28,7 +28,7 @@ import numpy as np
 
 from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
-from garmentnerf.viewer.playback import PlayheadClock, show_newest
+from garmentnerf.viewer.playback import PlayheadClock, frames_behind, show_newest
 from garmentnerf.viewer.quality import QualityController
 from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
 
@@ -274,11 +274,18 @@ class NeuralView:
         self._choose_shown(still.view_key, request.view_key, frame, playhead, playback_meter if playing else None)
 
     def _choose_shown(self, still_key, request_key, frame: int, playhead, playback_meter) -> None:
-        """Show the finished frame of the still view at ``frame`` if the render-ahead cache has it,
+        """Show the finished frame of the still view at ``frame`` if the render-ahead cache has it
+        (playing: the finished one nearest behind the playhead, unless the shown one is nearer),
         else the newest result unless it was rendered ahead of another frame (its own frame is
         shown from the cache) or lies ahead of the playhead (predicted: shown when the playhead
         reaches it)."""
         cached = self.renderer.finished.get(still_key, frame)
+        if cached is None and playback_meter is not None:  # playing: the newest frame the playhead reached
+            cached = self.renderer.finished.latest_behind(still_key, frame, playhead.n_frames, playhead.loop)
+            if cached is not None and self.shown is not None and self.shown.view_key == still_key and frames_behind(
+                    self.shown.frame, frame, playhead.n_frames, playhead.loop) < frames_behind(
+                    cached.frame, frame, playhead.n_frames, playhead.loop):
+                cached = None  # what is shown is nearer the playhead
         if cached is not None:
             self._show(cached, playback_meter)
             return

@@ -23,6 +23,10 @@ the render-ahead cache first) is made at 60 Hz on the calling thread:
     features the render computes (:class:`~garmentnerf.viewer.playback.RenderTime`), and one
     render time's worth of frames at the clip's rate (the longer of the two, rounded up): the
     bound ``max_lag_frames`` should keep.
+``longest_render_s``, ``longest_render_frames``
+    the longest time between two finished renders while the clip was rendered ahead (renders run
+    back to back then, so: the longest render, to the UI's 1/60 s) and its frames at the clip's
+    rate: the gap a render in flight leaves, what ``max_lag_frames`` is bound by when renders vary.
 ``renders``, ``started``, ``completed_share``
     the worker's renders finished and begun while the clip played (``completed_share`` over all
     presets: the issue's figure).
@@ -95,14 +99,17 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
                 renderer.request(request)
                 key = request.view_key
                 shown = newest = None
-                max_lag, done_s = 0, None
+                max_lag, done_s, arrivals = 0, None, []
                 while time.perf_counter() - t0 < timeout_s:
                     now = time.perf_counter()
                     while delivered:
                         newest = delivered.popleft()
+                        arrivals.append(now)
                     head = clock.frame_at(now)
-                    if renderer.finished.get(key, head) is not None:
-                        shown = head
+                    behind = renderer.finished.latest_behind(key, head, n, True)  # the window's choice
+                    if behind is not None and (shown is None or frames_behind(behind.frame, head, n, True)
+                                               <= frames_behind(shown, head, n, True)):
+                        shown = behind.frame
                     elif newest is not None and show_newest(newest.frame, head, n, True):
                         shown = newest.frame
                     if shown is not None:
@@ -118,6 +125,9 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
                        "render_s": renderer.render_time.expected(cold=False),
                        "render_s_cold": renderer.render_time.expected(cold=True)}
                 row["lag_budget_frames"] = math.ceil(fps * max(row["render_s"], row["render_s_cold"]))
+                gaps = [b - a for a, b in zip(arrivals, arrivals[1:])]
+                row["longest_render_s"] = max(gaps) if gaps else None
+                row["longest_render_frames"] = math.ceil(fps * max(gaps)) if gaps else None
                 row.update(_play_rendered(renderer, key, n, fps, scene, camera, submit_result))
                 rows[preset.name] = row
                 total_started += started

@@ -273,6 +273,21 @@ def test_a_standing_request_renders_until_its_follow_up_ends_it_and_a_late_rende
         worker.stop()
 
 
+
+def test_a_playing_clip_shows_the_finished_frame_nearest_behind_the_playhead():
+    """What the window shows while the playhead is on a frame not rendered: the nearest finished
+    one behind it (or on it), never one ahead; looping, up to half a clip back across the wrap."""
+    cache = FinishedFrames(budget_mb=10.0)
+    cache.set_view("v")
+    for f in (3, 10, 40):
+        cache.put("v", f, _result(f, 64, "v"), 0, 50)
+    frame = lambda head, loop=True: getattr(cache.latest_behind("v", head, 50, loop), "frame", None)  # noqa: E731
+    assert frame(12) == 10 and frame(10) == 10 and frame(9) == 3 and frame(3) == 3 and frame(30) == 10
+    assert frame(2) == 40  # looping: 12 frames back across the wrap
+    assert frame(2, loop=False) is None and frame(45, loop=False) == 40
+    assert cache.latest_behind("w", 12, 50, True) is None  # another view
+
+
 def test_a_render_nobody_waits_for_is_abandoned_even_when_the_screen_is_stale():
     worker = RenderWorker(lambda request, generation: NOTHING, lambda *args: None, max_stale_s=0.0,
                           superseded=lambda running, newest: newest == "orbit")
