@@ -28,7 +28,7 @@ import numpy as np
 
 from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
-from garmentnerf.viewer.playback import PlayheadClock, frames_behind, show_newest
+from garmentnerf.viewer.playback import PlayheadClock, replaces_shown, show_newest
 from garmentnerf.viewer.quality import QualityController
 from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
 
@@ -282,9 +282,8 @@ class NeuralView:
         cached = self.renderer.finished.get(still_key, frame)
         if cached is None and playback_meter is not None:  # playing: the newest frame the playhead reached
             cached = self.renderer.finished.latest_behind(still_key, frame, playhead.n_frames, playhead.loop)
-            if cached is not None and self.shown is not None and self.shown.view_key == still_key and frames_behind(
-                    self.shown.frame, frame, playhead.n_frames, playhead.loop) < frames_behind(
-                    cached.frame, frame, playhead.n_frames, playhead.loop):
+            shown = self.shown.frame if self.shown is not None and self.shown.view_key == still_key else None
+            if cached is not None and not replaces_shown(cached.frame, shown, frame, playhead.n_frames, playhead.loop):
                 cached = None  # what is shown is nearer the playhead
         if cached is not None:
             self._show(cached, playback_meter)

@@ -116,6 +116,16 @@ def show_newest(newest_frame: int, playhead_frame: int, n_frames: int, loop: boo
     return not 0 < ahead <= (n_frames // 2 if loop else n_frames)
 
 
+def replaces_shown(candidate_frame: int, shown_frame: int | None, playhead_frame: int, n_frames: int,
+                   loop: bool) -> bool:
+    """Whether a finished frame behind the playhead (or on it) should replace the shown one while
+    a clip plays: yes unless the shown one is nearer the playhead."""
+    if shown_frame is None:
+        return True
+    return (frames_behind(candidate_frame, playhead_frame, n_frames, loop)
+            <= frames_behind(shown_frame, playhead_frame, n_frames, loop))
+
+
 @dataclass(frozen=True)
 class PlayheadClock:
     """Where the playhead is: at ``position`` (frames) at clock time ``time`` (seconds), moving at
@@ -202,4 +212,5 @@ class RenderTime:
 
 
 __all__ = ["PlayheadClock", "RenderTime", "DRIFT_FRAMES", "wrap_position", "frame_of", "predict_target_frame",
-           "frames_ahead", "frames_behind", "next_unrendered", "render_superseded", "show_newest"]
+           "frames_ahead", "frames_behind", "next_unrendered", "render_superseded", "show_newest",
+           "replaces_shown"]

@@ -3,8 +3,10 @@
 :func:`render_ahead_benchmark` runs the previewer's own neural worker
 (:class:`~garmentnerf.viewer.worker.NeuralRenderer`, on its thread, with its own session) for one
 still camera of the previewer's size, per preset, while a clip of ``frames`` frames plays at its own
-rate from frame 0, and the UI's choice of what to show (:func:`~garmentnerf.viewer.playback.show_newest`,
-the render-ahead cache first) is made at 60 Hz on the calling thread:
+rate from frame 0, and the UI's choice of what to show (the finished frame nearest behind the
+playhead, :meth:`~garmentnerf.viewer.finished_frames.FinishedFrames.latest_behind` with
+:func:`~garmentnerf.viewer.playback.replaces_shown`, as the window; else the newest result,
+:func:`~garmentnerf.viewer.playback.show_newest`) is made at 60 Hz on the calling thread:
 
 ``seconds_for_clip``
     from pressing Play until every frame of the clip is rendered (the whole clip ahead, the frames'
@@ -42,7 +44,7 @@ import numpy as np
 
 from garmentnerf.render.cameras import orbit_view
 from garmentnerf.viewer.neural_view import submit_result
-from garmentnerf.viewer.playback import PlayheadClock, frames_behind, show_newest
+from garmentnerf.viewer.playback import PlayheadClock, frames_behind, replaces_shown, show_newest
 from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.scene_gl import SceneRenderer
 from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
@@ -107,8 +109,7 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
                         arrivals.append(now)
                     head = clock.frame_at(now)
                     behind = renderer.finished.latest_behind(key, head, n, True)  # the window's choice
-                    if behind is not None and (shown is None or frames_behind(behind.frame, head, n, True)
-                                               <= frames_behind(shown, head, n, True)):
+                    if behind is not None and replaces_shown(behind.frame, shown, head, n, True):
                         shown = behind.frame
                     elif newest is not None and show_newest(newest.frame, head, n, True):
                         shown = newest.frame

@@ -17,7 +17,8 @@ import pytest
 
 from garmentnerf.viewer.finished_frames import FinishedFrames, result_nbytes
 from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, frames_ahead, frames_behind,
-                                         next_unrendered, predict_target_frame, render_superseded, wrap_position)
+                                         next_unrendered, predict_target_frame, render_superseded, replaces_shown,
+                                         wrap_position)
 from garmentnerf.viewer.timeline import Timeline
 from garmentnerf.viewer.worker import NOTHING, NeuralResult, RenderWorker
 
@@ -286,6 +287,13 @@ def test_a_playing_clip_shows_the_finished_frame_nearest_behind_the_playhead():
     assert frame(2) == 40  # looping: 12 frames back across the wrap
     assert frame(2, loop=False) is None and frame(45, loop=False) == 40
     assert cache.latest_behind("w", 12, 50, True) is None  # another view
+
+
+def test_a_finished_frame_replaces_the_shown_one_unless_that_is_nearer_the_playhead():
+    assert replaces_shown(10, None, 12, 50, True)  # nothing shown yet
+    assert replaces_shown(10, 3, 12, 50, True) and replaces_shown(10, 10, 12, 50, True)
+    assert not replaces_shown(3, 10, 12, 50, True)
+    assert replaces_shown(48, 40, 2, 50, True) and not replaces_shown(40, 48, 2, 50, True)  # across the wrap
 
 
 def test_a_render_nobody_waits_for_is_abandoned_even_when_the_screen_is_stale():
