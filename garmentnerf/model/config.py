@@ -209,6 +209,11 @@ class ModelConfig:
     model at NeRF step 400 put w_G = 0.06 on garment pixels and made them blue with a body offset of 0.28),
     and recoloring the garment then barely changes it. The labels the palette is initialised from already say
     which pixels are garment."""
+    w_plane_tv: float = 0.0
+    """Total variation of the ``uvh`` field's learned tri-plane (K-Planes' regulariser; not in the paper, which
+    has no planes; 0: off). Without it the shared planes, at ten times the rate, learn texel-scale noise that
+    renders as fur on the skirt (E1 uvh: blurring its planes by 6 texels removes the fur and costs 0.4 dB on
+    the garment)."""
     segmentation_start: int = 0
     """NeRF steps done before the segmentation term applies (a curriculum: the garment is first carved and
     colored by the image and mask losses, then assigned to its palette entry; the bundled model switched it
@@ -314,7 +319,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
                      "decoder_extra_layers", "bbox_padding", "blend_weight_floor", "w_image", "w_mask",
-                     "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation"):
+                     "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation",
+                     "w_plane_tv"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:

@@ -13,10 +13,11 @@ Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixe
 (summed over palette colors and channels) averaged over pixels, as in PaletteNeRF whose weights
 the paper adopts; L_p is the sum over the palette's 3P values.
 
-Two optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
+Three optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
 them on, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
 opacity to the ground-truth mask, ``segmentation`` holds the garment blend weight to the label
-maps' garment share.
+maps' garment share, ``plane_tv`` smooths the ``uvh`` field's learned tri-plane
+(:func:`plane_total_variation`).
 
 G_img's pre-training (DNG's recipe, without its adversarial terms): ``w_image L1 + w_perceptual
 perceptual`` between the generated and the ground-truth reference images.
@@ -71,6 +72,15 @@ def opacity_loss(opacity: torch.Tensor, target_mask: torch.Tensor) -> torch.Tens
     return (opacity - target).abs().mean()
 
 
+def plane_total_variation(planes) -> torch.Tensor:
+    """K-Planes' total variation of feature planes, each (1, C, H, W): the mean squared difference
+    of neighbouring texels along each of the two axes, the two means added, averaged over the planes.
+    A ramp of slope s per texel along one axis gives s^2; a constant plane gives 0."""
+    per_plane = [(p[..., 1:, :] - p[..., :-1, :]).square().mean() + (p[..., :, 1:] - p[..., :, :-1]).square().mean()
+                 for p in planes]
+    return torch.stack(per_plane).mean()
+
+
 def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, target_mask: torch.Tensor,
                       eps: float = 1e-3) -> torch.Tensor:
     """L1 between the garment blend weight and the garment share of each foreground pixel.
@@ -92,7 +102,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
                    target_mask: torch.Tensor, palette: torch.Tensor, palette_initial: torch.Tensor, cfg,
                    perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
                    opacity: torch.Tensor | None = None,
-                   target_garment: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                   target_garment: torch.Tensor | None = None,
+                   planes=None) -> dict[str, torch.Tensor]:
     """All loss terms of one batch.
 
     Args:
@@ -111,9 +122,11 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
             ``cfg.w_segmentation`` > 0 the garment blend weight is held to it
             (:func:`segmentation_loss`), through the weight head alone when
             ``cfg.segmentation_head_only`` and the maps carry ``weights_head_only``.
+        planes: optional feature planes (each (1, C, H, W)); with ``cfg.w_plane_tv`` > 0 their
+            :func:`plane_total_variation` is a term.
     Returns:
         dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette,
-        [opacity,] [segmentation]`` and ``total``, the weighted sum.
+        [opacity,] [segmentation,] [plane_tv]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
@@ -137,9 +150,12 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         supervised = maps.weights_head_only if head_only else maps.weights
         terms["segmentation"] = segmentation_loss(supervised, target_garment.to(maps.weights.dtype),
                                                   target_mask.to(maps.weights.dtype))
+    w_plane_tv = float(getattr(cfg, "w_plane_tv", 0.0))
+    if planes is not None and w_plane_tv > 0:
+        terms["plane_tv"] = plane_total_variation(planes)
     weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
                "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
-               "segmentation": w_segmentation}
+               "segmentation": w_segmentation, "plane_tv": w_plane_tv}
     terms["total"] = sum(weights[name] * value for name, value in terms.items())
     return terms
 

@@ -603,7 +603,8 @@ class Trainer(Closeable):
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
         terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
                                self.cfg, self.perceptual, opacity=out.opacity[None],
-                               target_garment=garment[None] if segment else None)
+                               target_garment=garment[None] if segment else None,
+                               planes=getattr(self.model.nerf, "planes", None))
         return terms, {"pred": pred, "target": image}
 
     def _backward_batch(self, step: int, stage: str) -> tuple[dict[str, float], dict]:

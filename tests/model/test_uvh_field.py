@@ -10,6 +10,7 @@ import trimesh
 from scipy.interpolate import RegularGridInterpolator
 
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.losses import garment_losses, plane_total_variation
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.uvh_field import (UVHField, face_tangent_frames, local_offset_direction, normalised_height,
                                          read_triplane, read_uvh_volume)
@@ -139,3 +140,33 @@ def test_a_uvh_model_renders_and_trains_its_grids_and_encoder(body, projector, w
     planes = [g for g in groups if any(p is model.nerf.planes[0] for p in g["params"])]
     assert len(planes) == 1 and planes[0]["lr_scale"] == cfg.uvh_plane_lr_scale
     assert len(planes[0]["params"]) == 3
+
+
+def test_plane_total_variation_against_numpy_and_analytic_planes():
+    ramp = torch.arange(6.0).mul(0.25).view(1, 1, 6, 1).expand(1, 3, 6, 5)  # slope 0.25 per texel along rows
+    assert float(plane_total_variation([ramp])) == pytest.approx(0.0625)
+    checker = torch.tensor([[(-1.0) ** (i + j) for j in range(4)] for i in range(3)]).mul(0.5).view(1, 1, 3, 4)
+    assert float(plane_total_variation([checker])) == pytest.approx(2.0)  # differences of 1 along both axes
+    assert float(plane_total_variation([torch.full((1, 2, 4, 4), 3.0)])) == 0.0
+    rng = np.random.default_rng(0)
+    planes = [rng.normal(size=(1, 4, 8, 16)), rng.normal(size=(1, 4, 3, 16))]
+    expected = np.mean([np.mean(np.diff(p, axis=2) ** 2) + np.mean(np.diff(p, axis=3) ** 2) for p in planes])
+    tensors = [torch.tensor(p, requires_grad=True) for p in planes]
+    assert plane_total_variation(tensors).item() == pytest.approx(expected, rel=1e-12)
+    assert torch.autograd.gradcheck(lambda a, b: plane_total_variation([a, b]), tuple(tensors))
+
+
+def test_the_plane_term_enters_the_loss_only_with_its_weight():
+    image, maps = torch.rand(1, 3, 8, 8), type("Maps", (), {})()
+    maps.mask, maps.weights = torch.rand(1, 1, 8, 8), torch.softmax(torch.rand(1, 2, 8, 8), dim=1)
+    maps.offsets, maps.weights_head_only = torch.zeros(1, 2, 3, 8, 8), None
+    palette = torch.rand(2, 3)
+    planes = [torch.rand(1, 2, 4, 4)]
+    common = dict(image=image, target_image=torch.rand(1, 3, 8, 8), maps=maps, target_mask=torch.ones(1, 1, 8, 8),
+                  palette=palette, palette_initial=palette, planes=planes)
+    off = garment_losses(cfg=ModelConfig(w_plane_tv=0.0), **common)
+    on = garment_losses(cfg=ModelConfig(w_plane_tv=0.5), **common)
+    assert "plane_tv" not in off and float(on["plane_tv"]) == pytest.approx(float(plane_total_variation(planes)))
+    assert float(on["total"] - off["total"]) == pytest.approx(0.5 * float(on["plane_tv"]), rel=1e-5)
+    with pytest.raises(ValueError, match="w_plane_tv"):
+        ModelConfig(w_plane_tv=-1.0)
