@@ -14,7 +14,7 @@ Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixe
 the paper adopts; L_p is the sum over the palette's 3P values.
 
 Three optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
-them on, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
+on the first two, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
 opacity to the ground-truth mask, ``segmentation`` holds the garment blend weight to the label
 maps' garment share, ``plane_tv`` smooths the ``uvh`` field's learned tri-plane
 (:func:`plane_total_variation`).

@@ -11,6 +11,7 @@ from scipy.interpolate import RegularGridInterpolator
 
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, plane_total_variation
+from garmentnerf.model.palette import DecomposedMaps
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.uvh_field import (UVHField, face_tangent_frames, local_offset_direction, normalised_height,
                                          read_triplane, read_uvh_volume)
@@ -157,9 +158,9 @@ def test_plane_total_variation_against_numpy_and_analytic_planes():
 
 
 def test_the_plane_term_enters_the_loss_only_with_its_weight():
-    image, maps = torch.rand(1, 3, 8, 8), type("Maps", (), {})()
-    maps.mask, maps.weights = torch.rand(1, 1, 8, 8), torch.softmax(torch.rand(1, 2, 8, 8), dim=1)
-    maps.offsets, maps.weights_head_only = torch.zeros(1, 2, 3, 8, 8), None
+    image = torch.rand(1, 3, 8, 8)
+    maps = DecomposedMaps(torch.rand(1, 1, 8, 8), torch.zeros(1, 2, 3, 8, 8),
+                          torch.softmax(torch.rand(1, 2, 8, 8), dim=1), torch.rand(1, 1, 8, 8))
     palette = torch.rand(2, 3)
     planes = [torch.rand(1, 2, 4, 4)]
     common = dict(image=image, target_image=torch.rand(1, 3, 8, 8), maps=maps, target_mask=torch.ones(1, 1, 8, 8),
