@@ -213,7 +213,7 @@ class ModelConfig:
     """Total variation of the ``uvh`` field's learned tri-plane (K-Planes' regulariser; not in the paper, which
     has no planes; 0: off). Without it the shared planes, at ten times the rate, learn texel-scale noise that
     renders as fur on the skirt (E1 uvh: blurring its planes by 6 texels removes the fur and costs 0.4 dB on
-    the garment)."""
+    the garment, two held-out views of frame 20; docs/quality.md)."""
     segmentation_start: int = 0
     """NeRF steps done before the segmentation term applies (a curriculum: the garment is first carved and
     colored by the image and mask losses, then assigned to its palette entry; the bundled model switched it
