@@ -46,6 +46,7 @@ import torch
 from garmentnerf.conventions import Camera
 from garmentnerf.geometry.winding import point_in_shell
 from garmentnerf.gl.shell_raster import ShellBounds, ShellRaster, inflate_surface
+from garmentnerf.model.config import SHELL_SPACINGS as SPACINGS
 from garmentnerf.model.height_band import HeightRange
 from garmentnerf.model.samplers import RaySamples, padded_box, pixel_rays, ray_aabb_intersect, stratified_intervals
 
@@ -54,7 +55,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 #: Added to the band's h_max to get the inflation of the shell (metres).
 SHELL_EXTRA_MARGIN = 0.03
-SPACINGS = ("box", "shell")
 
 
 class ShellSampler:

@@ -37,12 +37,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+from garmentnerf.model.config import SAMPLERS
 from garmentnerf.model.height_band import HeightRange, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
 from garmentnerf.model.samplers import BoxStratifiedSampler
 from garmentnerf.model.shell_sampler import ShellSampler
-
-SAMPLERS = ("box", "shell")
 
 #: Feature cells around the character's rectangle: the palette decoder's receptive field
 #: (nearest x2 upsampling then 3x3 convolutions: 1.5 feature cells for the default 2 upsamplings,
@@ -98,23 +97,34 @@ class RenderPreset:
     def samples_per_ray(self, cfg) -> int:
         return max(4, int(round(cfg.samples_per_ray * self.samples_scale)))
 
+    def uses_shell(self, cfg) -> bool:
+        """Whether this preset samples in the shell for a model of config ``cfg``: a shell preset
+        does, and every preset of a model trained in the shell (``cfg.sampler``)."""
+        return self.sampler == "shell" or cfg.sampler == "shell"
+
     def sampling(self, model, height_range: HeightRange | None = None, gl_context=None) -> "SamplingPlan":
         """The render arguments of this preset for ``model`` (a loaded
         :class:`~garmentnerf.model.pipeline.GarmentAnimationNeRF`; its weights are untouched).
 
+        A model trained in the shell (``cfg.sampler == "shell"``) is sampled in the shell, with the
+        skin occlusion and the band, by every preset, spaced as it was trained
+        (``cfg.shell_spacing``); the ``reference`` preset then reproduces its training sampling.
+
         Args:
-            height_range: the garment's band (shell presets; default :meth:`HeightRange.default`).
+            height_range: the garment's band (shell sampling; default :meth:`HeightRange.default`).
             gl_context: moderngl context of the shell raster (None: a headless one of its own).
         """
         cfg = model.cfg
         n = self.samples_per_ray(cfg)
-        if self.sampler == "box":
+        if not self.uses_shell(cfg):
             return SamplingPlan(self, BoxStratifiedSampler(n, cfg.bbox_padding), None, self.termination_eps,
                                 self.precision)
         band = height_range if height_range is not None else HeightRange.default()
         faces = model.projector.faces
+        trained_in_shell = cfg.sampler == "shell"
         sampler = ShellSampler(n, faces, band, padding=cfg.bbox_padding, gl_context=gl_context,
-                               occlusion=self.occlusion)
+                               spacing=cfg.shell_spacing if trained_in_shell else "box",
+                               occlusion=self.occlusion or trained_in_shell)
         return SamplingPlan(self, sampler, band.sample_filter(faces), self.termination_eps, self.precision)
 
     def to_dict(self) -> dict:

@@ -356,7 +356,7 @@ class RenderSession(Closeable):
         if plan is None or plan.preset != preset:
             if plan is not None:
                 plan.release()
-            band = self.height_range if preset.sampler == "shell" else None
+            band = self.height_range if preset.uses_shell(self.model.cfg) else None
             plan = preset.sampling(self.model, band, self.gl_ctx)
             self._plans[preset.name] = plan
         return plan

@@ -103,9 +103,11 @@ from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance, save_body_appearance
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.height_band import measure_height_range
 from garmentnerf.model.losses import garment_losses, generator_losses
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
+from garmentnerf.render.presets import get_render_preset
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
@@ -368,6 +370,7 @@ class Trainer(Closeable):
         self.data = SceneFramesFactory(self.scene, cfg, gl_context, self.model.body, tc.cache_bytes)
         self.body_appearance = self._body_appearance(resume_info)
         self._body_pass = None  # the BodyLayerPass of the body layer, made on first use
+        self.sampling = self._sampling()
         #: Frames whose body geometry is kept between steps (0: rebuilt at every step).
         self.geometry_cache_frames = GEOMETRY_CACHE_FRAMES
         self._geometry: OrderedDict[tuple[str, int], object] = OrderedDict()
@@ -596,7 +599,8 @@ class Trainer(Closeable):
                 self._geometry.popitem(last=False)
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
-        out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision)
+        out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,
+                                sampler=self.sampling.sampler, sample_filter=self.sampling.sample_filter)
         pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
@@ -629,6 +633,18 @@ class Trainer(Closeable):
         values = {k: v / batch for k, v in sums.items()}
         values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
         return values, images
+
+    def _sampling(self):
+        """Where a training step's samples go: the ``reference`` preset's
+        :class:`~garmentnerf.render.presets.SamplingPlan` for the model, so that the reference render
+        samples as training did (the paper's box, or with ``cfg.sampler == "shell"`` the shell of
+        the garment's height band measured on the scene's training garments, as the renderers
+        measure it)."""
+        band = None
+        if self.cfg.sampler == "shell":
+            band = measure_height_range(self.scene, self.model.body, self.data.frames.betas, self.model.projector)
+            self.log(f"shell sampling: the garment's band [{band.h_min:.3f}, {band.h_max:.3f}] m, {band.source}")
+        return get_render_preset("reference").sampling(self.model, band, self.data.frames.ctx)
 
     def _with_body(self, out, feats, camera) -> torch.Tensor:
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
@@ -726,6 +742,9 @@ class Trainer(Closeable):
         if getattr(self, "_body_pass", None) is not None:
             self._body_pass.release()
             self._body_pass = None
+        if getattr(self, "sampling", None) is not None:
+            self.sampling.release()
+            self.sampling = None
         if getattr(self, "data", None) is not None:
             self.data.close()
         self.dist.close()

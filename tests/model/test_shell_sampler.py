@@ -371,6 +371,56 @@ def test_presets_render_through_their_sampling_plans(gl_context, model_and_frame
         get_render_preset("warp")
 
 
+def test_a_model_trained_in_the_shell_is_sampled_there_by_every_preset(gl_context, body, projector, verts):
+    from garmentnerf.model.shell_sampler import SHELL_EXTRA_MARGIN
+    from garmentnerf.render.presets import RENDER_PRESETS
+
+    S = 16
+    model = GarmentAnimationNeRF(tiny_config(samples_per_ray=S, sampler="shell", shell_spacing="shell"), body, PALETTE,
+                                 projector=projector).eval()
+    for name, preset in RENDER_PRESETS.items():
+        assert preset.uses_shell(model.cfg)
+        plan = preset.sampling(model, BAND, gl_context)
+        assert isinstance(plan.sampler, ShellSampler) and plan.sampler.spacing == "shell" and plan.sampler.occlusion
+        assert plan.sample_filter is not None and plan.sample_filter.band == BAND
+        assert plan.termination_eps == preset.termination_eps
+        assert plan.sampler.num_samples == preset.samples_per_ray(model.cfg)
+        if name == "reference":
+            reference = plan
+        else:
+            plan.release()
+    # The reference plan is the training sampling: S samples tiling each ray's shell segment.
+    cam = CAMERA.resized(40, 40)
+    _, samples = _sample(reference.sampler, verts, cam)
+    rays = samples.hit.nonzero().squeeze(1)
+    assert len(rays) > 100
+    counts = torch.bincount(samples.ray_ids, minlength=samples.n_rays)
+    assert bool((counts[rays] == S).all()) and int(counts.sum()) == S * len(rays)
+    t0, t1 = samples.t_starts.reshape(-1, S), samples.t_ends.reshape(-1, S)
+    near, far = samples.near[rays], samples.far[rays]
+    torch.testing.assert_close(t0[:, 0], near)
+    torch.testing.assert_close(t1[:, -1], far)
+    torch.testing.assert_close(t1 - t0, ((far - near) / S)[:, None].expand(-1, S), rtol=1e-4, atol=1e-6)
+    # Independent: trimesh's distance to the posed skin of each segment's ends (where the ray enters
+    # the inflated shell, and where it leaves it or is cut behind the skin) is at most the inflation.
+    margin = BAND.h_max + SHELL_EXTRA_MARGIN
+    origins, directions = camera_rays(cam)
+    o, d = origins.reshape(-1, 3)[rays], directions.reshape(-1, 3)[rays]
+    ends = torch.cat([o + near[:, None] * d, o + far[:, None] * d]).double().numpy()
+    dist = _surface_distance(ends, verts.double().numpy(), projector.faces.numpy(), 2 * margin)
+    assert float(dist.max()) <= margin + 1e-3
+    assert float(np.median(dist[:len(rays)])) > 0.5 * margin  # the entries lie on the inflated skin
+    # A box-trained model keeps the paper's sampler for its reference render.
+    box_model = GarmentAnimationNeRF(tiny_config(samples_per_ray=S), body, PALETTE, projector=projector)
+    assert not RENDER_PRESETS["reference"].uses_shell(box_model.cfg)
+    assert isinstance(RENDER_PRESETS["reference"].sampling(box_model, BAND, gl_context).sampler, BoxStratifiedSampler)
+    reference.release()
+    with pytest.raises(ValueError, match="sampler"):
+        tiny_config(sampler="sphere").validate()
+    with pytest.raises(ValueError, match="shell_spacing"):
+        tiny_config(shell_spacing="log").validate()
+
+
 def test_bench_cli_with_run(tmp_path, tiny_scene):
     from garmentnerf.cli.main import main
     from garmentnerf.train.run import create_untrained_run

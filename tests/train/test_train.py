@@ -396,3 +396,31 @@ def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_
     with pytest.raises(ValueError, match="--body-appearance"):
         run(make_tc(tiny_scene, out, iterations=3, generator_iterations=0, resume=True, body_appearance=other),
             gl_context)
+
+
+def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_scene, gl_context, tmp_path):
+    from garmentnerf.model.height_band import measure_height_range
+    from garmentnerf.model.shell_sampler import ShellSampler
+    from garmentnerf.render.session import RenderSession
+
+    cfg = tiny_config().replace(sampler="shell", shell_spacing="shell")
+    tc = make_tc(tiny_scene, tmp_path / "run", iterations=3, generator_iterations=0, model_config=cfg)
+    placed = []
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        plan = tr.sampling
+        assert isinstance(plan.sampler, ShellSampler) and plan.sampler.occlusion and plan.sampler.spacing == "shell"
+        band = measure_height_range(tiny_scene, tr.model.body, None, tr.model.projector)
+        assert plan.sample_filter.band.h_max == band.h_max and plan.sample_filter.band.h_min == band.h_min
+        render = tr.model.render
+        tr.model.render = lambda *a, **k: placed.append(k["sampler"]) or render(*a, **k)
+        result = tr.train()
+    assert result.finished and len(placed) == 3 and all(s is plan.sampler for s in placed)
+    assert all(torch.isfinite(torch.tensor(h["total"])) for h in result.history)
+    loaded = load_run(tmp_path / "run")
+    session = RenderSession(loaded, gl_context)
+    try:
+        ref = session.sampling("reference")
+        assert isinstance(ref.sampler, ShellSampler) and ref.sampler.spacing == "shell" and ref.sampler.occlusion
+        assert ref.sample_filter.band.h_max == band.h_max
+    finally:
+        session.close()
