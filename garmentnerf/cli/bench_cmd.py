@@ -10,7 +10,8 @@ the previewer's render-ahead among them (``playback.render_ahead``, ``playback.c
 
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
 side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`);
-``--before`` adds each precision's step as it was before issue 27 beside it.
+``--before`` adds each precision's step as it was before issue 27 beside it; ``--against RUN``
+times other runs' recipes taking turns with it (recipes compared in one run).
 """
 
 from __future__ import annotations
@@ -65,6 +66,9 @@ def register(sub) -> None:
     p.add_argument("--before", action="store_true",
                    help="with --training: also time each precision's step as before issue 27 (body geometry rebuilt "
                         "every step, the perceptual loss backpropagated into its target), taking turns with the others")
+    p.add_argument("--against", action="append", default=[], metavar="RUN",
+                   help="with --training: also time this run folder's recipe (repeatable), taking turns with --run's, "
+                        "and print each one's step over --run's")
     p.set_defaults(func=run_bench)
 
 
@@ -93,13 +97,18 @@ def _run_training_bench(args: argparse.Namespace) -> int:
         raise ValueError(f"--precisions {args.precisions}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
     if args.steps < 3 or args.rounds < 1:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
+    for run in args.against:
+        if not (Path(run) / "run.json").is_file():
+            raise ValueError(f"--against {run}: not a run folder (no run.json)")
     results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, before=args.before,
-                                 log=print)
+                                 against=args.against, log=print)
     machine = results["machine"]
     print(f"machine: {machine['processor']}, torch threads {machine['torch_threads']}, AMX-BF16 {machine['amx_bf16']}; "
           f"{results['steps_timed']} steps timed per precision")
     columns = [(row["precision"], row) for row in results["precisions"]]
     columns += [(f"{row['precision']} before", row) for row in results.get("before", [])]
+    columns += [(f"{Path(a['run']).name} {row['precision']}", row) for a in results.get("against", [])
+                for row in a["precisions"]]
     print(f"{'s/step by stage (median)':24s}" + "".join(f" {label:>16s}" for label, _ in columns))
     for stage in results["stages"]:
         print(f"  {stage:22s}" + "".join(f" {row['stages_s'][stage]:16.3f}" for _, row in columns))
@@ -110,6 +119,10 @@ def _run_training_bench(args: argparse.Namespace) -> int:
     for row in results.get("before", []):
         print(f"  {row['precision']:10s} {results['speedup_vs_before'][row['precision']]:5.2f}x faster than before "
               f"issue 27 ({row['s_per_step']:.3f} s/step)")
+    for a in results.get("against", []):
+        for row in a["precisions"]:
+            print(f"  {row['precision']:10s} {results['speedup_vs_against'][a['run']][row['precision']]:5.2f}x faster "
+                  f"than {a['run']}'s recipe ({row['s_per_step']:.3f} s/step)")
     if args.json:
         with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(results, indent=1))
@@ -125,6 +138,8 @@ def run_bench(args: argparse.Namespace) -> int:
         raise ValueError("--plot needs --run")
     if getattr(args, "training", False) and (not getattr(args, "run", None) or getattr(args, "plot", None)):
         raise ValueError("--training needs --run (and draws no --plot)")
+    if getattr(args, "against", None) and not getattr(args, "training", False):
+        raise ValueError("--against needs --training")
     for flag, path in (("--json", args.json), ("--plot", getattr(args, "plot", None))):
         if path:
             check_output_file(path, flag, args.overwrite)

@@ -129,7 +129,7 @@ def _as_before(trainer) -> None:
 
 
 def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: int = 8, rounds: int = 3,
-                       before: bool = False, log=None) -> dict:
+                       before: bool = False, against=(), log=None) -> dict:
     """Median seconds per NeRF step of the run in ``run_dir`` for each of ``precisions``, whole and
     by stage.
 
@@ -141,6 +141,9 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
         steps: steps per round and trainer (at least 3: the first and last of a round are not timed).
         rounds: rounds; the trainers alternate within each.
         before: also time each precision's step as it was before issue 27 (module docstring).
+        against: other run folders whose recipes are timed the same way, at the same precisions,
+            taking their turns with ``run_dir``'s (recipes compared in one run: e.g. a new recipe
+            against the bundled model's).
         log: called with one line per finished round (None: silent).
     Returns:
         ``{"run", "steps_timed", "machine", "stages", "precisions": [row], "speedup_vs_first"}``,
@@ -148,36 +151,35 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
         (``stages_s``: the median seconds per step of each of ``stages``; ``stages_s_all``: each
         timed step's, in the order of ``s_per_step_all``); ``speedup_vs_first`` is the first
         precision's seconds per step over each one's. With ``before``, also ``"before": [row]``
-        and ``"speedup_vs_before"``: each precision's seconds per step before over now.
+        and ``"speedup_vs_before"``: each precision's seconds per step before over now. With
+        ``against``, also ``"against": [{"run", "precisions": [row]}]`` and
+        ``"speedup_vs_against"``: ``{run: {precision: its seconds per step over run_dir's}}``.
     """
     if steps < 3 or rounds < 1:
         raise ValueError(f"steps must be >= 3 and rounds >= 1, got {steps} and {rounds}")
-    run_dir = Path(run_dir)
-    info = read_run_info(run_dir)
-    if not info.get("scene"):
-        raise ValueError(f"{run_dir}: the run names no scene to train on")
-    scene = Path(info["scene"])
-    scene = scene if scene.is_absolute() else (run_dir / scene).resolve()
-    cfg = ModelConfig.from_dict(dict(info["model_config"]))
-    appearance = run_dir / BODY_APPEARANCE_FILE
+    runs = [Path(run_dir), *(Path(r) for r in against)]
+    infos = [_run_recipe(r) for r in runs]
     resolved = list(dict.fromkeys(training_precision(p, "cpu") for p in precisions))
-    variants = [(p, old) for p in resolved for old in ((True, False) if before else (False,))]
+    # A variant: (index of the run in ``runs``, precision, timed as before issue 27).
+    variants = [(0, p, old) for p in resolved for old in ((True, False) if before else (False,))]
+    variants += [(i, p, False) for i in range(1, len(runs)) for p in resolved]
     intervals = {v: [] for v in variants}
     stages = {v: [] for v in variants}
     with tempfile.TemporaryDirectory(prefix="garmentnerf-train-bench-") as tmp:
         trainers, clocks = {}, {}
         try:
-            for p, old in variants:
-                tc = TrainConfig(scene=scene, out=Path(tmp) / (p + ("-before" if old else "")),
+            for v in variants:
+                i, p, old = v
+                scene, cfg, appearance, generator_iterations = infos[i]
+                tc = TrainConfig(scene=scene, out=Path(tmp) / f"{i}-{p}{'-before' if old else ''}",
                                  model_config=cfg.replace(iterations=steps * rounds),
-                                 init_weights=run_dir / MODEL_FILE, precision=p, progress=False,
-                                 body_appearance=appearance if appearance.is_file() else None,
-                                 generator_iterations=int(info.get("generator_iterations", cfg.generator_iterations)),
+                                 init_weights=runs[i] / MODEL_FILE, precision=p, progress=False,
+                                 body_appearance=appearance, generator_iterations=generator_iterations,
                                  log_every=10 ** 9, image_every=0, ckpt_every=10 ** 9, keep_checkpoints=1)
-                trainer = trainers[p, old] = Trainer(tc, log=lambda message: None)
+                trainer = trainers[v] = Trainer(tc, log=lambda message: None)
                 if old:
                     _as_before(trainer)
-                clocks[p, old] = _StageClock(trainer)
+                clocks[v] = _StageClock(trainer)
             for r in range(rounds):
                 for v, trainer in trainers.items():
                     stamps: list[float] = []
@@ -193,19 +195,19 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
                     intervals[v] += list(np.diff(stamps)[:-1])  # neither the first step nor the checkpointed last
                     stages[v] += laps[1:-1]  # the same steps
                 if log is not None:
-                    log(f"round {r + 1}/{rounds}: " + ", ".join(f"{_label(v)} {np.median(t):.3f} s/step"
+                    log(f"round {r + 1}/{rounds}: " + ", ".join(f"{_label(v, runs)} {np.median(t):.3f} s/step"
                                                                 for v, t in intervals.items()))
         finally:
             for trainer in trainers.values():
                 trainer.close()
 
     def row(v) -> dict:
-        return {"precision": v[0], "s_per_step": float(np.median(intervals[v])),
+        return {"precision": v[1], "s_per_step": float(np.median(intervals[v])),
                 "s_per_step_all": [float(x) for x in intervals[v]],
                 "stages_s": {k: float(np.median([lap[k] for lap in stages[v]])) for k in STAGES},
                 "stages_s_all": [{k: float(lap[k]) for k in STAGES} for lap in stages[v]]}
 
-    rows = [row((p, False)) for p in resolved]
+    rows = [row((0, p, False)) for p in resolved]
     first = rows[0]["s_per_step"]
     results = {"run": str(run_dir), "steps_timed": len(intervals[variants[0]]),
                "machine": {"torch_threads": torch.get_num_threads(),
@@ -214,12 +216,32 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
                "stages": list(STAGES), "precisions": rows,
                "speedup_vs_first": {r["precision"]: first / r["s_per_step"] for r in rows}}
     if before:
-        results["before"] = [row((p, True)) for p in resolved]
+        results["before"] = [row((0, p, True)) for p in resolved]
         results["speedup_vs_before"] = {b["precision"]: b["s_per_step"] / r["s_per_step"]
                                         for b, r in zip(results["before"], rows)}
+    if len(runs) > 1:
+        results["against"] = [{"run": str(runs[i]), "precisions": [row((i, p, False)) for p in resolved]}
+                              for i in range(1, len(runs))]
+        results["speedup_vs_against"] = {
+            a["run"]: {o["precision"]: o["s_per_step"] / r["s_per_step"] for o, r in zip(a["precisions"], rows)}
+            for a in results["against"]}
     return results
 
 
-def _label(variant) -> str:
-    precision, old = variant
-    return f"{precision} before" if old else precision
+def _run_recipe(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
+    """(scene folder, model config, body appearance file or None, G_img steps) of a run folder."""
+    info = read_run_info(run_dir)
+    if not info.get("scene"):
+        raise ValueError(f"{run_dir}: the run names no scene to train on")
+    scene = Path(info["scene"])
+    scene = scene if scene.is_absolute() else (run_dir / scene).resolve()
+    cfg = ModelConfig.from_dict(dict(info["model_config"]))
+    appearance = run_dir / BODY_APPEARANCE_FILE
+    return (scene, cfg, appearance if appearance.is_file() else None,
+            int(info.get("generator_iterations", cfg.generator_iterations)))
+
+
+def _label(variant, runs) -> str:
+    i, precision, old = variant
+    label = f"{precision} before" if old else precision
+    return label if i == 0 else f"{runs[i].name} {label}"

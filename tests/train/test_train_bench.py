@@ -55,6 +55,8 @@ def test_training_bench_times_each_precision_and_leaves_nothing_behind(tiny_run,
     (["--training"], "--training needs --run"),
     (["--training", "--run", "RUN", "--precisions", "float16"], "--precisions float16: each must be one of"),
     (["--training", "--run", "RUN", "--steps", "2"], "--steps must be >= 3"),
+    (["--training", "--run", "RUN", "--against", "nowhere"], "--against nowhere: not a run folder"),
+    (["--run", "RUN", "--against", "RUN"], "--against needs --training"),
 ])
 def test_training_bench_refuses_bad_flags_in_one_line(tiny_run, capsys, flags, message):
     flags = [str(tiny_run) if f == "RUN" else f for f in flags]
@@ -89,3 +91,31 @@ def test_training_bench_splits_the_step_by_stage_beside_the_step_before(tiny_run
     for stage in STAGES:
         assert f"  {stage:22s} {now['stages_s'][stage]:16.3f} {before['stages_s'][stage]:16.3f}" in printed
     assert f"  {'float32':10s} {results['speedup_vs_before']['float32']:5.2f}x faster than before" in printed
+
+
+def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_path, capsys):
+    from garmentnerf.train.settings import tiny_config
+
+    heavy = tmp_path / "heavy"
+    config = tmp_path / "heavy.json"
+    cfg = tiny_config()
+    config.write_text(json.dumps(cfg.replace(samples_per_ray=4 * cfg.samples_per_ray).to_dict()))
+    assert main(["train", "--scene", str(tiny_scene.root), "--out", str(heavy), "--model-config", str(config),
+                 "--perceptual", "none", "--no-progress", "--threads", "1", "--iterations", "2",
+                 "--generator-iterations", "1", "--image-every", "0"]) == 0
+    out = tmp_path / "against.json"
+    assert main(["bench", "--run", str(tiny_run), "--training", "--precisions", "float32", "--steps", "5",
+                 "--rounds", "2", "--against", str(heavy), "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    results = json.loads(out.read_text())
+    light, = results["precisions"]
+    against, = results["against"]
+    assert against["run"] == str(heavy)
+    heavy_row, = against["precisions"]
+    assert len(heavy_row["s_per_step_all"]) == len(light["s_per_step_all"]) == results["steps_timed"] == 6
+    # Four times the samples per ray: the per-sample stages grow, the per-frame ones do not.
+    assert heavy_row["stages_s"]["mlp"] > 2.0 * light["stages_s"]["mlp"]
+    assert heavy_row["stages_s"]["projection"] > 2.0 * light["stages_s"]["projection"]
+    ratio = results["speedup_vs_against"][str(heavy)]["float32"]
+    assert ratio == pytest.approx(heavy_row["s_per_step"] / light["s_per_step"]) and ratio > 1.0
+    assert f"{ratio:5.2f}x faster than {heavy}'s recipe" in printed
