@@ -240,7 +240,11 @@ class ModelConfig:
     """The segmentation term trains only the decoder's weight head, not the layers it shares with the mask and
     radiance (nor the NeRF behind them). With the full gradient, switching the term on at NeRF step 551 of a
     run whose garment was already rendered collapsed the garment's mask from 0.96 to 0.03 within 65 steps;
-    head-only, the mask stayed at 0.98 while w_G on the garment rose from 0.05 to 0.63 in 60 steps."""
+    head-only, the mask stayed at 0.98 while w_G on the garment rose from 0.05 to 0.63 in 60 steps. From the
+    first step (``segmentation_start`` 0) it is the other way round: head-only, the garment/body split of some
+    runs from scratch never forms (the network paints the body with the garment's colour or the skirt with
+    the skin's: G1, and the shell-sampled one-frame proxies), while with the full gradient it formed within 30
+    steps in every run tried (``docs/quality.md``, "Sampling only where the garment can be")."""
 
     # ---- Optimisation
     lr: float = 5e-4
