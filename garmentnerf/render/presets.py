@@ -36,9 +36,10 @@ products 8 times faster: the MLP is a small share of a render, the body projecti
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 from garmentnerf.model.config import SAMPLERS
-from garmentnerf.model.height_band import HeightRange, measure_height_range
+from garmentnerf.model.height_band import SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
 from garmentnerf.model.samplers import BoxStratifiedSampler
 from garmentnerf.model.shell_sampler import ShellSampler
@@ -182,8 +183,13 @@ def get_render_preset(name) -> RenderPreset:
 
 
 def height_range_for_run(run, projector=None) -> HeightRange:
-    """The garment's height band of a loaded run: measured on its scene's training garments, or
-    :meth:`HeightRange.default` when the run has no scene (about a second: callers keep it)."""
+    """The garment's height band of a loaded run: the band a shell-trained run was trained with
+    (its :data:`~garmentnerf.model.height_band.SHELL_BAND_FILE`), else measured on its scene's
+    training garments, else :meth:`HeightRange.default` when the run has no scene (measuring takes
+    about a second: callers keep it)."""
+    root = getattr(run, "root", None)
+    if root is not None and (Path(root) / SHELL_BAND_FILE).is_file():
+        return load_height_range(Path(root) / SHELL_BAND_FILE)
     scene = getattr(run, "scene", None)
     if scene is None:
         return HeightRange.default()

@@ -103,7 +103,7 @@ from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance, save_body_appearance
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.height_band import measure_height_range
+from garmentnerf.model.height_band import SHELL_BAND_FILE, load_height_range, measure_height_range, save_height_range
 from garmentnerf.model.losses import garment_losses, generator_losses
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
@@ -370,7 +370,8 @@ class Trainer(Closeable):
         self.data = SceneFramesFactory(self.scene, cfg, gl_context, self.model.body, tc.cache_bytes)
         self.body_appearance = self._body_appearance(resume_info)
         self._body_pass = None  # the BodyLayerPass of the body layer, made on first use
-        self.sampling = self._sampling()
+        self.shell_band = self._shell_band(resume_info)
+        self.sampling = get_render_preset("reference").sampling(self.model, self.shell_band, self.data.frames.ctx)
         #: Frames whose body geometry is kept between steps (0: rebuilt at every step).
         self.geometry_cache_frames = GEOMETRY_CACHE_FRAMES
         self._geometry: OrderedDict[tuple[str, int], object] = OrderedDict()
@@ -501,6 +502,7 @@ class Trainer(Closeable):
             write_file_atomic(state_file, buffer.getvalue())
             complete, writing = True, self.out
             self._save_body_appearance()
+            self._save_shell_band()
             save_run_model(self.out, self.model, self.cfg, self.scene_path, step, self._run_extra())
         except BaseException as exc:
             if not complete:  # no half checkpoint: weights without their state would never be resumed
@@ -634,17 +636,24 @@ class Trainer(Closeable):
         values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
         return values, images
 
-    def _sampling(self):
-        """Where a training step's samples go: the ``reference`` preset's
-        :class:`~garmentnerf.render.presets.SamplingPlan` for the model, so that the reference render
-        samples as training did (the paper's box, or with ``cfg.sampler == "shell"`` the shell of
-        the garment's height band measured on the scene's training garments, as the renderers
-        measure it)."""
-        band = None
-        if self.cfg.sampler == "shell":
-            band = measure_height_range(self.scene, self.model.body, self.data.frames.betas, self.model.projector)
-            self.log(f"shell sampling: the garment's band [{band.h_min:.3f}, {band.h_max:.3f}] m, {band.source}")
-        return get_render_preset("reference").sampling(self.model, band, self.data.frames.ctx)
+    def _shell_band(self, resume_info: dict | None):
+        """The garment's height band a shell-trained model samples in (None for the paper's box):
+        measured on the scene's training garments for a new run (and written into the run folder with
+        its first checkpoint, where every render of the model finds it), the run's copy on a resume.
+        Training samples as the ``reference`` preset renders the model, with this band."""
+        if self.cfg.sampler != "shell":
+            return None
+        copy = self.out / SHELL_BAND_FILE
+        if resume_info is not None and copy.is_file():
+            return load_height_range(copy)
+        band = measure_height_range(self.scene, self.model.body, self.data.frames.betas, self.model.projector)
+        self.log(f"shell sampling: the garment's band [{band.h_min:.3f}, {band.h_max:.3f}] m, {band.source}")
+        return band
+
+    def _save_shell_band(self) -> None:
+        """The run's copy of its shell band, written with its first checkpoint (before ``run.json``)."""
+        if self.shell_band is not None and not (self.out / SHELL_BAND_FILE).is_file():
+            save_height_range(self.out / SHELL_BAND_FILE, self.shell_band)
 
     def _with_body(self, out, feats, camera) -> torch.Tensor:
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the

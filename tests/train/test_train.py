@@ -399,7 +399,8 @@ def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_
 
 
 def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_scene, gl_context, tmp_path):
-    from garmentnerf.model.height_band import measure_height_range
+    from garmentnerf.model.height_band import (SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range,
+                                               save_height_range)
     from garmentnerf.model.shell_sampler import ShellSampler
     from garmentnerf.render.session import RenderSession
 
@@ -416,11 +417,21 @@ def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_s
         result = tr.train()
     assert result.finished and len(placed) == 3 and all(s is plan.sampler for s in placed)
     assert all(torch.isfinite(torch.tensor(h["total"])) for h in result.history)
-    loaded = load_run(tmp_path / "run")
-    session = RenderSession(loaded, gl_context)
+    # The run keeps the band it was trained with ...
+    stored = load_height_range(tmp_path / "run" / SHELL_BAND_FILE)
+    assert (stored.h_min, stored.h_max) == (band.h_min, band.h_max)
+    assert torch.equal(stored.vertex_h_max, band.vertex_h_max)
+    # ... and its renders use that band, not one measured again on the scene they are shown.
+    save_height_range(tmp_path / "run" / SHELL_BAND_FILE, HeightRange(-0.07, 0.21, "test"))
+    session = RenderSession(load_run(tmp_path / "run"), gl_context)
     try:
         ref = session.sampling("reference")
         assert isinstance(ref.sampler, ShellSampler) and ref.sampler.spacing == "shell" and ref.sampler.occlusion
-        assert ref.sample_filter.band.h_max == band.h_max
+        assert (ref.sample_filter.band.h_min, ref.sample_filter.band.h_max) == (-0.07, 0.21)
+        assert ref.sampler.occlusion_margin == pytest.approx(0.07)
     finally:
         session.close()
+    # A resume reads the run's copy.
+    tc2 = make_tc(tiny_scene, tmp_path / "run", iterations=3, generator_iterations=0, model_config=cfg, resume=True)
+    with Trainer(tc2, gl_context, log=lambda m: None) as tr:
+        assert (tr.shell_band.h_min, tr.shell_band.h_max) == (-0.07, 0.21)
