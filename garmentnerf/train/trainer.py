@@ -18,7 +18,10 @@ Stage 2 -- the NeRF (``cfg.iterations`` steps). E, G_en, M_NeRF, M_D and the pal
     (``cfg.feature_image_resolution`` squared rays, decoded to ``cfg.image_resolution``): what the
     pipeline renders. The image is the
     whole camera, or with ``cfg.training_crop_density`` a window of the camera at that density
-    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). Adam with
+    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). The
+    samples go where the ``reference`` render preset puts them for this model: the paper's box, or
+    with ``cfg.sampler == "shell"`` the garment's shell (its band measured on the training garments
+    and kept in the run folder, :data:`~garmentnerf.model.height_band.SHELL_BAND_FILE`). Adam with
     ``lr`` decaying exponentially to ``lr_final`` over ``cfg.iterations``
     (``lr_n = lr * (lr_final / lr) ** (n / iterations)``), gradients clipped by value
     (``cfg.grad_clip_value``).
