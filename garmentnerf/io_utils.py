@@ -87,6 +87,37 @@ def write_file_atomic(path, data: bytes) -> Path:
 STALE_TEMPORARY_SECONDS = 60.0
 
 
+def save_tagged_tensors(path, tensors: dict, kind: str, metadata: dict[str, str] | None = None) -> Path:
+    """Write ``tensors`` (name -> torch tensor) to a ``.safetensors`` file atomically, with the
+    metadata ``format`` = ``kind`` (plus ``metadata``) that :func:`load_tagged_tensors` checks.
+    Returns the path."""
+    from safetensors.torch import save  # lazy: importing this module costs no torch
+
+    data = save({k: v.detach().cpu().contiguous() for k, v in tensors.items()},
+                metadata={"format": kind, **(metadata or {})})
+    return write_file_atomic(Path(path), data)
+
+
+def load_tagged_tensors(path, kind: str, what: str) -> tuple[dict, dict[str, str]]:
+    """(tensors, metadata) of a ``.safetensors`` file :func:`save_tagged_tensors` wrote as ``kind``.
+
+    Raises:
+        ValueError naming the file: unreadable, or not a ``what`` file (another ``format``).
+    """
+    from safetensors import safe_open
+
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as exc:  # safetensors raises its own error types for damaged files
+        raise ValueError(f"{path}: not a readable safetensors file ({type(exc).__name__}: {exc})") from exc
+    if meta.get("format") != kind:
+        raise ValueError(f"{path}: not a {what} file")
+    return tensors, meta
+
+
 def temporary_pattern(name: str) -> str:
     """The glob of the temporaries :func:`atomic_write_path` makes for a file called ``name``
     (``name`` may itself be a glob, e.g. ``frame_*.png``)."""

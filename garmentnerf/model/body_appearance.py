@@ -32,12 +32,10 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from safetensors import safe_open
-from safetensors.torch import save
 from torch import nn
 
 from garmentnerf.body.shading import monomial_exponents, normal_monomials
-from garmentnerf.io_utils import write_file_atomic
+from garmentnerf.io_utils import load_tagged_tensors, save_tagged_tensors
 
 #: Degree of the shading polynomial (see the module docstring).
 SHADING_DEGREE = 4
@@ -45,6 +43,8 @@ SHADING_DEGREE = 4
 TEXTURE_SIZE = 256
 #: The file a run folder keeps its body appearance in.
 BODY_APPEARANCE_FILE = "body_appearance.safetensors"
+#: The ``format`` tag in the file's metadata.
+BODY_APPEARANCE_FORMAT = "garmentnerf-body-appearance"
 
 
 class BodyAppearance(nn.Module):
@@ -82,10 +82,8 @@ class BodyAppearance(nn.Module):
 
 def save_body_appearance(path, appearance: BodyAppearance) -> Path:
     """Write ``appearance`` to a ``.safetensors`` file atomically. Returns the path."""
-    tensors = {"albedo": appearance.albedo.detach().cpu().contiguous(),
-               "shading": appearance.shading.detach().cpu().contiguous()}
-    data = save(tensors, metadata={"format": "garmentnerf-body-appearance", "degree": str(appearance.degree)})
-    return write_file_atomic(Path(path), data)
+    return save_tagged_tensors(path, {"albedo": appearance.albedo, "shading": appearance.shading},
+                               BODY_APPEARANCE_FORMAT, {"degree": str(appearance.degree)})
 
 
 def load_body_appearance(path) -> BodyAppearance:
@@ -95,13 +93,8 @@ def load_body_appearance(path) -> BodyAppearance:
         ValueError: a file that is not one (the message names it).
     """
     path = Path(path)
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except Exception as exc:  # safetensors raises its own error types for damaged files
-        raise ValueError(f"{path}: not a readable safetensors file ({type(exc).__name__}: {exc})") from exc
-    if meta.get("format") != "garmentnerf-body-appearance" or set(tensors) != {"albedo", "shading"}:
+    tensors, meta = load_tagged_tensors(path, BODY_APPEARANCE_FORMAT, "body appearance")
+    if set(tensors) != {"albedo", "shading"}:
         raise ValueError(f"{path}: not a body appearance file")
     albedo, shading = tensors["albedo"].float(), tensors["shading"].float()
     degree = int(meta.get("degree", SHADING_DEGREE))

@@ -29,10 +29,12 @@ import torch
 from garmentnerf.body.model import BodyModel
 from garmentnerf.data.scene import read_garment_arrays
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
-from garmentnerf.io_utils import write_file_atomic
+from garmentnerf.io_utils import load_tagged_tensors, save_tagged_tensors
 
 #: The band a shell-trained run was trained with, in its run folder (:func:`save_height_range`).
 SHELL_BAND_FILE = "shell_band.safetensors"
+#: The ``format`` tag in its metadata.
+HEIGHT_BAND_FORMAT = "garmentnerf-height-band"
 
 #: Margins added to the measured garment heights (metres): above the garment, and below the skin
 #: (samples just inside the body carry the skin's density ramp).
@@ -110,13 +112,10 @@ class HeightRange:
 def save_height_range(path, band: HeightRange) -> Path:
     """Write ``band`` (its bounds, source and per-vertex bound) to a ``.safetensors`` file
     atomically. Returns the path."""
-    from safetensors.torch import save
-
     tensors = {"bounds": torch.tensor([band.h_min, band.h_max], dtype=torch.float64)}
     if band.vertex_h_max is not None:
-        tensors["vertex_h_max"] = band.vertex_h_max.detach().cpu().float().contiguous()
-    data = save(tensors, metadata={"format": "garmentnerf-height-band", "source": band.source})
-    return write_file_atomic(Path(path), data)
+        tensors["vertex_h_max"] = band.vertex_h_max.float()
+    return save_tagged_tensors(path, tensors, HEIGHT_BAND_FORMAT, {"source": band.source})
 
 
 def load_height_range(path) -> HeightRange:
@@ -125,17 +124,9 @@ def load_height_range(path) -> HeightRange:
     Raises:
         ValueError: a file that is not one (the message names it).
     """
-    from safetensors import safe_open
-
-    path = Path(path)
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except Exception as exc:  # safetensors raises its own error types for damaged files
-        raise ValueError(f"{path}: not a height band file ({type(exc).__name__}: {exc})") from exc
+    tensors, meta = load_tagged_tensors(path, HEIGHT_BAND_FORMAT, "height band")
     bounds = tensors.get("bounds")
-    if meta.get("format") != "garmentnerf-height-band" or bounds is None or bounds.shape != (2,):
+    if bounds is None or bounds.shape != (2,):
         raise ValueError(f"{path}: not a height band file")
     return HeightRange(float(bounds[0]), float(bounds[1]), meta.get("source", "given"), tensors.get("vertex_h_max"))
 

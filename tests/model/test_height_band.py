@@ -126,5 +126,10 @@ def test_a_height_band_file_round_trips_and_refuses_other_files(tmp_path):
     plain = load_height_range(save_height_range(tmp_path / "plain.safetensors", HeightRange(-0.1, 0.4)))
     assert plain.vertex_h_max is None and (plain.h_min, plain.h_max) == (-0.1, 0.4)
     (tmp_path / "junk.safetensors").write_bytes(b"not a tensor file")
-    with pytest.raises(ValueError, match="junk.safetensors: not a height band file"):
+    with pytest.raises(ValueError, match="junk.safetensors: not a readable safetensors file"):
         load_height_range(tmp_path / "junk.safetensors")
+    from garmentnerf.model.body_appearance import BodyAppearance, save_body_appearance
+
+    save_body_appearance(tmp_path / "body.safetensors", BodyAppearance(8))
+    with pytest.raises(ValueError, match="body.safetensors: not a height band file"):
+        load_height_range(tmp_path / "body.safetensors")
