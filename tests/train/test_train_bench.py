@@ -99,7 +99,7 @@ def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_p
     heavy = tmp_path / "heavy"
     config = tmp_path / "heavy.json"
     cfg = tiny_config()
-    config.write_text(json.dumps(cfg.replace(samples_per_ray=4 * cfg.samples_per_ray).to_dict()))
+    config.write_text(json.dumps(cfg.replace(samples_per_ray=16 * cfg.samples_per_ray).to_dict()))
     assert main(["train", "--scene", str(tiny_scene.root), "--out", str(heavy), "--model-config", str(config),
                  "--perceptual", "none", "--no-progress", "--threads", "1", "--iterations", "2",
                  "--generator-iterations", "1", "--image-every", "0"]) == 0
@@ -113,9 +113,10 @@ def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_p
     assert against["run"] == str(heavy)
     heavy_row, = against["precisions"]
     assert len(heavy_row["s_per_step_all"]) == len(light["s_per_step_all"]) == results["steps_timed"] == 6
-    # Four times the samples per ray: the per-sample stages grow, the per-frame ones do not.
-    assert heavy_row["stages_s"]["mlp"] > 2.0 * light["stages_s"]["mlp"]
-    assert heavy_row["stages_s"]["projection"] > 2.0 * light["stages_s"]["projection"]
+    # Sixteen times the samples per ray: the per-sample stages (together: each alone is a millisecond
+    # or two on the tiny model, within a loaded machine's noise) take several times as long.
+    per_sample = ("projection", "features", "mlp", "compositing")
+    assert sum(heavy_row["stages_s"][k] for k in per_sample) > 3.0 * sum(light["stages_s"][k] for k in per_sample)
     ratio = results["speedup_vs_against"][str(heavy)]["float32"]
     assert ratio == pytest.approx(heavy_row["s_per_step"] / light["s_per_step"]) and ratio > 1.0
     assert f"{ratio:5.2f}x faster than {heavy}'s recipe" in printed
