@@ -1,8 +1,11 @@
-"""Holding SIGINT and SIGTERM while work that must not be cut short runs; they act when it ends.
+"""SIGINT and SIGTERM in garmentnerf: what they raise, and holding them while work that must not be
+cut short runs (they act when it ends).
 
-Two users: a training step's update, so that a checkpoint never holds a half-updated step (see
-:mod:`garmentnerf.train.trainer`'s "Interruption, kills and a full disk"), and native work that
-runs on threads the main thread waits for (:func:`deferred_interrupts`).
+What they raise is :class:`Interrupted` (:func:`interrupting`), a KeyboardInterrupt that the
+commands catch to stop cleanly and exit with status 130. Holding: a training step's update, so
+that a checkpoint never holds a half-updated step (see :mod:`garmentnerf.train.trainer`'s
+"Interruption, kills and a full disk"), and native work that runs on threads the main thread waits
+for (:func:`deferred_interrupts`).
 """
 
 from __future__ import annotations
@@ -11,7 +14,46 @@ import contextlib
 import signal
 import threading
 
-__all__ = ["HeldInterrupts", "deferred_interrupts"]
+__all__ = ["HeldInterrupts", "Interrupted", "deferred_interrupts", "interrupting", "raise_interrupted"]
+
+
+class Interrupted(KeyboardInterrupt):
+    """A KeyboardInterrupt raised by garmentnerf's SIGINT and SIGTERM handlers (its message: the
+    signal's name); ``except KeyboardInterrupt`` catches it.
+
+    Not a plain KeyboardInterrupt because CPython (3.11) marks a KeyboardInterrupt that leaves an
+    ``exec()`` of a string as never handled, and then ends the process by SIGINT at exit even after
+    the program caught it and chose its exit status: ``garmentnerf train`` interrupted while a lazy
+    import built a dataclass (``dataclasses`` creates ``__init__`` with ``exec``) saved its
+    checkpoint, returned 130 and died of SIGINT (exit -2). CPython checks for the exact type, so a
+    subclass passes through.
+    """
+
+
+def raise_interrupted(signum, frame) -> None:
+    """A signal handler: raise :class:`Interrupted` named after the signal."""
+    raise Interrupted(signal.Signals(signum).name)
+
+
+@contextlib.contextmanager
+def interrupting(*signals: signal.Signals):
+    """While the block runs, each of ``signals`` raises :class:`Interrupted` (default: SIGINT and
+    SIGTERM); ``with`` restores their handlers. A signal that is ignored stays ignored (a command
+    started in the background by a shell without job control has SIGINT ignored). Off the main
+    thread, where no handler can be set, it only runs the body."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    try:
+        for sig in signals or (signal.SIGINT, signal.SIGTERM):
+            handler = signal.getsignal(sig)
+            if handler is not signal.SIG_IGN:
+                previous[sig] = signal.signal(sig, raise_interrupted)
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
 
 
 class HeldInterrupts:

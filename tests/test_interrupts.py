@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 import threading
 
 import numpy as np
@@ -15,7 +18,7 @@ import torch
 import trimesh
 
 from garmentnerf.geometry.projection import SurfaceProjector
-from garmentnerf.interrupts import deferred_interrupts
+from garmentnerf.interrupts import Interrupted, deferred_interrupts, interrupting
 
 
 @pytest.fixture(autouse=True)
@@ -98,3 +101,58 @@ def test_a_ctrl_c_during_the_projections_kd_query_acts_after_the_query():
     # the surface still answers, the same as before
     surface._tree = surface._tree.tree
     torch.testing.assert_close(surface.project(points).distance, expected)
+
+
+#: A program whose SIGINT lands inside an ``exec()`` of a string (as in a lazy import that builds a
+#: dataclass), which catches the interrupt and exits with 130: with Python's own handler
+#: (``plain``) or under :func:`interrupting` (``ours``). Run with ``python -m``, as ``garmentnerf``
+#: is (with ``-c`` or a script path, CPython exits before it looks at the mark).
+EXEC_INTERRUPTED = textwrap.dedent("""
+    import os, signal, sys
+    from garmentnerf.interrupts import interrupting
+
+    def work():
+        try:
+            exec("os.kill(os.getpid(), signal.SIGINT)\\nfor _ in range(10 ** 7): pass")
+        except KeyboardInterrupt:
+            return 130
+        return 0
+
+    if sys.argv[1] == "ours":
+        with interrupting():
+            status = work()
+    else:
+        status = work()
+    sys.exit(status)
+""")
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.mark.parametrize("handler, status", [("plain", -signal.SIGINT), ("ours", 130)])
+def test_an_interrupt_caught_after_it_left_an_exec_ends_with_the_chosen_status(tmp_path, handler, status):
+    """CPython ends a process by SIGINT at exit when a plain KeyboardInterrupt left an ``exec()``,
+    even though the program caught it (``plain``: the reference behaviour, exit -2);
+    :class:`Interrupted` keeps the status the program chose. ``garmentnerf train`` hit this."""
+    (tmp_path / "exec_interrupted.py").write_text(EXEC_INTERRUPTED)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    proc = subprocess.run([sys.executable, "-m", "exec_interrupted", handler], capture_output=True, text=True,
+                          timeout=120, preexec_fn=_default_sigint, env=env)
+    assert proc.returncode == status, proc.stderr
+
+
+def test_interrupting_raises_interrupted_and_restores_the_handlers():
+    before_term = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Interrupted, match="SIGTERM"):
+        with interrupting():
+            os.kill(os.getpid(), signal.SIGTERM)
+            busy_python()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGTERM) is before_term
+    # an ignored signal stays ignored
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with interrupting(signal.SIGINT):
+        os.kill(os.getpid(), signal.SIGINT)
+        assert busy_python(10) == 45

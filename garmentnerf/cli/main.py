@@ -10,10 +10,12 @@ import argparse
 import errno
 import faulthandler
 import os
+import signal
 import sys
 
 from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd, train_cmd,
                              view_cmd)
+from garmentnerf.interrupts import interrupting
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,9 +76,13 @@ _USER_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES,
 
 def run() -> None:
     """The ``garmentnerf`` executable: :func:`main`, with Python's fault handler on, so that a crash
-    in native code (the GL driver, torch) prints the Python stack it happened under to stderr."""
+    in native code (the GL driver, torch) prints the Python stack it happened under to stderr, and
+    with Ctrl-C raising :class:`~garmentnerf.interrupts.Interrupted` (so that a command stopped by
+    it exits with status 130, whatever code the interrupt landed in)."""
     faulthandler.enable()
-    sys.exit(main())
+    with interrupting(signal.SIGINT):
+        status = main()
+    sys.exit(status)
 
 
 if __name__ == "__main__":

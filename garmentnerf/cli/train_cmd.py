@@ -8,6 +8,7 @@ import signal
 from pathlib import Path
 
 from garmentnerf.cli.common import check_output_dir, parse_device
+from garmentnerf.interrupts import interrupting
 
 
 def register(sub) -> None:
@@ -160,12 +161,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")
     # `kill` (SIGTERM, what schedulers and `timeout` send) saves a checkpoint like Ctrl-C does.
-    previous = signal.signal(signal.SIGTERM, _interrupt)
-    try:
-        with Trainer(tc) as trainer:
-            result = trainer.train()
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    with interrupting(signal.SIGTERM), Trainer(tc) as trainer:
+        result = trainer.train()
     return 130 if result.interrupted else 0
 
 
@@ -190,7 +187,3 @@ def read_model_config(path):
         return ModelConfig.from_dict(dict(data))
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: not a valid model config: {' '.join(str(exc).split())}") from None
-
-
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt

@@ -73,6 +73,7 @@ from garmentnerf.data.scene_images import SceneImages, palette_from_images
 from garmentnerf.data.scene_schema import MOTION_FILE, SCENE_FILE
 from garmentnerf.data.simulate import PENETRATION_BOUND_M, SimSettings, _chunk_path, simulate
 from garmentnerf.io_utils import STALE_TEMPORARY_SECONDS, remove_stale_temporaries, temporary_pattern
+from garmentnerf.interrupts import interrupting, raise_interrupted
 from garmentnerf.motion.library import load_motion
 
 #: Seconds of the Gaussian that defines the "slow" root drift removed by :func:`remove_drift`.
@@ -292,10 +293,6 @@ def _remove_temporaries(folder: Path, name: str = "*", min_age: float = 0.0) -> 
     remove_stale_temporaries(folder, name, min_age=min_age)
 
 
-def _raise_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
 class InterruptOnce:
     """A worker's SIGINT/SIGTERM handler: the first signal interrupts (KeyboardInterrupt); later
     ones are ignored, so that the clean-up the first one started (a temporary removed, a message
@@ -311,7 +308,7 @@ class InterruptOnce:
     def __call__(self, signum, frame) -> None:
         if self.fired is None:
             self.fired = signum
-            raise KeyboardInterrupt(signal.Signals(signum).name)
+            raise_interrupted(signum, frame)
 
     def disarm(self) -> None:
         if self.fired is None:
@@ -326,14 +323,8 @@ def _in_main_thread() -> bool:
 def _terminate_as_interrupt():
     """While the block runs, SIGTERM stops this process as Ctrl-C does (KeyboardInterrupt): the
     simulation processes are stopped, nothing half-written stays, and a re-run resumes."""
-    if not _in_main_thread():  # signal handlers belong to the main thread
+    with interrupting(signal.SIGTERM):
         yield
-        return
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 @contextlib.contextmanager
