@@ -320,14 +320,6 @@ def _in_main_thread() -> bool:
 
 
 @contextlib.contextmanager
-def _terminate_as_interrupt():
-    """While the block runs, SIGTERM stops this process as Ctrl-C does (KeyboardInterrupt): the
-    simulation processes are stopped, nothing half-written stays, and a re-run resumes."""
-    with interrupting(signal.SIGTERM):
-        yield
-
-
-@contextlib.contextmanager
 def _children_start_deaf():
     """Processes started in the block begin with SIGINT and SIGTERM blocked (the signal mask is
     inherited through ``exec``) until they have installed their own handlers and unblock them
@@ -509,7 +501,9 @@ def make_scene(out: str | Path, spec: MakeSpec, *, settings=None, progress: bool
     if spec.garment not in GARMENT_KINDS:
         raise ValueError(f"unknown garment kind '{spec.garment}' (known: {', '.join(GARMENT_KINDS)})")
     plan = _sequence_plan(spec)
-    with _terminate_as_interrupt():
+    # SIGTERM stops the run as Ctrl-C does: the simulation processes are stopped, nothing
+    # half-written stays, and a re-run resumes
+    with interrupting(signal.SIGTERM):
         created = not root.exists()
         root.mkdir(parents=True, exist_ok=True)
         try:
