@@ -115,7 +115,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         palette_initial: (P, 3) p*.
         cfg: anything with the weights ``w_image, w_mask, w_perceptual, w_sparsity, w_offset,
             w_palette`` (a :class:`~garmentnerf.model.config.ModelConfig`).
-        perceptual: optional ``(pred, target) -> scalar``; its term is left out when None.
+        perceptual: optional ``(pred, target) -> scalar``; its term is left out when None. It sees both
+            images area-averaged by ``cfg.perceptual_downsample`` (when present and > 1).
         opacity: optional (B, h, w) accumulated opacity of the feature rays; with ``cfg.w_opacity``
             > 0 it is held to the target mask area-averaged to (h, w) (:func:`opacity_loss`).
         target_garment: optional (B, 1, H, W) or (B, H, W) ground-truth garment coverage; with
@@ -135,7 +136,11 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         "mask": l1(maps.mask, target_mask.to(maps.mask.dtype)),
     }
     if perceptual is not None:
-        terms["perceptual"] = perceptual(image, target_image)
+        factor = int(getattr(cfg, "perceptual_downsample", 1))
+        if factor > 1:
+            terms["perceptual"] = perceptual(F.avg_pool2d(image, factor), F.avg_pool2d(target_image, factor))
+        else:
+            terms["perceptual"] = perceptual(image, target_image)
     terms["sparsity"] = sparsity_loss(maps.weights)
     terms["offset"] = offset_loss(maps.offsets)
     terms["palette"] = palette_loss(palette, palette_initial)

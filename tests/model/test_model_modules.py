@@ -319,6 +319,36 @@ def test_losses_without_perceptual_and_weighting():
     torch.testing.assert_close(out["total"], expected)
 
 
+@pytest.mark.parametrize("factor", [1, 2, 4])
+def test_perceptual_term_sees_the_images_area_averaged_by_perceptual_downsample(factor):
+    """``perceptual_downsample`` hands the perceptual network both images area-averaged by the factor:
+    what OpenCV's INTER_AREA resize gives (an independent reference); factor 1 hands them over as they are."""
+    cv2 = pytest.importorskip("cv2")
+    cfg = tiny_config().replace(perceptual_downsample=factor)
+    n = cfg.image_resolution
+    maps = PaletteDecoder.from_config(cfg)(torch.randn(1, cfg.appearance_dim, cfg.feature_image_resolution,
+                                                       cfg.feature_image_resolution))
+    gen = torch.Generator().manual_seed(3)
+    image = torch.rand(1, 3, n, n, generator=gen, dtype=torch.float64)
+    target = torch.rand(1, 3, n, n, generator=gen, dtype=torch.float64)
+    seen = []
+    perceptual = lambda a, b: seen.append((a, b)) or (a - b).abs().mean()  # noqa: E731
+    p = torch.tensor([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2]])
+    garment_losses(image, target, maps, torch.ones(1, n, n), p, p, cfg, perceptual)
+    (a, b), = seen
+    for got, full in ((a, image), (b, target)):
+        hwc = full[0].permute(1, 2, 0).numpy()
+        ref = cv2.resize(hwc, (n // factor, n // factor), interpolation=cv2.INTER_AREA)
+        torch.testing.assert_close(got[0].permute(1, 2, 0), torch.from_numpy(ref), rtol=0, atol=1e-12)
+
+
+def test_perceptual_downsample_must_divide_the_image():
+    with pytest.raises(ValueError, match="perceptual_downsample"):
+        ModelConfig.cpu_small().replace(perceptual_downsample=3)
+    with pytest.raises(ValueError, match="perceptual_downsample"):
+        ModelConfig.cpu_small().replace(perceptual_downsample=0)
+
+
 def test_generator_losses_are_the_weighted_l1_and_perceptual_terms():
     """G_img's pre-training loss: w_image * mean |pred - target| + w_perceptual * perceptual."""
     from types import SimpleNamespace
