@@ -78,6 +78,22 @@ def register(sub) -> None:
     ambiguity.add_argument("--overwrite", action="store_true", help="replace --json if it exists")
     ambiguity.set_defaults(func=run_ambiguity)
 
+    reach = data_sub.add_parser(
+        "reach", help="how far the garment reaches from the body, against a recipe's sampling box and density prior",
+        description="Every frame's simulated garment against the body box grown by --padding (the model samples "
+                    "nothing outside it) and the body density prior of width --prior-width (negative beyond it, at "
+                    "its floor beyond twice it) (garmentnerf.model.garment_reach).")
+    reach.add_argument("scene", help="scene folder")
+    reach.add_argument("--sequence", action="append", default=None,
+                       help="sequence to measure (repeatable; default: all)")
+    reach.add_argument("--padding", type=float, default=None,
+                       help="box padding, m (default: ModelConfig.bbox_padding of cpu_small)")
+    reach.add_argument("--prior-width", type=float, default=None,
+                       help="body prior width, m (default: ModelConfig.body_prior_width of cpu_small)")
+    reach.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    reach.add_argument("--overwrite", action="store_true", help="replace --json if it exists")
+    reach.set_defaults(func=run_reach)
+
     info = data_sub.add_parser("info", help="summarise a scene (cameras, sequences, simulation statistics)")
     info.add_argument("scene", help="scene folder")
     info.add_argument("--json", action="store_true", help="print JSON")
@@ -178,6 +194,40 @@ def run_ambiguity(args: argparse.Namespace) -> int:
     if out is not None:
         with atomic_write_path(out, overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(report.to_json(), indent=1) + "\n", encoding="utf-8")
+    return 0
+
+
+def run_reach(args: argparse.Namespace) -> int:
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
+    from garmentnerf.body.model import BodyModel
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.model.config import ModelConfig
+    from garmentnerf.model.garment_reach import garment_reach
+
+    out = check_output_file(args.json, "--json", args.overwrite) if args.json else None
+    recipe = ModelConfig.cpu_small()
+    padding = recipe.bbox_padding if args.padding is None else args.padding
+    width = recipe.body_prior_width if args.prior_width is None else args.prior_width
+    if not padding >= 0:
+        raise ValueError(f"--padding must be >= 0, got {args.padding}")
+    if not width > 0:
+        raise ValueError(f"--prior-width must be > 0, got {args.prior_width}")
+    scene = Scene.load(args.scene)
+    for name in args.sequence or []:
+        scene.sequence(name)
+    reports = garment_reach(scene, BodyModel.default(), padding, width, args.sequence)
+    for r in reports:
+        print(f"{r.sequence} ({r.frames} frames):")
+        print(f"  outside the body box + {padding:g} m: {r.frames_outside_box} frames, at most "
+              f"{100 * r.worst_outside_share:.1f} % of the garment (frame {r.worst_outside_frame}), up to "
+              f"{100 * r.farthest_outside_m:.1f} cm out")
+        print(f"  height above the skin: p95 {r.h_p95_m:.3f} m, max {r.h_max_m:.3f} m (frame {r.h_max_frame})")
+        print(f"  beyond the prior's zero ({width:g} m): {100 * r.beyond_prior_zero_share:.1f} % of the garment "
+              f"(at most {100 * r.worst_beyond_prior_zero_share:.1f} %, frame {r.worst_beyond_prior_zero_frame}); "
+              f"at its floor ({2 * width:g} m): {100 * r.at_prior_floor_share:.2f} %")
+    if out is not None:
+        with atomic_write_path(out, overwrite=args.overwrite) as tmp:
+            tmp.write_text(json.dumps([r.to_json() for r in reports], indent=1) + "\n", encoding="utf-8")
     return 0
 
 

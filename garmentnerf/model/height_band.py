@@ -142,6 +142,23 @@ def dilate_vertex_values(values: torch.Tensor, faces: torch.Tensor, rings: int) 
     return out
 
 
+def garment_frame_heights(scene, sequence: str, body, frames=None, betas=None, projector=None):
+    """Yields ``(frame, posed (V, 3), garment (Vg, 3), BodyPoints)`` for ``frames`` of ``sequence``
+    (default: all): the body posed with the scene's shape, the simulated garment's vertices (float32,
+    CPU) and their body coordinates, h measured to the posed skin exactly as the model measures its
+    samples (``BodyPoints.face`` holds skin face ids, rows of ``projector.faces``)."""
+    betas = body.betas(scene.body.get("shape", "average")) if betas is None else betas
+    projector = BodyPointProjector(body) if projector is None else projector
+    garment = read_garment_arrays(scene.garment_path(sequence))
+    motion = scene.load_motion(sequence)
+    frames = range(garment.vertices.shape[0]) if frames is None else frames
+    with torch.no_grad():
+        for f in frames:
+            posed = motion.slice(int(f), int(f) + 1).pose(body, betas).vertices[0].detach().cpu().float()
+            pts = torch.from_numpy(np.ascontiguousarray(garment.vertices[f], dtype=np.float32))
+            yield int(f), posed, pts, projector.bind(posed).project(pts)
+
+
 def measure_height_range(scene, body=None, betas=None, projector=None, sequences=None, max_frames: int = 24,
                          margin_out: float = HEIGHT_MARGIN_OUT, margin_in: float = HEIGHT_MARGIN_IN,
                          per_vertex: bool = True, rings: int = VERTEX_BAND_RINGS) -> HeightRange:
@@ -164,22 +181,16 @@ def measure_height_range(scene, body=None, betas=None, projector=None, sequences
     vmax = None
     lo, hi = 0.0, 0.0
     for name in names:
-        garment = read_garment_arrays(scene.garment_path(name))
-        T = garment.vertices.shape[0]
+        T = scene.sequence(name).frames
         frames = np.unique(np.linspace(0, T - 1, min(T, max_frames)).round().astype(int))
-        motion = scene.load_motion(name)
-        with torch.no_grad():
-            for f in frames:
-                posed = motion.slice(int(f), int(f) + 1).pose(body, betas).vertices[0].detach().cpu().float()
-                pts = torch.from_numpy(np.ascontiguousarray(garment.vertices[f], dtype=np.float32))
-                proj = projector.bind(posed).project(pts)  # proj.face: skin face ids, rows of `faces`
-                h = proj.signed_distance.float()
-                lo, hi = min(lo, float(h.min())), max(hi, float(h.max()))
-                if per_vertex:
-                    if vmax is None:
-                        vmax = torch.zeros(posed.shape[0])
-                    corners = faces[proj.face.long()].reshape(-1)
-                    vmax = vmax.scatter_reduce(0, corners, h.clamp_min(0).repeat_interleave(3), reduce="amax")
+        for _, posed, _, proj in garment_frame_heights(scene, name, body, frames, betas, projector):
+            h = proj.signed_distance.float()
+            lo, hi = min(lo, float(h.min())), max(hi, float(h.max()))
+            if per_vertex:
+                if vmax is None:
+                    vmax = torch.zeros(posed.shape[0])
+                corners = faces[proj.face.long()].reshape(-1)
+                vmax = vmax.scatter_reduce(0, corners, h.clamp_min(0).repeat_interleave(3), reduce="amax")
     vertex_h_max = None
     if vmax is not None:
         vertex_h_max = (dilate_vertex_values(vmax, faces, rings) + margin_out).clamp(max=hi + margin_out)
@@ -206,6 +217,6 @@ class HeightBandFilter:
         return (h >= self.band.h_min) & (h <= self.band.upper_bound(points.face, points.bary, self.faces))
 
 
-__all__ = ["HeightRange", "HeightBandFilter", "measure_height_range", "save_height_range", "load_height_range",
+__all__ = ["HeightRange", "HeightBandFilter", "measure_height_range", "garment_frame_heights", "save_height_range", "load_height_range",
            "SHELL_BAND_FILE", "dilate_vertex_values", "DEFAULT_HEIGHT_RANGE",
            "HEIGHT_MARGIN_IN", "HEIGHT_MARGIN_OUT", "VERTEX_BAND_RINGS"]
