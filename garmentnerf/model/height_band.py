@@ -217,6 +217,6 @@ class HeightBandFilter:
         return (h >= self.band.h_min) & (h <= self.band.upper_bound(points.face, points.bary, self.faces))
 
 
-__all__ = ["HeightRange", "HeightBandFilter", "measure_height_range", "garment_frame_heights", "save_height_range", "load_height_range",
-           "SHELL_BAND_FILE", "dilate_vertex_values", "DEFAULT_HEIGHT_RANGE",
+__all__ = ["HeightRange", "HeightBandFilter", "measure_height_range", "garment_frame_heights", "save_height_range",
+           "load_height_range", "SHELL_BAND_FILE", "dilate_vertex_values", "DEFAULT_HEIGHT_RANGE",
            "HEIGHT_MARGIN_IN", "HEIGHT_MARGIN_OUT", "VERTEX_BAND_RINGS"]
