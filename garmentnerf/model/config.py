@@ -211,9 +211,10 @@ class ModelConfig:
     """VGG/perceptual term (paper lambda_2 = 0.1)."""
     perceptual_downsample: int = 1
     """The NeRF's perceptual term compares the image and its target area-averaged by this factor (1: at the
-    training resolution, as the paper). Shift-tolerant LPIPS (alex) on a 256 x 256 window costs 0.58 s of a
-    one-thread step (forward and backward), at 2 x 0.17 s (this CPU). G_img's pre-training keeps its term at
-    full resolution. Must divide ``image_resolution``."""
+    training resolution, as the paper). G_img's pre-training keeps its term at full resolution. Must divide
+    ``image_resolution``. At 2 the term costs 3.4 times less (1.18x on a UV-h step, ``bench --training``) but
+    did not pay at equal CPU time: recipe V1 lost 0.2 dB of foreground on the unseen views and 0.4 on the
+    unseen motion to E1, and 1.2 to 1.4 dB of body (docs/quality.md); hence 1."""
     w_sparsity: float = 2e-4
     """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
