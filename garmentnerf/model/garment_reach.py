@@ -80,9 +80,10 @@ def garment_reach(scene, body, padding: float, prior_width: float, sequences=Non
     names = list(sequences) if sequences else scene.sequence_names()
     out = []
     for name in names:
-        outside, excess, heights = [], [], []
-        for _, posed, garment, points in garment_frame_heights(scene, name, body, betas=betas, projector=projector):
+        ids, outside, excess, heights = [], [], [], []
+        for f, posed, garment, points in garment_frame_heights(scene, name, body, betas=betas, projector=projector):
             e = box_excess(garment, padded_box(body_aabb(posed), padding))
+            ids.append(f)
             outside.append(float((e > 0).double().mean()))
             excess.append(float(e.max()))
             heights.append(points.signed_distance.double().numpy())
@@ -93,9 +94,10 @@ def garment_reach(scene, body, padding: float, prior_width: float, sequences=Non
         out.append(SequenceReach(
             sequence=name, frames=len(heights), padding=float(padding), prior_width=float(prior_width),
             frames_outside_box=int((outside > 0).sum()), worst_outside_share=float(outside.max()),
-            worst_outside_frame=int(outside.argmax()), farthest_outside_m=float(excess.max()),
-            h_p95_m=float(np.quantile(h_all, 0.95)), h_max_m=float(h_max.max()), h_max_frame=int(h_max.argmax()),
-            beyond_prior_zero_share=float((h_all > prior_width).mean()),
-            worst_beyond_prior_zero_share=float(beyond.max()), worst_beyond_prior_zero_frame=int(beyond.argmax()),
+            worst_outside_frame=ids[int(outside.argmax())], farthest_outside_m=float(excess.max()),
+            h_p95_m=float(np.quantile(h_all, 0.95)), h_max_m=float(h_max.max()),
+            h_max_frame=ids[int(h_max.argmax())], beyond_prior_zero_share=float((h_all > prior_width).mean()),
+            worst_beyond_prior_zero_share=float(beyond.max()),
+            worst_beyond_prior_zero_frame=ids[int(beyond.argmax())],
             at_prior_floor_share=float((h_all > 2 * prior_width).mean())))
     return out
