@@ -239,6 +239,23 @@ class ModelConfig:
     has no planes; 0: off). Without it the shared planes, at ten times the rate, learn texel-scale noise that
     renders as fur on the skirt (E1 uvh: blurring its planes by 6 texels removes the fur and costs 0.4 dB on
     the garment, two held-out views of frame 20; docs/quality.md)."""
+    w_occupancy: float = 0.0
+    """Geometry supervision from the simulated garment (not in the paper; 0: off): the binary cross-entropy of
+    the field's occupancy ``1 - exp(-sigma * occupancy_step)`` at ``occupancy_points`` points of the step's
+    frame against *occupied* within ``occupancy_half_thickness`` of the garment's surface or inside the body
+    (:mod:`garmentnerf.model.occupancy`). The images teach a frame's shape through one view per step; this
+    term says where the whole frame's cloth is, every step, from the garment every scene sequence holds."""
+    occupancy_points: int = 8192
+    """Points per step of the occupancy term: half around the cloth, half uniform in the sampling box."""
+    occupancy_half_thickness: float = 0.015
+    """Half the thickness (metres) of the sheet around the garment's surface that counts as occupied: about
+    half the sampler's interval (a 0.6 m deep box in 24 samples: 2.5 cm), so a ray's jittered samples meet
+    the sheet as they would meet the density the images ask for."""
+    occupancy_step: float = 0.025
+    """Interval length (metres) that turns density into the occupancy of the term: about the sampler's."""
+    occupancy_spread: float = 0.05
+    """Standard deviation (metres) of the noise that moves garment vertices to the term's points around the
+    cloth."""
     segmentation_start: int = 0
     """NeRF steps done before the segmentation term applies (a curriculum: the garment is first carved and
     colored by the image and mask losses, then assigned to its palette entry; the bundled model switched it
@@ -341,7 +358,8 @@ class ModelConfig:
                  "lr", "lr_final", "iterations", "batch_size", "grad_clip_value", "generator_lr",
                  "generator_iterations", "atlas_feature_levels", "atlas_feature_resolution", "atlas_feature_lr_scale",
                  "encoder_lr_scale", "uvh_slices", "uvh_plane_channels", "uvh_plane_resolution", "uvh_plane_height",
-                 "uvh_plane_lr_scale", "perceptual_downsample")
+                 "uvh_plane_lr_scale", "perceptual_downsample", "occupancy_points", "occupancy_half_thickness",
+                 "occupancy_step", "occupancy_spread")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
         if self.segmentation_start < 0:
@@ -349,7 +367,7 @@ class ModelConfig:
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
                      "decoder_extra_layers", "bbox_padding", "blend_weight_floor", "w_image", "w_mask",
                      "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation",
-                     "w_plane_tv"):
+                     "w_plane_tv", "w_occupancy"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:

@@ -13,11 +13,12 @@ Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixe
 (summed over palette colors and channels) averaged over pixels, as in PaletteNeRF whose weights
 the paper adopts; L_p is the sum over the palette's 3P values.
 
-Three optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
+Four optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
 on the first two, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
 opacity to the ground-truth mask, ``segmentation`` holds the garment blend weight to the label
 maps' garment share, ``plane_tv`` smooths the ``uvh`` field's learned tri-plane
-(:func:`plane_total_variation`).
+(:func:`plane_total_variation`), ``occupancy`` holds the field's density to the simulated garment
+(:mod:`garmentnerf.model.occupancy`).
 
 G_img's pre-training (DNG's recipe, without its adversarial terms): ``w_image L1 + w_perceptual
 perceptual`` between the generated and the ground-truth reference images.
@@ -34,6 +35,7 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
+from garmentnerf.model.occupancy import occupancy_loss
 from garmentnerf.model.palette import DecomposedMaps
 
 
@@ -103,7 +105,7 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
                    perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
                    opacity: torch.Tensor | None = None,
                    target_garment: torch.Tensor | None = None,
-                   planes=None) -> dict[str, torch.Tensor]:
+                   planes=None, occupancy: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """All loss terms of one batch.
 
     Args:
@@ -125,9 +127,12 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
             ``cfg.segmentation_head_only`` and the maps carry ``weights_head_only``.
         planes: optional feature planes (each (1, C, H, W)); with ``cfg.w_plane_tv`` > 0 their
             :func:`plane_total_variation` is a term.
+        occupancy: optional ``(sigma (N,), occupied (N,))``, the field's density at points of the frame and
+            their labels; with ``cfg.w_occupancy`` > 0 their
+            :func:`~garmentnerf.model.occupancy.occupancy_loss` (interval ``cfg.occupancy_step``) is a term.
     Returns:
         dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette,
-        [opacity,] [segmentation,] [plane_tv]`` and ``total``, the weighted sum.
+        [opacity,] [segmentation,] [plane_tv,] [occupancy]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
@@ -158,9 +163,13 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     w_plane_tv = float(getattr(cfg, "w_plane_tv", 0.0))
     if planes is not None and w_plane_tv > 0:
         terms["plane_tv"] = plane_total_variation(planes)
+    w_occupancy = float(getattr(cfg, "w_occupancy", 0.0))
+    if occupancy is not None and w_occupancy > 0:
+        terms["occupancy"] = occupancy_loss(occupancy[0], occupancy[1], cfg.occupancy_step)
     weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
                "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
-               "segmentation": w_segmentation, "plane_tv": w_plane_tv}
+               "segmentation": w_segmentation, "plane_tv": w_plane_tv,
+               "occupancy": w_occupancy}
     terms["total"] = sum(weights[name] * value for name, value in terms.items())
     return terms
 

@@ -99,7 +99,8 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from garmentnerf.data.scene import Scene
+from garmentnerf.data.scene import Scene, read_garment_arrays
+from garmentnerf.geometry.projection import SurfaceProjector
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.io_utils import write_file_atomic
@@ -108,6 +109,7 @@ from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_ap
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.height_band import SHELL_BAND_FILE, load_height_range, measure_height_range, save_height_range
 from garmentnerf.model.losses import garment_losses, generator_losses
+from garmentnerf.model.occupancy import occupancy_labels, occupancy_points
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
@@ -378,6 +380,9 @@ class Trainer(Closeable):
         #: Frames whose body geometry is kept between steps (0: rebuilt at every step).
         self.geometry_cache_frames = GEOMETRY_CACHE_FRAMES
         self._geometry: OrderedDict[tuple[str, int], object] = OrderedDict()
+        # Per training sequence, its simulated garment (vertices (T, Vg, 3)) and the garment topology's
+        # projector: the occupancy term's labels (ModelConfig.w_occupancy), loaded on first use.
+        self._garments: dict[str, tuple[np.ndarray, SurfaceProjector]] = {}
         self.step = 0
         self.optimizer = None
         self.stage = None
@@ -610,11 +615,30 @@ class Trainer(Closeable):
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
+        occupancy = self._occupancy(seq, frame, feats, box, gen) if self.cfg.w_occupancy > 0 else None
         terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
                                self.cfg, self.perceptual, opacity=out.opacity[None],
                                target_garment=garment[None] if segment else None,
-                               planes=getattr(self.model.nerf, "planes", None))
+                               planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy)
         return terms, {"pred": pred, "target": image}
+
+    def _occupancy(self, seq: str, frame: int, feats, box: torch.Tensor,
+                   gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """The occupancy term's inputs for one frame: the field's density at ``cfg.occupancy_points``
+        points of the frame (half around its simulated cloth, half in its sampling ``box``) and their
+        labels (:mod:`garmentnerf.model.occupancy`)."""
+        if seq not in self._garments:
+            arrays = read_garment_arrays(self.scene.garment_path(seq))  # every scene sequence has one (Scene.load)
+            self._garments[seq] = (arrays.vertices, SurfaceProjector(arrays.faces, arrays.vertices.shape[1]))
+        vertices, projector = self._garments[seq]
+        cfg = self.cfg
+        n_near = cfg.occupancy_points // 2
+        points = occupancy_points(torch.from_numpy(np.ascontiguousarray(vertices[frame], dtype=np.float32)),
+                                  projector, box, n_near, cfg.occupancy_points - n_near, cfg.occupancy_spread, gen)
+        body_height = self.model.sample_geometry(feats, points.positions).signed_distance.cpu()
+        labels = occupancy_labels(points.garment_distance, body_height, cfg.occupancy_half_thickness)
+        sigma, _, _ = self.model.evaluate_samples(feats, points.positions, precision=self.tc.precision)
+        return sigma, labels.to(sigma.device)
 
     def _backward_batch(self, step: int, stage: str) -> tuple[dict[str, float], dict]:
         """Backpropagates step ``step``'s ``cfg.batch_size`` images one after the other, each loss

@@ -337,6 +337,41 @@ def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_pat
     assert min(seg[10:]) < 0.85 * seg[0], seg
 
 
+def test_occupancy_term_teaches_the_density_where_the_garment_is(tiny_scene, gl_context, tmp_path):
+    import numpy as np
+
+    from garmentnerf.data.scene import read_garment_arrays
+    from garmentnerf.geometry.projection import SurfaceProjector
+    from garmentnerf.model.occupancy import occupancy_iou, occupancy_labels, occupancy_points
+    from garmentnerf.model.samplers import padded_box
+
+    cfg = tiny_config().replace(lr=1e-2, lr_final=5e-3, w_occupancy=1.0, occupancy_points=2048)
+    tc = make_tc(tiny_scene, tmp_path / "run", iterations=25, generator_iterations=0, frames=(1,), model_config=cfg)
+    arrays = read_garment_arrays(tiny_scene.garment_path("train"))
+    projector = SurfaceProjector(arrays.faces, arrays.vertices.shape[1])
+
+    def iou(tr) -> float:
+        """The density's IoU with the labels at fresh points of frame 1 (not the training draws)."""
+        with torch.no_grad():
+            feats = tr.model.prepare_frame(tr._nerf_inputs("train", 1))
+            box = padded_box(feats.aabb, cfg.bbox_padding)
+            pts = occupancy_points(torch.from_numpy(np.ascontiguousarray(arrays.vertices[1])), projector, box, 4000,
+                                   4000, cfg.occupancy_spread, torch.Generator().manual_seed(99))
+            height = tr.model.sample_geometry(feats, pts.positions).signed_distance.cpu()
+            labels = occupancy_labels(pts.garment_distance, height, cfg.occupancy_half_thickness)
+            sigma, _, _ = tr.model.evaluate_samples(feats, pts.positions)
+        return occupancy_iou(sigma, labels, cfg.occupancy_step)
+
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        before = iou(tr)
+        result = tr.train()
+        after = iou(tr)
+    occ = [h["occupancy"] for h in result.history]
+    assert len(occ) == 25 and all(np.isfinite(occ))
+    assert min(occ[-5:]) < 0.7 * occ[0], occ
+    assert after > before + 0.1, (before, after)
+
+
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "run"
     base = tiny_config().replace(w_segmentation=0.0, segmentation_start=0)
