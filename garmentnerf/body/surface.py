@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 #: Velocity-map scale: map value = velocity in m/s x VELOCITY_SCALE. It equals the authors'
@@ -61,10 +63,7 @@ def canonical_velocities(vertices: torch.Tensor, vertex_linear: torch.Tensor, fp
         (T, V, 3 k): slot i-1 in channels [3 (i-1), 3 i).
     """
     T = vertices.shape[0]
-    disp = torch.zeros_like(vertices)
-    disp[1:] = vertices[1:] - vertices[:-1]  # disp[s] = x(s) - x(s-1); zero at s = 0
-    local = solve3x3(vertex_linear, disp)
-    local = local * (fps * VELOCITY_SCALE)
+    local = canonical_frame_velocities(vertices, vertex_linear, fps)
     slots = []
     for i in range(1, history + 1):
         # slot i at frame t holds local[t - i + 1]; before the start it is zero.
@@ -72,6 +71,51 @@ def canonical_velocities(vertices: torch.Tensor, vertex_linear: torch.Tensor, fp
         if T - (i - 1) > 0:
             shifted[i - 1:] = local[: T - (i - 1)]
         slots.append(shifted)
+    return torch.cat(slots, dim=-1)
+
+
+def canonical_frame_velocities(vertices: torch.Tensor, vertex_linear: torch.Tensor, fps: float) -> torch.Tensor:
+    """(T, V, 3) each vertex's velocity between frame t - 1 and t in the canonical frame (zero at t = 0),
+    scaled by :data:`VELOCITY_SCALE`: slot 1 of :func:`canonical_velocities`."""
+    disp = torch.zeros_like(vertices)
+    disp[1:] = vertices[1:] - vertices[:-1]  # disp[s] = x(s) - x(s-1); zero at s = 0
+    return solve3x3(vertex_linear, disp) * (fps * VELOCITY_SCALE)
+
+
+def smoothing_window(time_constant: float, fps: float) -> int:
+    """Frames an exponential smoothing of ``time_constant`` seconds reaches back (three time constants,
+    at least 1): what :func:`smoothed_velocities` averages over."""
+    return max(1, math.ceil(3.0 * float(time_constant) * float(fps) - 1e-9))  # 3 x 0.2 s x 30 fps: 18, not 19
+
+
+def smoothed_velocities(velocities: torch.Tensor, fps: float, time_constants) -> torch.Tensor:
+    """Causal exponentially weighted means of per-frame velocities, one per time constant.
+
+    For time constant tau (seconds) the slot at frame t is ``sum_i w_i v(t - i) / sum_i w_i`` over
+    i = 0 .. :func:`smoothing_window` - 1, ``w_i = exp(-i / (tau fps))``, with frames before the start
+    counting as zero (the first frame held still, as :func:`canonical_velocities`). A long time constant
+    says where the body has been going for the last second: what a skirt's swing follows, which two
+    frames of velocity do not tell.
+
+    Args:
+        velocities: (T, V, 3) per-frame velocities (:func:`canonical_frame_velocities`).
+        fps: frames per second.
+        time_constants: m time constants in seconds.
+    Returns:
+        (T, V, 3 m): slot j in channels [3 j, 3 j + 3).
+    """
+    T = velocities.shape[0]
+    slots = []
+    for tau in time_constants:
+        window = smoothing_window(tau, fps)
+        weights = torch.exp(-torch.arange(window, dtype=velocities.dtype) / (float(tau) * float(fps)))
+        weights = weights / weights.sum()
+        acc = torch.zeros_like(velocities)
+        for i in range(min(window, T)):
+            acc[i:] += weights[i] * velocities[: T - i]
+        slots.append(acc)
+    if not slots:
+        return velocities.new_zeros(T, velocities.shape[1], 0)
     return torch.cat(slots, dim=-1)
 
 

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from garmentnerf.body.model import BodyModel, PosedBody
-from garmentnerf.body.surface import canonical_velocities, root_relative_normals, vertex_normals
+from garmentnerf.body.surface import (canonical_frame_velocities, canonical_velocities, root_relative_normals,
+                                     smoothed_velocities, smoothing_window, vertex_normals)
 from garmentnerf.gl.uv_raster import UVAttributeRasterizer
 
 
@@ -25,7 +26,8 @@ class InfoMaps:
 
     Attributes:
         normal: (H, W, 3) root-relative unit normals.
-        velocity: (H, W, 3 k) canonical-frame velocity history (units: :data:`~garmentnerf.body.surface.VELOCITY_SCALE`).
+        velocity: (H, W, 3 k + 3 m) canonical-frame velocity history, then its m smoothed means
+            (units: :data:`~garmentnerf.body.surface.VELOCITY_SCALE`).
         mask: (H, W) bool, texels covered by the atlas.
     """
 
@@ -34,7 +36,7 @@ class InfoMaps:
     mask: torch.Tensor
 
     def stacked(self) -> torch.Tensor:
-        """(3 + 3 k, H, W) channels-first input of the dynamic feature encoder."""
+        """(3 + 3 k + 3 m, H, W) channels-first input of the dynamic feature encoder."""
         return torch.cat([self.normal, self.velocity], dim=-1).permute(2, 0, 1).contiguous()
 
 
@@ -61,14 +63,18 @@ class InfoMapRenderer:
         body: the body model (must have a UV atlas).
         resolution: map size (paper: 128).
         history: k, velocity slots (paper: 2).
+        velocity_smoothing: m time constants (seconds) of smoothed velocity slots after the k
+            (:func:`~garmentnerf.body.surface.smoothed_velocities`; not in the paper, which has none).
     """
 
-    def __init__(self, ctx: moderngl.Context, body: BodyModel, resolution: int = 128, history: int = 2):
+    def __init__(self, ctx: moderngl.Context, body: BodyModel, resolution: int = 128, history: int = 2,
+                 velocity_smoothing=()):
         if not body.has_uv:
             raise ValueError(f"body model '{body.name}' has no UV atlas; info maps need one "
                              "(for SMPL pass the UV .obj file distributed with it)")
         self.body = body
         self.history = history
+        self.velocity_smoothing = tuple(float(t) for t in velocity_smoothing)
         self.root = int(np.flatnonzero(body.asset.parents < 0)[0])
         self.uv_to_vertex = torch.as_tensor(uv_vertex_to_vertex(body.asset.faces, body.asset.uv_faces, body.asset.uv.shape[0]))
         self.rasterizer = UVAttributeRasterizer(ctx, body.asset.uv, body.asset.uv_faces, resolution)
@@ -77,14 +83,24 @@ class InfoMapRenderer:
     def mask(self) -> torch.Tensor:
         return self.rasterizer.mask
 
+    def frames_back(self, fps: float) -> int:
+        """Frames before frame t that frame t's maps depend on: k for the velocity history, more for
+        a smoothed slot (:func:`~garmentnerf.body.surface.smoothing_window`)."""
+        back = [self.history] + [smoothing_window(t, fps) for t in self.velocity_smoothing]
+        return max(back)
+
     def vertex_attributes(self, posed: PosedBody, fps: float) -> torch.Tensor:
-        """(T, V, 3 + 3 k) per-vertex [root-relative normal, canonical velocities]."""
+        """(T, V, 3 + 3 k + 3 m) per-vertex [root-relative normal, canonical velocities, their smoothed means]."""
         normals = vertex_normals(posed.vertices, self.body.faces)
         normals = root_relative_normals(normals, posed.joint_transforms[:, self.root, :, :3])
         parts = [normals]
-        if self.history > 0:
+        if self.history > 0 or self.velocity_smoothing:
             linear = self.body.vertex_transforms(posed.joint_transforms)[..., :3]
+        if self.history > 0:
             parts.append(canonical_velocities(posed.vertices, linear, fps, self.history))
+        if self.velocity_smoothing:
+            velocity = canonical_frame_velocities(posed.vertices, linear, fps)
+            parts.append(smoothed_velocities(velocity, fps, self.velocity_smoothing))
         return torch.cat(parts, dim=-1)
 
     def render_attributes(self, attributes: torch.Tensor) -> InfoMaps:

@@ -11,6 +11,7 @@ to a default.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 DETAIL_SELECTION_MODES = ("visibility", "soft_normal")
@@ -32,6 +33,13 @@ class ModelConfig:
     history: int = 2
     """k, number of past velocity frames in the velocity map V_t (paper: 2). The dynamic feature encoder E
     then sees 3 (k + 1) channels (normals + k velocities)."""
+    velocity_smoothing: tuple[float, ...] = ()
+    """Time constants (seconds) of smoothed velocity maps E sees after the k velocity maps (not in the paper:
+    empty gives its input): each is the causal exponentially weighted mean of the per-frame canonical
+    velocities over three time constants (:func:`~garmentnerf.body.surface.smoothed_velocities`), 3 more
+    channels each. Two frames of velocity do not say where a skirt's hem has swung: it follows where the
+    body has been going for the last fraction of a second (docs/quality.md, "Telling the field where the
+    cloth is")."""
     info_map_resolution: int = 128
     """Side of the UV info maps N_t, V_t and of the dynamic feature map F^s_t (paper: 128)."""
     image_resolution: int = 512
@@ -296,13 +304,14 @@ class ModelConfig:
     def __post_init__(self) -> None:
         self.background = tuple(float(c) for c in self.background)
         self.uvh_height_range = tuple(float(h) for h in self.uvh_height_range)
+        self.velocity_smoothing = tuple(float(t) for t in self.velocity_smoothing)
         self.validate()
 
     # ------------------------------------------------------------------ derived sizes
     @property
     def encoder_in_channels(self) -> int:
-        """3 (k + 1): normal map plus k velocity maps."""
-        return 3 * (self.history + 1)
+        """3 (k + 1 + m): normal map, k velocity maps and m smoothed velocity maps."""
+        return 3 * (self.history + 1 + len(self.velocity_smoothing))
 
     @property
     def dynamic_encoder_channels(self) -> int:
@@ -362,6 +371,9 @@ class ModelConfig:
                  "occupancy_step", "occupancy_spread")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
+        if not all(math.isfinite(t) and t > 0 for t in self.velocity_smoothing):
+            raise ValueError(f"ModelConfig.velocity_smoothing must hold positive seconds, got "
+                             f"{list(self.velocity_smoothing)}")
         if self.segmentation_start < 0:
             raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
@@ -484,6 +496,7 @@ class ModelConfig:
         out = dataclasses.asdict(self)
         out["background"] = list(self.background)
         out["uvh_height_range"] = list(self.uvh_height_range)
+        out["velocity_smoothing"] = list(self.velocity_smoothing)
         return out
 
     @classmethod

@@ -88,7 +88,8 @@ class FrameInputs:
             raise ValueError(f"posed_vertices has {V} rows, the body model has {num_vertices} vertices")
         R, C = cfg.info_map_resolution, cfg.encoder_in_channels
         if tuple(self.info_maps.shape) != (C, R, R):
-            raise ValueError(f"info_maps must be ({C}, {R}, {R}) for history={cfg.history} and "
+            raise ValueError(f"info_maps must be ({C}, {R}, {R}) for history={cfg.history}, "
+                             f"velocity_smoothing={list(cfg.velocity_smoothing)} and "
                              f"info_map_resolution={R}, got {tuple(self.info_maps.shape)}")
         S = cfg.reference_resolution
         if len(self.reference_cameras) != 2:
@@ -215,7 +216,8 @@ class FrameInputBuilder:
         S = cfg.reference_resolution
         front, back = resolve_reference_cameras(references)
         self.reference_cameras: tuple[Camera, Camera] = (front.resized(S, S), back.resized(S, S))
-        self.info_map_renderer = InfoMapRenderer(ctx, body, cfg.info_map_resolution, cfg.history)
+        self.info_map_renderer = InfoMapRenderer(ctx, body, cfg.info_map_resolution, cfg.history,
+                                                 cfg.velocity_smoothing)
         self.camera_pass = CameraPass(ctx)
         self._faces = body.faces.cpu()
         self._uv = body.uv.cpu()
@@ -241,7 +243,8 @@ class FrameInputBuilder:
     def build(self, posed: "PosedBody", frame: int, fps: float) -> FrameInputs:
         """Inputs of frame ``frame`` of a posed clip.
 
-        Only frames ``frame - k .. frame`` are used (the velocity history); the result equals the
+        Only frames ``frame - k .. frame`` are used (the velocity history; further back for smoothed
+        velocity maps, :meth:`InfoMapRenderer.frames_back`); the result equals the
         corresponding frame of :meth:`build_clip` (frames before the clip's start count as the
         first frame held still, as in :func:`garmentnerf.body.surface.canonical_velocities`).
         """
@@ -250,7 +253,7 @@ class FrameInputBuilder:
             raise IndexError(f"frame {frame} outside the clip's {T} frames")
         frame = frame % T
         t0 = time.perf_counter()
-        window = _slice_posed(posed, max(0, frame - self.cfg.history), frame + 1)
+        window = _slice_posed(posed, max(0, frame - self.info_map_renderer.frames_back(fps)), frame + 1)
         attributes = self.info_map_renderer.vertex_attributes(window, fps)
         maps = self.info_map_renderer.render_attributes(attributes[-1]).stacked()
         info_ms = (time.perf_counter() - t0) * 1e3

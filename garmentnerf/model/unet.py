@@ -94,13 +94,13 @@ class DynamicFeatureEncoder(UNet):
     (the ``uvh`` field: ``(B, 8 K, R, R)``, K slices along h; ``ModelConfig.dynamic_encoder_channels``)."""
 
     def __init__(self, history: int = 2, out_channels: int = 8, base_width: int = 32, depth: int = 4,
-                 width_scale: float = 1.0):
-        super().__init__(3 * (history + 1), out_channels, base_width, depth, width_scale, "tanh")
+                 width_scale: float = 1.0, smoothed_slots: int = 0):
+        super().__init__(3 * (history + 1 + smoothed_slots), out_channels, base_width, depth, width_scale, "tanh")
 
     @classmethod
     def from_config(cls, cfg) -> "DynamicFeatureEncoder":
         return cls(cfg.history, cfg.dynamic_encoder_channels, cfg.encoder_base_width, cfg.encoder_depth,
-                   cfg.encoder_width_scale)
+                   cfg.encoder_width_scale, len(cfg.velocity_smoothing))
 
 
 class DetailEncoder(UNet):

@@ -127,3 +127,48 @@ def test_maps_have_the_documented_shapes(renderer, body):
     assert maps.mask.dtype == torch.bool and 0.4 < float(maps.mask.float().mean()) < 0.9
     assert maps.stacked().shape == (9, 128, 128)
     assert torch.isfinite(maps.stacked()).all()
+
+
+def test_smoothed_velocities_are_causal_exponential_means():
+    from garmentnerf.body.surface import smoothed_velocities, smoothing_window
+
+    g = torch.Generator().manual_seed(3)
+    velocities = torch.randn(40, 5, 3, generator=g, dtype=torch.float64)
+    out = smoothed_velocities(velocities, FPS, (0.1, 0.4))
+    assert out.shape == (40, 5, 6)
+    v = velocities.numpy()
+    for j, tau in enumerate((0.1, 0.4)):
+        window = smoothing_window(tau, FPS)
+        assert window == {0.1: 9, 0.4: 36}[tau]
+        w = np.exp(-np.arange(window) / (tau * FPS))
+        w /= w.sum()
+        for t in (0, 3, 39):
+            expect = sum(w[i] * v[t - i] for i in range(window) if t - i >= 0)  # before the start: zero
+            np.testing.assert_allclose(out[t, :, 3 * j:3 * j + 3].numpy(), expect, rtol=1e-12, atol=1e-12)
+    # a constant velocity is kept once the window is full
+    const = torch.ones(40, 2, 3, dtype=torch.float64)
+    np.testing.assert_allclose(smoothed_velocities(const, FPS, (0.1,))[10:].numpy(), 1.0, rtol=1e-12)
+
+
+def test_frame_inputs_with_smoothed_maps_equal_the_clip_ones(gl_context, body):
+    """A frame built alone reaches back far enough for its smoothed maps: it equals the clip's frame."""
+    from garmentnerf.model.config import ModelConfig
+    from garmentnerf.model.frame_context import FrameInputBuilder
+
+    rot, trans = smooth_motion(body, frames=24, seed=4)
+    posed = body.pose(rot, trans)
+    cfg = ModelConfig.cpu_small().replace(reference_resolution=32, info_map_resolution=32,
+                                          velocity_smoothing=(0.05, 0.2))
+    assert cfg.encoder_in_channels == 3 * (2 + 1 + 2)
+    from garmentnerf.conventions import orbit_camera
+
+    cams = (orbit_camera(0.0, 0.0, 3.0, width=32, height=32), orbit_camera(180.0, 0.0, 3.0, width=32, height=32))
+    with FrameInputBuilder(gl_context, body, cams, cfg) as builder:
+        clip = builder.build_clip(posed, FPS, frames=[20])[0]
+        alone = builder.build(posed, 20, FPS)
+        short = builder.build(posed, 2, FPS)
+    assert alone.info_maps.shape == (cfg.encoder_in_channels, 32, 32)
+    torch.testing.assert_close(alone.info_maps, clip.info_maps, rtol=0, atol=1e-6)
+    # the 0.2 s slot of frame 20 reaches back 18 frames, so frame 20's 0.2 s maps are not frame 2's
+    assert not torch.allclose(alone.info_maps[-3:], short.info_maps[-3:])
+    assert builder.info_map_renderer.frames_back(FPS) == 18
