@@ -15,7 +15,8 @@ Stages (:data:`STAGES`, seconds per step, the median of each over the timed step
     G_img; E and G_en); ``rays`` ... ``decoder``: the render's
     (:data:`~garmentnerf.model.pipeline.RENDER_STAGES`); ``body_layer``: the body rasterised and
     composed under the garment (runs with a body appearance only); ``perceptual``: the perceptual
-    loss's forward; ``forward_other``: the rest of the forward (data, other loss terms, palette
+    loss's forward; ``occupancy``: the occupancy term's forward (its points, their projections and the
+    field at them; runs with ``w_occupancy`` > 0 only); ``forward_other``: the rest of the forward (data, other loss terms, palette
     composition); ``perceptual_backward``: from the gradient reaching the perceptual loss's output
     to its input's (module backward hooks); ``backward_other``: the rest of ``backward()``;
     ``optimizer``: the rest of the step (gradient clipping, Adam, bookkeeping). They add up to the
@@ -50,8 +51,8 @@ __all__ = ["training_benchmark", "STAGES"]
 
 #: The stages of a NeRF step timed by :func:`training_benchmark`, in step order.
 STAGES = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp", "compositing",
-          "decoder", "body_layer", "perceptual", "forward_other", "perceptual_backward", "backward_other",
-          "optimizer")
+          "decoder", "body_layer", "perceptual", "occupancy", "forward_other", "perceptual_backward",
+          "backward_other", "optimizer")
 #: :class:`~garmentnerf.model.pipeline.RenderOutput` timings (ms) that a step pays.
 _RENDER_TIMINGS = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp",
                    "compositing", "decoder")
@@ -71,6 +72,7 @@ class _StageClock:
         self._wrap(trainer, "_backward_batch", "backward_batch")
         self._wrap(trainer, "_nerf_step", "nerf_step")
         self._wrap(trainer, "_with_body", "body_layer")
+        self._wrap(trainer, "_occupancy", "occupancy")
         render = trainer.model.render
 
         def timed_render(*args, **kwargs):
@@ -115,7 +117,8 @@ class _StageClock:
         step, self._t_step = now - self._t_step, now
         forward, batch = c.pop("nerf_step", 0.0), c.pop("backward_batch", 0.0)
         stages = {k: c.get(k, 0.0) for k in STAGES}
-        stages["forward_other"] = forward - sum(c.get(k, 0.0) for k in (*_RENDER_TIMINGS, "body_layer", "perceptual"))
+        stages["forward_other"] = forward - sum(c.get(k, 0.0) for k in (*_RENDER_TIMINGS, "body_layer", "perceptual",
+                                                                          "occupancy"))
         stages["backward_other"] = batch - forward - stages["perceptual_backward"]
         stages["optimizer"] = step - batch
         return stages

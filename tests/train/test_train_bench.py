@@ -99,7 +99,7 @@ def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_p
     heavy = tmp_path / "heavy"
     config = tmp_path / "heavy.json"
     cfg = tiny_config()
-    config.write_text(json.dumps(cfg.replace(samples_per_ray=16 * cfg.samples_per_ray).to_dict()))
+    config.write_text(json.dumps(cfg.replace(samples_per_ray=16 * cfg.samples_per_ray, w_occupancy=1.0).to_dict()))
     assert main(["train", "--scene", str(tiny_scene.root), "--out", str(heavy), "--model-config", str(config),
                  "--perceptual", "none", "--no-progress", "--threads", "1", "--iterations", "2",
                  "--generator-iterations", "1", "--image-every", "0"]) == 0
@@ -117,6 +117,9 @@ def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_p
     # or two on the tiny model, within a loaded machine's noise) take several times as long.
     per_sample = ("projection", "features", "mlp", "compositing")
     assert sum(heavy_row["stages_s"][k] for k in per_sample) > 3.0 * sum(light["stages_s"][k] for k in per_sample)
+    # the occupancy term is timed where it runs, and only there
+    assert all(stages["occupancy"] > 0 for stages in heavy_row["stages_s_all"])
+    assert all(stages["occupancy"] == 0 for stages in light["stages_s_all"])
     ratio = results["speedup_vs_against"][str(heavy)]["float32"]
     assert ratio == pytest.approx(heavy_row["s_per_step"] / light["s_per_step"]) and ratio > 1.0
     assert f"{ratio:5.2f}x faster than {heavy}'s recipe" in printed
