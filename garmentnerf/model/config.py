@@ -253,6 +253,13 @@ class ModelConfig:
     frame against *occupied* within ``occupancy_half_thickness`` of the garment's surface or inside the body
     (:mod:`garmentnerf.model.occupancy`). The images teach a frame's shape through one view per step; this
     term says where the whole frame's cloth is, every step, from the garment every scene sequence holds."""
+    geometry_iterations: int = 0
+    """NeRF steps at the start of the NeRF stage that train the occupancy term alone (a geometry warm-up, not
+    in the paper; 0: none): nothing is rendered, a step costs E, G_en and the term's points, and every
+    frame's whole garment is a target. They count in ``iterations`` and in the learning-rate schedule. A
+    sequence model learns the average garment first; one frame's own shape (a hem swung out) shows only
+    after many visits of each frame (docs/quality.md, "Telling the field where the cloth is"), which
+    image steps are too dear to give."""
     occupancy_points: int = 8192
     """Points per step of the occupancy term: half around the cloth, half uniform in the sampling box."""
     occupancy_half_thickness: float = 0.015
@@ -427,6 +434,9 @@ class ModelConfig:
         if self.image_resolution % self.perceptual_downsample:
             raise ValueError(f"ModelConfig.perceptual_downsample ({self.perceptual_downsample}) must divide "
                              f"image_resolution ({self.image_resolution})")
+        if not 0 <= self.geometry_iterations <= self.iterations:
+            raise ValueError(f"ModelConfig.geometry_iterations ({self.geometry_iterations}) must lie in "
+                             f"[0, iterations={self.iterations}]")
         if self.lr_final > self.lr:
             raise ValueError(f"ModelConfig.lr_final ({self.lr_final}) must not exceed lr ({self.lr})")
         if self.garment_label == self.body_label:

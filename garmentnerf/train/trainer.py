@@ -109,7 +109,7 @@ from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_ap
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.height_band import SHELL_BAND_FILE, load_height_range, measure_height_range, save_height_range
 from garmentnerf.model.losses import garment_losses, generator_losses
-from garmentnerf.model.occupancy import occupancy_labels, occupancy_points
+from garmentnerf.model.occupancy import occupancy_labels, occupancy_loss, occupancy_points
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
@@ -596,8 +596,9 @@ class Trainer(Closeable):
             inputs = frames.inputs(seq, frame)
         return inputs
 
-    def _nerf_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
-        seq, frame, cam = self._pick(self.pairs, step, 2, index)
+    def _prepared_frame(self, seq: str, frame: int):
+        """The frame's features for this step's graph, its body geometry from the cache (kept for the
+        next visit)."""
         inputs = self._nerf_inputs(seq, frame)
         geometry = self._geometry.pop((seq, frame), None)
         feats = self.model.prepare_frame(inputs, geometry)
@@ -607,6 +608,22 @@ class Trainer(Closeable):
                                                              detail_features=None, timings={})
             while len(self._geometry) > self.geometry_cache_frames:
                 self._geometry.popitem(last=False)
+        return feats
+
+    def _geometry_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
+        """A step of the geometry warm-up (``cfg.geometry_iterations``): the occupancy term alone, at the
+        frame the image step would have drawn; nothing is rendered."""
+        seq, frame, _ = self._pick(self.pairs, step, 2, index)
+        feats = self._prepared_frame(seq, frame)
+        sigma, labels = self._occupancy(seq, frame, feats, padded_box(feats.aabb.detach(), self.cfg.bbox_padding), gen)
+        loss = occupancy_loss(sigma, labels, self.cfg.occupancy_step)
+        return {"occupancy": loss, "total": loss}, {}
+
+    def _nerf_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
+        if step - self.generator_iterations < self.cfg.geometry_iterations:
+            return self._geometry_step(step, index, gen)
+        seq, frame, cam = self._pick(self.pairs, step, 2, index)
+        feats = self._prepared_frame(seq, frame)
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
         out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,
@@ -655,12 +672,14 @@ class Trainer(Closeable):
             else:
                 terms, images = self._nerf_step(step, index, gen)
             (terms["total"] / batch).backward()
-            with torch.no_grad():
-                terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
+            if images:  # a geometry step renders nothing
+                with torch.no_grad():
+                    terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + float(v.detach())
         values = {k: v / batch for k, v in sums.items()}
-        values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
+        if "mse" in values:
+            values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
         return values, images
 
     def _shell_band(self, resume_info: dict | None):
@@ -706,8 +725,7 @@ class Trainer(Closeable):
             for k, v in terms.items():
                 w.add_scalar(f"{stage}/{k}", v, step)
             w.add_scalar(f"{stage}/lr", lr, step)
-            w.add_scalar(f"{stage}/psnr", terms["psnr"], step)
-        if self.tc.image_every and (step % self.tc.image_every == 0 or step == self.total_steps):
+        if images and self.tc.image_every and (step % self.tc.image_every == 0 or step == self.total_steps):
             pred, target = images["pred"].detach(), images["target"]
             if pred.ndim == 4:  # the two references: stack vertically
                 pred, target = torch.cat(list(pred), 1), torch.cat(list(target), 1)
@@ -744,7 +762,8 @@ class Trainer(Closeable):
                     history.append({"step": self.step, "stage": stage, **values})
                     self._log_step(self.step, stage, values, lr, images)
                     bar.update(1)
-                    bar.set_postfix(stage=stage, loss=f"{values['total']:.4f}", psnr=f"{values['psnr']:.2f}")
+                    bar.set_postfix(stage=stage, loss=f"{values['total']:.4f}",
+                                    **({"psnr": f"{values['psnr']:.2f}"} if "psnr" in values else {}))
                     boundary = self.step == self.generator_iterations and self.generator_iterations > 0
                     if self.step % tc.ckpt_every == 0 or boundary or self.step == end:
                         if boundary:

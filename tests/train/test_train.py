@@ -372,6 +372,42 @@ def test_occupancy_term_teaches_the_density_where_the_garment_is(tiny_scene, gl_
     assert after > before + 0.1, (before, after)
 
 
+def test_geometry_warm_up_trains_the_occupancy_alone_then_renders_and_resumes_exactly(tiny_scene, gl_context,
+                                                                                         tmp_path, monkeypatch):
+    from garmentnerf.model.pipeline import GarmentAnimationNeRF
+
+    cfg = tiny_config().replace(iterations=5, geometry_iterations=3, w_occupancy=0.5, occupancy_points=1024)
+    renders = []
+    original_render = GarmentAnimationNeRF.render
+
+    def counting(self, *args, **kwargs):
+        renders.append(1)
+        return original_render(self, *args, **kwargs)
+
+    monkeypatch.setattr(GarmentAnimationNeRF, "render", counting)
+    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=5,
+                                   model_config=cfg), gl_context)
+    monkeypatch.setattr(GarmentAnimationNeRF, "render", original_render)
+    assert len(renders) == 2  # the two image steps; the three geometry steps render nothing
+    geometry, images = full.history[:3], full.history[3:]
+    assert all(set(h) == {"step", "stage", "occupancy", "total"} and h["total"] == h["occupancy"] for h in geometry)
+    assert all({"image", "occupancy", "psnr"} <= set(h) for h in images)
+    # interrupted after the second geometry step, resumed across the boundary: the same run
+    part, _ = run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=5, model_config=cfg,
+                          stop_after=2), gl_context)
+    assert part.step == 2 and not part.finished
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=5),
+                           gl_context)
+    assert [h["step"] for h in rest.history] == [3, 4, 5]
+    for a, b in zip(full.history[2:], rest.history):
+        assert a.keys() == b.keys()
+        for key in a:
+            if key != "stage":
+                assert a[key] == pytest.approx(b[key], abs=1e-6, rel=0), (a["step"], key)
+    for key, value in full_state.items():
+        torch.testing.assert_close(rest_state[key], value, atol=1e-6, rtol=0)
+
+
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "run"
     base = tiny_config().replace(w_segmentation=0.0, segmentation_start=0)
