@@ -31,6 +31,17 @@ def run(tc, gl_context, callback=None):
         return tr.train(), {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
 
 
+def assert_same_steps(full_history, rest_history, full_state, rest_state) -> None:
+    """A resumed run's steps and final weights equal the uninterrupted run's."""
+    for a, b in zip(full_history, rest_history):
+        assert a.keys() == b.keys()
+        for key in a:
+            if key != "stage":
+                assert a[key] == pytest.approx(b[key], abs=1e-6, rel=0), (a["step"], key)
+    for key, value in full_state.items():
+        torch.testing.assert_close(rest_state[key], value, atol=1e-6, rtol=0)
+
+
 # ---------------------------------------------------------------------------------------- the scene
 def test_rigged_scene(tiny_scene):
     from garmentnerf.data.garment_sequence import load_sequence
@@ -80,13 +91,7 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
     # Resume: steps 4 and 5 equal the uninterrupted run's.
     rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True), gl_context)
     assert [h["step"] for h in rest.history] == [4, 5]
-    for a, b in zip(full.history[3:], rest.history):
-        assert a.keys() == b.keys()
-        for key in a:
-            if key != "stage":
-                assert a[key] == pytest.approx(b[key], abs=1e-6, rel=0), (a["step"], key)
-    for key, value in full_state.items():
-        torch.testing.assert_close(rest_state[key], value, atol=1e-6, rtol=0)
+    assert_same_steps(full.history[3:], rest.history, full_state, rest_state)
     # Checkpoint round trip: the newest checkpoint and model.safetensors hold the final weights.
     step, weights, _ = latest_checkpoint(tmp_path / "b")
     assert step == 5
@@ -399,13 +404,7 @@ def test_geometry_warm_up_trains_the_occupancy_alone_then_renders_and_resumes_ex
     rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=5),
                            gl_context)
     assert [h["step"] for h in rest.history] == [3, 4, 5]
-    for a, b in zip(full.history[2:], rest.history):
-        assert a.keys() == b.keys()
-        for key in a:
-            if key != "stage":
-                assert a[key] == pytest.approx(b[key], abs=1e-6, rel=0), (a["step"], key)
-    for key, value in full_state.items():
-        torch.testing.assert_close(rest_state[key], value, atol=1e-6, rtol=0)
+    assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
 
 
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
