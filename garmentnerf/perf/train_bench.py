@@ -47,7 +47,7 @@ from garmentnerf.train.run import MODEL_FILE, read_run_info
 from garmentnerf.train.settings import TrainConfig, training_precision
 from garmentnerf.train.trainer import Trainer
 
-__all__ = ["training_benchmark", "STAGES"]
+__all__ = ["training_benchmark", "run_recipe", "STAGES"]
 
 #: The stages of a NeRF step timed by :func:`training_benchmark`, in step order.
 STAGES = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp", "compositing",
@@ -161,7 +161,7 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
     if steps < 3 or rounds < 1:
         raise ValueError(f"steps must be >= 3 and rounds >= 1, got {steps} and {rounds}")
     runs = [Path(run_dir), *(Path(r) for r in against)]
-    infos = [_run_recipe(r) for r in runs]
+    infos = [run_recipe(r) for r in runs]
     resolved = list(dict.fromkeys(training_precision(p, "cpu") for p in precisions))
     # A variant: (index of the run in ``runs``, precision, timed as before issue 27).
     variants = [(0, p, old) for p in resolved for old in ((True, False) if before else (False,))]
@@ -231,7 +231,7 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
     return results
 
 
-def _run_recipe(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
+def run_recipe(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
     """(scene folder, model config, body appearance file or None, G_img steps) of a run folder."""
     info = read_run_info(run_dir)
     if not info.get("scene"):
