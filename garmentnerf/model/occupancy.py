@@ -89,4 +89,5 @@ def occupancy_iou(sigma: torch.Tensor, occupied: torch.Tensor, step: float) -> f
     return float((pred & truth).sum()) / union if union else 1.0
 
 
-__all__ = ["OCCUPANCY_TAU_FLOOR", "OccupancyPoints", "occupancy_points", "occupancy_labels", "occupancy_loss", "occupancy_iou"]
+__all__ = ["OCCUPANCY_TAU_FLOOR", "OccupancyPoints", "occupancy_points", "occupancy_labels", "occupancy_loss",
+           "occupancy_iou"]
