@@ -17,8 +17,9 @@ Stages (:data:`STAGES`, seconds per step, the median of each over the timed step
     composed under the garment (runs with a body appearance only); ``perceptual``: the perceptual
     loss's forward; ``occupancy``: the occupancy term's forward (its points, their projections and the
     field at them; runs with ``w_occupancy`` > 0 only); ``forward_other``: the rest of the forward
-    (data, other loss terms, palette composition); ``perceptual_backward``: from the gradient reaching the perceptual loss's output
-    to its input's (module backward hooks); ``backward_other``: the rest of ``backward()``;
+    (data, other loss terms, palette composition); ``perceptual_backward``: from the gradient reaching
+    the perceptual loss's output to its input's (module backward hooks); ``backward_other``: the rest of
+    ``backward()``;
     ``optimizer``: the rest of the step (gradient clipping, Adam, bookkeeping). They add up to the
     step. The trainer is instrumented from outside (wrapped methods, module hooks): no timing
     code in the training loop.
