@@ -434,9 +434,11 @@ class GarmentAnimationNeRF(nn.Module):
 
     def evaluate_samples(self, frame: FrameFeatures, positions: torch.Tensor, *,
                          sample_filter: SampleFilter | None = None, precision: str = "float32",
-                         timings: dict | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+                         timings: dict | None = None,
+                         points: BodyPoints | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
         """M_NeRF at world ``positions (n, 3)`` of ``frame``: body projection, the sample filter,
-        f^s and f^d, the MLP.
+        f^s and f^d, the MLP. ``points``: the positions' :meth:`sample_geometry`, when the caller has
+        it already (not projected again).
 
         Returns:
             sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops),
@@ -446,7 +448,7 @@ class GarmentAnimationNeRF(nn.Module):
         sw = _Stopwatch({} if timings is None else timings, dev)
         n = positions.shape[0]
         with sw("projection"):
-            points = self.sample_geometry(frame, positions)
+            points = self.sample_geometry(frame, positions) if points is None else points
             kept = None
             if sample_filter is not None:
                 kept = sample_filter.keep(points).nonzero().squeeze(1)

@@ -114,11 +114,12 @@ def occupancy_probe(run_dir, *, steps: int = 600, eval_every: int = 100, frames=
                             pts = occupancy_points(torch.from_numpy(np.ascontiguousarray(verts[f], dtype=np.float32)),
                                                    projector, box, EVAL_POINTS // 2, EVAL_POINTS - EVAL_POINTS // 2,
                                                    cfg.occupancy_spread, torch.Generator().manual_seed(1000 + f))
-                            height = model.sample_geometry(feats, pts.positions).signed_distance.cpu()
-                            points[seq, f] = (pts, height, occupancy_labels(pts.garment_distance, height,
-                                                                            cfg.occupancy_half_thickness))
-                        pts, height, labels = points[seq, f]
-                        sigma = model.evaluate_samples(feats, pts.positions)[0].cpu()
+                            body = model.sample_geometry(feats, pts.positions)  # the frame's body is fixed
+                            height = body.signed_distance.cpu()
+                            points[seq, f] = (pts, body, height, occupancy_labels(pts.garment_distance, height,
+                                                                                  cfg.occupancy_half_thickness))
+                        pts, body, height, labels = points[seq, f]
+                        sigma = model.evaluate_samples(feats, pts.positions, points=body)[0].cpu()
                         out[kind][0].append(occupancy_iou(sigma, labels, cfg.occupancy_step))
                         out[kind][1].append(far_recall(sigma, pts.garment_distance, height,
                                                        cfg.occupancy_half_thickness, cfg.body_prior_width,

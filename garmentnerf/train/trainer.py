@@ -652,9 +652,9 @@ class Trainer(Closeable):
         n_near = cfg.occupancy_points // 2
         points = occupancy_points(torch.from_numpy(np.ascontiguousarray(vertices[frame], dtype=np.float32)),
                                   projector, box, n_near, cfg.occupancy_points - n_near, cfg.occupancy_spread, gen)
-        body_height = self.model.sample_geometry(feats, points.positions).signed_distance.cpu()
-        labels = occupancy_labels(points.garment_distance, body_height, cfg.occupancy_half_thickness)
-        sigma, _, _ = self.model.evaluate_samples(feats, points.positions, precision=self.tc.precision)
+        body = self.model.sample_geometry(feats, points.positions)
+        labels = occupancy_labels(points.garment_distance, body.signed_distance.cpu(), cfg.occupancy_half_thickness)
+        sigma, _, _ = self.model.evaluate_samples(feats, points.positions, precision=self.tc.precision, points=body)
         return sigma, labels.to(sigma.device)
 
     def _backward_batch(self, step: int, stage: str) -> tuple[dict[str, float], dict]:

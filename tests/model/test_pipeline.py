@@ -329,3 +329,16 @@ def test_atlas_feature_reads_every_level_bilinearly(body, projector, walk_inputs
     assert "atlas_features" in model.trainable_modules()
     for tex in model.atlas_features.textures:
         assert tex.grad is not None and tex.grad.abs().sum() > 0
+
+
+def test_evaluate_samples_reuses_a_projection_it_is_given(model, frame):
+    """Handing evaluate_samples the positions' own projection gives the same field, bit for bit."""
+    g = torch.Generator().manual_seed(5)
+    lo, hi = frame.aabb[0], frame.aabb[1]
+    positions = lo + (hi - lo) * torch.rand(500, 3, generator=g)
+    with torch.no_grad():
+        sigma, zeta, n = model.evaluate_samples(frame, positions)
+        again = model.evaluate_samples(frame, positions, points=model.sample_geometry(frame, positions))
+    assert n == again[2] == 500
+    assert torch.equal(sigma, again[0]) and torch.equal(zeta, again[1])
+    assert float(sigma.max()) > 0
