@@ -27,10 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from garmentnerf.data.scene import Scene, read_garment_arrays
-from garmentnerf.geometry.projection import SurfaceProjector
-from garmentnerf.model.occupancy import occupancy_iou, occupancy_labels, occupancy_points
-from garmentnerf.model.samplers import padded_box
+from garmentnerf.model.occupancy import occupancy_iou
 from garmentnerf.perf.train_bench import run_recipe
 from garmentnerf.train.run import MODEL_FILE
 from garmentnerf.train.settings import TrainConfig
@@ -84,7 +81,6 @@ def occupancy_probe(run_dir, *, steps: int = 600, eval_every: int = 100, frames=
     run_dir = Path(run_dir)
     scene_dir, cfg, _, _ = run_recipe(run_dir)
     cfg = cfg.replace(iterations=steps, geometry_iterations=steps)
-    scene = Scene.load(scene_dir)
     with tempfile.TemporaryDirectory(prefix="garmentnerf-occupancy-probe-") as tmp:
         tc = TrainConfig(scene=scene_dir, out=Path(tmp) / "run", model_config=cfg, generator_iterations=0,
                          init_generator=run_dir / MODEL_FILE, perceptual="none", progress=False, seed=seed,
@@ -92,10 +88,10 @@ def occupancy_probe(run_dir, *, steps: int = 600, eval_every: int = 100, frames=
                          log_every=10 ** 9, image_every=0, ckpt_every=10 ** 9, keep_checkpoints=1)
         with Trainer(tc, log=lambda message: None) as trainer:
             scored = [("train", s, f) for s, f in _spread(list(trainer.frames_list), train_frames)]
+            scene = trainer.scene
             heldout = [("heldout", s, f) for s in scene.sequence_names("unseen_motion")
                        for f in _spread(list(range(scene.num_frames(s))), heldout_frames)]
             points = {}
-            garments = {}
 
             def score() -> dict:
                 model = trainer.model
@@ -104,21 +100,11 @@ def occupancy_probe(run_dir, *, steps: int = 600, eval_every: int = 100, frames=
                 with torch.no_grad():
                     for kind, seq, f in scored + heldout:
                         feats = model.prepare_frame(trainer._nerf_inputs(seq, f))
-                        if (seq, f) not in points:
-                            if seq not in garments:
-                                arrays = read_garment_arrays(scene.garment_path(seq))
-                                garments[seq] = (arrays.vertices, SurfaceProjector(arrays.faces,
-                                                                                   arrays.vertices.shape[1]))
-                            verts, projector = garments[seq]
-                            box = padded_box(feats.aabb, cfg.bbox_padding)
-                            pts = occupancy_points(torch.from_numpy(np.ascontiguousarray(verts[f], dtype=np.float32)),
-                                                   projector, box, EVAL_POINTS // 2, EVAL_POINTS - EVAL_POINTS // 2,
-                                                   cfg.occupancy_spread, torch.Generator().manual_seed(1000 + f))
-                            body = model.sample_geometry(feats, pts.positions)  # the frame's body is fixed
-                            height = body.signed_distance.cpu()
-                            points[seq, f] = (pts, body, height, occupancy_labels(pts.garment_distance, height,
-                                                                                  cfg.occupancy_half_thickness))
-                        pts, body, height, labels = points[seq, f]
+                        if (seq, f) not in points:  # drawn once: the frame's body and garment are fixed
+                            points[seq, f] = trainer.occupancy_targets(seq, f, feats, EVAL_POINTS,
+                                                                       torch.Generator().manual_seed(1000 + f))
+                        pts, body, labels = points[seq, f]
+                        height = body.signed_distance.cpu()
                         sigma = model.evaluate_samples(feats, pts.positions, points=body)[0].cpu()
                         out[kind][0].append(occupancy_iou(sigma, labels, cfg.occupancy_step))
                         out[kind][1].append(far_recall(sigma, pts.garment_distance, height,

@@ -615,7 +615,7 @@ class Trainer(Closeable):
         frame the image step would have drawn; nothing is rendered."""
         seq, frame, _ = self._pick(self.pairs, step, 2, index)
         feats = self._prepared_frame(seq, frame)
-        sigma, labels = self._occupancy(seq, frame, feats, padded_box(feats.aabb.detach(), self.cfg.bbox_padding), gen)
+        sigma, labels = self._occupancy(seq, frame, feats, gen)
         loss = occupancy_loss(sigma, labels, self.cfg.occupancy_step)
         return {"occupancy": loss, "total": loss}, {}
 
@@ -632,28 +632,35 @@ class Trainer(Closeable):
         image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
-        occupancy = self._occupancy(seq, frame, feats, box, gen) if self.cfg.w_occupancy > 0 else None
+        occupancy = self._occupancy(seq, frame, feats, gen) if self.cfg.w_occupancy > 0 else None
         terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
                                self.cfg, self.perceptual, opacity=out.opacity[None],
                                target_garment=garment[None] if segment else None,
                                planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy)
         return terms, {"pred": pred, "target": image}
 
-    def _occupancy(self, seq: str, frame: int, feats, box: torch.Tensor,
-                   gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """The occupancy term's inputs for one frame: the field's density at ``cfg.occupancy_points``
-        points of the frame (half around its simulated cloth, half in its sampling ``box``) and their
-        labels (:mod:`garmentnerf.model.occupancy`)."""
+    def occupancy_targets(self, seq: str, frame: int, feats, n_points: int, generator: torch.Generator):
+        """``n_points`` points of frame ``frame`` of ``seq`` (half around its simulated cloth, half in its
+        sampling box; ``feats`` from :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame`),
+        their body projection and their occupancy labels (:mod:`garmentnerf.model.occupancy`): what the
+        occupancy term and ``bench --occupancy`` score the density against."""
         if seq not in self._garments:
             arrays = read_garment_arrays(self.scene.garment_path(seq))  # every scene sequence has one (Scene.load)
             self._garments[seq] = (arrays.vertices, SurfaceProjector(arrays.faces, arrays.vertices.shape[1]))
         vertices, projector = self._garments[seq]
         cfg = self.cfg
-        n_near = cfg.occupancy_points // 2
+        box = padded_box(feats.aabb.detach(), cfg.bbox_padding)
         points = occupancy_points(torch.from_numpy(np.ascontiguousarray(vertices[frame], dtype=np.float32)),
-                                  projector, box, n_near, cfg.occupancy_points - n_near, cfg.occupancy_spread, gen)
+                                  projector, box, n_points // 2, n_points - n_points // 2, cfg.occupancy_spread,
+                                  generator)
         body = self.model.sample_geometry(feats, points.positions)
         labels = occupancy_labels(points.garment_distance, body.signed_distance.cpu(), cfg.occupancy_half_thickness)
+        return points, body, labels
+
+    def _occupancy(self, seq: str, frame: int, feats, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """The occupancy term's inputs for one frame: the field's density at ``cfg.occupancy_points``
+        points of the frame and their labels (:meth:`occupancy_targets`)."""
+        points, body, labels = self.occupancy_targets(seq, frame, feats, self.cfg.occupancy_points, gen)
         sigma, _, _ = self.model.evaluate_samples(feats, points.positions, precision=self.tc.precision, points=body)
         return sigma, labels.to(sigma.device)
 
