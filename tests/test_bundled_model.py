@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.cli.view_cmd import DEMO_RUN
+from garmentnerf.demos import DEFAULT_DEMO, demo
 
+DEMO_RUN = demo(DEFAULT_DEMO).run_dir
 pytestmark = pytest.mark.skipif(not (DEMO_RUN / "run.json").is_file(), reason="no bundled demo run")
 
 SIZE = 128  # a quarter of the model's rays per side: fast on the CPU, enough for region statistics

@@ -20,7 +20,7 @@ import argparse
 import json
 from pathlib import Path
 
-from garmentnerf.cli.common import check_output_file
+from garmentnerf.cli.common import add_demo_arg, check_output_file, run_folder_arg
 from garmentnerf.io_utils import atomic_write_path
 
 ROWS = [
@@ -45,6 +45,7 @@ def register(sub) -> None:
     p.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     p.add_argument("--runs", type=int, default=20, help="timed repetitions per stage (median is reported)")
     p.add_argument("--run", default=None, metavar="DIR", help="benchmark the render presets of this run folder")
+    add_demo_arg(p, "the flags 'with --run' apply to it")
     p.add_argument("--plot", default=None, metavar="PNG", help="with --run: speed/accuracy plot")
     p.add_argument("--overwrite", action="store_true", help="replace --json / --plot if they exist")
     p.add_argument("--presets", default=None, help="with --run: comma-separated presets (default: all)")
@@ -150,6 +151,8 @@ def _run_occupancy_probe(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------------------------
 def run_bench(args: argparse.Namespace) -> int:
+    run_dir = run_folder_arg(args)  # --demo NAME stands for --run of that demo's folder
+    args.run, args.demo = (str(run_dir) if run_dir is not None else None), None
     if args.runs < 1:
         raise ValueError(f"--runs must be at least 1, got {args.runs}")
     if getattr(args, "plot", None) and not getattr(args, "run", None):

@@ -32,6 +32,30 @@ def add_scene_override_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
 
 
+def add_demo_arg(parser: argparse.ArgumentParser, default_note: str) -> None:
+    """``--demo NAME``: a bundled demo's run (:mod:`garmentnerf.demos`) instead of ``--run DIR``."""
+    from garmentnerf.demos import DEMO_NAMES
+
+    parser.add_argument("--demo", default=None, metavar="NAME",
+                        help=f"a bundled demo run instead of --run: {', '.join(DEMO_NAMES)} ('garmentnerf demo list' "
+                             f"names those installed); {default_note}")
+
+
+def run_folder_arg(args, default_demo: str | None = None) -> Path | None:
+    """The run folder of ``--run``, else of ``--demo``, else of demo ``default_demo`` (None: no
+    default). ValueError when both flags are given; FileNotFoundError when the demo is not installed."""
+    from garmentnerf.demos import demo_run_dir
+
+    run, name = getattr(args, "run", None), getattr(args, "demo", None)
+    if run is not None and name is not None:
+        raise ValueError("--run and --demo: give one of them")
+    if run is not None:
+        return Path(run)
+    if name is None and default_demo is None:
+        return None
+    return demo_run_dir(name if name is not None else default_demo)
+
+
 def add_device_arg(parser: argparse.ArgumentParser) -> None:
     """``--device``: the torch device to render or evaluate on (checked by :func:`parse_device`)."""
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")

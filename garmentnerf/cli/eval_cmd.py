@@ -10,7 +10,8 @@ import json
 import math
 from pathlib import Path
 
-from garmentnerf.cli.common import add_device_arg, add_scene_override_arg, check_output_file, parse_device
+from garmentnerf.cli.common import (add_demo_arg, add_device_arg, add_scene_override_arg, check_output_file,
+                                    parse_device, run_folder_arg)
 from garmentnerf.io_utils import atomic_write_path
 
 
@@ -25,7 +26,8 @@ def register(sub) -> None:
                     "the full-frame figures: PSNR over the character (ground-truth or rendered pixels), per label "
                     "(body, garment), silhouette IoU and a sharpness ratio (gradient energy of the render over the "
                     "ground truth's inside the garment), and with --baseline the margin over the nearest view.")
-    p.add_argument("--run", required=True, metavar="DIR", help="run folder (run.json + model.safetensors)")
+    p.add_argument("--run", default=None, metavar="DIR", help="run folder (run.json + model.safetensors)")
+    add_demo_arg(p, "give --run or --demo")
     # not argparse choices: an unknown split is a one-line error like every other bad input
     p.add_argument("--split", required=True, metavar="SPLIT", help="seen, unseen_view or unseen_motion")
     add_scene_override_arg(p)
@@ -105,6 +107,9 @@ def run_eval(args: argparse.Namespace) -> int:
     from garmentnerf.train.run import load_run
 
     # everything that can be wrong with the arguments fails before the model loads
+    run_dir = run_folder_arg(args)
+    if run_dir is None:
+        raise ValueError("eval needs --run DIR or --demo NAME")
     if args.split not in SPLITS:
         raise ValueError(f"unknown split '{args.split}' (known: {', '.join(SPLITS)})")
     try:
@@ -136,9 +141,9 @@ def run_eval(args: argparse.Namespace) -> int:
         check_output_file(args.gallery, "--gallery", args.overwrite)
     if args.scene is not None and not (Path(args.scene) / "scene.json").is_file():
         raise FileNotFoundError(f"--scene {args.scene}: no scene.json")
-    run = load_run(args.run, device=args.device, scene=args.scene)
+    run = load_run(run_dir, device=args.device, scene=args.scene)
     if run.scene is None:
-        raise ValueError(f"{args.run}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
+        raise ValueError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
                          f"pass --scene DIR")
     resolve_composition(args.composition, run)  # raster_body without a body appearance fails here, not mid-way
     gallery = Gallery(args.gallery_views) if args.gallery is not None else None

@@ -13,8 +13,8 @@ import os
 import signal
 import sys
 
-from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd, train_cmd,
-                             view_cmd)
+from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, demo_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd,
+                             train_cmd, view_cmd)
 from garmentnerf.interrupts import interrupting
 
 
@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     render_cmd.register(sub)
     train_cmd.register(sub)
     eval_cmd.register(sub)  # eval and report
+    demo_cmd.register(sub)
     return parser
 
 

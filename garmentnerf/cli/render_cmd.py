@@ -10,8 +10,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from garmentnerf.cli.common import add_device_arg, add_scene_override_arg, check_output_dir, parse_device
-from garmentnerf.cli.view_cmd import DEMO_RUN
+from garmentnerf.cli.common import (add_demo_arg, add_device_arg, add_scene_override_arg, check_output_dir,
+                                    parse_device, run_folder_arg)
+from garmentnerf.demos import DEFAULT_DEMO
 from garmentnerf.render.video import FrameWriter, VideoWriter
 
 
@@ -22,7 +23,8 @@ def register(sub) -> None:
                     "with --video). Existing files are never overwritten. Ctrl-C stops cleanly: the frames "
                     "written so far stay, and the video holds them.")
     p.add_argument("--run", default=None, metavar="DIR",
-                   help="run folder (run.json + model.safetensors); default: the bundled demo run")
+                   help="run folder (run.json + model.safetensors); default: the bundled demo (--demo)")
+    add_demo_arg(p, f"default: {DEFAULT_DEMO}")
     add_scene_override_arg(p)
     p.add_argument("--motion", default=None,
                    help="a scene sequence name or a motion name/file (default: the scene's first training "
@@ -187,15 +189,11 @@ def _checked_render_args(args: argparse.Namespace):
 
 
 def _load_render_run(args: argparse.Namespace):
-    """(run folder, loaded run) of ``--run`` (default: the bundled demo run) with ``--scene``."""
+    """(run folder, loaded run) of ``--run`` or ``--demo`` (default: the default demo) with ``--scene``."""
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.train.run import load_run
 
-    run_dir = args.run
-    if run_dir is None:
-        if not (DEMO_RUN / "run.json").is_file():
-            raise FileNotFoundError(f"{DEMO_RUN}: the bundled demo run is not installed; pass --run DIR")
-        run_dir = DEMO_RUN
+    run_dir = run_folder_arg(args, DEFAULT_DEMO)
     run = load_run(run_dir, device=args.device, scene=args.scene)
     if run.scene is None and run.info.get("scene") and args.motion is None:
         raise FileNotFoundError(f"{run_dir}: the run's scene {run.info['scene']} is missing; pass --scene DIR, or "

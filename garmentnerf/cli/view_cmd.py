@@ -5,13 +5,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 from garmentnerf.cli import view_bench
-from garmentnerf.cli.common import add_body_args, check_output_file, load_body
-
-#: The bundled demo run, opened by a plain ``garmentnerf view`` when it is installed.
-DEMO_RUN = Path(__file__).resolve().parent.parent / "assets" / "demo" / "run"
+from garmentnerf.cli.common import add_body_args, add_demo_arg, check_output_file, load_body, run_folder_arg
+from garmentnerf.demos import DEFAULT_DEMO, demo
 
 #: Printed (as the one line on stderr) when no display is named; exit code 2.
 HEADLESS_HINT = "render headless instead: garmentnerf render --camera orbit --frames 0:30 --out frames/"
@@ -34,8 +31,9 @@ def register(sub) -> None:
                     "render headless instead and exits with code 2.")
     add_body_args(view)
     view.add_argument("--run", default=None, metavar="DIR",
-                      help="a training run folder: show its neural garment (default: the bundled demo run when "
+                      help="a training run folder: show its neural garment (default: the bundled demo when "
                            "installed, else the body only)")
+    add_demo_arg(view, f"default: {DEFAULT_DEMO} (the previewer's Garment menu switches between them)")
     view.add_argument("--scene", default=None, metavar="DIR", help="scene folder to use instead of the run's")
     view.add_argument("--no-watch", action="store_true",
                       help="with --run: do not show new checkpoints as the run trains (default: the newest "
@@ -99,9 +97,10 @@ def run_view(args: argparse.Namespace) -> int:
         return 2
 
     run = None
-    run_dir = args.run
-    if run_dir is None and not args.body_only and DEMO_RUN.joinpath("run.json").is_file():
-        run_dir = DEMO_RUN
+    run_dir = None
+    if not args.body_only:
+        default = DEFAULT_DEMO if demo(DEFAULT_DEMO).installed else None  # else: the body alone
+        run_dir = run_folder_arg(args, default)
     if run_dir is not None and not args.body_only:
         # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
         from garmentnerf.train.run import load_run

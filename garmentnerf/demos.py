@@ -1,0 +1,188 @@
+"""The bundled demos: one trained run per garment of the paper's Table 1, chosen by name.
+
+Each demo is a run folder under ``garmentnerf/assets/demo/`` (``run.json``, ``model.safetensors``,
+``body_appearance.safetensors``, ``TRAINING.md`` and the ``eval_*.json`` its figures come from)
+whose ``run.json`` points at the garment's scene beside it (``../<garment>``: the simulated
+sequences; the ground-truth images are rendered into the scene's ``cache/`` on first use).
+
+Usage::
+
+    run_dir = demo_run_dir("tshirt")     # FileNotFoundError naming the demo when it is not installed
+    for demo in installed_demos():
+        print(demo.name, demo.size_bytes(), demo.figures())
+
+The skirt's run keeps its historical folder name ``run``; the others are ``run_<garment>``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "MAX_DEMO_WEIGHTS_BYTES", "Demo", "demo", "demo_run_dir",
+           "installed_demos", "pack_demo", "pack_weights"]
+
+#: Where the demos live inside the package.
+DEMO_ROOT = Path(__file__).resolve().parent / "assets" / "demo"
+#: The paper's three garments, in its Table 1 order.
+DEMO_NAMES = ("skirt", "tshirt", "dress")
+#: The demo a plain ``garmentnerf view`` opens.
+DEFAULT_DEMO = "skirt"
+#: Run folder of each demo, relative to :data:`DEMO_ROOT`.
+_RUN_FOLDERS = {"skirt": "run", "tshirt": "run_tshirt", "dress": "run_dress"}
+#: Largest weights file a demo may ship (issue 29: at most 25 MB per garment).
+MAX_DEMO_WEIGHTS_BYTES = 25 * 1024 * 1024
+#: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``).
+_EVAL_FILES = {"unseen_view": "eval_unseen_view.json", "unseen_motion": "eval_unseen_motion.json"}
+
+
+@dataclass(frozen=True)
+class Demo:
+    """One bundled demo.
+
+    Attributes:
+        name: the garment (one of :data:`DEMO_NAMES`).
+        run_dir: its run folder (may be missing: see :attr:`installed`).
+    """
+
+    name: str
+    run_dir: Path
+
+    @property
+    def installed(self) -> bool:
+        """Whether the run folder holds a run (``run.json`` and ``model.safetensors``)."""
+        return (self.run_dir / "run.json").is_file() and (self.run_dir / "model.safetensors").is_file()
+
+    @property
+    def scene_dir(self) -> Path | None:
+        """The scene folder the run points at (None when the run is missing or names none)."""
+        try:
+            scene = json.loads((self.run_dir / "run.json").read_text()).get("scene")
+        except (OSError, ValueError):
+            return None
+        return (self.run_dir / scene).resolve() if scene else None
+
+    def size_bytes(self) -> int:
+        """Bytes the demo adds to an install: its run folder and its scene's shipped files (the
+        rendered ``cache/`` and the simulator's ``sim/`` state are not shipped)."""
+        total = sum(p.stat().st_size for p in self.run_dir.rglob("*") if p.is_file())
+        scene = self.scene_dir
+        if scene is not None and scene.is_dir():
+            total += sum(p.stat().st_size for p in scene.rglob("*")
+                         if p.is_file() and p.relative_to(scene).parts[0] not in ("cache", "sim"))
+        return total
+
+    def figures(self) -> dict[str, dict[str, float]]:
+        """Per split (``unseen_view``, ``unseen_motion``): the foreground PSNR, garment PSNR and
+        silhouette IoU of its shipped evaluation, and on ``unseen_view`` the foreground margin over
+        the nearest training view; splits without an evaluation file are left out."""
+        out: dict[str, dict[str, float]] = {}
+        for split, name in _EVAL_FILES.items():
+            path = self.run_dir / name
+            if not path.is_file():
+                continue
+            report = json.loads(path.read_text())
+            means = report.get("means", {})
+            row = {k: float(means[k]) for k in ("fg_psnr", "garment_psnr", "silhouette_iou") if k in means}
+            margin = report.get("margin_db") or {}
+            if "fg_psnr" in margin:
+                row["fg_margin_db"] = float(margin["fg_psnr"])
+            out[split] = row
+        return out
+
+
+def demo(name: str, root: Path = DEMO_ROOT) -> Demo:
+    """The demo called ``name`` (under ``root``); ValueError naming the choices for an unknown name."""
+    if name not in _RUN_FOLDERS:
+        raise ValueError(f"--demo: unknown demo {name!r}; choose one of {', '.join(DEMO_NAMES)}")
+    return Demo(name, Path(root) / _RUN_FOLDERS[name])
+
+
+def demo_run_dir(name: str, root: Path = DEMO_ROOT) -> Path:
+    """The run folder of demo ``name``. FileNotFoundError when it is not installed (the message
+    names the demos that are)."""
+    d = demo(name, root)
+    if not d.installed:
+        have = ", ".join(x.name for x in installed_demos(root)) or "none"
+        raise FileNotFoundError(f"{d.run_dir}: the {name} demo is not installed (installed demos: {have}); "
+                                f"pass --run DIR")
+    return d.run_dir
+
+
+def installed_demos(root: Path = DEMO_ROOT) -> list[Demo]:
+    """The installed demos under ``root``, in :data:`DEMO_NAMES` order."""
+    return [d for d in (demo(n, root) for n in DEMO_NAMES) if d.installed]
+
+
+def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False) -> Demo:
+    """Make the trained run ``run_dir`` demo ``name`` under ``root``: its weights cast to float16
+    (:func:`pack_weights`), its body appearance, ``TRAINING.md`` and ``eval_*.json`` if present,
+    ``run.json`` pointing at ``../<name>``, and that scene folder holding the run scene's
+    ``scene.json`` and ``sequences/`` (not its rendered ``cache/`` or simulator ``sim/``).
+
+    Staged in a temporary folder under ``root`` and moved into place at the end. Raises
+    FileNotFoundError (not a run, or its scene missing), FileExistsError (the demo is installed
+    and ``overwrite`` is False) and ValueError (weights over :data:`MAX_DEMO_WEIGHTS_BYTES`),
+    each before anything under ``root`` changes.
+    """
+    # lazy: the registry above is read by every command's flag checks; loading a run needs torch
+    from garmentnerf.train.run import load_run
+
+    target = demo(name, root)
+    run_dir = Path(run_dir)
+    for file in ("run.json", "model.safetensors"):
+        if not (run_dir / file).is_file():
+            raise FileNotFoundError(f"{run_dir}: not a run folder (no {file})")
+    run = load_run(run_dir)  # the weights match the config and the scene is there
+    if run.scene is None:
+        raise FileNotFoundError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing")
+    scene_dst = Path(root) / name
+    for path in (target.run_dir, scene_dst):
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path}: already exists (pass --overwrite to replace the {name} demo)")
+    Path(root).mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".pack-{name}-", dir=root))
+    try:
+        run_out, scene_out = staging / "run", staging / "scene"
+        run_out.mkdir()
+        weights = pack_weights(run_dir / "model.safetensors", run_out / "model.safetensors")
+        if weights > MAX_DEMO_WEIGHTS_BYTES:
+            raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
+                             f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
+        extras = ["body_appearance.safetensors", "TRAINING.md", *sorted(p.name for p in run_dir.glob("eval_*.json"))]
+        for extra in extras:
+            if (run_dir / extra).is_file():
+                shutil.copy2(run_dir / extra, run_out / extra)
+        info = dict(run.info, scene=f"../{name}")
+        (run_out / "run.json").write_text(json.dumps(info, indent=1) + "\n")
+        scene_src = Path(run.scene.root)
+        scene_out.mkdir()
+        shutil.copy2(scene_src / "scene.json", scene_out / "scene.json")
+        shutil.copytree(scene_src / "sequences", scene_out / "sequences")
+        for src, dst in ((run_out, target.run_dir), (scene_out, scene_dst)):
+            if dst.exists():
+                shutil.rmtree(dst)
+            os.replace(src, dst)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
+def pack_weights(source: Path, destination: Path) -> int:
+    """Copy a weights file with its float32 tensors cast to float16 (what a demo ships; the
+    model computes in float32 after loading, :func:`~garmentnerf.train.run.load_weights`).
+    Returns the bytes written."""
+    import torch
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(source), framework="pt") as f:
+        metadata = f.metadata()
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    save_file({k: v.to(torch.float16) if v.dtype == torch.float32 else v for k, v in tensors.items()},
+              str(destination), metadata=metadata)
+    return Path(destination).stat().st_size

@@ -1,0 +1,103 @@
+"""The bundled demos (:mod:`garmentnerf.demos`): the registry, ``--demo`` on the commands, and
+``garmentnerf demo pack`` / ``list``."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from garmentnerf.cli.main import main
+from garmentnerf.demos import (DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo,
+                               pack_weights)
+from garmentnerf.train.run import create_untrained_run, load_run
+from garmentnerf.train.settings import tiny_config
+
+
+@pytest.fixture(scope="module")
+def untrained_run(tiny_scene, tmp_path_factory):
+    run_dir = create_untrained_run(tmp_path_factory.mktemp("demo_run") / "run", tiny_scene.root, tiny_config(), seed=1)
+    (run_dir / "TRAINING.md").write_text("how it was trained\n")
+    (run_dir / "eval_unseen_view.json").write_text(json.dumps({
+        "means": {"fg_psnr": 23.5, "garment_psnr": 21.25, "silhouette_iou": 0.95}, "margin_db": {"fg_psnr": 8.5}}))
+    return run_dir
+
+
+def files_size(folder):
+    return sum(os.path.getsize(os.path.join(d, f)) for d, _, names in os.walk(folder) for f in names)
+
+
+def test_the_registry_names_the_papers_garments_and_refuses_the_rest(tmp_path):
+    assert DEMO_NAMES == ("skirt", "tshirt", "dress") and DEFAULT_DEMO == "skirt"
+    with pytest.raises(ValueError, match="unknown demo 'coat'; choose one of skirt, tshirt, dress"):
+        demo("coat")
+    assert installed_demos(tmp_path) == []
+    with pytest.raises(FileNotFoundError, match="the dress demo is not installed \\(installed demos: none\\)"):
+        demo_run_dir("dress", tmp_path)
+
+
+def test_pack_makes_a_loadable_demo_in_float16_beside_its_scene(untrained_run, tiny_scene, tmp_path):
+    root = tmp_path / "demo"
+    packed = pack_demo(untrained_run, "tshirt", root)
+    assert packed.run_dir == root / "run_tshirt" and packed.installed
+    assert [d.name for d in installed_demos(root)] == ["tshirt"] and demo_run_dir("tshirt", root) == packed.run_dir
+    assert json.loads((packed.run_dir / "run.json").read_text())["scene"] == "../tshirt"
+    assert packed.scene_dir == (root / "tshirt").resolve()
+    # the scene's shipped files, not its rendered cache
+    shipped = sorted(p.relative_to(root / "tshirt").as_posix() for p in (root / "tshirt").rglob("*") if p.is_file())
+    expected = sorted(p.relative_to(tiny_scene.root).as_posix() for p in tiny_scene.root.rglob("*")
+                      if p.is_file() and p.relative_to(tiny_scene.root).parts[0] in ("scene.json", "sequences"))
+    assert shipped == expected and not (root / "tshirt" / "cache").exists()
+    # float32 weights stored as float16: the same values to float16's rounding (numpy's cast)
+    source, weights = load_file(str(untrained_run / "model.safetensors")), load_file(str(packed.run_dir / "model.safetensors"))
+    assert weights.keys() == source.keys()
+    for key, value in source.items():
+        assert weights[key].dtype == (torch.float16 if value.dtype == torch.float32 else value.dtype)
+        np.testing.assert_array_equal(weights[key].numpy(), value.numpy().astype(weights[key].numpy().dtype))
+    assert (packed.run_dir / "TRAINING.md").read_text() == "how it was trained\n"
+    assert packed.size_bytes() == files_size(packed.run_dir) + files_size(root / "tshirt")
+    assert packed.figures() == {"unseen_view": {"fg_psnr": 23.5, "garment_psnr": 21.25, "silhouette_iou": 0.95,
+                                                "fg_margin_db": 8.5}}
+    run = load_run(packed.run_dir)
+    assert run.scene is not None and sorted(run.scene.sequences) == sorted(tiny_scene.sequences)
+    # nothing is replaced without overwrite, and no staging folder is left behind
+    with pytest.raises(FileExistsError, match="pass --overwrite to replace the tshirt demo"):
+        pack_demo(untrained_run, "tshirt", root)
+    pack_demo(untrained_run, "tshirt", root, overwrite=True)
+    assert sorted(p.name for p in root.iterdir()) == ["run_tshirt", "tshirt"]
+
+
+def test_pack_weights_keeps_non_float32_tensors(tmp_path):
+    from safetensors.torch import save_file
+
+    save_file({"a": torch.tensor([1.0, 1.0 / 3.0]), "n": torch.tensor([3, 4])}, str(tmp_path / "w.safetensors"))
+    size = pack_weights(tmp_path / "w.safetensors", tmp_path / "p.safetensors")
+    out = load_file(str(tmp_path / "p.safetensors"))
+    assert size == (tmp_path / "p.safetensors").stat().st_size
+    assert out["a"].dtype == torch.float16 and float(out["a"][1]) == float(np.float16(1.0 / 3.0))
+    assert out["n"].dtype == torch.int64 and out["n"].tolist() == [3, 4]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["eval", "--split", "unseen_view"], "eval needs --run DIR or --demo NAME"),
+    (["eval", "--demo", "coat", "--split", "unseen_view"], "unknown demo 'coat'"),
+    (["eval", "--demo", "skirt", "--run", "x", "--split", "unseen_view"], "--run and --demo: give one of them"),
+    (["render", "--demo", "skirt", "--run", "x", "--out", "frames"], "--run and --demo: give one of them"),
+    (["bench", "--demo", "coat"], "unknown demo 'coat'"),
+])
+def test_demo_flags_fail_in_one_line(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_demo_list_prints_each_installed_demo_with_its_figures(capsys):
+    assert main(["demo", "list"]) == 0
+    out = capsys.readouterr().out
+    for d in installed_demos():
+        row = next(line for line in out.splitlines() if line.startswith(d.name + " "))
+        assert f"{d.size_bytes() / 1e6:.1f}" in row
+        for split in d.figures().values():
+            assert f"{split['fg_psnr']:.2f}" in row and f"{split['silhouette_iou']:.3f}" in row
