@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "MAX_DEMO_WEIGHTS_BYTES", "Demo", "demo", "demo_run_dir",
-           "installed_demos", "pack_demo", "pack_weights"]
+           "demo_of_run", "installed_demos", "pack_demo", "pack_weights"]
 
 #: Where the demos live inside the package.
 DEMO_ROOT = Path(__file__).resolve().parent / "assets" / "demo"
@@ -116,6 +116,12 @@ def demo_run_dir(name: str, root: Path = DEMO_ROOT) -> Path:
 def installed_demos(root: Path = DEMO_ROOT) -> list[Demo]:
     """The installed demos under ``root``, in :data:`DEMO_NAMES` order."""
     return [d for d in (demo(n, root) for n in DEMO_NAMES) if d.installed]
+
+
+def demo_of_run(run_dir, root: Path = DEMO_ROOT) -> str | None:
+    """The name of the demo whose run folder is ``run_dir`` (None: not a demo under ``root``)."""
+    run_dir = Path(run_dir).resolve()
+    return next((n for n in DEMO_NAMES if demo(n, root).run_dir.resolve() == run_dir), None)
 
 
 def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False) -> Demo:

@@ -8,6 +8,7 @@ The parts it holds, each in its own module:
   quality, and the render worker's requests and results (the torch work stays on its thread);
 * :class:`~garmentnerf.viewer.exporting.Exports` -- snapshots and videos;
 * :class:`~garmentnerf.viewer.sequence.MotionMenu` -- the motions offered, posed in the background;
+* :class:`~garmentnerf.viewer.garment_menu.GarmentMenu` -- the bundled demos, loaded in the background;
 * :class:`~garmentnerf.viewer.path_editor.PathEditor` -- the camera path: keyframes, looking through it;
 * the panels (:mod:`~garmentnerf.viewer.panels`), which change state only through actions.
 
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from garmentnerf.demos import DEMO_ROOT
 from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.render.camera_path import Keyframe
@@ -42,6 +44,7 @@ from garmentnerf.viewer import panels
 from garmentnerf.viewer.camera import MouseGestures, OrbitController
 from garmentnerf.viewer.export_jobs import ExportJob, check_size
 from garmentnerf.viewer.exporting import Exports
+from garmentnerf.viewer.garment_menu import GarmentMenu, check_switch
 from garmentnerf.viewer.gui_libs import imgui
 from garmentnerf.viewer.neural_view import NeuralView
 from garmentnerf.viewer.panels import StatusLine
@@ -90,6 +93,7 @@ class App(Closeable):
             body and shape come from the run.
         watch: show each new checkpoint of the run's folder as it lands (loaded off the UI thread,
             :mod:`~garmentnerf.viewer.checkpoint_watch`).
+        demo_root: where the bundled demos the Garment menu offers are (tests use their own).
         dynamic_scene: while the view moves, draw the scene at the scale that fits
             :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
             once more at ``render_scale`` when it is still); False: always at ``render_scale``.
@@ -104,7 +108,7 @@ class App(Closeable):
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
                  title: str = "garmentnerf view", clock=time.perf_counter, run=None,
-                 dynamic_scene: bool = True, watch: bool = False) -> None:
+                 dynamic_scene: bool = True, watch: bool = False, demo_root: Path = DEMO_ROOT) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -115,6 +119,7 @@ class App(Closeable):
             run = load_run(run)
         body, betas, self.shape_label = body_and_shape(run, body, betas)
         self.motions = MotionMenu(body, betas, run)
+        self.garments = GarmentMenu(run, demo_root)
         sequence, self.motion_name, neural_motion = self.motions.first_clip(motion, sequence)
         self.sequence = sequence
         self._sequence_serial = 0
@@ -205,8 +210,8 @@ class App(Closeable):
         if self._busy_frames > 0:
             self._busy_frames -= 1
             return False
-        return not (self.timeline.playing or self.gestures.drag or self.motions.loading or self._snapshot_requested
-                    or self.neural_view.busy())
+        return not (self.timeline.playing or self.gestures.drag or self.motions.loading or self.garments.loading
+                    or self._snapshot_requested or self.neural_view.busy())
 
     def step(self) -> bool:
         """One UI frame; returns False once the window should close."""
@@ -285,12 +290,17 @@ class App(Closeable):
         tl.advance(dt, max_frames=1 if caught_up and view.frame_ready(nxt) else 0)
 
     def _receive_background_work(self) -> None:
-        """A motion posed in the background is shown; an export that ended is reported."""
+        """A motion posed or a garment loaded in the background is shown; an export that ended is reported."""
         posed, error = self.motions.poll()
         if error is not None:
             self.status.show(f"cannot load motion: {' '.join(str(error).split())}")
         elif posed is not None:
             self.set_sequence(*posed)
+        loaded, error = self.garments.poll()
+        if error is not None:
+            self.status.show(f"cannot load the garment: {' '.join(str(error).split())}")
+        elif loaded is not None:
+            self.show_garment(*loaded)
         self.exports.poll()
 
     def _draw_scene(self) -> None:
@@ -479,6 +489,25 @@ class App(Closeable):
         self.motions.request(name)
         self.status.show(f"loading {name} ...")
 
+    def switch_garment(self, name: str) -> None:
+        """Start loading the bundled demo ``name`` in the background; the view switches to it when it
+        is loaded (:meth:`show_garment`), keeping the body, the motion and the camera."""
+        self.garments.request(name)
+        self.status.show(f"loading the {name} ...")
+
+    def show_garment(self, name: str, run) -> None:
+        """Show the loaded demo ``run`` (called ``name``) in place of the run shown, if the body and
+        the motion being played fit it (else the status line says why and nothing changes)."""
+        why = check_switch(self.neural_view.run, run, self.motion_name)
+        if why:
+            self.status.show(f"cannot show the {name} here: {why}")
+            return
+        self.motions.run = run  # its scene's sequences (ground truth) lead the motion menu
+        self.neural_view.replace_run(run)
+        self.garments.current = name
+        self._busy_frames = 2
+        self.status.show(f"{name}: {Path(run.root).name}, step {run.step}")
+
     def set_sequence(self, sequence: BodySequence, name: str | None = None) -> None:
         """Show a new posed clip (timeline restarts at frame 0 with the clip's frame rate); ``name``:
         its motion spec for the neural render (default: the clip's name)."""
@@ -551,6 +580,7 @@ class App(Closeable):
             return
         self.closed = True
         self.motions.close()
+        self.garments.close()
         self.exports.close()  # cancels a running export: it leaves no file
         self.neural_view.stop()
         path = os.environ.get(ENV_STATS, "").strip()

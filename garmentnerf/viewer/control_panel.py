@@ -1,4 +1,4 @@
-"""The control panel (top left): motion, camera, camera path, display, neural render, palette, snapshot, export.
+"""The control panel (top left): garment, motion, camera, camera path, display, neural render, palette, snapshot, export.
 
 Each section reads the app's state and changes it only through actions (methods of the app, its
 neural view, its exports) or the panel rows the renderables draw themselves (``gui(imgui)``);
@@ -30,6 +30,7 @@ def draw_controls(app) -> tuple[float, float, float, float] | None:
     if expanded:
         pos, size = imgui.get_window_pos(), imgui.get_window_size()
         covered = (pos.x, pos.y, pos.x + size.x, pos.y + size.y)
+        _garment_section(app)
         _motion_section(app)
         _camera_section(app, em)
         camera_path_section(app, em)
@@ -42,6 +43,24 @@ def draw_controls(app) -> tuple[float, float, float, float] | None:
         imgui.text_disabled("H or F1: shortcuts and mouse help")
     imgui.end()
     return covered
+
+
+def _garment_section(app) -> None:
+    """The bundled demos (one per garment of the paper's Table 1): choosing one loads it in the
+    background; body, motion and camera stay."""
+    names = app.garments.names()
+    if not names or not imgui.collapsing_header("Garment", imgui.TreeNodeFlags_.default_open):
+        return
+    current = app.garments.current
+    shown = names if current in names else ["(a run that is not a demo)"] + names
+    imgui.set_next_item_width(-1.0)
+    labels = app.garments.labels(names) if current in names else [shown[0]] + app.garments.labels(names)
+    changed, index = imgui.combo("##garment", shown.index(current) if current in names else 0, labels)
+    if changed and shown[index] in names and shown[index] != current:
+        app.switch_garment(shown[index])
+    loading = app.garments.loading
+    if loading:
+        imgui.text_disabled(f"loading the {loading} ...")
 
 
 def _motion_section(app) -> None:

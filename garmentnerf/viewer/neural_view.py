@@ -103,6 +103,25 @@ class NeuralView:
         if self._watch:
             self.watcher = CheckpointWatcher(run)
 
+    def replace_run(self, run) -> None:
+        """Show another run (another garment, :mod:`~garmentnerf.viewer.garment_menu`) from the
+        next frame on: a worker of its own, its learned palette, composition and ground-truth camera.
+        The view mode and the motion stay; unlike a newer checkpoint of the same run
+        (:meth:`_take_checkpoint`) no render, cache or palette edit of the old run carries over."""
+        self.stop()
+        self.watcher = self.renderer = None
+        self._watch = False  # a demo is not training
+        self.run = run
+        self.composition = "raster_body" if getattr(run, "body_appearance", None) is not None else "nerf"
+        self.shown = self._newest = self._last_request = self._sent_clock = self._keys = None
+        self.results.clear()
+        self.last_result = {}
+        self._clip_serial += 1
+        self.scene.palette_layer.submit_ground_truth(None)
+        if self.mode == "body":
+            self.mode = "neural"
+        self._start()
+
     @property
     def weights_step(self) -> int:
         """The training step of the weights the worker renders with (the newest checkpoint loaded)."""

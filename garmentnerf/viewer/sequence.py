@@ -5,7 +5,7 @@ normals computed, so playing it only copies one frame's (V, 6) interleaved posit
 the vertex buffer. About 0.3 MB per frame for the anny body (13,718 vertices).
 
 :class:`MotionMenu` lists the motions (the run scene's sequences first: they have ground truth) and
-poses the chosen one on :class:`SequenceLoader`'s thread, so no torch work runs on the UI thread.
+poses the chosen one on a :class:`BackgroundLoader`'s thread, so no torch work runs on the UI thread.
 """
 
 from __future__ import annotations
@@ -85,17 +85,18 @@ class BodySequence:
         return BodySequence.from_vertices(clip.name, clip.fps, posed.vertices, body.faces)
 
 
-class SequenceLoader:
-    """Runs ``load(name)`` (e.g. posing a :class:`BodySequence`) on one background thread, newest request wins.
+class BackgroundLoader:
+    """Runs ``load(name)`` (posing a :class:`BodySequence`, loading a run) on one background thread,
+    newest request wins.
 
     ``request(name)`` returns at once; the app calls :meth:`poll` every frame and gets the finished
     result (or the error) exactly once. A request made while another is loading supersedes it:
     the older result is dropped when it arrives.
     """
 
-    def __init__(self, load: Callable[[str], Any]) -> None:
+    def __init__(self, load: Callable[[str], Any], thread_name: str = "garmentnerf-motion") -> None:
         self._load = load
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="garmentnerf-motion")
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=thread_name)
         self._lock = threading.Lock()
         self._future: Future | None = None
         self._pending_name: str | None = None
@@ -164,7 +165,7 @@ class MotionMenu:
     def __init__(self, body, betas, run=None) -> None:
         self.body, self.betas, self.run = body, betas, run
         self._infos = {m.name: m for m in available_motions()}
-        self._loader = SequenceLoader(self._load)
+        self._loader = BackgroundLoader(self._load)
 
     def first_clip(self, motion: str | None, sequence: BodySequence | None = None) -> tuple[BodySequence, str, Any]:
         """(clip, its name in the menu, its motion spec for the neural render) the window starts with:
