@@ -23,7 +23,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "MAX_DEMO_WEIGHTS_BYTES", "Demo", "demo", "demo_run_dir",
+__all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "EVAL_FILES", "MAX_DEMO_WEIGHTS_BYTES", "PAPER_TABLE_1", "Demo",
+           "demo", "demo_run_dir", "results_table",
            "demo_of_run", "installed_demos", "pack_demo", "pack_weights"]
 
 #: Where the demos live inside the package.
@@ -36,8 +37,19 @@ DEFAULT_DEMO = "skirt"
 _RUN_FOLDERS = {"skirt": "run", "tshirt": "run_tshirt", "dress": "run_dress"}
 #: Largest weights file a demo may ship (issue 29: at most 25 MB per garment).
 MAX_DEMO_WEIGHTS_BYTES = 25 * 1024 * 1024
-#: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``).
-_EVAL_FILES = {"unseen_view": "eval_unseen_view.json", "unseen_motion": "eval_unseen_motion.json"}
+#: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``), per split.
+EVAL_FILES = {"seen": "eval_seen.json", "unseen_view": "eval_unseen_view.json",
+              "unseen_motion": "eval_unseen_motion.json"}
+#: The paper's Table 1 ("ours"): per garment and split (its "seen motion" is the training motion seen
+#: from held-out cameras: our ``unseen_view``), PSNR / SSIM / LPIPS / tOF; "nearest view" its baseline.
+PAPER_TABLE_1 = {
+    "tshirt": {"unseen_view": (27.737, 0.974, 0.044, 0.520), "unseen_motion": (22.594, 0.939, 0.086, 0.656),
+               "nearest view": (14.976, 0.816, 0.198, 1.305)},
+    "skirt": {"unseen_view": (26.446, 0.966, 0.055, 0.681), "unseen_motion": (20.994, 0.927, 0.101, 0.875),
+              "nearest view": (15.028, 0.815, 0.194, 1.438)},
+    "dress": {"unseen_view": (26.677, 0.960, 0.050, 0.578), "unseen_motion": (21.175, 0.909, 0.093, 0.799),
+              "nearest view": (15.132, 0.806, 0.181, 1.238)},
+}
 
 
 @dataclass(frozen=True)
@@ -76,16 +88,20 @@ class Demo:
                          if p.is_file() and p.relative_to(scene).parts[0] not in ("cache", "sim"))
         return total
 
+    def evaluation(self, split: str) -> dict | None:
+        """The shipped ``garmentnerf eval --json`` report of ``split`` (a key of :data:`EVAL_FILES`), or None."""
+        path = self.run_dir / EVAL_FILES[split]
+        return json.loads(path.read_text()) if path.is_file() else None
+
     def figures(self) -> dict[str, dict[str, float]]:
-        """Per split (``unseen_view``, ``unseen_motion``): the foreground PSNR, garment PSNR and
-        silhouette IoU of its shipped evaluation, and on ``unseen_view`` the foreground margin over
-        the nearest training view; splits without an evaluation file are left out."""
+        """Per split with a shipped evaluation (``unseen_view``, ``unseen_motion``): the foreground
+        PSNR, garment PSNR and silhouette IoU, and on ``unseen_view`` the foreground margin over the
+        nearest training view."""
         out: dict[str, dict[str, float]] = {}
-        for split, name in _EVAL_FILES.items():
-            path = self.run_dir / name
-            if not path.is_file():
+        for split in ("unseen_view", "unseen_motion"):
+            report = self.evaluation(split)
+            if report is None:
                 continue
-            report = json.loads(path.read_text())
             means = report.get("means", {})
             row = {k: float(means[k]) for k in ("fg_psnr", "garment_psnr", "silhouette_iou") if k in means}
             margin = report.get("margin_db") or {}
@@ -192,3 +208,38 @@ def pack_weights(source: Path, destination: Path) -> int:
     save_file({k: v.to(torch.float16) if v.dtype == torch.float32 else v for k, v in tensors.items()},
               str(destination), metadata=metadata)
     return Path(destination).stat().st_size
+
+
+def _cell(value, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def results_table(demos: list[Demo]) -> str:
+    """A markdown table shaped like the paper's Table 1 from the demos' shipped evaluations: per
+    garment and split (training cameras, held-out cameras, held-out motion) PSNR / SSIM / ST-LPIPS /
+    tOF, the foreground and garment PSNR, the silhouette IoU and, on held-out cameras, the margin
+    over the nearest training view; the paper's figures beside (its LPIPS is AlexNet LPIPS, ours
+    the shift-tolerant ST-LPIPS). A split without an evaluation reads "not evaluated"."""
+    splits = {"seen": "training motion, training cameras", "unseen_view": "training motion, held-out cameras",
+              "unseen_motion": "held-out motion"}
+    lines = ["| garment | split | PSNR / SSIM / ST-LPIPS / tOF | fg / garment PSNR | IoU | margin (fg) | "
+             "paper: PSNR / SSIM / LPIPS / tOF | paper's margin |",
+             "|---|---|---|---|---|---|---|---|"]
+    for d in demos:
+        paper = PAPER_TABLE_1.get(d.name, {})
+        for split, label in splits.items():
+            report = d.evaluation(split)
+            ref = paper.get(split)
+            ref_text = " / ".join(_cell(v, k) for v, k in zip(ref, (2, 3, 3, 3))) if ref else "-"
+            ref_margin = (f"{ref[0] - paper['nearest view'][0]:.2f} dB" if ref and split == "unseen_view" else "-")
+            if report is None:
+                lines.append(f"| {d.name} | {label} | not evaluated | | | | {ref_text} | {ref_margin} |")
+                continue
+            m = report["means"]
+            margin = (report.get("margin_db") or {}).get("fg_psnr")
+            lines.append(
+                f"| {d.name} | {label} | {_cell(m.get('psnr'), 2)} / {_cell(m.get('ssim'), 3)} / "
+                f"{_cell(m.get('stlpips_alex'), 3)} / {_cell(m.get('tof'), 3)} | {_cell(m.get('fg_psnr'), 2)} / "
+                f"{_cell(m.get('garment_psnr'), 2)} | {_cell(m.get('silhouette_iou'), 3)} | "
+                f"{_cell(margin, 2) + ' dB' if margin is not None else '-'} | {ref_text} | {ref_margin} |")
+    return "\n".join(lines) + "\n"

@@ -101,3 +101,21 @@ def test_demo_list_prints_each_installed_demo_with_its_figures(capsys):
         assert f"{d.size_bytes() / 1e6:.1f}" in row
         for split in d.figures().values():
             assert f"{split['fg_psnr']:.2f}" in row and f"{split['silhouette_iou']:.3f}" in row
+
+
+def test_the_results_table_puts_each_split_beside_the_papers_table_1(untrained_run, tmp_path):
+    from garmentnerf.demos import PAPER_TABLE_1, results_table
+
+    packed = pack_demo(untrained_run, "dress", tmp_path / "demo")
+    report = {"means": {"psnr": 30.123, "ssim": 0.9712, "stlpips_alex": 0.0254, "tof": 0.6004, "fg_psnr": 22.5,
+                        "garment_psnr": 21.0, "silhouette_iou": 0.951}, "margin_db": {"fg_psnr": 8.25}}
+    (packed.run_dir / "eval_unseen_view.json").write_text(json.dumps(report))
+    lines = results_table([packed]).splitlines()
+    assert len(lines) == 2 + 3 and lines[0].count("|") == lines[2].count("|") == 9
+    held_out = next(line for line in lines if "held-out cameras" in line)
+    assert "30.12 / 0.971 / 0.025 / 0.600" in held_out and "22.50 / 21.00" in held_out and "8.25 dB" in held_out
+    paper = PAPER_TABLE_1["dress"]
+    assert f"{paper['unseen_view'][0]:.2f} / {paper['unseen_view'][1]:.3f}" in held_out
+    assert f"{paper['unseen_view'][0] - paper['nearest view'][0]:.2f} dB" in held_out  # 11.54
+    assert "not evaluated" in next(line for line in lines if "training cameras" in line)
+    assert "not evaluated" in next(line for line in lines if "held-out motion" in line)

@@ -6,7 +6,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from garmentnerf.demos import DEMO_NAMES, installed_demos, pack_demo
+from garmentnerf.cli.common import check_output_file
+from garmentnerf.demos import DEMO_NAMES, installed_demos, pack_demo, results_table
+from garmentnerf.io_utils import atomic_write_path
 
 
 def register(sub) -> None:
@@ -16,6 +18,12 @@ def register(sub) -> None:
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     listing = actions.add_parser("list", help="name the installed demos with their size and figures")
     listing.set_defaults(func=run_list)
+    table = actions.add_parser("table", help="the installed demos' figures as a table shaped like the paper's Table 1",
+                               description="A markdown table of every installed demo's shipped evaluations (seen, "
+                                           "unseen_view, unseen_motion) with the paper's Table 1 beside.")
+    table.add_argument("--out", default=None, metavar="FILE", help="write it to FILE (default: print it)")
+    table.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    table.set_defaults(func=run_table)
     pack = actions.add_parser(
         "pack", help="make a trained run a bundled demo (weights in float16, its scene's sequences beside it)",
         description="Copy a run folder into the package as demo NAME: its weights cast to float16, its body "
@@ -42,6 +50,19 @@ def run_list(args: argparse.Namespace) -> int:
         um_text = (f"{um['fg_psnr']:.2f} / {um['garment_psnr']:.2f} dB, {um['silhouette_iou']:.3f}"
                    if um else "not evaluated")
         print(f"{d.name:8s} {d.size_bytes() / 1e6:6.1f}  {uv_text:46s} {um_text}")
+    return 0
+
+
+def run_table(args: argparse.Namespace) -> int:
+    if args.out:
+        check_output_file(args.out, "--out", args.overwrite)
+    text = results_table(installed_demos())
+    if args.out:
+        with atomic_write_path(Path(args.out), overwrite=args.overwrite) as tmp:
+            tmp.write_text(text)
+        print(f"wrote {args.out}")
+    else:
+        print(text, end="")
     return 0
 
 
