@@ -41,6 +41,21 @@ class ModelConfig:
     body has been going for the last fraction of a second. In the sequence occupancy probe (0.1, 0.3 and 1 s)
     it changed nothing over the first 600 steps, which learn the average garment (docs/quality.md, "Telling
     the field where the cloth is"); whether it helps once frames are told apart is not measured."""
+    frame_code_resolution: int = 0
+    """Per-frame codes (not in the paper; 0: none): every training frame gets a learned residual of E's
+    output, ``dynamic_encoder_channels x r x r`` at this r, upsampled bilinearly to E's resolution and added
+    to F^s_t. A sequence model reaches a frame's own garment shape only through E after many visits of that
+    frame (docs/quality.md, "Telling the field where the cloth is"); the code is a per-frame memory that
+    learns from each visit at its own rate (``frame_code_lr_scale``). Only the training sequences' frames
+    have codes (the run records which, :attr:`frame_codes`); any other motion, or another scene, renders
+    without (its F^s_t is E's alone), and so sees what E has learned, not the codes."""
+    frame_codes: int = 0
+    """Number of per-frame codes: set by the trainer to the frames of the scene's training sequences when
+    ``frame_code_resolution`` > 0 (0 in a config written by hand)."""
+    frame_code_lr_scale: float = 50.0
+    """The per-frame codes learn at ``lr`` times this: each is seen once in about as many steps as there are
+    training frames (the sequence occupancy probe: 50 gave +0.07 IoU on the training frames after 600
+    steps, 10 +0.01; docs/quality.md)."""
     info_map_resolution: int = 128
     """Side of the UV info maps N_t, V_t and of the dynamic feature map F^s_t (paper: 128)."""
     image_resolution: int = 512
@@ -389,10 +404,14 @@ class ModelConfig:
                              f"{list(self.velocity_smoothing)}")
         if self.segmentation_start < 0:
             raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
+        if self.frame_code_resolution and not self.use_dynamic_feature:
+            raise ValueError("ModelConfig.frame_code_resolution needs the dynamic feature (use_dynamic_feature)")
+        if not (math.isfinite(self.frame_code_lr_scale) and self.frame_code_lr_scale > 0):
+            raise ValueError(f"ModelConfig.frame_code_lr_scale must be > 0, got {self.frame_code_lr_scale}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
                      "decoder_extra_layers", "bbox_padding", "blend_weight_floor", "w_image", "w_mask",
                      "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation",
-                     "w_plane_tv", "w_occupancy"):
+                     "w_plane_tv", "w_occupancy", "frame_code_resolution", "frame_codes"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:

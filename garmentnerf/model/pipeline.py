@@ -223,6 +223,22 @@ def _autocast(precision: str, device: torch.device):
     return torch.autocast(device_type=device.type, dtype=getattr(torch, precision))
 
 
+class FrameCodes(nn.Module):
+    """Per-frame codes (``ModelConfig.frame_code_resolution``): ``codes`` (frames, C, r, r), zero at
+    the start; a call gives one code upsampled bilinearly to E's output resolution."""
+
+    def __init__(self, count: int, channels: int, resolution: int) -> None:
+        super().__init__()
+        self.codes = nn.Parameter(torch.zeros(count, channels, resolution, resolution))
+
+    def forward(self, index: int, resolution: int) -> torch.Tensor:
+        """(C, R, R) code ``index`` at ``resolution`` R; ValueError when out of range."""
+        if not 0 <= int(index) < self.codes.shape[0]:
+            raise ValueError(f"per-frame code {index} out of range (the model has {self.codes.shape[0]})")
+        code = self.codes[int(index)].unsqueeze(0)
+        return F.interpolate(code, size=(resolution, resolution), mode="bilinear", align_corners=False)[0]
+
+
 class GarmentAnimationNeRF(nn.Module):
     """E, G_img, G_en, M_NeRF, M_D and the palette, with the per-frame and per-view passes.
 
@@ -262,6 +278,9 @@ class GarmentAnimationNeRF(nn.Module):
             self.atlas_features = NeuralTexture(cfg.atlas_feature_channels, cfg.atlas_feature_levels,
                                                 cfg.atlas_feature_resolution)
         self.nerf = UVHField.from_config(cfg) if cfg.field == "uvh" else GarmentNeRF.from_config(cfg)
+        self.frame_codes = None  # per-frame residuals of F^s_t (ModelConfig.frame_code_resolution)
+        if cfg.frame_code_resolution and cfg.frame_codes:
+            self.frame_codes = FrameCodes(cfg.frame_codes, cfg.dynamic_encoder_channels, cfg.frame_code_resolution)
         self.decoder = PaletteDecoder.from_config(cfg)
         self.palette = Palette(palette_initial_colors(palette_init, cfg.palette_size))
         self.visibility_tolerance = float(visibility_tolerance)
@@ -303,10 +322,11 @@ class GarmentAnimationNeRF(nn.Module):
 
     def trainable_modules(self) -> dict[str, nn.Module]:
         """The modules the NeRF training updates: ``encoder``, ``detail_encoder``, ``nerf``,
-        ``decoder``, ``palette``, ``atlas_features`` (ablated ones left out), plus
+        ``decoder``, ``palette``, ``atlas_features``, ``frame_codes`` (those the config has), plus
         ``image_generator`` when unfrozen."""
         mods = {"encoder": self.encoder, "detail_encoder": self.detail_encoder, "nerf": self.nerf,
-                "decoder": self.decoder, "palette": self.palette, "atlas_features": self.atlas_features}
+                "decoder": self.decoder, "palette": self.palette, "atlas_features": self.atlas_features,
+                "frame_codes": self.frame_codes}
         if not self._image_generator_frozen:
             mods["image_generator"] = self.image_generator
         return {k: m for k, m in mods.items() if m is not None}
@@ -327,6 +347,12 @@ class GarmentAnimationNeRF(nn.Module):
             return ()
         return tuple("nerf." + p for p in GarmentNeRF.GROWABLE)
 
+    def frame_code(self, index: int, resolution: int) -> torch.Tensor:
+        """(C_s, R, R) the per-frame code ``index`` upsampled bilinearly to E's output resolution R."""
+        if self.frame_codes is None:
+            raise ValueError("this model has no per-frame codes (ModelConfig.frame_code_resolution)")
+        return self.frame_codes(index, resolution)
+
     def grid_prefixes(self) -> tuple[str, ...]:
         """State-dict prefixes of the feature grids that learn at ``cfg.uvh_plane_lr_scale`` times the
         rate (the ``uvh`` field's tri-plane)."""
@@ -337,7 +363,8 @@ class GarmentAnimationNeRF(nn.Module):
         return self.atlas_features(uv.view(1, 1, -1, 2))[0, :, 0].T
 
     # ------------------------------------------------------------------ per frame
-    def prepare_frame(self, inputs: FrameInputs, geometry: FrameFeatures | None = None) -> FrameFeatures:
+    def prepare_frame(self, inputs: FrameInputs, geometry: FrameFeatures | None = None,
+                      code: int | None = None) -> FrameFeatures:
         """Everything of one frame that does not depend on the camera (see the module docstring).
 
         Runs E, G_img (unless ``inputs.reference_images`` is given) and G_en with autograd as the
@@ -349,6 +376,9 @@ class GarmentAnimationNeRF(nn.Module):
         geometry is then reused instead of rebuilt: binding the body (its search tree) and its normals
         cost more than the encoders, and a trainer meets each frame many times. ValueError when
         its vertices are not exactly those of ``inputs``.
+
+        ``code``: the frame's per-frame code (a training frame of a model with codes,
+        :meth:`frame_code`), added to E's output; None: E's output alone.
         """
         cfg = self.cfg
         inputs.validate(cfg, self.body.asset.num_vertices)
@@ -371,6 +401,8 @@ class GarmentAnimationNeRF(nn.Module):
         if cfg.use_dynamic_feature:
             with sw("encoders"):
                 dynamic = self.encoder(inputs.info_maps.to(dev, torch.float32).unsqueeze(0))[0]
+                if code is not None:
+                    dynamic = dynamic + self.frame_code(code, dynamic.shape[-1])
         if cfg.use_detail_feature:
             with sw("reference_images"):
                 if inputs.reference_images is not None:

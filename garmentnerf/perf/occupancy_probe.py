@@ -99,7 +99,7 @@ def occupancy_probe(run_dir, *, steps: int = 600, eval_every: int = 100, frames=
                 out = {"train": ([], []), "heldout": ([], [])}
                 with torch.no_grad():
                     for kind, seq, f in scored + heldout:
-                        feats = model.prepare_frame(trainer._nerf_inputs(seq, f))
+                        feats = model.prepare_frame(trainer._nerf_inputs(seq, f), code=trainer.code_index(seq, f))
                         if (seq, f) not in points:  # drawn once: the frame's body and garment are fixed
                             points[seq, f] = trainer.occupancy_targets(seq, f, feats, EVAL_POINTS,
                                                                        torch.Generator().manual_seed(1000 + f))

@@ -89,6 +89,7 @@ from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
 from garmentnerf.render.presets import CHARACTER_RECT_MARGIN, get_render_preset, height_range_for_run
 from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
+from garmentnerf.train.run import frame_code_offset
 
 #: How a view is composed (module docstring, "the two compositions").
 COMPOSITIONS = ("auto", "nerf", "raster_body")
@@ -281,6 +282,8 @@ class RenderSession(Closeable):
         with torch.no_grad():
             posed = clip.pose(self.body, self.betas)
         self.motion, self.sequence, self.posed = clip, sequence, posed
+        # a training sequence of the run's own scene renders with its per-frame codes (if the run has them)
+        self._code_offset = frame_code_offset(getattr(self.run, "info", {}), self.scene, sequence)
         self.frames.clear()
 
     @property
@@ -322,8 +325,9 @@ class RenderSession(Closeable):
 
     def _compute_frame(self, frame: int):
         inputs = self.builder.build(self.posed, frame, self.fps)
+        code = None if self._code_offset is None else self._code_offset + frame
         with torch.no_grad():
-            return self.model.prepare_frame(inputs).detach()
+            return self.model.prepare_frame(inputs, code=code).detach()
 
     def precompute_next(self, playhead: int | None = None) -> int | None:
         """Compute and cache the missing frame nearest to ``playhead`` (default: the last one

@@ -43,6 +43,7 @@ Use :func:`load_run` to read a run, :func:`save_run_model` to write its shipping
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -66,7 +67,7 @@ MODEL_FILE = "model.safetensors"
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
 
-__all__ = ["LoadedRun", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
+__all__ = ["LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
            "save_weights", "load_weights", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
            "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "remove_run_temporaries"]
 
@@ -404,3 +405,26 @@ def create_untrained_run(run_dir, scene_path, config: ModelConfig, seed: int = 0
     model = build_model(config, scene.palette_init if scene is not None else None)
     return save_run_model(run_dir, model, config, scene_path, 0,
                           {"perceptual": "untrained", "body": body_info_from_scene(scene), "seed": int(seed)})
+
+
+def _scene_digest(scene: Scene) -> str:
+    """A short digest of the scene's ``scene.json`` (cameras, sequences, garment, body): the same
+    scene copied elsewhere (a packed demo) keeps it, another scene does not."""
+    return hashlib.sha256(Path(scene.scene_file).read_bytes()).hexdigest()[:16]
+
+
+def frame_code_record(scene: Scene, offsets: dict[str, int]) -> dict:
+    """What a run with per-frame codes records in ``run.json`` (``frame_codes``): its scene's digest and
+    the index of each training sequence's first code (``ModelConfig.frame_code_resolution``)."""
+    return {"scene": _scene_digest(scene), "offsets": {k: int(v) for k, v in offsets.items()}}
+
+
+def frame_code_offset(info: dict, scene: Scene | None, sequence: str | None) -> int | None:
+    """The index of the first per-frame code of ``sequence`` of ``scene`` in the run whose ``run.json``
+    is ``info`` (its code for frame f is this plus f), or None: the run has no codes, or the scene is
+    not the one it was trained on, or the sequence not one of its training sequences."""
+    record = info.get("frame_codes")
+    if not record or scene is None or sequence is None or record.get("scene") != _scene_digest(scene):
+        return None
+    offset = record.get("offsets", {}).get(sequence)
+    return None if offset is None else int(offset)

@@ -120,6 +120,7 @@ from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
 from garmentnerf.train.perceptual import make_perceptual
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model,
+                                   frame_code_record,
                                    load_module_weights, load_weights, read_run_info, remove_run_temporaries,
                                    save_run_model, save_weights)
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
@@ -158,19 +159,21 @@ def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> l
     the atlas branch (``model.zero_start_prefixes()``: its texture and the MLP's weights on f^a) at
     ``cfg.atlas_feature_lr_scale``; the U-Nets E and G_en at ``cfg.encoder_lr_scale`` when it is not
     1 (at 1 they stay in the main group, so an optimiser state saved before the setting loads);
-    the ``uvh`` field's tri-plane (``model.grid_prefixes()``) at ``cfg.uvh_plane_lr_scale``;
-    everything else at 1. Groups left empty are dropped."""
+    the ``uvh`` field's tri-plane (``model.grid_prefixes()``) at ``cfg.uvh_plane_lr_scale``; the
+    per-frame codes at ``cfg.frame_code_lr_scale``; everything else at 1. Groups left empty are dropped."""
     def ids_under(prefixes: tuple[str, ...]) -> set[int]:
         return {id(p) for name, p in model.named_parameters() if name.startswith(prefixes)} if prefixes else set()
 
     atlas_ids = ids_under(model.zero_start_prefixes())
     encoder_ids = ids_under(("encoder.", "detail_encoder.")) if cfg.encoder_lr_scale != 1.0 else set()
     grid_ids = ids_under(model.grid_prefixes())
-    scaled = atlas_ids | encoder_ids | grid_ids
+    code_ids = ids_under(("frame_codes",))
+    scaled = atlas_ids | encoder_ids | grid_ids | code_ids
     groups = [{"params": [p for p in params if id(p) not in scaled], "lr_scale": 1.0},
               {"params": [p for p in params if id(p) in atlas_ids], "lr_scale": float(cfg.atlas_feature_lr_scale)},
               {"params": [p for p in params if id(p) in encoder_ids], "lr_scale": float(cfg.encoder_lr_scale)},
-              {"params": [p for p in params if id(p) in grid_ids], "lr_scale": float(cfg.uvh_plane_lr_scale)}]
+              {"params": [p for p in params if id(p) in grid_ids], "lr_scale": float(cfg.uvh_plane_lr_scale)},
+              {"params": [p for p in params if id(p) in code_ids], "lr_scale": float(cfg.frame_code_lr_scale)}]
     return [g for g in groups if g["params"]]
 
 
@@ -356,6 +359,30 @@ class Trainer(Closeable):
         self.frames_list = frames
         self.cameras = cams
         self.pairs = [(s, f, c) for (s, f) in frames for c in cams]
+        self._settle_frame_codes(seqs)
+
+    def _settle_frame_codes(self, seqs: list[str]) -> None:
+        """The per-frame codes (``ModelConfig.frame_code_resolution``): one per frame of the training
+        sequences ``seqs`` (all their frames, so that a code's index is its sequence's offset plus the
+        frame), their count set in ``self.cfg`` on a new run and checked on a resume."""
+        self.code_offsets: dict[str, int] = {}
+        if not self.cfg.frame_code_resolution:
+            return
+        count = 0
+        for s in seqs:
+            self.code_offsets[s] = count
+            count += self.scene.num_frames(s)
+        if self.cfg.frame_codes == 0:
+            self.cfg = replace(self.cfg, frame_codes=count)
+        elif self.cfg.frame_codes != count:
+            raise ValueError(f"{self.out}: the run has {self.cfg.frame_codes} per-frame codes, its training "
+                             f"sequences ({', '.join(seqs)}) have {count} frames")
+
+    def code_index(self, seq: str, frame: int) -> int | None:
+        """The per-frame code of training frame (``seq``, ``frame``), or None (no codes, or not a
+        training sequence)."""
+        offset = self.code_offsets.get(seq)
+        return None if offset is None else offset + int(frame)
 
     def _build_model(self, gl_context, resume_info: dict | None) -> None:
         """The model (seeded, the same on every rank), the perceptual network, the frame data and
@@ -481,7 +508,8 @@ class Trainer(Closeable):
                 "nerf_step": max(0, self.step - self.generator_iterations), "seed": self.tc.seed,
                 "train": {**self.tc.to_json(), "scene": str(self.scene_path)},
                 "loss_weight_changes": self.loss_weight_changes,
-                "overrides": self.overrides}
+                "overrides": self.overrides,
+                **({"frame_codes": frame_code_record(self.scene, self.code_offsets)} if self.code_offsets else {})}
 
     def save_checkpoint(self, rng: dict | None = None) -> Path | None:
         """Write ``checkpoints/ckpt_<step>`` (weights, then state) and the run's model files; rank 0 only.
@@ -601,7 +629,7 @@ class Trainer(Closeable):
         next visit)."""
         inputs = self._nerf_inputs(seq, frame)
         geometry = self._geometry.pop((seq, frame), None)
-        feats = self.model.prepare_frame(inputs, geometry)
+        feats = self.model.prepare_frame(inputs, geometry, code=self.code_index(seq, frame))
         if self.geometry_cache_frames > 0:
             # the geometry only: the features belong to this step's graph
             self._geometry[seq, frame] = geometry or replace(feats, dynamic_features=None, reference_images=None,

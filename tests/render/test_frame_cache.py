@@ -103,7 +103,7 @@ def test_session_precomputes_and_a_ready_frame_costs_no_frame_work(run_dir, gl_c
     with RenderSession(load_run(run_dir), gl_context) as session:
         calls = []
         original = session.model.prepare_frame
-        monkeypatch.setattr(session.model, "prepare_frame", lambda inputs: calls.append(inputs.frame) or original(inputs))
+        monkeypatch.setattr(session.model, "prepare_frame", lambda inputs, **kw: calls.append(inputs.frame) or original(inputs, **kw))
         n = session.num_frames
         done = []
         while (f := session.precompute_next(playhead=1)) is not None:

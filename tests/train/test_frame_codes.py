@@ -1,0 +1,95 @@
+"""Per-frame codes (``ModelConfig.frame_code_resolution``): one learned residual of E's output per
+training frame, trained with the run, resumed exactly, recorded in the run, and used by a render of
+the run's own training sequence only."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from garmentnerf.train.run import frame_code_offset, load_run
+from garmentnerf.train.settings import tiny_config
+from train.test_train import assert_same_steps, make_tc, run
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def codes_config(**kw):
+    return tiny_config().replace(frame_code_resolution=4, frame_code_lr_scale=20.0, **kw)
+
+
+def test_a_run_trains_one_code_per_training_frame_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
+    from garmentnerf.train.trainer import Trainer, param_groups
+
+    cfg = codes_config(iterations=4)
+    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=4,
+                                   model_config=cfg), gl_context)
+    n = tiny_scene.num_frames("train")
+    codes = full_state["frame_codes.codes"]
+    assert codes.shape == (n, cfg.dynamic_encoder_channels, 4, 4)
+    assert (codes.flatten(1).abs().amax(dim=1) > 0).any()  # visited frames' codes moved from zero
+    loaded = load_run(tmp_path / "a")
+    assert loaded.config.frame_codes == n and loaded.model.frame_codes.codes.shape[0] == n
+    record = json.loads((tmp_path / "a" / "run.json").read_text())["frame_codes"]
+    assert record["offsets"] == {"train": 0} and len(record["scene"]) == 16
+    with Trainer(make_tc(tiny_scene, tmp_path / "g", generator_iterations=0, model_config=cfg), gl_context,
+                 log=lambda m: None) as tr:
+        groups = param_groups(tr.model, list(tr.model.parameters()), tr.cfg)
+        scaled = [g for g in groups if any(p is tr.model.frame_codes.codes for p in g["params"])]
+        assert len(scaled) == 1 and scaled[0]["lr_scale"] == 20.0 and len(scaled[0]["params"]) == 1
+        assert tr.code_index("train", 2) == 2 and tr.code_index("test", 0) is None
+    # interrupted after two steps and resumed: the same steps and the same codes
+    part, _ = run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=4, model_config=cfg,
+                          stop_after=2), gl_context)
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=4),
+                           gl_context)
+    assert [h["step"] for h in rest.history] == [3, 4]
+    assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
+
+
+def test_the_code_is_added_to_e_upsampled_and_only_for_the_runs_training_sequence(tiny_scene, gl_context, tmp_path):
+    from garmentnerf.render.session import RenderSession
+
+    run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=1, model_config=codes_config(iterations=1)),
+        gl_context)
+    loaded = load_run(tmp_path / "r")
+    model = loaded.model
+    with torch.no_grad():
+        model.frame_codes.codes.zero_()
+        model.frame_codes.codes[1] = 2.5  # a constant code: upsampled bilinearly it stays 2.5 everywhere
+        ramp = torch.arange(4.0).view(1, 4).expand(4, 4)  # along x: a linear ramp stays one between texel centres
+        model.frame_codes.codes[2] = ramp
+    with RenderSession(loaded, gl_context, motion="train") as session:
+        assert session._code_offset == 0
+        inputs = session.builder.build(session.posed, 1, session.fps)
+        with torch.no_grad():
+            plain = model.prepare_frame(inputs).dynamic_features
+        coded, _ = session.frame_features(1)
+        torch.testing.assert_close(coded.dynamic_features - plain, torch.full_like(plain, 2.5), atol=1e-5, rtol=0)
+        R = plain.shape[-1]
+        up = model.frame_code(2, R)[0].detach()
+        x = (np.arange(R) + 0.5) * 4 / R - 0.5  # texel centres of R in the code's 4 texels (align_corners=False)
+        np.testing.assert_allclose(up[0].numpy(), np.clip(x, 0, 3), atol=1e-5)
+    with RenderSession(loaded, gl_context, motion="walk") as session:  # a library motion: no codes
+        assert session._code_offset is None
+        inputs = session.builder.build(session.posed, 1, session.fps)
+        feats, _ = session.frame_features(1)
+        with torch.no_grad():
+            torch.testing.assert_close(feats.dynamic_features, model.prepare_frame(inputs).dynamic_features)
+    # another scene (a copy with another scene.json) does not get the codes of this one's "train"
+    other = tmp_path / "other_scene"
+    shutil.copytree(tiny_scene.root, other)
+    info = json.loads((other / "scene.json").read_text())
+    info["garment"]["color"] = [0.1, 0.2, 0.3]
+    (other / "scene.json").write_text(json.dumps(info))
+    from garmentnerf.data.scene import Scene
+
+    assert frame_code_offset(loaded.info, tiny_scene, "train") == 0
+    assert frame_code_offset(loaded.info, Scene.load(other), "train") is None
+    assert frame_code_offset(loaded.info, tiny_scene, "test") is None
+    with pytest.raises(ValueError, match="out of range"):
+        model.frame_code(tiny_scene.num_frames("train"), 8)
