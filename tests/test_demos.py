@@ -86,6 +86,7 @@ def test_pack_weights_keeps_non_float32_tensors(tmp_path):
     (["eval", "--demo", "skirt", "--run", "x", "--split", "unseen_view"], "--run and --demo: give one of them"),
     (["render", "--demo", "skirt", "--run", "x", "--out", "frames"], "--run and --demo: give one of them"),
     (["bench", "--demo", "coat"], "unknown demo 'coat'"),
+    (["view", "--demo", "coat"], "unknown demo 'coat'"),  # before the display is looked for
 ])
 def test_demo_flags_fail_in_one_line(argv, message, capsys):
     assert main(argv) == 2

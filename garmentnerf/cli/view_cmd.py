@@ -89,6 +89,10 @@ def run_view(args: argparse.Namespace) -> int:
         raise ValueError("--json needs --bench")
     if args.json:
         check_output_file(args.json, "--json", args.overwrite)
+    run_dir = None
+    if not args.body_only:
+        default = DEFAULT_DEMO if demo(DEFAULT_DEMO).installed else None  # else: the body alone
+        run_dir = run_folder_arg(args, default)
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.viewer import app as app_module
 
@@ -97,11 +101,7 @@ def run_view(args: argparse.Namespace) -> int:
         return 2
 
     run = None
-    run_dir = None
-    if not args.body_only:
-        default = DEFAULT_DEMO if demo(DEFAULT_DEMO).installed else None  # else: the body alone
-        run_dir = run_folder_arg(args, default)
-    if run_dir is not None and not args.body_only:
+    if run_dir is not None:
         # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
         from garmentnerf.train.run import load_run
 

@@ -21,6 +21,7 @@ the run scene's sequences. Without a run only ``body`` is available.
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Callable
 
@@ -37,6 +38,14 @@ VIEW_MODES = {"neural": "Neural render", "ground_truth": "Ground truth", "side_b
               "difference": "Difference", "body": "Body only", "maps": "Maps"}
 #: View modes that show the ground truth (and so render the scene camera's view).
 GROUND_TRUTH_MODES = ("ground_truth", "side_by_side", "difference")
+
+
+def _stop_all(renderer, watcher) -> None:
+    """Stop a replaced run's worker and checkpoint watcher (either may be None)."""
+    if watcher is not None:
+        watcher.close()
+    if renderer is not None:
+        renderer.stop()
 
 
 def submit_result(layer, result) -> None:
@@ -99,7 +108,9 @@ class NeuralView:
             names = run.scene.camera_names("train") or run.scene.camera_names()
             self.gt_camera = names[0] if names else None
         self.set_mode(self.mode)
-        self.renderer = NeuralRenderer(run, self._sink, self.motion, clock=self._clock)
+        renderer = NeuralRenderer(run, lambda result, request: self._sink(result, request, renderer), self.motion,
+                                  clock=self._clock)
+        self.renderer = renderer
         if self._watch:
             self.watcher = CheckpointWatcher(run)
 
@@ -107,9 +118,13 @@ class NeuralView:
         """Show another run (another garment, :mod:`~garmentnerf.viewer.garment_menu`) from the
         next frame on: a worker of its own, its learned palette, composition and ground-truth camera.
         The view mode and the motion stay; unlike a newer checkpoint of the same run
-        (:meth:`_take_checkpoint`) no render, cache or palette edit of the old run carries over."""
-        self.stop()
+        (:meth:`_take_checkpoint`) no render, cache or palette edit of the old run carries over.
+        The old worker is stopped on a thread of its own (it may be mid-render: the window does not
+        wait for it), and its results are dropped (:meth:`_sink`)."""
+        old_renderer, old_watcher = self.renderer, self.watcher
         self.watcher = self.renderer = None
+        threading.Thread(target=_stop_all, args=(old_renderer, old_watcher), name="garmentnerf-old-garment",
+                         daemon=True).start()
         self._watch = False  # a demo is not training
         self.run = run
         self.composition = "raster_body" if getattr(run, "body_appearance", None) is not None else "nerf"
@@ -142,9 +157,11 @@ class NeuralView:
             self.scene.palette_layer.set_palette(self.palette)
         self._status(f"checkpoint step {run.step} loaded: showing it")
 
-    def _sink(self, result, request) -> None:
-        """Worker thread: queue the result for the UI thread (which chooses what the layer shows)."""
-        self.results.append(result)
+    def _sink(self, result, request, renderer) -> None:
+        """Worker thread: queue the result of ``renderer`` for the UI thread (which chooses what the
+        layer shows); a result of a renderer replaced meanwhile (:meth:`replace_run`) is dropped."""
+        if renderer is self.renderer:
+            self.results.append(result)
 
     def _show(self, result, playback_meter=None) -> None:
         """Put ``result`` on the palette layer (thread-safe; uploaded at the next draw)."""

@@ -48,7 +48,8 @@ def test_the_window_switches_garment_without_a_restart(xvfb, two_demos, tmp_path
         viewer.switch_garment("tshirt")
         assert viewer.run_until(lambda: viewer.garments.current == "tshirt", 120), viewer.status.message()
         assert view.run.root == two_demos / "run_tshirt" and view.renderer is not old_renderer
-        assert not old_renderer.worker._thread.is_alive()  # the old garment's worker ended
+        old_renderer.worker._thread.join(30)
+        assert not old_renderer.worker._thread.is_alive()  # the old garment's worker ended (stopped off the UI thread)
         expected = load_file(str(two_demos / "run_tshirt" / "model.safetensors"))["palette.colors"].float().numpy()
         np.testing.assert_allclose(view.learned_palette, np.clip(expected, 0, 1), atol=1e-6)
         assert viewer.wait_for_neural(180), view.error()
