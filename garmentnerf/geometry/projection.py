@@ -19,7 +19,8 @@ How the exact search stays cheap
 Each posed frame gets a bounding-volume hierarchy over its faces (:mod:`~garmentnerf.geometry.face_bvh`):
 a complete binary tree of median splits down to leaves of one or two faces, every node bounded by
 a thin cylinder around its faces' mean normal. A native kernel (warp, on the CPU) walks it depth
-first for every point, the nearer child first, and skips a node when its cylinder is farther
+first for every point, the nearer child first, and skips a node when its cylinder (or, high in
+the tree where a node is a tube rather than a patch, its axis-aligned box) is farther
 than the best face found: the answer is the exact nearest face (in float64), with nothing to
 certify or retry. Oriented cylinders hug a patch of skin, so a point tens of centimetres off the
 body opens only the nodes around its foot point, where an axis-aligned box (the scipy KD-tree of

@@ -377,3 +377,38 @@ def test_kernel_solve_matches_closest_point_on_triangles():
     torch.testing.assert_close(proj.bary, bc, rtol=0, atol=1e-12)
     assert torch.equal(proj.bary == 0, bc == 0)
     np.testing.assert_allclose(proj.distance.numpy(), np.linalg.norm(points - cp.numpy(), axis=1), atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["icosphere", "torus"])
+def test_every_node_bound_is_below_the_distance_to_its_faces(name):
+    """The walk skips a node when its bound (the larger of the cylinder's and the box's distance)
+    exceeds the best distance found: the bound, computed here from the node table in numpy, must
+    never exceed the true distance from a point to the node's faces (trimesh, brute force)."""
+    from garmentnerf.geometry.face_bvh import FaceBVH
+
+    mesh = MESHES[name]()
+    V = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
+    F = torch.as_tensor(np.asarray(mesh.faces))
+    tree = FaceBVH(V, F)
+    N = tree.node_table.numpy()
+    order = tree.order.numpy()
+    points = near_and_far_points(mesh, n_near=300, n_far=100, band=0.3, far=0.5, seed=3)
+    rng = np.random.default_rng(0)
+    box_tighter = cylinder_tighter = False
+    for level in (1, 3, 5, tree.depth):
+        n = 1 << level
+        for idx in rng.choice(n, size=min(n, 6), replace=False):
+            j = n - 1 + idx
+            lo, hi = (idx * len(order)) // n, ((idx + 1) * len(order)) // n
+            sub = trimesh.Trimesh(mesh.vertices, mesh.faces[order[lo:hi]], process=False)
+            _, true_d, _ = trimesh.proximity.closest_point(sub, points)
+            p = points - N[j, 0:3]
+            a = p @ N[j, 3:6]
+            r = np.linalg.norm(p - a[:, None] * N[j, 3:6], axis=1)
+            cyl = np.maximum(r - N[j, 6], 0) ** 2 + np.maximum(np.maximum(N[j, 7] - a, a - N[j, 8]), 0) ** 2
+            box = (np.maximum(np.abs(p) - N[j, 9:12], 0) ** 2).sum(axis=1)
+            bound = np.maximum(cyl, box)
+            assert (bound <= true_d ** 2 + 1e-12).all(), (level, idx)
+            box_tighter |= bool((box > cyl).any())
+            cylinder_tighter |= bool((cyl > box).any())
+    assert box_tighter and cylinder_tighter  # each bound is the larger one somewhere
