@@ -29,17 +29,20 @@ class GarmentMenu:
     def __init__(self, run=None, root: Path = DEMO_ROOT) -> None:
         self.root = Path(root)
         self.current = demo_of_run(run.root, self.root) if run is not None else None
+        # read once: the panel asks every frame it draws, and the demos do not change meanwhile
+        demos = installed_demos(self.root)
+        self._names = [d.name for d in demos]
+        self._figures = {d.name: d.figures().get("unseen_view", {}) for d in demos}
         self._loader = BackgroundLoader(self._load, thread_name="garmentnerf-garment")
 
     def names(self) -> list[str]:
         """The installed demos, in the paper's order."""
-        return [d.name for d in installed_demos(self.root)]
+        return list(self._names)
 
     def labels(self, names: list[str]) -> list[str]:
-        """What the menu shows: ``tshirt  (unseen views 22.4 dB)``, or the bare name without figures."""
-        figures = {d.name: d.figures().get("unseen_view", {}) for d in installed_demos(self.root)}
-        return [f"{n}  (unseen views {figures[n]['fg_psnr']:.1f} dB)" if "fg_psnr" in figures.get(n, {}) else n
-                for n in names]
+        """What the menu shows: ``tshirt  (unseen views 22.6 dB)``, or the bare name without figures."""
+        return [f"{n}  (unseen views {self._figures[n]['fg_psnr']:.1f} dB)"
+                if "fg_psnr" in self._figures.get(n, {}) else n for n in names]
 
     def _load(self, name: str) -> tuple[str, Any]:
         from garmentnerf.train.run import load_run  # lazy: torch and the model stack
