@@ -347,6 +347,12 @@ class GarmentAnimationNeRF(nn.Module):
             return ()
         return tuple("nerf." + p for p in GarmentNeRF.GROWABLE)
 
+    def frame_code_prefixes(self) -> tuple[str, ...]:
+        """State-dict prefixes of the per-frame codes (none without them): zero at the start, so they
+        may be missing from weights trained without them (the model then computes what those weights'
+        own model computes), and they learn at ``cfg.frame_code_lr_scale`` times the rate."""
+        return ("frame_codes.",) if self.frame_codes is not None else ()
+
     def frame_code(self, index: int, resolution: int) -> torch.Tensor:
         """(C_s, R, R) the per-frame code ``index`` upsampled bilinearly to E's output resolution R."""
         if self.frame_codes is None:

@@ -167,7 +167,7 @@ def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> l
     atlas_ids = ids_under(model.zero_start_prefixes())
     encoder_ids = ids_under(("encoder.", "detail_encoder.")) if cfg.encoder_lr_scale != 1.0 else set()
     grid_ids = ids_under(model.grid_prefixes())
-    code_ids = ids_under(("frame_codes",))
+    code_ids = ids_under(model.frame_code_prefixes())
     scaled = atlas_ids | encoder_ids | grid_ids | code_ids
     groups = [{"params": [p for p in params if id(p) not in scaled], "lr_scale": 1.0},
               {"params": [p for p in params if id(p) in atlas_ids], "lr_scale": float(cfg.atlas_feature_lr_scale)},
@@ -457,7 +457,8 @@ class Trainer(Closeable):
                 self.log("loss weights from step " + str(self.step) + ": " +
                          ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_weights is not None:
-            new = load_weights(tc.init_weights, self.model, self.model.zero_start_prefixes(),
+            new = load_weights(tc.init_weights, self.model,
+                               self.model.zero_start_prefixes() + self.model.frame_code_prefixes(),
                                self.model.growable_prefixes())
             self.step = self.generator_iterations
             self._enter_stage(self._stage_of(self.step))

@@ -93,3 +93,15 @@ def test_the_code_is_added_to_e_upsampled_and_only_for_the_runs_training_sequenc
     assert frame_code_offset(loaded.info, tiny_scene, "test") is None
     with pytest.raises(ValueError, match="out of range"):
         model.frame_code(tiny_scene.num_frames("train"), 8)
+
+
+def test_codes_start_from_weights_trained_without_them(tiny_scene, gl_context, tmp_path):
+    """``--init-weights`` of a run without codes into a config with codes: the codes start at zero, so
+    the first step's model computes what the weights' own model computes (the same first loss)."""
+    plain, plain_state = run(make_tc(tiny_scene, tmp_path / "plain", generator_iterations=0, iterations=1), gl_context)
+    both = {}
+    for name, cfg in (("again", tiny_config()), ("codes", codes_config())):
+        result, _ = run(make_tc(tiny_scene, tmp_path / name, generator_iterations=0, iterations=1, model_config=cfg,
+                                init_weights=tmp_path / "plain" / "model.safetensors"), gl_context)
+        both[name] = result.history[0]
+    assert both["codes"]["total"] == pytest.approx(both["again"]["total"], abs=1e-6)
