@@ -52,10 +52,11 @@ def _garment_section(app) -> None:
     if not names or not imgui.collapsing_header("Garment", imgui.TreeNodeFlags_.default_open):
         return
     current = app.garments.current
-    shown = names if current in names else ["(a run that is not a demo)"] + names
+    other = [] if current in names else ["(a run that is not a demo)"]  # shown first, not choosable
+    shown = other + names
     imgui.set_next_item_width(-1.0)
-    labels = app.garments.labels(names) if current in names else [shown[0]] + app.garments.labels(names)
-    changed, index = imgui.combo("##garment", shown.index(current) if current in names else 0, labels)
+    changed, index = imgui.combo("##garment", shown.index(current) if current in names else 0,
+                                 other + app.garments.labels(names))
     if changed and shown[index] in names and shown[index] != current:
         app.switch_garment(shown[index])
     loading = app.garments.loading

@@ -79,7 +79,7 @@ class NeuralView:
         self.quality = QualityController()
         self.body_with_neural = False
         # the run's body appearance draws the body rasterised (raster_body); without one the network does
-        self.composition = "raster_body" if getattr(run, "body_appearance", None) is not None else "nerf"
+        self.composition = "raster_body" if self.can_rasterise_body else "nerf"
         self.learned_palette: np.ndarray | None = None  # (P, 3) in [0, 1]
         self.palette: np.ndarray | None = None          # (P, 3): what the shader composes with
         self.gt_camera: str | None = None
@@ -127,7 +127,7 @@ class NeuralView:
                          daemon=True).start()
         self._watch = False  # a demo is not training
         self.run = run
-        self.composition = "raster_body" if getattr(run, "body_appearance", None) is not None else "nerf"
+        self.composition = "raster_body" if self.can_rasterise_body else "nerf"
         self.shown = self._newest = self._last_request = self._sent_clock = self._keys = None
         self.results.clear()
         self.last_result = {}
