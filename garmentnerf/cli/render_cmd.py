@@ -48,9 +48,10 @@ def register(sub) -> None:
                    help="neural render quality: fraction of the training pixel density, (0, 4] "
                         "(default: the preset's resolution)")
     p.add_argument("--palette", default=None,
-                   help="palette colors '#garment[,#body,...]' as hex (default: the learned palette)")
+                   help="palette colors as hex, in the model's order: '#garment[,#body]', or for a layered "
+                        "garment '#inner,#outer[,#body]' ('-' keeps one; default: the learned palette)")
     p.add_argument("--body-color", "--body-colour", dest="body_color", default=None, metavar="HEX",
-                   help="replace the body/other palette color (palette color 1)")
+                   help="replace the body/other palette color (the palette's last)")
     p.add_argument("--background", default=None, metavar="HEX", help="background color (default: the model's)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (made if needed)")
     p.add_argument("--video", action="store_true", help="also write an mp4 of the frames")

@@ -14,6 +14,8 @@ File format (``.npz``, deflate-compressed, written atomically)
                                   as a JSON object)
     ``betas``                     (S,) float32 body shape the garment was simulated on (may be empty)
     ``uv``                        (V, 2) float32 per-vertex garment parameter, or (0, 2)
+    ``layer``                     (V,) int8 layer of each vertex, 0 innermost (optional: a file
+                                  without it is a one-layer garment, all 0)
 
 Quantisation error
     Rounding to the nearest of 65,536 levels per axis errs by at most half a level:
@@ -71,6 +73,7 @@ class GarmentSequence:
         motion: name of the motion it was simulated with.
         betas: (S,) float32 body shape (may be empty).
         uv: (V, 2) float32 per-vertex parameter, or None.
+        layer: (V,) int8 layer of each vertex (0 innermost; the dress has 0 and 1), or None (one layer).
         bbox_min, bbox_max: (3,) float64 quantisation box (set by :func:`load_sequence`; None
             for a sequence that was not read from a file).
     """
@@ -86,6 +89,7 @@ class GarmentSequence:
     motion: str = ""
     betas: np.ndarray | None = None
     uv: np.ndarray | None = None
+    layer: np.ndarray | None = None
     bbox_min: np.ndarray | None = None
     bbox_max: np.ndarray | None = None
 
@@ -106,7 +110,8 @@ class GarmentSequence:
     def save(self, path: str | Path, overwrite: bool = True) -> Path:
         return save_sequence(path, self.vertices, self.faces, color=self.color, kind=self.kind,
                              penetration_max_m=self.penetration_max_m, fps=self.fps, settings=self.settings,
-                             name=self.name, motion=self.motion, betas=self.betas, uv=self.uv, overwrite=overwrite)
+                             name=self.name, motion=self.motion, betas=self.betas, uv=self.uv, layer=self.layer,
+                             overwrite=overwrite)
 
     @staticmethod
     def from_simulation(garment: "Garment", result: "SimResult", motion: str = "") -> "GarmentSequence":
@@ -114,7 +119,7 @@ class GarmentSequence:
         return GarmentSequence(vertices=result.vertices, faces=garment.faces, color=garment.color, kind=garment.kind,
                                penetration_max_m=result.penetration_max_m, fps=result.fps,
                                settings=result.settings.to_dict(), name=garment.name, motion=motion,
-                               betas=garment.betas, uv=garment.uv)
+                               betas=garment.betas, uv=garment.uv, layer=garment.layer)
 
 
 def _bbox(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +154,7 @@ def _check_arrays(vertices, faces, color, penetration, fps, where: str):
 
 def save_sequence(path: str | Path, vertices, faces, *, color, kind: str, penetration_max_m, fps: float,
                   settings: dict | None = None, name: str = "", motion: str = "", betas=None, uv=None,
-                  overwrite: bool = True) -> Path:
+                  layer=None, overwrite: bool = True) -> Path:
     """Write a garment sequence (atomically: readers never see a partial file).
 
     Args:
@@ -164,6 +169,7 @@ def save_sequence(path: str | Path, vertices, faces, *, color, kind: str, penetr
         name, motion: labels.
         betas: (S,) body shape, optional.
         uv: (V, 2) per-vertex parameter, optional.
+        layer: (V,) integer layer of each vertex in [0, 127], optional (None: one layer, all 0).
         overwrite: False refuses to replace an existing file.
     Returns:
         the path written.
@@ -193,6 +199,10 @@ def save_sequence(path: str | Path, vertices, faces, *, color, kind: str, penetr
     betas = np.zeros(0, np.float32) if betas is None else np.asarray(betas, dtype=np.float32).reshape(-1)
     if not np.all(np.isfinite(betas)):
         raise GarmentSequenceError(f"{where}: field 'betas': contains NaN or Inf")
+    layer = np.zeros(V, np.int8) if layer is None else np.asarray(layer)
+    if layer.shape != (V,) or layer.dtype.kind not in "iu" or (V and (layer.min() < 0 or layer.max() > 127)):
+        raise GarmentSequenceError(f"{where}: field 'layer': must be integers in [0, 127] with shape ({V},), "
+                                   f"got {layer.dtype} {layer.shape}")
 
     lo, hi = _bbox(vertices)
     extent = hi - lo
@@ -206,7 +216,7 @@ def save_sequence(path: str | Path, vertices, faces, *, color, kind: str, penetr
                 bbox_min=lo.astype(np.float64), bbox_max=hi.astype(np.float64),
                 faces=faces.astype(np.int32), color=color, kind=np.array(str(kind)), name=np.array(str(name)),
                 motion=np.array(str(motion)), penetration_max_m=penetration, fps=np.array(float(fps)),
-                settings_json=np.array(settings_json), betas=betas, uv=uv)
+                settings_json=np.array(settings_json), betas=betas, uv=uv, layer=layer.astype(np.int8))
     return path
 
 
@@ -231,6 +241,8 @@ def _members_begun(path: Path) -> list[str]:
 
 _REQUIRED = ("format", "version", "vertices_q", "bbox_min", "bbox_max", "faces", "color", "kind", "name", "motion",
              "penetration_max_m", "fps", "settings_json", "betas", "uv")
+#: Members a file may lack (written by later versions of this module; see the format above).
+_OPTIONAL = ("layer",)
 
 
 def load_sequence(path: str | Path) -> GarmentSequence:
@@ -272,10 +284,14 @@ def load_sequence(path: str | Path) -> GarmentSequence:
     kind = f.string("kind")
     if not kind:
         f.fail("kind", "is empty")
+    layer = f.data.get("layer")
+    if layer is not None and (layer.shape != (V,) or layer.dtype != np.int8 or (V and layer.min() < 0)):
+        f.fail("layer", f"must be non-negative int8 of shape ({V},), got {layer.dtype} {layer.shape}")
     return GarmentSequence(vertices=vertices, faces=f.data["faces"].astype(np.int32), color=color.astype(np.float32),
                            kind=kind, penetration_max_m=pen.astype(np.float32), fps=fps, settings=settings,
                            name=f.string("name"), motion=f.string("motion"), betas=betas.astype(np.float32),
-                           uv=uv.astype(np.float32) if uv.shape[0] else None, bbox_min=lo.astype(np.float64),
+                           uv=uv.astype(np.float32) if uv.shape[0] else None, layer=layer,
+                           bbox_min=lo.astype(np.float64),
                            bbox_max=hi.astype(np.float64))
 
 
@@ -298,7 +314,7 @@ def _read_members(path: Path) -> dict[str, np.ndarray]:
         if missing:
             raise GarmentSequenceError(f"{where}: field '{missing[0]}': missing (the file lacks "
                                        f"{', '.join(missing)}; truncated or not a garment sequence)")
-        for key in _REQUIRED:
+        for key in _REQUIRED + tuple(k for k in _OPTIONAL if k in archive.files):
             try:
                 data[key] = archive[key]
             except Exception as exc:  # zipfile.BadZipFile, OSError, ValueError, EOFError, zlib.error ...

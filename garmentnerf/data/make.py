@@ -369,7 +369,8 @@ def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings
                               progress=False)
             save_sequence(scene.garment_path(sequence), result.vertices, garment.faces, color=garment.color,
                           kind=kind, penetration_max_m=result.penetration_max_m, fps=motion.fps, settings=settings,
-                          name=sequence, motion=motion.name, betas=betas.detach().cpu().numpy(), uv=garment.uv)
+                          name=sequence, motion=motion.name, betas=betas.detach().cpu().numpy(), uv=garment.uv,
+                          layer=garment.layer)
     except KeyboardInterrupt:
         sys.exit(130)
     except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it

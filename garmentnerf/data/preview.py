@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from garmentnerf.data.render_gt import LABEL_GARMENT, MAX_GARMENT_LAYERS
 from garmentnerf.data.scene_images import SceneImages
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -40,10 +41,11 @@ def _to_rgb8(image: np.ndarray) -> np.ndarray:
 
 
 def label_edges(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean maps of pixels on the garment's border and on the body's border (4-neighbourhood)."""
+    """Boolean maps of pixels on the garment's border and on the body's border (4-neighbourhood).
+    A layered garment's border includes where one layer meets the other (each label's own border)."""
     lab = np.asarray(labels)
     edges = {}
-    for label in (2, 1):
+    for label in (1, *range(LABEL_GARMENT, LABEL_GARMENT + MAX_GARMENT_LAYERS)):
         m = lab == label
         border = np.zeros_like(m)
         border[1:] |= m[1:] != m[:-1]
@@ -51,7 +53,8 @@ def label_edges(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         border[:, 1:] |= m[:, 1:] != m[:, :-1]
         border[:, :-1] |= m[:, 1:] != m[:, :-1]
         edges[label] = border & m
-    return edges[2], edges[1]
+    garment = np.logical_or.reduce([edges[k] for k in edges if k >= LABEL_GARMENT])
+    return garment, edges[1]
 
 
 def _font(size: int):
@@ -70,7 +73,7 @@ def contact_sheet(images: Sequence[Sequence[np.ndarray]], labels: Sequence[Seque
     Args:
         images: rows of images ((H, W), (H, W, 3|4), float in [0, 1] or uint8); rows may differ
             in length and cells in size (each cell is the largest size, images top-left aligned).
-        labels: optional label maps of the same nesting (0 background, 1 body, 2 garment); their
+        labels: optional label maps of the same nesting (0 background, 1 body, 2 + k garment layer k); their
             borders are drawn over the images.
         row_titles, col_titles: text left of each row / above each column.
         cell_scale: resize every cell by this factor (e.g. 0.5 for compact sheets).

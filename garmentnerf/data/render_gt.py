@@ -13,10 +13,13 @@ Conventions (what every consumer of these images relies on)
         resolution with the camera from :meth:`Camera.scaled` (so a 512 x 512 camera renders at
         1024 x 1024, as in the paper) and reduced by an ``s x s`` box filter (plain mean).
     Labels
-        0 background, 1 body, 2 garment, decided from the same ``s x s`` subsamples: a pixel is
+        0 background, 1 body, 2 + k garment layer k (2 for a one-layer garment; the dress's inner
+        skirt is 2, its outer tier 3), decided from the same ``s x s`` subsamples: a pixel is
         foreground when at least half of its subsamples are (coverage >= 0.5); a foreground
-        pixel is garment when at least as many subsamples see the garment as the body (ties go
-        to the garment). With ``supersample=1`` the label is the surface at the pixel centre,
+        pixel is garment when at least as many subsamples see the garment, all layers together, as
+        the body (ties go to the garment), and its layer is the one most of those see (ties go to
+        the outer layer). :func:`garment_pixels` is the garment of a label map, every layer.
+        With ``supersample=1`` the label is the surface at the pixel centre,
         identical to :class:`~garmentnerf.gl.camera_pass.CameraPass` on the combined mesh; with
         s = 2 labels can differ from that pixel-centre reference only on pixels where the
         reference itself changes label within one pixel (silhouettes and body/garment borders).
@@ -55,11 +58,26 @@ from garmentnerf.gl.resources import GLObjectsOwner, SupersampleTargets, TargetC
 from garmentnerf.gl.shaders import build_program
 
 #: Bump when the image formation changes (shaders, normals, filtering, label policy).
-RENDERER_VERSION = "gt-1"
+RENDERER_VERSION = "gt-2"  # gt-2: a layer label per garment layer
 
 LABEL_BACKGROUND = 0
 LABEL_BODY = 1
 LABEL_GARMENT = 2
+#: Garment layers the labels tell apart (labels LABEL_GARMENT .. LABEL_GARMENT + MAX_GARMENT_LAYERS - 1).
+MAX_GARMENT_LAYERS = 2
+
+
+def garment_pixels(labels: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the garment pixels of a label map, every layer."""
+    return np.asarray(labels) >= LABEL_GARMENT
+
+
+def face_layers(faces: np.ndarray, vertex_layer: np.ndarray | None) -> np.ndarray:
+    """(F,) int layer of each face: the outermost layer of its vertices (0 for ``vertex_layer`` None)."""
+    faces = np.asarray(faces)
+    if vertex_layer is None:
+        return np.zeros(len(faces), dtype=np.int64)
+    return np.asarray(vertex_layer, dtype=np.int64)[faces].max(axis=1)
 
 #: Default body color: a light skin tone (display RGB in [0, 1]).
 SKIN_TONE = (0.80, 0.63, 0.53)
@@ -100,7 +118,7 @@ class GroundTruthImage:
 
     Attributes:
         rgb: (H, W, 3) float32 in [0, 1], composited over the renderer's background.
-        labels: (H, W) uint8, 0 background / 1 body / 2 garment (policy in the module docstring).
+        labels: (H, W) uint8, 0 background / 1 body / 2 + k garment layer k (policy in the module docstring).
         alpha: (H, W) float32 coverage, the fraction of subsamples that see a surface.
         garment_coverage: (H, W) float32 fraction of subsamples that see the garment.
     """
@@ -205,15 +223,17 @@ class GroundTruthRenderer(GLObjectsOwner):
     Args:
         ctx: a context from :func:`garmentnerf.gl.context.create_context`; made current by every
             call and left current.
-        supersample: render at this integer factor of the camera resolution, then box-filter (>= 1).
+        supersample: render at this integer factor of the camera resolution, then box-filter (1..15).
         background: RGB in [0, 1] (default black; see the module docstring).
         lighting: the light rig (:class:`Lighting`).
     """
 
     def __init__(self, ctx: moderngl.Context, supersample: int = 2, background=BACKGROUND,
                  lighting: Lighting | None = None, max_sizes: int = 2) -> None:
-        if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) or supersample < 1:
-            raise ValueError(f"supersample must be an integer >= 1, got {supersample!r}")
+        if (isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer))
+                or not 1 <= supersample <= 15):
+            # at most 15: the resolve counts each label's subsamples in 8 bits
+            raise ValueError(f"supersample must be an integer in [1, 15], got {supersample!r}")
         self.ctx = ctx
         self.supersample = int(supersample)
         self.background = _check_color(background, "background")
@@ -274,7 +294,7 @@ class GroundTruthRenderer(GLObjectsOwner):
 
     # ---- rendering --------------------------------------------------------------------------------
     def render(self, body_vertices, body_faces, garment_vertices=None, garment_faces=None, garment_color=None,
-               camera: Camera | None = None, body_color=SKIN_TONE) -> tuple[np.ndarray, np.ndarray]:
+               camera: Camera | None = None, body_color=SKIN_TONE, garment_layer=None) -> tuple[np.ndarray, np.ndarray]:
         """Render one view: ``(rgb (H, W, 3) float32 in [0, 1], labels (H, W) uint8)``.
 
         Args:
@@ -283,25 +303,38 @@ class GroundTruthRenderer(GLObjectsOwner):
             garment_color: RGB in [0, 1] (required with a garment).
             camera: the view; the output has its resolution.
             body_color: RGB in [0, 1].
+            garment_layer: (Vg,) layer of each garment vertex (labels ``2 + layer``; a face takes
+                the outermost of its vertices'), at most :data:`MAX_GARMENT_LAYERS` layers; None: one layer.
         """
         out = self.render_full(body_vertices, body_faces, garment_vertices, garment_faces, garment_color,
-                               camera, body_color)
+                               camera, body_color, garment_layer)
         return out.rgb, out.labels
 
     def render_full(self, body_vertices, body_faces, garment_vertices=None, garment_faces=None,
-                    garment_color=None, camera: Camera | None = None, body_color=SKIN_TONE) -> GroundTruthImage:
+                    garment_color=None, camera: Camera | None = None, body_color=SKIN_TONE,
+                    garment_layer=None) -> GroundTruthImage:
         """:meth:`render` plus coverage maps (:class:`GroundTruthImage`)."""
         self._check_not_released()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a conventions.Camera, got {type(camera).__name__}")
         bverts, btris = _check_mesh(body_vertices, body_faces, "body")
         body_rgb = _check_color(body_color, "body_color")
-        meshes = [("body", bverts, btris, body_rgb, LABEL_BODY)]
+        meshes = [("body", bverts, btris, body_rgb, [(LABEL_BODY, 0, len(btris))])]
         if garment_vertices is not None:
             if garment_faces is None or garment_color is None:
                 raise ValueError("a garment needs garment_faces and garment_color")
             gverts, gtris = _check_mesh(garment_vertices, garment_faces, "garment")
-            meshes.append(("garment", gverts, gtris, _check_color(garment_color, "garment_color"), LABEL_GARMENT))
+            if garment_layer is not None and np.shape(garment_layer) != (len(gverts),):
+                raise ValueError(f"garment_layer must have shape ({len(gverts)},), got {np.shape(garment_layer)}")
+            layers = face_layers(gtris, garment_layer)
+            if len(layers) and (layers.min() < 0 or layers.max() >= MAX_GARMENT_LAYERS):
+                raise ValueError(f"garment layers must lie in [0, {MAX_GARMENT_LAYERS}), got [{layers.min()}, {layers.max()}]")
+            order = np.argsort(layers, kind="stable")  # each layer's faces one range, drawn inner first
+            gtris = gtris[order]
+            counts = np.bincount(layers, minlength=MAX_GARMENT_LAYERS)
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            ranges = [(LABEL_GARMENT + k, int(starts[k]), int(counts[k])) for k in range(MAX_GARMENT_LAYERS)]
+            meshes.append(("garment", gverts, gtris, _check_color(garment_color, "garment_color"), ranges))
 
         s = self.supersample
         big = camera.scaled(s) if s > 1 else camera
@@ -322,12 +355,13 @@ class GroundTruthRenderer(GLObjectsOwner):
                     self.ctx.depth_func = "<"
                     targets.fbo.depth_mask = True
                     targets.fbo.clear(*self.background, 0.0, depth=1.0)
-                    for name, _, tris, rgb, label in meshes:
-                        if len(tris) == 0:
-                            continue
+                    for name, _, _, rgb, ranges in meshes:
                         p["u_base_color"].value = rgb
-                        p["u_label"].value = float(label)
-                        self._meshes[name].vao.render(moderngl.TRIANGLES, vertices=self._meshes[name].count)
+                        for label, first, count in ranges:
+                            if count == 0:
+                                continue
+                            p["u_label"].value = float(label)
+                            self._meshes[name].vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
                 finally:
                     self.ctx.front_face = old_front
             with targets.resolve_scope:
@@ -346,15 +380,20 @@ class GroundTruthRenderer(GLObjectsOwner):
 
 
 def _unpack(resolved: np.ndarray, s: int) -> GroundTruthImage:
-    """(H, W, 4) resolved target (mean rgb, n_body + 256 n_garment) -> image, labels, coverages."""
+    """(H, W, 4) resolved target (mean rgb, n_body + 256 n_layer0 + 65536 n_layer1) -> image,
+    labels, coverages."""
     counts = np.rint(resolved[..., 3]).astype(np.int32)
-    n_garment = counts >> 8
+    n_outer = counts >> 16
+    n_inner = (counts >> 8) & 255
+    n_garment = n_inner + n_outer
     n_body = counts & 255
     n_fg = n_body + n_garment
     labels = np.zeros(counts.shape, dtype=np.uint8)
     fg = 2 * n_fg >= s * s
     labels[fg] = LABEL_BODY
-    labels[fg & (n_garment >= n_body)] = LABEL_GARMENT
+    garment = fg & (n_garment >= n_body)
+    labels[garment] = LABEL_GARMENT
+    labels[garment & (n_outer >= n_inner) & (n_outer > 0)] = LABEL_GARMENT + 1
     n = float(s * s)
     return GroundTruthImage(np.clip(resolved[..., :3], 0.0, 1.0), labels,
                             (n_fg / n).astype(np.float32), (n_garment / n).astype(np.float32))

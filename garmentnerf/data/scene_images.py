@@ -7,8 +7,9 @@ Images are not stored with the scene: :class:`SceneImages` renders them with
 the body, the colors and the content of the sequence's files (SHA-256, memoised by the scene on
 size and modification time): any change renders afresh instead of reading a stale image, while a
 copied scene folder keeps its cache. RGB is cached as 8-bit PNG and labels as 8-bit grey PNG (0
-background, 1 body, 2 garment); :meth:`SceneImages.image` returns the *cached* (8-bit quantised)
-values whether or not it just rendered them, so the two paths agree.
+background, 1 body, 2 garment; 3 the outer layer of a layered garment); :meth:`SceneImages.image` returns the *cached* (8-bit quantised)
+values whether or not it just rendered them, so the two paths agree. A layered garment's labels are
+2 + its layer (:mod:`~garmentnerf.data.render_gt`).
 
 Also here: :func:`read_garment_arrays` (a sequence's ``garment.npz``) and
 :func:`palette_from_images` (the palette initialisation from ground truth).
@@ -26,7 +27,7 @@ import numpy as np
 from PIL import Image
 
 from garmentnerf.data.garment_sequence import load_sequence
-from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer, to_uint8
+from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT, MAX_GARMENT_LAYERS, GroundTruthRenderer, to_uint8
 from garmentnerf.data.scene_schema import GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, SceneError
 from garmentnerf.gl.context import create_context
 from garmentnerf.io_utils import atomic_write_path, npz_member_shape
@@ -40,10 +41,12 @@ if TYPE_CHECKING:  # pragma: no cover
 # ---- garment sequences (written by the cloth simulation) ------------------------------------------
 @dataclass
 class GarmentArrays:
-    """A simulated garment as plain arrays: vertices (T, Vg, 3) float32, faces (Fg, 3) int64."""
+    """A simulated garment as plain arrays: vertices (T, Vg, 3) float32, faces (Fg, 3) int64 and
+    the layer of each vertex (Vg,) int8 (None: one layer)."""
 
     vertices: np.ndarray
     faces: np.ndarray
+    layer: np.ndarray | None = None
 
 
 def read_garment_arrays(path: str | Path) -> GarmentArrays:
@@ -52,13 +55,13 @@ def read_garment_arrays(path: str | Path) -> GarmentArrays:
     path = Path(path)
     if npz_member_shape(path, GARMENT_QUANTISED_KEY) is not None:
         seq = load_sequence(path)
-        verts, faces = seq.vertices, seq.faces
+        verts, faces, layer = seq.vertices, seq.faces, seq.layer
     else:
         with np.load(path, allow_pickle=False) as npz:
             missing = [k for k in (GARMENT_VERTICES_KEY, "faces") if k not in npz.files]
             if missing:
                 raise SceneError(f"{path}: not a garment sequence (missing {', '.join(missing)})")
-            verts, faces = npz[GARMENT_VERTICES_KEY], npz["faces"]
+            verts, faces, layer = npz[GARMENT_VERTICES_KEY], npz["faces"], None
     if hasattr(verts, "detach"):
         verts = verts.detach().cpu().numpy()
     if hasattr(faces, "detach"):
@@ -68,13 +71,14 @@ def read_garment_arrays(path: str | Path) -> GarmentArrays:
     if verts.ndim != 3 or verts.shape[2] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise SceneError(f"{path}: garment vertices must be (T, Vg, 3) and faces (Fg, 3), got "
                          f"{verts.shape} and {faces.shape}")
-    return GarmentArrays(verts, faces)
+    return GarmentArrays(verts, faces, layer)
 
 
 # ---- images on demand -----------------------------------------------------------------------------
 @dataclass
 class FrameGeometry:
-    """The meshes of one frame, as the ground-truth renderer takes them."""
+    """The meshes of one frame, as the ground-truth renderer takes them (``garment_layer``: (Vg,)
+    layer of each garment vertex, or None for one layer)."""
 
     body_vertices: np.ndarray
     body_faces: np.ndarray
@@ -82,6 +86,7 @@ class FrameGeometry:
     garment_faces: np.ndarray
     garment_color: tuple[float, float, float]
     body_color: tuple[float, float, float]
+    garment_layer: np.ndarray | None = None
 
 
 class SceneImages:
@@ -167,7 +172,7 @@ class SceneImages:
         posed = self._motion(sequence).slice(frame, frame + 1).pose(body, self._betas)
         g = self._garment(sequence)
         geo = FrameGeometry(posed.vertices[0].detach().cpu().numpy(), body.faces.cpu().numpy(),
-                            g.vertices[frame], g.faces, self.scene.garment_color, self.scene.body_color)
+                            g.vertices[frame], g.faces, self.scene.garment_color, self.scene.body_color, g.layer)
         self._last_geometry = ((sequence, frame), geo)
         return geo
 
@@ -176,7 +181,7 @@ class SceneImages:
         geo = self.frame_geometry(sequence, frame)
         cam = self.scene.camera(camera).camera
         return self.renderer.render(geo.body_vertices, geo.body_faces, geo.garment_vertices, geo.garment_faces,
-                                    geo.garment_color, cam, geo.body_color)
+                                    geo.garment_color, cam, geo.body_color, geo.garment_layer)
 
     def paths(self, sequence: str, camera: str, frame: int) -> tuple[Path, Path]:
         settings = self.renderer.settings() if self._renderer is not None else None
@@ -250,12 +255,15 @@ def palette_from_images(images: Iterable[tuple[np.ndarray, np.ndarray]], erode: 
 
     Only pixels whose label region survives an ``erode``-pixel erosion count, so anti-aliased
     edges (blended with the background) do not darken the means. Returns
-    ``{"garment": [r, g, b], "body": [r, g, b]}`` (a class never seen gives None).
+    ``{"garment": [r, g, b], "body": [r, g, b]}`` (a class never seen gives None; "garment" is
+    every layer's), and for a layered garment (labels beyond 2) also ``"garment_layers"``: one mean
+    color per layer, inner first.
     """
     from scipy.ndimage import binary_erosion  # local: making a scene only; 0.2 s on every import of data.scene
 
-    sums = {LABEL_GARMENT: np.zeros(3), LABEL_BODY: np.zeros(3)}
-    counts = {LABEL_GARMENT: 0, LABEL_BODY: 0}
+    layer_labels = [LABEL_GARMENT + k for k in range(MAX_GARMENT_LAYERS)]
+    sums = {label: np.zeros(3) for label in [LABEL_BODY, *layer_labels]}
+    counts = dict.fromkeys(sums, 0)
     structure = np.ones((3, 3), dtype=bool)
     for rgb, labels in images:
         rgb = np.asarray(rgb, dtype=np.float64)
@@ -265,7 +273,13 @@ def palette_from_images(images: Iterable[tuple[np.ndarray, np.ndarray]], erode: 
                 mask = binary_erosion(mask, structure=structure, iterations=erode)
             sums[label] += rgb[mask].sum(axis=0)
             counts[label] += int(mask.sum())
-    out = {}
-    for key, label in (("garment", LABEL_GARMENT), ("body", LABEL_BODY)):
-        out[key] = [float(x) for x in sums[label] / counts[label]] if counts[label] else None
+
+    def mean(labels: list[int]) -> list[float] | None:
+        n = sum(counts[k] for k in labels)
+        return [float(x) for x in sum(sums[k] for k in labels) / n] if n else None
+
+    out = {"garment": mean(layer_labels), "body": mean([LABEL_BODY])}
+    seen = [k for k in layer_labels if counts[k]]
+    if len(seen) > 1:
+        out["garment_layers"] = [mean([k]) for k in layer_labels[:max(seen) - LABEL_GARMENT + 1]]
     return out

@@ -9,7 +9,8 @@
      "cameras": [{"name": "cam00", "K": 3x3, "R": 3x3, "t": [3], "width": W, "height": H,
                   "split": "train" | "unseen_view" | "reference", "near": .., "far": .. (optional)}],
      "sequences": {"train": {"motion": "walk,dance_a", "frames": N, "split": "train" | "unseen_motion", ...}},
-     "palette_init": {"garment": [r, g, b], "body": [r, g, b]} or null,
+     "palette_init": {"garment": [r, g, b], "body": [r, g, b],
+                      "garment_layers": [[r, g, b], ...] (a layered garment's, inner first; optional)} or null,
      "simulation": {"<sequence>": {stats...}},
      "created_with": "garmentnerf 0.1.0"}
 
@@ -302,6 +303,11 @@ def _parse_palette(v: SchemaChecker, palette) -> dict | None:
         return None
     v.obj(palette, "palette_init")
     colors = {key: v.color(v.key(palette, key, "palette_init"), f"palette_init.{key}") for key in ("garment", "body")}
+    layers = palette.get("garment_layers")
+    if layers is not None:
+        if not isinstance(layers, list) or len(layers) < 2:
+            raise v.fail("palette_init.garment_layers", f"must be a list of at least 2 colors, got {_kind(layers)}")
+        colors["garment_layers"] = [v.color(c, f"palette_init.garment_layers[{i}]") for i, c in enumerate(layers)]
     return {**palette, **colors}
 
 

@@ -58,7 +58,7 @@ def _add_rigged_sequence(scene: Scene, name: str, split: str, motion, body, beta
     save_sequence(scene.garment_path(name), verts, garment.faces, color=garment.color, kind=garment.kind,
                   penetration_max_m=np.zeros(verts.shape[0], dtype=np.float32), fps=motion.fps,
                   settings={"simulated": False, "method": "rigid skinning (nearest rest-body vertex weights)"},
-                  name=garment.name, motion=motion.name, betas=garment.betas, uv=garment.uv)
+                  name=garment.name, motion=motion.name, betas=garment.betas, uv=garment.uv, layer=garment.layer)
 
 
 def make_rigged_scene(root, *, garment: str = "skirt", motion: str = "walk", frames: int = 4, views: int = 4,

@@ -113,7 +113,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer
+from garmentnerf.data.render_gt import LABEL_BODY, GroundTruthRenderer, garment_pixels
 from garmentnerf.data.scene import SceneImages
 from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, interior, is_psnr_metric,
                                       masked_psnr, mean_psnr, psnr, sharpness_ratio, silhouette_iou, ssim,
@@ -440,7 +440,7 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
         empty in this view is left out.
     """
     truth = target.labels != 0
-    garment = target.labels == LABEL_GARMENT
+    garment = garment_pixels(target.labels)
     margin = max(1, round(SHARPNESS_MARGIN * max(truth.shape) / 512))
     inner = interior(garment, max(1, round(OUTLINE_BAND * max(truth.shape) / 512)))
     error = np.square(np.asarray(pred, np.float64) - np.asarray(target.image, np.float64)).sum(axis=-1)

@@ -186,7 +186,9 @@ class ModelConfig:
 
     # ---- Palette decoder M_D (``model/palette.py``)
     palette_size: int = 2
-    """P, palette colors (paper: 2, garment p_G and body/other p_B)."""
+    """P, palette colors (paper: 2, garment p_G and body/other p_B). A layered garment (the dress) takes one
+    color per layer, inner first, then the body's (3 for the dress): the segmentation term holds each
+    layer's weight to its label share and the previewer recolours the layers apart."""
     decoder_upsample_steps: int = 2
     """Nearest x2 upsamplings (paper: 2, 128 -> 512)."""
     decoder_width: int = 64
@@ -211,8 +213,8 @@ class ModelConfig:
     """RGB in [0, 1] the output is composited over (default black, the background of the ground-truth renders
     in ``garmentnerf.data.render_gt``)."""
     garment_label: int = 2
-    """Label-map value of garment pixels (0 is background), used to initialise the palette from mean
-    colors."""
+    """Label-map value of garment pixels (0 is background; a layered garment's layer k is ``garment_label +
+    k``), the segmentation term's targets."""
     body_label: int = 1
     """Label-map value of body pixels (0 is background), used to initialise the palette from mean colors."""
 

@@ -85,18 +85,23 @@ def plane_total_variation(planes) -> torch.Tensor:
 
 def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, target_mask: torch.Tensor,
                       eps: float = 1e-3) -> torch.Tensor:
-    """L1 between the garment blend weight and the garment share of each foreground pixel.
+    """L1 between the garment blend weights and the garment shares of each foreground pixel.
 
     Args:
-        weights: (B, P, H, W) blend weights; color 0 is the garment.
-        target_garment: (B, 1, H, W) ground-truth garment coverage in [0, 1].
+        weights: (B, P, H, W) blend weights; colors 0..K-1 are the garment's (its layers), the last
+            the body's.
+        target_garment: (B, K, H, W) ground-truth coverage in [0, 1] of each garment layer (K = 1:
+            the whole garment), K < P.
         target_mask: (B, 1, H, W) ground-truth foreground (body + garment) coverage in [0, 1].
     Returns:
-        ``sum(m* |w_G - g*/m*|) / sum(m*)``: background pixels, whose weights compose to nothing,
-        carry no weight; a border pixel half garment, half body asks for w_G = 0.5.
+        ``sum_k sum(m* |w_k - g_k*/m*|) / sum(m*)``: background pixels, whose weights compose to
+        nothing, carry no weight; a border pixel half garment, half body asks for w_G = 0.5.
     """
+    K = target_garment.shape[1]
+    if K >= weights.shape[1]:
+        raise ValueError(f"{K} garment layer targets need a palette of more than {K} colors, got {weights.shape[1]}")
     share = target_garment / target_mask.clamp_min(eps)
-    per_pixel = (weights[:, :1] - share.clamp(0.0, 1.0)).abs() * target_mask
+    per_pixel = (weights[:, :K] - share.clamp(0.0, 1.0)).abs() * target_mask
     return per_pixel.sum() / target_mask.sum().clamp_min(eps)
 
 
@@ -121,8 +126,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
             images area-averaged by ``cfg.perceptual_downsample`` (when present and > 1).
         opacity: optional (B, h, w) accumulated opacity of the feature rays; with ``cfg.w_opacity``
             > 0 it is held to the target mask area-averaged to (h, w) (:func:`opacity_loss`).
-        target_garment: optional (B, 1, H, W) or (B, H, W) ground-truth garment coverage; with
-            ``cfg.w_segmentation`` > 0 the garment blend weight is held to it
+        target_garment: optional (B, K, H, W) or (B, H, W) ground-truth coverage of the garment (K = 1)
+            or of each of its layers; with ``cfg.w_segmentation`` > 0 the garment blend weights are held to it
             (:func:`segmentation_loss`), through the weight head alone when
             ``cfg.segmentation_head_only`` and the maps carry ``weights_head_only``.
         planes: optional feature planes (each (1, C, H, W)); with ``cfg.w_plane_tv`` > 0 their

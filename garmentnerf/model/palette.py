@@ -370,6 +370,18 @@ class PaletteDecoder(nn.Module):
         return w / w.sum(dim=1, keepdim=True)
 
 
+def palette_names(palette_size: int) -> list[str]:
+    """What each palette color paints, in palette order: the garment's color (or one per layer of a
+    layered garment, inner first), then the body's (always the last)."""
+    if palette_size < 2:
+        return ["Garment"][:palette_size]
+    if palette_size == 2:
+        return ["Garment", "Body / other"]
+    layers = palette_size - 1
+    return ([f"Garment layer {k + 1}" + (" (inner)" if k == 0 else " (outer)" if k == layers - 1 else "")
+             for k in range(layers)] + ["Body / other"])
+
+
 class Palette(nn.Module):
     """The learnable palette p ``(P, 3)`` and its initialisation p* (kept for L_p).
 

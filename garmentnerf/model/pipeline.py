@@ -180,19 +180,27 @@ def palette_initial_colors(init, palette_size: int = 2) -> torch.Tensor:
 
     Args:
         init: ``{"garment": rgb, "body": rgb}`` (``Scene.palette_init``; garment first as in
-            :func:`~garmentnerf.model.palette.palette_from_labels`), a ``(P, 3)`` tensor / array in
-            [0, 1], or None (mid grey for every color, for tests and untrained models).
-        palette_size: P of the config.
+            :func:`~garmentnerf.model.palette.palette_from_labels`; with ``"garment_layers"``, a
+            layered garment's colors, inner first), a ``(P, 3)`` tensor / array in [0, 1], or None
+            (mid grey for every color, for tests and untrained models).
+        palette_size: P of the config: 2 gives ``[garment, body]``; P > 2 gives the first P - 1
+            garment layers and the body (the palette's last color is always the body's).
     """
     if init is None:
         return torch.full((palette_size, 3), 0.5)
     if isinstance(init, dict):
-        if palette_size != 2:
-            raise ValueError(f"a garment/body palette_init gives 2 colors, the config has palette_size={palette_size}")
         missing = [k for k in ("garment", "body") if init.get(k) is None]
         if missing:
             raise ValueError(f"palette_init has no color for {', '.join(missing)}")
-        out = torch.tensor([init["garment"], init["body"]], dtype=torch.float32)
+        if palette_size == 2:
+            garment = [init["garment"]]
+        else:
+            layers = init.get("garment_layers") or []
+            if len(layers) < palette_size - 1 or any(c is None for c in layers[:palette_size - 1]):
+                raise ValueError(f"palette_size={palette_size} needs {palette_size - 1} garment layer colors; "
+                                 f"palette_init has {len(layers)} (a one-layer garment's palette has 2 colors)")
+            garment = list(layers[:palette_size - 1])
+        out = torch.tensor([*garment, init["body"]], dtype=torch.float32)
     else:
         out = torch.as_tensor(np.asarray(init, dtype=np.float32))
     if out.shape != (palette_size, 3):

@@ -1,7 +1,8 @@
 """Colors on the command line and in the viewer: ``#rrggbb`` / ``#rgb`` hex, and palettes.
 
-Palette order is the model's: color 0 is the garment (p_G), color 1 the body/other (p_B)
-(:func:`garmentnerf.model.pipeline.palette_initial_colors`).
+Palette order is the model's: the garment's colors first (one, p_G; or one per layer of a layered
+garment, inner first), the body/other (p_B) last (:func:`garmentnerf.model.pipeline.palette_initial_colors`,
+:func:`garmentnerf.model.palette.palette_names`).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def build_palette(learned: torch.Tensor, colors: str | None = None, body: str | 
         learned: (P, 3) learned palette.
         colors: ``'#garment'`` or ``'#c0,#c1,...'`` replacing colors 0, 1, ... (``-`` or an empty
             item keeps that learned color); None keeps them all.
-        body: replaces color 1 (the body/other color).
+        body: replaces the last color (the body/other color).
     """
     pal = learned.detach().to("cpu", torch.float32).clone()
     P = pal.shape[0]
@@ -56,7 +57,7 @@ def build_palette(learned: torch.Tensor, colors: str | None = None, body: str | 
     if body is not None:
         if P < 2:
             raise ValueError("the model's palette has no body color (palette size 1)")
-        pal[1] = torch.tensor(parse_hex_color(body, "body color"))
+        pal[-1] = torch.tensor(parse_hex_color(body, "body color"))
     return pal
 
 

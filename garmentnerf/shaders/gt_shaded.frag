@@ -6,7 +6,7 @@
 // flipped toward the viewer and the color scaled by u_inside (side = u_inside, else 1). The
 // Python side sets glFrontFace so that gl_FrontFacing is true for faces wound counter-clockwise
 // as seen from outside (the project's winding) under the y-flipping projection.
-// Output: rgb and the label (0 background, 1 body, 2 garment) in alpha.
+// Output: rgb and the label (0 background, 1 body, 2 + k garment layer k) in alpha.
 
 #define NUM_LIGHTS 2
 

@@ -61,6 +61,16 @@ def area_resize(image: np.ndarray | torch.Tensor, size: int | tuple[int, int]) -
     return x[0].contiguous()
 
 
+def garment_shares(labels: np.ndarray, layers: int, garment_label: int = 2) -> np.ndarray:
+    """(H, W) label map -> (H, W, K) float32 garment masks, K = ``layers``: for one, every garment
+    pixel (labels >= ``garment_label``); for more, one mask per garment layer (label
+    ``garment_label + k``; the palette's k-th color is the layer's)."""
+    labels = np.asarray(labels)
+    if layers <= 1:
+        return (labels >= garment_label).astype(np.float32)[..., None]
+    return np.stack([labels == garment_label + k for k in range(layers)], axis=-1).astype(np.float32)
+
+
 def character_window(character: PixelRect | None, image_size: tuple[int, int], side: int,
                      where: tuple[float, float]) -> PixelRect:
     """The ``side x side`` training window of an image of ``image_size`` (w, h) pixels, centred on
@@ -187,7 +197,7 @@ class SceneFrames(Closeable):
         rgb, labels = self.images.image(sequence, camera, frame)
         image = area_resize(rgb, size)
         mask = area_resize((labels != 0).astype(np.float32), size)
-        garment = area_resize((labels == self.cfg.garment_label).astype(np.float32), size)
+        garment = area_resize(garment_shares(labels, self.cfg.palette_size - 1, self.cfg.garment_label), size)
         bg = torch.tensor(self.cfg.background, dtype=torch.float32).view(3, 1, 1)
         if bool((bg != 0).any()):
             image = image + (1.0 - mask) * bg
@@ -197,7 +207,8 @@ class SceneFrames(Closeable):
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Ground truth of a view at the training density (:meth:`camera`'s size), or of the
         ``window`` of it a step renders: image (3, h, w) in [0, 1] on ``cfg.background``, mask
-        (1, h, w) foreground coverage in [0, 1] and garment (1, h, w) garment coverage in [0, 1] (CPU)."""
+        (1, h, w) foreground coverage in [0, 1] and garment (K, h, w) garment coverage in [0, 1], K the
+        palette's garment colors (:func:`garment_shares`) (CPU)."""
         frame = self.scene.check_frame(sequence, frame)
         cam = self.camera(camera)
         size = (cam.width, cam.height)

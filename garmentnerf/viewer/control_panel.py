@@ -7,6 +7,7 @@ never through GL. Sizes are multiples of the font size, so the layout follows th
 
 from __future__ import annotations
 
+from garmentnerf.model.palette import palette_names
 from garmentnerf.render.presets import VIEWER_LEVELS
 from garmentnerf.viewer.camera import MAX_FOV_Y, MIN_FOV_Y, VIEW_DIRECTIONS
 from garmentnerf.viewer.export_panel import ERROR_COLOR, export_section, snapshot_section
@@ -211,7 +212,7 @@ def _palette_section(app) -> None:
         imgui.text_wrapped("No garment model loaded (body only). Open a run with garmentnerf view --run DIR "
                            "to recolor its neural garment.")
         return
-    names = ["Garment", "Body / other"] + [f"Color {i}" for i in range(2, len(view.palette))]
+    names = palette_names(len(view.palette))
     flags = imgui.ColorEditFlags_.float | imgui.ColorEditFlags_.display_hex
     for i in range(len(view.palette)):
         changed, col = imgui.color_edit3(names[i], [float(c) for c in view.palette[i]], flags)

@@ -12,8 +12,8 @@ import trimesh
 from garmentnerf.body.model import BodyModel
 from garmentnerf.conventions import Camera, look_at
 from garmentnerf.data.cameras import circle_rig, held_out_rig, ring_camera
-from garmentnerf.data.render_gt import (LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer, Lighting, renderer_settings,
-                                        vertex_normals)
+from garmentnerf.data.render_gt import (LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer, Lighting, face_layers,
+                                        garment_pixels, renderer_settings, vertex_normals)
 from garmentnerf.gl.camera_pass import CameraPass
 from support.scenes import make_skirt
 
@@ -27,15 +27,18 @@ def scene_meshes():
     return body.template_vertices.numpy(), body.faces.numpy(), skirt_v, skirt_f
 
 
-def reference_labels(pass_, meshes, camera: Camera) -> np.ndarray:
-    """Pixel-centre labels from CameraPass on the combined mesh (body faces first)."""
+def reference_labels(pass_, meshes, camera: Camera, garment_face_layer=None) -> np.ndarray:
+    """Pixel-centre labels from CameraPass on the combined mesh (body faces first); a garment face
+    of layer k is labelled 2 + k."""
     bv, bf, gv, gf = meshes
     verts = np.concatenate([bv, gv])
     faces = np.concatenate([bf, gf + len(bv)])
     face_id = pass_.render(verts, faces, camera).face_id.numpy()
     out = np.zeros(face_id.shape, dtype=np.uint8)
     out[(face_id >= 0) & (face_id < len(bf))] = LABEL_BODY
-    out[face_id >= len(bf)] = LABEL_GARMENT
+    garment = face_id >= len(bf)
+    layer = np.zeros(len(gf), np.int64) if garment_face_layer is None else garment_face_layer
+    out[garment] = LABEL_GARMENT + layer[face_id[garment] - len(bf)]
     return out
 
 
@@ -66,6 +69,51 @@ def test_labels_without_supersampling_equal_camera_pass(gl_context, scene_meshes
             assert (ref == LABEL_GARMENT).sum() > 500 and (ref == LABEL_BODY).sum() > 500
             np.testing.assert_array_equal(labels, ref)
             assert np.all(rgb[labels == 0] == 0.0)
+
+
+def _two_layers(gv: np.ndarray) -> np.ndarray:
+    """(Vg,) layer of each skirt vertex: the lower half (below the median height) is layer 1."""
+    return (gv[:, 2] < np.median(gv[:, 2])).astype(np.int8)
+
+
+def test_layer_labels_equal_camera_pass_per_face_layer(gl_context, scene_meshes):
+    """A two-layer garment: without supersampling each garment pixel is labelled 2 + the layer of the
+    face CameraPass sees there; its garment pixels, colors and body labels are the one-layer render's."""
+    bv, bf, gv, gf = scene_meshes
+    layer = _two_layers(gv)
+    faces_layer = face_layers(gf, layer)
+    assert 0 < faces_layer.sum() < len(gf)
+    with GroundTruthRenderer(gl_context, supersample=1) as r, CameraPass(gl_context) as cp:
+        for cam in _views():
+            rgb, labels = r.render(bv, bf, gv, gf, GARMENT_COLOR, cam, garment_layer=layer)
+            ref = reference_labels(cp, scene_meshes, cam, faces_layer)
+            if cam is not _views()[-1]:  # from below the hem the lower half hides the upper
+                assert (ref == LABEL_GARMENT).sum() > 200
+            assert (ref == LABEL_GARMENT + 1).sum() > 200
+            np.testing.assert_array_equal(labels, ref)
+            rgb1, labels1 = r.render(bv, bf, gv, gf, GARMENT_COLOR, cam)
+            np.testing.assert_array_equal(garment_pixels(labels), labels1 == LABEL_GARMENT)
+            np.testing.assert_array_equal(rgb, rgb1)
+
+
+def test_supersampled_layer_labels_are_the_majority_layer(gl_context, scene_meshes):
+    """With 2 x 2 subsamples a garment pixel takes the layer most of its garment subsamples see (the
+    reference: the four subsample-centre labels of a supersample-1 render at twice the size)."""
+    bv, bf, gv, gf = scene_meshes
+    layer = _two_layers(gv)
+    cam = _views()[1]
+    with GroundTruthRenderer(gl_context, supersample=2) as r2, GroundTruthRenderer(gl_context, supersample=1) as r1:
+        labels = r2.render(bv, bf, gv, gf, GARMENT_COLOR, cam, garment_layer=layer)[1]
+        fine = r1.render(bv, bf, gv, gf, GARMENT_COLOR, cam.scaled(2), garment_layer=layer)[1]
+    H, W = labels.shape
+    blocks = fine.reshape(H, 2, W, 2).transpose(0, 2, 1, 3).reshape(H, W, 4)
+    n = {k: (blocks == k).sum(axis=-1) for k in (1, 2, 3)}
+    garment = labels >= LABEL_GARMENT
+    expected = np.where(n[3] >= n[2], LABEL_GARMENT + 1, LABEL_GARMENT)
+    assert (labels == LABEL_GARMENT + 1).sum() > 100
+    np.testing.assert_array_equal(labels[garment], expected[garment])
+    foreground = 2 * (n[1] + n[2] + n[3]) >= 4
+    np.testing.assert_array_equal(garment, foreground & (n[2] + n[3] >= n[1]))
 
 
 def test_supersampled_labels_differ_only_at_edges(gl_context, scene_meshes):

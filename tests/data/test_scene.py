@@ -265,6 +265,12 @@ def test_palette_from_images():
     out = palette_from_images([(rgb, labels)])
     np.testing.assert_allclose(out["garment"], [0.2, 0.3, 0.9], atol=1e-6)
     np.testing.assert_allclose(out["body"], [0.8, 0.6, 0.5], atol=1e-6)
+    assert "garment_layers" not in out
+    # a layered garment: each layer's mean, and "garment" the mean of all its pixels
+    rgb[2:9, 11:18], labels[2:9, 11:18] = (0.6, 0.3, 0.1), 3
+    out = palette_from_images([(rgb, labels)])
+    np.testing.assert_allclose(out["garment_layers"], [[0.2, 0.3, 0.9], [0.6, 0.3, 0.1]], atol=1e-6)
+    np.testing.assert_allclose(out["garment"], [0.4, 0.3, 0.5], atol=1e-6)  # equal eroded areas
 
 
 def test_contact_sheets(tmp_path, gl_context):

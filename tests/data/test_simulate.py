@@ -218,6 +218,7 @@ def test_sequence_roundtrip_within_quantisation_error(body, uninterrupted, tmp_p
     np.testing.assert_array_equal(back.penetration_max_m, result.penetration_max_m)
     np.testing.assert_array_equal(back.uv, g.uv)
     np.testing.assert_array_equal(back.betas, g.betas)
+    np.testing.assert_array_equal(back.layer, g.layer)
     assert back.kind == "skirt" and back.name == "skirt" and back.motion == "walk" and back.fps == 30
     assert SimSettings.from_dict(back.settings) == FAST
     # uint16 + deflate: smaller than the float32 vertices alone, faces and uv included

@@ -231,6 +231,26 @@ def test_segmentation_loss_by_hand():
     assert torch.autograd.gradcheck(f, (x,))
 
 
+def test_segmentation_loss_per_layer_by_hand():
+    from garmentnerf.model.losses import segmentation_loss
+
+    # a three-color palette (inner layer, outer layer, body) and two pixels: inner, outer
+    weights = torch.tensor([[0.6, 0.1], [0.3, 0.7], [0.1, 0.2]]).view(1, 3, 1, 2)
+    layers = torch.tensor([[1.0, 0.0], [0.0, 1.0]]).view(1, 2, 1, 2)
+    mask = torch.ones(1, 1, 1, 2)
+    # (|0.6 - 1| + |0.3 - 0|) + (|0.1 - 0| + |0.7 - 1|) over 2 pixels
+    assert float(segmentation_loss(weights, layers, mask)) == pytest.approx((0.7 + 0.4) / 2, abs=1e-7)
+    with pytest.raises(ValueError, match="more than 3 colors"):
+        segmentation_loss(weights, torch.cat([layers, layers[:, :1]], 1), mask)
+
+
+def test_palette_names():
+    from garmentnerf.model.palette import palette_names
+
+    assert palette_names(2) == ["Garment", "Body / other"]
+    assert palette_names(3) == ["Garment layer 1 (inner)", "Garment layer 2 (outer)", "Body / other"]
+
+
 def test_segmentation_term_only_when_asked():
     from garmentnerf.model.config import ModelConfig
     from garmentnerf.model.losses import garment_losses

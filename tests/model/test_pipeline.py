@@ -87,6 +87,13 @@ def test_palette_init():
         palette_initial_colors(torch.zeros(3, 3), 2)
     with pytest.raises(ValueError):
         palette_initial_colors([[1.5, 0, 0], [0, 0, 0]], 2)
+    # a layered garment: its layers' colors, inner first, then the body's (always the last)
+    layered = {**PALETTE, "garment_layers": [[0.9, 0.6, 0.1], [0.7, 0.5, 0.2]]}
+    torch.testing.assert_close(palette_initial_colors(layered, 3),
+                               torch.tensor([[0.9, 0.6, 0.1], [0.7, 0.5, 0.2], PALETTE["body"]]))
+    torch.testing.assert_close(palette_initial_colors(layered, 2), p)
+    with pytest.raises(ValueError, match="needs 2 garment layer colors"):
+        palette_initial_colors(PALETTE, 3)
 
 
 # ---------------------------------------------------------------------------------------- render

@@ -61,6 +61,9 @@ def test_colors_and_palette_parsing():
     assert torch.equal(pal[0], learned[0]) and pal[1].tolist() == [0.0, 0.0, 1.0]
     with pytest.raises(ValueError, match="3 colors"):
         build_palette(learned, "#000,#111,#222")
+    layered = torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9]])
+    pal = build_palette(layered, "-,#00ff00", body="#0000ff")  # the body is the last color
+    assert torch.equal(pal[0], layered[0]) and pal[1].tolist() == [0.0, 1.0, 0.0] and pal[2].tolist() == [0, 0, 1.0]
 
 
 def test_cameras():
