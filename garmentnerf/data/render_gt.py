@@ -294,7 +294,8 @@ class GroundTruthRenderer(GLObjectsOwner):
 
     # ---- rendering --------------------------------------------------------------------------------
     def render(self, body_vertices, body_faces, garment_vertices=None, garment_faces=None, garment_color=None,
-               camera: Camera | None = None, body_color=SKIN_TONE, garment_layer=None) -> tuple[np.ndarray, np.ndarray]:
+               camera: Camera | None = None, body_color=SKIN_TONE,
+               garment_layer=None) -> tuple[np.ndarray, np.ndarray]:
         """Render one view: ``(rgb (H, W, 3) float32 in [0, 1], labels (H, W) uint8)``.
 
         Args:
@@ -328,7 +329,8 @@ class GroundTruthRenderer(GLObjectsOwner):
                 raise ValueError(f"garment_layer must have shape ({len(gverts)},), got {np.shape(garment_layer)}")
             layers = face_layers(gtris, garment_layer)
             if len(layers) and (layers.min() < 0 or layers.max() >= MAX_GARMENT_LAYERS):
-                raise ValueError(f"garment layers must lie in [0, {MAX_GARMENT_LAYERS}), got [{layers.min()}, {layers.max()}]")
+                raise ValueError(f"garment layers must lie in [0, {MAX_GARMENT_LAYERS}), "
+                                 f"got [{layers.min()}, {layers.max()}]")
             order = np.argsort(layers, kind="stable")  # each layer's faces one range, drawn inner first
             gtris = gtris[order]
             counts = np.bincount(layers, minlength=MAX_GARMENT_LAYERS)

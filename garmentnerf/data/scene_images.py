@@ -7,9 +7,9 @@ Images are not stored with the scene: :class:`SceneImages` renders them with
 the body, the colors and the content of the sequence's files (SHA-256, memoised by the scene on
 size and modification time): any change renders afresh instead of reading a stale image, while a
 copied scene folder keeps its cache. RGB is cached as 8-bit PNG and labels as 8-bit grey PNG (0
-background, 1 body, 2 garment; 3 the outer layer of a layered garment); :meth:`SceneImages.image` returns the *cached* (8-bit quantised)
-values whether or not it just rendered them, so the two paths agree. A layered garment's labels are
-2 + its layer (:mod:`~garmentnerf.data.render_gt`).
+background, 1 body, 2 garment; a layered garment's layer k is 2 + k, :mod:`~garmentnerf.data.render_gt`);
+:meth:`SceneImages.image` returns the *cached* (8-bit quantised) values whether or not it just
+rendered them, so the two paths agree.
 
 Also here: :func:`read_garment_arrays` (a sequence's ``garment.npz``) and
 :func:`palette_from_images` (the palette initialisation from ground truth).
