@@ -238,8 +238,11 @@ def test_segmentation_loss_per_layer_by_hand():
     weights = torch.tensor([[0.6, 0.1], [0.3, 0.7], [0.1, 0.2]]).view(1, 3, 1, 2)
     layers = torch.tensor([[1.0, 0.0], [0.0, 1.0]]).view(1, 2, 1, 2)
     mask = torch.ones(1, 1, 1, 2)
-    # (|0.6 - 1| + |0.3 - 0|) + (|0.1 - 0| + |0.7 - 1|) over 2 pixels
-    assert float(segmentation_loss(weights, layers, mask)) == pytest.approx((0.7 + 0.4) / 2, abs=1e-7)
+    # targets (1, 0, 0) and (0, 1, 0): (|0.6 - 1| + 0.3 + 0.1) / 2 and (0.1 + |0.7 - 1| + 0.2) / 2, over 2 pixels
+    assert float(segmentation_loss(weights, layers, mask)) == pytest.approx((0.4 + 0.3) / 2, abs=1e-7)
+    # weight moved from the wrong layer to the body costs the same, not less
+    leaked = torch.tensor([[0.6, 0.1], [0.0, 0.7], [0.4, 0.2]]).view(1, 3, 1, 2)
+    assert float(segmentation_loss(leaked, layers, mask)) == pytest.approx((0.4 + 0.3) / 2, abs=1e-7)
     with pytest.raises(ValueError, match="more than 3 colors"):
         segmentation_loss(weights, torch.cat([layers, layers[:, :1]], 1), mask)
 
