@@ -188,7 +188,9 @@ class ModelConfig:
     palette_size: int = 2
     """P, palette colors (paper: 2, garment p_G and body/other p_B). A layered garment (the dress) takes one
     color per layer, inner first, then the body's (3 for the dress): the segmentation term holds each
-    layer's weight to its label share and the previewer recolours the layers apart."""
+    layer's weight to its label share, so the previewer can recolour the layers apart. Through the weight
+    head alone (``segmentation_head_only``) the layers of one color did not come apart (the trunk carries
+    nothing that tells them apart; docs/quality.md, "The layered dress")."""
     decoder_upsample_steps: int = 2
     """Nearest x2 upsamplings (paper: 2, 128 -> 512)."""
     decoder_width: int = 64
