@@ -395,7 +395,7 @@ def _unpack(resolved: np.ndarray, s: int) -> GroundTruthImage:
     labels[fg] = LABEL_BODY
     garment = fg & (n_garment >= n_body)
     labels[garment] = LABEL_GARMENT
-    labels[garment & (n_outer >= n_inner) & (n_outer > 0)] = LABEL_GARMENT + 1
+    labels[garment & (n_outer >= n_inner)] = LABEL_GARMENT + 1  # a garment pixel has n_inner + n_outer >= 1
     n = float(s * s)
     return GroundTruthImage(np.clip(resolved[..., :3], 0.0, 1.0), labels,
                             (n_fg / n).astype(np.float32), (n_garment / n).astype(np.float32))
