@@ -56,6 +56,12 @@ class ModelConfig:
     """The per-frame codes learn at ``lr`` times this: each is seen once in about as many steps as there are
     training frames (the sequence occupancy probe: 50 gave +0.07 IoU on the training frames after 600
     steps, 10 +0.01; docs/quality.md)."""
+    frame_code_dropout: float = 0.0
+    """Probability that a training step renders its frame without the frame's code (E's output alone;
+    0: never). The codes learn each training frame's own garment fast but let E learn less of the rule
+    that alone renders a motion it never saw (FC1 lost 0.7 dB of foreground on the held-out motion,
+    docs/quality.md, "Per-frame codes"); dropped steps ask E to stand alone. Drawn per image from
+    ``(seed, step, rank, image)``, so a resumed run drops the same steps."""
     info_map_resolution: int = 128
     """Side of the UV info maps N_t, V_t and of the dynamic feature map F^s_t (paper: 128)."""
     image_resolution: int = 512
@@ -412,6 +418,8 @@ class ModelConfig:
             raise ValueError("ModelConfig.frame_code_resolution needs the dynamic feature (use_dynamic_feature)")
         if not (math.isfinite(self.frame_code_lr_scale) and self.frame_code_lr_scale > 0):
             raise ValueError(f"ModelConfig.frame_code_lr_scale must be > 0, got {self.frame_code_lr_scale}")
+        if not (math.isfinite(self.frame_code_dropout) and 0 <= self.frame_code_dropout < 1):
+            raise ValueError(f"ModelConfig.frame_code_dropout must lie in [0, 1), got {self.frame_code_dropout}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
                      "decoder_extra_layers", "bbox_padding", "blend_weight_floor", "w_image", "w_mask",
                      "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation",

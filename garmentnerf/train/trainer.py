@@ -625,12 +625,23 @@ class Trainer(Closeable):
             inputs = frames.inputs(seq, frame)
         return inputs
 
-    def _prepared_frame(self, seq: str, frame: int):
-        """The frame's features for this step's graph, its body geometry from the cache (kept for the
-        next visit)."""
+    def _step_code(self, seq: str, frame: int, step: int, index: int) -> int | None:
+        """The per-frame code image ``index`` of step ``step`` renders frame (``seq``, ``frame``) with:
+        :meth:`code_index`, or None on the steps ``cfg.frame_code_dropout`` drops it from (drawn from
+        ``(seed, step, rank, index)``, so a resumed run drops the same ones)."""
+        code = self.code_index(seq, frame)
+        p = self.cfg.frame_code_dropout
+        if code is None or p <= 0:
+            return code
+        draw = np.random.default_rng(_seed_of(self.tc.seed, 3, step, self.dist.rank, index)).random()
+        return None if draw < p else code
+
+    def _prepared_frame(self, seq: str, frame: int, code: int | None):
+        """The frame's features for this step's graph (with per-frame code ``code``, or None), its body
+        geometry from the cache (kept for the next visit)."""
         inputs = self._nerf_inputs(seq, frame)
         geometry = self._geometry.pop((seq, frame), None)
-        feats = self.model.prepare_frame(inputs, geometry, code=self.code_index(seq, frame))
+        feats = self.model.prepare_frame(inputs, geometry, code=code)
         if self.geometry_cache_frames > 0:
             # the geometry only: the features belong to this step's graph
             self._geometry[seq, frame] = geometry or replace(feats, dynamic_features=None, reference_images=None,
@@ -643,7 +654,7 @@ class Trainer(Closeable):
         """A step of the geometry warm-up (``cfg.geometry_iterations``): the occupancy term alone, at the
         frame the image step would have drawn; nothing is rendered."""
         seq, frame, _ = self._pick(self.pairs, step, 2, index)
-        feats = self._prepared_frame(seq, frame)
+        feats = self._prepared_frame(seq, frame, self._step_code(seq, frame, step, index))
         sigma, labels = self._occupancy(seq, frame, feats, gen)
         loss = occupancy_loss(sigma, labels, self.cfg.occupancy_step)
         return {"occupancy": loss, "total": loss}, {}
@@ -652,7 +663,7 @@ class Trainer(Closeable):
         if step - self.generator_iterations < self.cfg.geometry_iterations:
             return self._geometry_step(step, index, gen)
         seq, frame, cam = self._pick(self.pairs, step, 2, index)
-        feats = self._prepared_frame(seq, frame)
+        feats = self._prepared_frame(seq, frame, self._step_code(seq, frame, step, index))
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
         camera, window = self.data.frames.training_view(cam, box, gen)
         out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,

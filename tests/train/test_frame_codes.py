@@ -105,3 +105,38 @@ def test_codes_start_from_weights_trained_without_them(tiny_scene, gl_context, t
                                 init_weights=tmp_path / "plain" / "model.safetensors"), gl_context)
         both[name] = result.history[0]
     assert both["codes"]["total"] == pytest.approx(both["again"]["total"], abs=1e-6)
+
+
+def test_code_dropout_trains_only_the_kept_codes_and_resumes_exactly(tiny_scene, gl_context, tmp_path, monkeypatch):
+    """``frame_code_dropout``: some steps render their frame with E alone. A frame's code moves from zero
+    exactly when at least one of its visits kept it; an interrupted run drops the same steps."""
+    from garmentnerf.model.pipeline import GarmentAnimationNeRF
+
+    cfg = codes_config(iterations=8, frame_code_dropout=0.5)
+    visits = []  # (frame, code) of every image rendered
+    prepare = GarmentAnimationNeRF.prepare_frame
+
+    def recording(self, inputs, geometry=None, code=None):
+        visits.append((int(inputs.frame), code))
+        return prepare(self, inputs, geometry, code=code)
+
+    monkeypatch.setattr(GarmentAnimationNeRF, "prepare_frame", recording)
+    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=8,
+                                   model_config=cfg), gl_context)
+    assert len(visits) == 8
+    dropped = [code is None for _, code in visits]
+    assert any(dropped) and not all(dropped)
+    assert all(code in (None, frame) for frame, code in visits)  # the "train" sequence's codes start at 0
+    kept_frames = {frame for frame, code in visits if code is not None}
+    moved = set(np.flatnonzero(full_state["frame_codes.codes"].flatten(1).abs().amax(dim=1).numpy() > 0).tolist())
+    assert moved == kept_frames
+    first = list(visits)
+    visits.clear()
+    run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=8, model_config=cfg, stop_after=3),
+        gl_context)
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=8),
+                           gl_context)
+    assert visits == first
+    assert_same_steps(full.history[3:], rest.history, full_state, rest_state)
+    with pytest.raises(ValueError, match="frame_code_dropout"):
+        codes_config(frame_code_dropout=1.0)
