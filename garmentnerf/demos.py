@@ -23,6 +23,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from garmentnerf.io_utils import atomic_write_path
+
 __all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "EVAL_FILES", "MAX_DEMO_WEIGHTS_BYTES", "PAPER_TABLE_1", "Demo",
            "demo", "demo_run_dir", "results_table",
            "demo_of_run", "installed_demos", "pack_demo", "pack_weights"]
@@ -205,8 +207,11 @@ def pack_weights(source: Path, destination: Path) -> int:
     with safe_open(str(source), framework="pt") as f:
         metadata = f.metadata()
         tensors = {k: f.get_tensor(k) for k in f.keys()}
-    save_file({k: v.to(torch.float16) if v.dtype == torch.float32 else v for k, v in tensors.items()},
-              str(destination), metadata=metadata)
+    # through atomic_write_path for its permissions: safetensors 0.8 creates files 0600, which another
+    # user of a shared install could not read
+    with atomic_write_path(Path(destination), overwrite=True) as tmp:
+        save_file({k: v.to(torch.float16) if v.dtype == torch.float32 else v for k, v in tensors.items()},
+                  str(tmp), metadata=metadata)
     return Path(destination).stat().st_size
 
 

@@ -78,6 +78,9 @@ def test_pack_weights_keeps_non_float32_tensors(tmp_path):
     assert size == (tmp_path / "p.safetensors").stat().st_size
     assert out["a"].dtype == torch.float16 and float(out["a"][1]) == float(np.float16(1.0 / 3.0))
     assert out["n"].dtype == torch.int64 and out["n"].tolist() == [3, 4]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "p.safetensors").stat().st_mode & 0o777 == 0o666 & ~umask  # what open() would give
 
 
 @pytest.mark.parametrize("argv, message", [
