@@ -41,6 +41,13 @@ class ModelConfig:
     body has been going for the last fraction of a second. In the sequence occupancy probe (0.1, 0.3 and 1 s)
     it changed nothing over the first 600 steps, which learn the average garment (docs/quality.md, "Telling
     the field where the cloth is"); whether it helps once frames are told apart is not measured."""
+    world_normals: bool = False
+    """Give E the body's normal map in world space too (3 channels after the others; not in the paper).
+    The paper's normals are root-relative, and nothing else E or the field sees says which way the body
+    faces, while the scene's lights are fixed in the world: when the character turns, the same cloth
+    goes from lit to shaded and the field can only learn the average. On the bundled skirt's training
+    camera ``cam00`` the truth's mean garment luminance varies from frame to frame (std 0.018) and C5's
+    render does not follow it (std 0.010, correlation -0.18; docs/quality.md, "The lights")."""
     frame_code_resolution: int = 0
     """Per-frame codes (not in the paper; 0: none): every training frame gets a learned residual of E's
     output, ``dynamic_encoder_channels x r x r`` at this r, upsampled bilinearly to E's resolution and added
@@ -348,8 +355,8 @@ class ModelConfig:
     # ------------------------------------------------------------------ derived sizes
     @property
     def encoder_in_channels(self) -> int:
-        """3 (k + 1 + m): normal map, k velocity maps and m smoothed velocity maps."""
-        return 3 * (self.history + 1 + len(self.velocity_smoothing))
+        """3 (k + 1 + m [+ 1]): normal map, k velocity maps, m smoothed velocity maps [, world normal map]."""
+        return 3 * (self.history + 1 + len(self.velocity_smoothing) + int(self.world_normals))
 
     @property
     def dynamic_encoder_channels(self) -> int:

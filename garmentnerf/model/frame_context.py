@@ -89,7 +89,7 @@ class FrameInputs:
         R, C = cfg.info_map_resolution, cfg.encoder_in_channels
         if tuple(self.info_maps.shape) != (C, R, R):
             raise ValueError(f"info_maps must be ({C}, {R}, {R}) for history={cfg.history}, "
-                             f"velocity_smoothing={list(cfg.velocity_smoothing)} and "
+                             f"velocity_smoothing={list(cfg.velocity_smoothing)}, world_normals={cfg.world_normals} and "
                              f"info_map_resolution={R}, got {tuple(self.info_maps.shape)}")
         S = cfg.reference_resolution
         if len(self.reference_cameras) != 2:
@@ -217,7 +217,7 @@ class FrameInputBuilder:
         front, back = resolve_reference_cameras(references)
         self.reference_cameras: tuple[Camera, Camera] = (front.resized(S, S), back.resized(S, S))
         self.info_map_renderer = InfoMapRenderer(ctx, body, cfg.info_map_resolution, cfg.history,
-                                                 cfg.velocity_smoothing)
+                                                 cfg.velocity_smoothing, cfg.world_normals)
         self.camera_pass = CameraPass(ctx)
         self._faces = body.faces.cpu()
         self._uv = body.uv.cpu()

@@ -91,16 +91,17 @@ class UNet(nn.Module):
 
 class DynamicFeatureEncoder(UNet):
     """E: info maps [N_t, V_t] ``(B, 3 (k + 1), R, R)`` -> dynamic feature map F^s_t ``(B, 8, R, R)``
-    (the ``uvh`` field: ``(B, 8 K, R, R)``, K slices along h; ``ModelConfig.dynamic_encoder_channels``)."""
+    (the ``uvh`` field: ``(B, 8 K, R, R)``, K slices along h; ``ModelConfig.dynamic_encoder_channels``;
+    more input channels with ``velocity_smoothing`` and ``world_normals``: ``ModelConfig.encoder_in_channels``)."""
 
-    def __init__(self, history: int = 2, out_channels: int = 8, base_width: int = 32, depth: int = 4,
-                 width_scale: float = 1.0, smoothed_slots: int = 0):
-        super().__init__(3 * (history + 1 + smoothed_slots), out_channels, base_width, depth, width_scale, "tanh")
+    def __init__(self, in_channels: int = 9, out_channels: int = 8, base_width: int = 32, depth: int = 4,
+                 width_scale: float = 1.0):
+        super().__init__(in_channels, out_channels, base_width, depth, width_scale, "tanh")
 
     @classmethod
     def from_config(cls, cfg) -> "DynamicFeatureEncoder":
-        return cls(cfg.history, cfg.dynamic_encoder_channels, cfg.encoder_base_width, cfg.encoder_depth,
-                   cfg.encoder_width_scale, len(cfg.velocity_smoothing))
+        return cls(cfg.encoder_in_channels, cfg.dynamic_encoder_channels, cfg.encoder_base_width, cfg.encoder_depth,
+                   cfg.encoder_width_scale)
 
 
 class DetailEncoder(UNet):

@@ -172,3 +172,33 @@ def test_frame_inputs_with_smoothed_maps_equal_the_clip_ones(gl_context, body):
     # the 0.2 s slot of frame 20 reaches back 18 frames, so frame 20's 0.2 s maps are not frame 2's
     assert not torch.allclose(alone.info_maps[-3:], short.info_maps[-3:])
     assert builder.info_map_renderer.frames_back(FPS) == 18
+
+
+def test_world_normal_map_matches_trimesh_normals_and_leaves_the_other_channels(gl_context, body):
+    """``world_normals``: 3 more channels, last, the normals before the root's rotation is removed (trimesh's
+    on the posed mesh); the paper's channels are unchanged; a model config counts them."""
+    from garmentnerf.model.config import ModelConfig
+
+    rot, trans = smooth_motion(body, seed=2)
+    posed = body.pose(rot, trans)
+    plain = InfoMapRenderer(gl_context, body, resolution=128, history=2)
+    world = InfoMapRenderer(gl_context, body, resolution=128, history=2, world_normals=True)
+    try:
+        t = 2
+        a, b = plain.render_clip(posed, FPS)[t], world.render_clip(posed, FPS)[t]
+    finally:
+        plain.release()
+        world.release()
+    assert a.world_normal is None and b.world_normal.shape == (128, 128, 3)
+    assert b.stacked().shape == (12, 128, 128)
+    torch.testing.assert_close(b.stacked()[:9], a.stacked(), rtol=0, atol=0)
+    mesh = trimesh.Trimesh(posed.vertices[t].double().numpy(), body.faces.numpy(), process=False)
+    face_idx, bary, point_uv = surface_samples(mesh, body.asset.uv_faces, body.asset.uv, 4000, seed=1)
+    expected = np.einsum("nk,nkc->nc", bary, mesh.vertex_normals[mesh.faces[face_idx]])
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    got = sample_uv_map(b.world_normal, torch.as_tensor(point_uv, dtype=torch.float32)).double().numpy()
+    got /= np.linalg.norm(got, axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(np.sum(got * expected, axis=1), -1, 1)))
+    assert np.median(angle) < 2.0 and np.percentile(angle, 90) < 8.0  # as the root-relative map's test
+    cfg = ModelConfig.cpu_small()
+    assert cfg.replace(world_normals=True).encoder_in_channels == cfg.encoder_in_channels + 3 == 12

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 
@@ -539,3 +540,14 @@ def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_s
     tc2 = make_tc(tiny_scene, tmp_path / "run", iterations=3, generator_iterations=0, model_config=cfg, resume=True)
     with Trainer(tc2, gl_context, log=lambda m: None) as tr:
         assert (tr.shell_band.h_min, tr.shell_band.h_max) == (-0.07, 0.21)
+
+
+def test_a_run_with_world_normals_trains_and_renders_with_the_wider_encoder(tiny_scene, gl_context, tmp_path):
+    """``world_normals``: E takes 3 more input channels; a run trains, saves and loads with them."""
+    cfg = tiny_config().replace(world_normals=True)
+    result, state = run(make_tc(tiny_scene, tmp_path / "w", generator_iterations=0, iterations=2, model_config=cfg),
+                        gl_context)
+    first_conv = [v for k, v in state.items() if k.startswith("encoder.") and v.ndim == 4][0]
+    assert first_conv.shape[1] == cfg.encoder_in_channels == tiny_config().encoder_in_channels + 3
+    assert all(math.isfinite(h["total"]) for h in result.history)
+    assert load_run(tmp_path / "w").config.world_normals
