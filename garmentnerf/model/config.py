@@ -47,7 +47,9 @@ class ModelConfig:
     faces, while the scene's lights are fixed in the world: when the character turns, the same cloth
     goes from lit to shaded and the field can only learn the average. On the bundled skirt's training
     camera ``cam00`` the truth's mean garment luminance varies from frame to frame (std 0.018) and C5's
-    render does not follow it (std 0.010, correlation -0.18; docs/quality.md, "The lights")."""
+    render does not follow it (std 0.010, correlation -0.18). Measured (recipe WN1, from scratch against
+    O1): 0.47 dB of foreground lost on the unseen views, and the render still does not follow the cloth's
+    brightness (correlation -0.07; docs/quality.md, "The lights"), so it stays off."""
     frame_code_resolution: int = 0
     """Per-frame codes (not in the paper; 0: none): every training frame gets a learned residual of E's
     output, ``dynamic_encoder_channels x r x r`` at this r, upsampled bilinearly to E's resolution and added
