@@ -542,7 +542,7 @@ def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_s
         assert (tr.shell_band.h_min, tr.shell_band.h_max) == (-0.07, 0.21)
 
 
-def test_a_run_with_world_normals_trains_and_renders_with_the_wider_encoder(tiny_scene, gl_context, tmp_path):
+def test_a_run_with_world_normals_trains_saves_and_loads_with_the_wider_encoder(tiny_scene, gl_context, tmp_path):
     """``world_normals``: E takes 3 more input channels; a run trains, saves and loads with them."""
     cfg = tiny_config().replace(world_normals=True)
     result, state = run(make_tc(tiny_scene, tmp_path / "w", generator_iterations=0, iterations=2, model_config=cfg),
