@@ -144,7 +144,7 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
             their labels; with ``cfg.w_occupancy`` > 0 their
             :func:`~garmentnerf.model.occupancy.occupancy_loss` (interval ``cfg.occupancy_step``) is a term.
     Returns:
-        dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette,
+        dict of the unweighted terms ``image, [image_l2,] mask, [perceptual,] sparsity, offset, palette,
         [opacity,] [segmentation,] [plane_tv,] [occupancy]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
@@ -153,6 +153,9 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         "image": l1(image, target_image),
         "mask": l1(maps.mask, target_mask.to(maps.mask.dtype)),
     }
+    w_image_l2 = float(getattr(cfg, "w_image_l2", 0.0))
+    if w_image_l2 > 0:
+        terms["image_l2"] = F.mse_loss(image, target_image)
     if perceptual is not None:
         factor = int(getattr(cfg, "perceptual_downsample", 1))
         if factor > 1:
@@ -179,7 +182,7 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     w_occupancy = float(getattr(cfg, "w_occupancy", 0.0))
     if occupancy is not None and w_occupancy > 0:
         terms["occupancy"] = occupancy_loss(occupancy[0], occupancy[1], cfg.occupancy_step)
-    weights = {"image": cfg.w_image, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
+    weights = {"image": cfg.w_image, "image_l2": w_image_l2, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
                "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
                "segmentation": w_segmentation, "plane_tv": w_plane_tv,
                "occupancy": w_occupancy}

@@ -317,6 +317,11 @@ def test_losses_without_perceptual_and_weighting():
     assert out["palette"].item() == pytest.approx(6 * 0.01)
     expected = sum(getattr(cfg, f"w_{k}") * out[k] for k in ("image", "mask", "sparsity", "offset", "palette"))
     torch.testing.assert_close(out["total"], expected)
+    # the squared error beside the L1, by hand: a constant 0.1 off everywhere
+    both = garment_losses(image, image.detach() + 0.1, maps, torch.ones(1, 8, 8), p, p, cfg.replace(w_image_l2=10.0))
+    assert both["image"].item() == pytest.approx(0.1, abs=1e-6) and both["image_l2"].item() == pytest.approx(0.01, abs=1e-6)
+    torch.testing.assert_close(both["total"] - out["total"], torch.tensor(cfg.w_image * 0.1 + 10.0 * 0.01 - cfg.w_palette * 6 * 0.01),
+                               atol=1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("factor", [1, 2, 4])
