@@ -97,6 +97,14 @@ class ModelConfig:
     """Channels of F^d_t, the output of G_en (paper: 8)."""
     appearance_dim: int = 128
     """zeta, channels of the NeRF appearance feature and of F^zeta_t (paper: 128)."""
+    shading_normals: bool = False
+    """Give the decoder M_D the body's world-space normal under each pixel (not in the paper): every sample
+    carries the posed normal at its closest body point as 3 more channels after zeta, volume-rendered with
+    the same weights, so F^zeta has ``appearance_dim + 3`` channels. The scene's lights are fixed in the
+    world while everything E and the field see is body-relative, so a field cannot know which side of the
+    cloth is lit: across the 16 training cameras of one frame the bundled C5 renders the garment's mean
+    luminance with half the truth's contrast (std 0.014 against 0.028 at frame 20, correlation 0.88;
+    docs/quality.md, "The lights"). Here the radiance head gets the orientation directly, one conv away."""
 
     # ---- U-Nets E and G_en (``model/unet.py``)
     encoder_base_width: int = 32
@@ -365,6 +373,11 @@ class ModelConfig:
     def encoder_in_channels(self) -> int:
         """3 (k + 1 + m [+ 1]): normal map, k velocity maps, m smoothed velocity maps [, world normal map]."""
         return 3 * (self.history + 1 + len(self.velocity_smoothing) + int(self.world_normals))
+
+    @property
+    def feature_image_channels(self) -> int:
+        """Channels of F^zeta, the decoder's input: zeta, then the shading normal when enabled."""
+        return self.appearance_dim + 3 * int(self.shading_normals)
 
     @property
     def dynamic_encoder_channels(self) -> int:

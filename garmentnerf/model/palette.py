@@ -341,7 +341,7 @@ class PaletteDecoder(nn.Module):
 
     @classmethod
     def from_config(cls, cfg) -> "PaletteDecoder":
-        return cls(cfg.appearance_dim, cfg.palette_size, cfg.decoder_width, cfg.decoder_min_width,
+        return cls(cfg.feature_image_channels, cfg.palette_size, cfg.decoder_width, cfg.decoder_min_width,
                    cfg.decoder_upsample_steps, cfg.decoder_extra_layers, cfg.radiance_channels,
                    cfg.radiance_activation, cfg.offset_scale, cfg.blend_weight_floor,
                    head_only_weights=cfg.w_segmentation > 0 and cfg.segmentation_head_only)

@@ -487,8 +487,9 @@ class GarmentAnimationNeRF(nn.Module):
         it already (not projected again).
 
         Returns:
-            sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops),
-            and how many samples the MLP evaluated.
+            sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops; C is
+            ``cfg.feature_image_channels``: with ``shading_normals`` the last 3 are the world-space
+            body normal at the closest point), and how many samples the MLP evaluated.
         """
         cfg, dev = self.cfg, self.device
         sw = _Stopwatch({} if timings is None else timings, dev)
@@ -500,7 +501,7 @@ class GarmentAnimationNeRF(nn.Module):
                 kept = sample_filter.keep(points).nonzero().squeeze(1)
                 points = points.select(kept)
         if len(points) == 0:
-            return torch.zeros(n, device=dev), torch.zeros(n, cfg.appearance_dim, device=dev), 0
+            return torch.zeros(n, device=dev), torch.zeros(n, cfg.feature_image_channels, device=dev), 0
         with sw("features"):
             dynamic = detail = None
             if cfg.use_detail_feature:
@@ -522,6 +523,9 @@ class GarmentAnimationNeRF(nn.Module):
                 sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic,
                                         atlas)
         sigma, zeta = sigma.float(), zeta.float()
+        if cfg.shading_normals:
+            with sw("features"):
+                zeta = torch.cat([zeta, self.surface_normals(frame, points).to(dev, zeta.dtype)], dim=-1)
         if kept is not None and kept.shape[0] < n:
             rows = kept.to(dev)
             sigma = torch.zeros(n, device=dev).index_copy(0, rows, sigma)
@@ -567,7 +571,7 @@ class GarmentAnimationNeRF(nn.Module):
         dev = self.device
         timings = {} if timings is None else timings
         sw = _Stopwatch(timings, dev)
-        C = cfg.appearance_dim
+        C = cfg.feature_image_channels
         n_pixels = fw * fh
 
         with sw("rays"):

@@ -171,3 +171,38 @@ def test_the_plane_term_enters_the_loss_only_with_its_weight():
     assert float(on["total"] - off["total"]) == pytest.approx(0.5 * float(on["plane_tv"]), rel=1e-5)
     with pytest.raises(ValueError, match="w_plane_tv"):
         ModelConfig(w_plane_tv=-1.0)
+
+
+def test_shading_normals_are_trimeshs_normals_at_the_closest_point_after_the_same_zeta(body, projector, walk_inputs):
+    """With ``shading_normals`` every sample carries the posed body's normal at its closest point (the
+    vertex normals interpolated there: trimesh's closest point and vertex normals, independently)
+    after zeta, which is unchanged; the decoder takes the 3 more channels and the view renders."""
+    torch.manual_seed(0)
+    plain = GarmentAnimationNeRF(uvh_config(), body, PALETTE, projector=projector)
+    torch.manual_seed(0)
+    cfg = uvh_config(shading_normals=True)
+    shaded = GarmentAnimationNeRF(cfg, body, PALETTE, projector=projector)
+    assert cfg.feature_image_channels == cfg.appearance_dim + 3
+    assert shaded.decoder.body[1].in_channels == cfg.appearance_dim + 3
+    frame_plain, frame = plain.prepare_frame(walk_inputs), shaded.prepare_frame(walk_inputs)
+    verts = frame.posed_vertices.double().numpy()
+    mesh = trimesh.Trimesh(verts, projector.faces.numpy(), process=False)
+    rng = np.random.default_rng(0)
+    on_skin, face_ids = trimesh.sample.sample_surface(mesh, 600, seed=1)
+    offset = rng.uniform(0.005, 0.05, size=(600, 1))
+    positions = torch.tensor(on_skin + offset * mesh.face_normals[face_ids], dtype=torch.float32)
+    with torch.no_grad():
+        _, zeta_plain, _ = plain.evaluate_samples(frame_plain, positions)
+        sigma, zeta, _ = shaded.evaluate_samples(frame, positions)
+    assert zeta.shape == (600, cfg.appearance_dim + 3)
+    torch.testing.assert_close(zeta[:, :cfg.appearance_dim], zeta_plain)
+    closest, _, tri = trimesh.proximity.closest_point(mesh, positions.double().numpy())
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], closest)
+    want = np.einsum("nk,nkc->nc", bary, mesh.vertex_normals[mesh.faces[tri]])
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    got = zeta[:, cfg.appearance_dim:].double().numpy()
+    angle = np.degrees(np.arccos(np.clip((got * want).sum(1), -1, 1)))
+    assert np.median(angle) < 1.0 and np.percentile(angle, 95) < 5.0
+    out = shaded.render(frame, orbit_camera(30.0, 10.0, 3.0, width=64, height=64))
+    assert out.feature_image.shape[0] == cfg.appearance_dim + 3 and out.points_evaluated > 0
+    assert torch.isfinite(out.image).all()
