@@ -62,6 +62,11 @@ Foreground (what a user looks at; full-frame PSNR over a black background is mos
     :data:`OUTLINE_BAND` pixels (at 512 px) from its outline; ``garment_outline_share``: the share
     of the garment's squared error (over ``garment_psnr``'s pixels) within that band. Together they
     tell a garment of the wrong shape (most error in the band) from one shaded wrongly inside.
+    ``garment_luma`` / ``garment_luma_truth``: the mean luma of the prediction / the ground truth over
+    ``garment_inner_psnr``'s pixels; over the split's views they give ``shading_contrast`` and
+    ``shading_correlation`` (:func:`~garmentnerf.eval.metrics.shading_agreement`: does the
+    cloth's brightness follow the truth's from view to view, the lit side as bright and the
+    shaded side as dark? 1 and 1 when it does).
     A figure whose region is empty in a view (e.g. no body pixel) is left out of that view's row
     and of the mean. With a baseline, ``margin_db`` is the model's mean PSNR and ``fg_psnr``
     minus the nearest view's: the paper's yardstick, independent of the framing.
@@ -87,7 +92,8 @@ Result (:func:`evaluate_run`): a strict-JSON-serialisable dict (non-finite float
      "background": [r, g, b], "psnr_cap_db": 100.0, "palette": [[r, g, b], ...],
      "means": {"psnr": .., "ssim": .., "stlpips_alex": .., "tof": .., "fg_psnr": .., "body_psnr": ..,
                "garment_psnr": .., "garment_inner_psnr": .., "garment_outline_share": ..,
-               "silhouette_iou": .., "sharpness": ..},
+               "silhouette_iou": .., "sharpness": .., "garment_luma": .., "garment_luma_truth": ..,
+               "shading_contrast": .., "shading_correlation": ..},
      "counts": {"images": .., "tof_pairs": ..},
      "unavailable": {"lpips_alex": "reason", ...},
      "per_frame": [{"sequence", "camera", "frame", "psnr", "ssim", "stlpips_alex"}, ...],
@@ -116,8 +122,8 @@ from tqdm import tqdm
 from garmentnerf.data.render_gt import LABEL_BODY, GroundTruthRenderer, garment_pixels
 from garmentnerf.data.scene import SceneImages
 from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, interior, is_psnr_metric,
-                                      masked_psnr, mean_psnr, psnr, sharpness_ratio, silhouette_iou, ssim,
-                                      temporal_flow_error, to_grey_uint8)
+                                      masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement, sharpness_ratio,
+                                      silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
 from garmentnerf.eval.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
 from garmentnerf.gl.context import create_context
 from garmentnerf.render.presets import get_render_preset
@@ -436,8 +442,8 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
         pred_silhouette: (h, w) bool, where the prediction shows the character.
     Returns:
         ``fg_psnr``, ``body_psnr``, ``garment_psnr``, ``garment_inner_psnr``,
-        ``garment_outline_share``, ``silhouette_iou``, ``sharpness``; a figure whose region is
-        empty in this view is left out.
+        ``garment_outline_share``, ``silhouette_iou``, ``sharpness``, ``garment_luma``,
+        ``garment_luma_truth``; a figure whose region is empty in this view is left out.
     """
     truth = target.labels != 0
     garment = garment_pixels(target.labels)
@@ -454,6 +460,8 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
                                   if garment_error > 0 else None),
         "silhouette_iou": silhouette_iou(pred_silhouette, truth),
         "sharpness": sharpness_ratio(pred, target.image, interior(garment, margin)),
+        "garment_luma": mean_luma(pred, inner),
+        "garment_luma_truth": mean_luma(target.image, inner),
     }
     return {k: v for k, v in values.items() if v is not None}
 
@@ -526,6 +534,9 @@ class _Scores:
         for name in names:
             v = [row[name] for row in self.per_frame if name in row]
             means[name] = mean_psnr(v, PSNR_CAP_DB) if is_psnr_metric(name) else float(np.mean(v))
+        lumas = [(row["garment_luma"], row["garment_luma_truth"]) for row in self.per_frame if "garment_luma" in row]
+        if lumas:
+            means.update(shading_agreement(*zip(*lumas)) or {})
         if pairs:
             means["tof"] = float(np.mean(pairs))
         else:
@@ -781,11 +792,12 @@ def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: floa
 _HEAD = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips_alex": "LPIPS↓", "stlpips_alex": "ST-LPIPS↓", "tof": "tOF↓",
          "fg_psnr": "fg PSNR↑", "body_psnr": "body PSNR↑", "garment_psnr": "garment PSNR↑",
          "garment_inner_psnr": "inside↑", "garment_outline_share": "outline err.",
-         "silhouette_iou": "IoU↑", "sharpness": "sharpness→1"}
+         "silhouette_iou": "IoU↑", "sharpness": "sharpness→1", "shading_contrast": "shading→1",
+         "shading_correlation": "shading corr.↑"}
 
 #: The foreground figures in report order (a second table).
 FOREGROUND_ORDER = ("fg_psnr", "body_psnr", "garment_psnr", "garment_inner_psnr", "garment_outline_share",
-                    "silhouette_iou", "sharpness")
+                    "silhouette_iou", "sharpness", "shading_contrast", "shading_correlation")
 
 
 def _fmt(v) -> str:

@@ -225,6 +225,36 @@ def sharpness_ratio(pred, target, region: np.ndarray) -> float | None:
     return gradient_energy(pred, region) / reference
 
 
+#: Rec. 709 luma weights of display RGB (what :func:`mean_luma` averages).
+LUMA_WEIGHTS = (0.2126, 0.7152, 0.0722)
+
+
+def mean_luma(image, region: np.ndarray) -> float | None:
+    """Mean Rec. 709 luma of ``image`` ((H, W, 3) in [0, 1], or uint8) over ``region``; None when
+    the region is empty."""
+    region = np.asarray(region, dtype=bool)
+    if not region.any():
+        return None
+    img = np.asarray(image)
+    img = img.astype(np.float64) / 255.0 if img.dtype == np.uint8 else img.astype(np.float64)
+    return float((img[region] @ np.asarray(LUMA_WEIGHTS)).mean())
+
+
+def shading_agreement(pred_luma: Sequence[float], truth_luma: Sequence[float]) -> dict[str, float] | None:
+    """How a prediction's brightness follows the truth's from view to view: the per-view mean lumas of
+    both (e.g. :func:`mean_luma` inside the garment) give ``shading_contrast``, the standard deviation
+    of the prediction's over the truth's (1: the lit and the shaded views as far apart as in the truth;
+    0.5: half the contrast; 0: one brightness everywhere), and ``shading_correlation`` (Pearson).
+    None with fewer than 3 views or a truth of one brightness (nothing to follow)."""
+    p, t = np.asarray(pred_luma, np.float64), np.asarray(truth_luma, np.float64)
+    if p.shape != t.shape or p.ndim != 1:
+        raise ValueError(f"shading_agreement needs two equal 1-D sequences, got {p.shape} and {t.shape}")
+    if len(t) < 3 or t.std() <= 1e-12:
+        return None
+    correlation = float(np.corrcoef(p, t)[0, 1]) if p.std() > 1e-12 else 0.0
+    return {"shading_contrast": float(p.std() / t.std()), "shading_correlation": correlation}
+
+
 def interior(region: np.ndarray, margin: int) -> np.ndarray:
     """(H, W) bool: the pixels of ``region`` at least ``margin`` pixels (chessboard distance)
     inside it (``cv2.erode`` with a ``(2 margin + 1)^2`` square; outside the image counts as

@@ -241,6 +241,14 @@ def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context
     band = (labels == 2) & ~inside
     assert band.any()
     assert row["garment_outline_share"] == pytest.approx(sq[band].sum() / sq[labels == 2].sum(), rel=1e-9)
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    assert row["garment_luma"] == pytest.approx(float((pred[inside] @ luma).mean()), rel=1e-9)
+    assert row["garment_luma_truth"] == pytest.approx(float((gt[inside] @ luma).mean()), rel=1e-9)
+    views = [f for f in unseen_view_result["per_frame"] if "garment_luma" in f]
+    p, t = np.array([f["garment_luma"] for f in views]), np.array([f["garment_luma_truth"] for f in views])
+    assert len(views) >= 3 and t.std() > 0
+    assert unseen_view_result["means"]["shading_contrast"] == pytest.approx(p.std() / t.std(), rel=1e-9)
+    assert unseen_view_result["means"]["shading_correlation"] == pytest.approx(np.corrcoef(p, t)[0, 1], rel=1e-9)
     # the baseline's silhouette is its own ground-truth labels
     base_row = next(f for f in unseen_view_result["baseline"]["per_frame"] if f["frame"] == 2)
     near_sil = near_labels != 0

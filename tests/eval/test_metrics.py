@@ -430,3 +430,34 @@ def test_interior_matches_scipy_erosion():
     ref = ndimage.binary_erosion(region, structure=np.ones((5, 5), bool), border_value=0)
     assert np.array_equal(got, ref)
     assert M.interior(region, 0) is not None and np.array_equal(M.interior(region, 0), region)
+
+
+def test_mean_luma_is_rec709_over_the_region():
+    rng = np.random.default_rng(3)
+    img = rng.uniform(size=(6, 7, 3))
+    region = rng.uniform(size=(6, 7)) > 0.5
+    want = float(np.mean(0.2126 * img[..., 0][region] + 0.7152 * img[..., 1][region] + 0.0722 * img[..., 2][region]))
+    assert M.mean_luma(img, region) == pytest.approx(want, rel=1e-12)
+    assert M.mean_luma((img * 255).round().astype(np.uint8), region) == pytest.approx(want, abs=3e-3)
+    assert M.mean_luma(img, np.zeros((6, 7), bool)) is None
+
+
+def test_shading_agreement_of_flattened_shifted_and_constant_brightness():
+    from scipy.stats import pearsonr
+
+    truth = np.array([0.22, 0.19, 0.14, 0.25, 0.16, 0.12])
+    mean = truth.mean()
+    half = mean + 0.5 * (truth - mean) + 0.03  # half the contrast, brighter: a bias is not contrast
+    out = M.shading_agreement(half, truth)
+    assert out["shading_contrast"] == pytest.approx(0.5) and out["shading_correlation"] == pytest.approx(1.0)
+    rng = np.random.default_rng(0)
+    noisy = truth + rng.normal(0, 0.02, truth.shape)
+    out = M.shading_agreement(noisy, truth)
+    assert out["shading_contrast"] == pytest.approx(noisy.std() / truth.std())
+    assert out["shading_correlation"] == pytest.approx(pearsonr(noisy, truth)[0])
+    flat = M.shading_agreement(np.full(6, 0.2), truth)
+    assert flat["shading_contrast"] == pytest.approx(0.0, abs=1e-12) and flat["shading_correlation"] == 0.0
+    assert M.shading_agreement([0.1, 0.2], [0.1, 0.3]) is None  # too few views
+    assert M.shading_agreement([0.1, 0.2, 0.3], [0.2, 0.2, 0.2]) is None  # nothing to follow
+    with pytest.raises(ValueError, match="equal"):
+        M.shading_agreement([0.1, 0.2, 0.3], [0.1, 0.2])
