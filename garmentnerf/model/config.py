@@ -104,7 +104,11 @@ class ModelConfig:
     world while everything E and the field see is body-relative, so a field cannot know which side of the
     cloth is lit: across the 16 training cameras of one frame the bundled C5 renders the garment's mean
     luminance with half the truth's contrast (std 0.014 against 0.028 at frame 20, correlation 0.88;
-    docs/quality.md, "The lights"). Here the radiance head gets the orientation directly, one conv away."""
+    docs/quality.md, "The lights"). Here the radiance head gets the orientation directly, one conv away.
+    Measured (recipe LN1 against O1, from scratch, same images): on the held-out cameras the render's
+    brightness follows the truth's (``shading_correlation`` 0.82 against 0.03 for O1's recipe with another
+    seed), 0.74 dB more inside the garment, the foreground level (within the 0.55 dB a seed moves); a step
+    costs the same. Off by default (not in the paper); the long-run recipe turns it on."""
 
     # ---- U-Nets E and G_en (``model/unet.py``)
     encoder_base_width: int = 32
