@@ -551,3 +551,17 @@ def test_a_run_with_world_normals_trains_saves_and_loads_with_the_wider_encoder(
     assert first_conv.shape[1] == cfg.encoder_in_channels == tiny_config().encoder_in_channels + 3
     assert all(math.isfinite(h["total"]) for h in result.history)
     assert load_run(tmp_path / "w").config.world_normals
+
+
+def test_a_run_with_shading_normals_trains_saves_and_loads_with_the_wider_decoder(tiny_scene, gl_context, tmp_path):
+    """``shading_normals``: the decoder takes 3 more input channels; a run trains, saves, loads and renders
+    with them."""
+    cfg = tiny_config().replace(shading_normals=True)
+    result, state = run(make_tc(tiny_scene, tmp_path / "s", generator_iterations=0, iterations=2, model_config=cfg),
+                        gl_context)
+    first_conv = [v for k, v in state.items() if k.startswith("decoder.") and v.ndim == 4][0]
+    assert first_conv.shape[1] == cfg.feature_image_channels == tiny_config().appearance_dim + 3
+    assert all(math.isfinite(h["total"]) for h in result.history)
+    loaded = load_run(tmp_path / "s")
+    assert loaded.config.shading_normals
+    assert loaded.model.decoder.body[1].in_channels == cfg.appearance_dim + 3
