@@ -542,26 +542,21 @@ def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_s
         assert (tr.shell_band.h_min, tr.shell_band.h_max) == (-0.07, 0.21)
 
 
-def test_a_run_with_world_normals_trains_saves_and_loads_with_the_wider_encoder(tiny_scene, gl_context, tmp_path):
-    """``world_normals``: E takes 3 more input channels; a run trains, saves and loads with them."""
-    cfg = tiny_config().replace(world_normals=True)
-    result, state = run(make_tc(tiny_scene, tmp_path / "w", generator_iterations=0, iterations=2, model_config=cfg),
+@pytest.mark.parametrize("option, module, channels", [
+    ("world_normals", "encoder", lambda cfg: cfg.encoder_in_channels),  # E sees the world normal map
+    ("shading_normals", "decoder", lambda cfg: cfg.feature_image_channels),  # M_D sees the rendered normal
+])
+def test_a_run_with_normals_trains_saves_and_loads_with_the_wider_first_conv(tiny_scene, gl_context, tmp_path,
+                                                                            option, module, channels):
+    """``world_normals`` / ``shading_normals``: E / the decoder takes 3 more input channels; a run trains,
+    saves and loads with them."""
+    cfg = tiny_config().replace(**{option: True})
+    result, state = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
                         gl_context)
-    first_conv = [v for k, v in state.items() if k.startswith("encoder.") and v.ndim == 4][0]
-    assert first_conv.shape[1] == cfg.encoder_in_channels == tiny_config().encoder_in_channels + 3
+    first_conv = [v for k, v in state.items() if k.startswith(module + ".") and v.ndim == 4][0]
+    assert first_conv.shape[1] == channels(cfg) == channels(tiny_config()) + 3
     assert all(math.isfinite(h["total"]) for h in result.history)
-    assert load_run(tmp_path / "w").config.world_normals
-
-
-def test_a_run_with_shading_normals_trains_saves_and_loads_with_the_wider_decoder(tiny_scene, gl_context, tmp_path):
-    """``shading_normals``: the decoder takes 3 more input channels; a run trains, saves, loads and renders
-    with them."""
-    cfg = tiny_config().replace(shading_normals=True)
-    result, state = run(make_tc(tiny_scene, tmp_path / "s", generator_iterations=0, iterations=2, model_config=cfg),
-                        gl_context)
-    first_conv = [v for k, v in state.items() if k.startswith("decoder.") and v.ndim == 4][0]
-    assert first_conv.shape[1] == cfg.feature_image_channels == tiny_config().appearance_dim + 3
-    assert all(math.isfinite(h["total"]) for h in result.history)
-    loaded = load_run(tmp_path / "s")
-    assert loaded.config.shading_normals
-    assert loaded.model.decoder.body[1].in_channels == cfg.appearance_dim + 3
+    loaded = load_run(tmp_path / "r")
+    assert getattr(loaded.config, option)
+    convs = [m for m in loaded.model.get_submodule(module).modules() if isinstance(m, torch.nn.Conv2d)]
+    assert convs[0].in_channels == channels(cfg)
