@@ -109,6 +109,13 @@ class ModelConfig:
     brightness follows the truth's (``shading_correlation`` 0.82 against 0.03 for O1's recipe with another
     seed), 0.74 dB more inside the garment, the foreground level (within the 0.55 dB a seed moves); a step
     costs the same. Off by default (not in the paper); the long-run recipe turns it on."""
+    shading_normal_blur: float = 0.0
+    """With ``shading_normals``: 0 gives each sample the normal at its closest body point; > 0 (metres) the
+    body's normals blurred by a Gaussian of this standard deviation (:mod:`~garmentnerf.model.normal_field`:
+    a grid per frame, read trilinearly; the closest point's normal beyond the kernel's reach). Where the cloth
+    spans a gap (the skirt across the legs) the closest point is an inner thigh whose normal points
+    sideways; blurred, the two thighs cancel and the cloth gets the legs' forward normal (LN1's blotch at
+    held02 frame 42, docs/quality.md, "The lights"). Not measured in training yet."""
 
     # ---- U-Nets E and G_en (``model/unet.py``)
     encoder_base_width: int = 32
@@ -446,6 +453,10 @@ class ModelConfig:
                              f"{list(self.velocity_smoothing)}")
         if self.segmentation_start < 0:
             raise ValueError(f"ModelConfig.segmentation_start must be >= 0, got {self.segmentation_start}")
+        if not (math.isfinite(self.shading_normal_blur) and self.shading_normal_blur >= 0):
+            raise ValueError(f"ModelConfig.shading_normal_blur must be >= 0 metres, got {self.shading_normal_blur}")
+        if self.shading_normal_blur > 0 and not self.shading_normals:
+            raise ValueError("ModelConfig.shading_normal_blur needs shading_normals")
         if self.frame_code_resolution and not self.use_dynamic_feature:
             raise ValueError("ModelConfig.frame_code_resolution needs the dynamic feature (use_dynamic_feature)")
         if not (math.isfinite(self.frame_code_lr_scale) and self.frame_code_lr_scale > 0):

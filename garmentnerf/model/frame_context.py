@@ -44,6 +44,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel, PosedBody
     from garmentnerf.geometry.body_points import BoundBody
     from garmentnerf.model.config import ModelConfig
+    from garmentnerf.model.normal_field import NormalGrid
 
 #: Names of the reference cameras in a scene rig, in the order the model uses them.
 REFERENCE_CAMERA_NAMES = ("ref_front", "ref_back")
@@ -131,6 +132,8 @@ class FrameFeatures:
         timings: ms per stage of making it: those of the :class:`FrameInputs` (GL passes) plus
             ``surface`` (binding the projection), ``reference_images`` (G_img), ``encoders``
             (E and G_en).
+        normal_grid: the blurred body normals the shading reads
+            (:class:`~garmentnerf.model.normal_field.NormalGrid`; ``shading_normal_blur`` > 0), or None.
     """
 
     posed_vertices: torch.Tensor
@@ -144,6 +147,7 @@ class FrameFeatures:
     reference_depth: torch.Tensor
     frame: int | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    normal_grid: "NormalGrid | None" = None
 
     def detach(self) -> "FrameFeatures":
         """The same features cut from the autograd graph (for caching across renders)."""

@@ -81,6 +81,7 @@ from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
+from garmentnerf.model.normal_field import KERNEL_SIGMAS, NormalGrid, blurred_normal_grid, read_normal_grid
 from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
@@ -405,9 +406,11 @@ class GarmentAnimationNeRF(nn.Module):
                 normals = vertex_normals(verts, self._faces)
                 surface = self.bind_body(verts)
                 aabb = body_aabb(verts)
+                normal_grid = self._normal_grid(verts)
             elif torch.equal(geometry.posed_vertices, verts):
                 verts, normals, surface, aabb = (geometry.posed_vertices, geometry.vertex_normals, geometry.surface,
                                                  geometry.aabb)
+                normal_grid = geometry.normal_grid if geometry.normal_grid is not None else self._normal_grid(verts)
             else:
                 raise ValueError(f"geometry of frame {geometry.frame} is not that of the posed body of frame "
                                  f"{inputs.frame}")
@@ -430,7 +433,14 @@ class GarmentAnimationNeRF(nn.Module):
                 detail = self.detail_encoder(reference_images)
         return FrameFeatures(verts, normals, surface, aabb, dynamic, reference_images, detail,
                              tuple(inputs.reference_cameras), inputs.reference_depth.detach().cpu(), inputs.frame,
-                             timings)
+                             timings, normal_grid)
+
+    def _normal_grid(self, posed_vertices: torch.Tensor) -> NormalGrid | None:
+        """The frame's blurred body normals (``shading_normal_blur`` > 0), else None."""
+        blur = self.cfg.shading_normal_blur
+        if not (self.cfg.shading_normals and blur > 0):
+            return None
+        return blurred_normal_grid(posed_vertices, self._faces, blur, reach=KERNEL_SIGMAS * blur)
 
     def bind_body(self, posed_vertices: torch.Tensor):
         """The body posed as ``posed_vertices (V, 3)`` bound for closest-point queries on the
@@ -525,7 +535,11 @@ class GarmentAnimationNeRF(nn.Module):
         sigma, zeta = sigma.float(), zeta.float()
         if cfg.shading_normals:
             with sw("features"):
-                zeta = torch.cat([zeta, self.surface_normals(frame, points).to(dev, zeta.dtype)], dim=-1)
+                normal = self.surface_normals(frame, points)
+                if frame.normal_grid is not None:
+                    kept_positions = positions if kept is None else positions[kept.to(positions.device)]
+                    normal = read_normal_grid(frame.normal_grid, kept_positions.detach().to(normal.device), normal)
+                zeta = torch.cat([zeta, normal.to(dev, zeta.dtype)], dim=-1)
         if kept is not None and kept.shape[0] < n:
             rows = kept.to(dev)
             sigma = torch.zeros(n, device=dev).index_copy(0, rows, sigma)
