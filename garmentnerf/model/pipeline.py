@@ -499,7 +499,8 @@ class GarmentAnimationNeRF(nn.Module):
         Returns:
             sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops; C is
             ``cfg.feature_image_channels``: with ``shading_normals`` the last 3 are the world-space
-            body normal at the closest point), and how many samples the MLP evaluated.
+            body normal at the closest point, or the blurred one with ``shading_normal_blur``), and how
+            many samples the MLP evaluated.
         """
         cfg, dev = self.cfg, self.device
         sw = _Stopwatch({} if timings is None else timings, dev)
@@ -512,13 +513,15 @@ class GarmentAnimationNeRF(nn.Module):
                 points = points.select(kept)
         if len(points) == 0:
             return torch.zeros(n, device=dev), torch.zeros(n, cfg.feature_image_channels, device=dev), 0
+        kept_positions = positions if kept is None else positions[kept.to(positions.device)]
+        soft_normal = cfg.use_detail_feature and cfg.detail_selection == "soft_normal"
         with sw("features"):
             dynamic = detail = None
+            # the skin's normal at the closest points: the soft detail selection's and the shading's
+            skin_normal = self.surface_normals(frame, points) if soft_normal or cfg.shading_normals else None
             if cfg.use_detail_feature:
-                normal = self.surface_normals(frame, points) if cfg.detail_selection == "soft_normal" else None
-                detail, _ = self.detail_features(frame, points.closest, normal)
+                detail, _ = self.detail_features(frame, points.closest, skin_normal if soft_normal else None)
             if cfg.field == "uvh":
-                kept_positions = positions if kept is None else positions[kept.to(positions.device)]
                 direction = self.offset_direction(frame, points, kept_positions).to(dev)
             else:
                 if cfg.use_dynamic_feature:
@@ -535,11 +538,11 @@ class GarmentAnimationNeRF(nn.Module):
         sigma, zeta = sigma.float(), zeta.float()
         if cfg.shading_normals:
             with sw("features"):
-                normal = self.surface_normals(frame, points)
+                shading = skin_normal
                 if frame.normal_grid is not None:
-                    kept_positions = positions if kept is None else positions[kept.to(positions.device)]
-                    normal = read_normal_grid(frame.normal_grid, kept_positions.detach().to(normal.device), normal)
-                zeta = torch.cat([zeta, normal.to(dev, zeta.dtype)], dim=-1)
+                    shading = read_normal_grid(frame.normal_grid, kept_positions.detach().to(skin_normal.device),
+                                               skin_normal)
+                zeta = torch.cat([zeta, shading.to(dev, zeta.dtype)], dim=-1)
         if kept is not None and kept.shape[0] < n:
             rows = kept.to(dev)
             sigma = torch.zeros(n, device=dev).index_copy(0, rows, sigma)
