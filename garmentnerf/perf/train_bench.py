@@ -25,7 +25,8 @@ Stages (:data:`STAGES`, seconds per step, the median of each over the timed step
     code in the training loop.
 
 ``before=True`` adds, per precision, a trainer timed as the step was before issue 27: body
-geometry rebuilt at every step (``geometry_cache_frames = 0``) and the perceptual loss's target
+geometry rebuilt at every step (``geometry_cache_frames = 0``), shift-tolerant LPIPS's first
+convolution and blur run one after the other (``STLPIPS(fused=False)``) and the perceptual loss's target
 tracked by autograd (handed over as a tensor that requires grad, so its features are
 backpropagated as in the concatenated batch of old); it takes its turn with the others, so the
 speed-up is a ratio measured in one run.
@@ -42,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from garmentnerf.eval.perceptual import STLPIPS
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.train.run import MODEL_FILE, read_run_info
@@ -128,6 +130,9 @@ class _StageClock:
 def _as_before(trainer) -> None:
     """Make ``trainer`` step as before issue 27 (see the module docstring)."""
     trainer.geometry_cache_frames = 0
+    if isinstance(trainer.perceptual, STLPIPS):  # the first convolution and its blur one by one
+        trainer.perceptual = STLPIPS(trainer.perceptual.variant, reduction=trainer.perceptual.reduction,
+                                     weights_path=trainer.perceptual.weights_path, fused=False).to(trainer.device)
     if trainer.perceptual is not None:
         trainer.perceptual.register_forward_pre_hook(lambda m, args: (args[0], args[1].detach().requires_grad_(True)))
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from garmentnerf.eval import metrics as M
 from garmentnerf.eval import perceptual as P
@@ -234,6 +235,37 @@ def test_stlpips_input_range(st_alex):
     signed = P.STLPIPS("alex", input_range=(-1, 1))
     with torch.no_grad():
         torch.testing.assert_close(st_alex(x, y), signed(2 * x - 1, 2 * y - 1), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("H, W, k, padding", [(40, 37, 11, 2), (41, 41, 11, 2), (64, 71, 11, 2), (30, 24, 5, 2),
+                                             (60, 61, 3, 1), (12, 13, 11, 2)])
+def test_conv_blurpool_is_the_convolution_then_the_blurpool(H, W, k, padding):
+    # Both parities of the convolution's output (a last row/column that reads a reflected input
+    # or not), kernels of 3 to 11: values and input gradients against the two layers run plainly.
+    g = torch.Generator().manual_seed(H * W + k)
+    x = torch.rand(2, 3, H, W, generator=g, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(5, 3, k, k, generator=g, dtype=torch.float64)
+    bias = torch.randn(5, generator=g, dtype=torch.float64)
+    blur = P.BlurPool(5).double()
+    expected = blur(F.conv2d(x, weight, bias, padding=padding))
+    got = P.conv_blurpool(x, weight, bias, padding, blur.filt[0, 0], blur.pad)
+    assert got.shape == expected.shape
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-12)
+    upstream = torch.randn(expected.shape, generator=g, dtype=torch.float64)
+    (want,) = torch.autograd.grad(expected, x, upstream)
+    (have,) = torch.autograd.grad(got, x, upstream)
+    torch.testing.assert_close(have, want, rtol=0, atol=1e-12)
+
+
+def test_stlpips_first_slice_fused_equals_its_layers_and_keeps_channels_last(st_alex):
+    x = torch.rand(1, 3, 96, 90).contiguous(memory_format=torch.channels_last)
+    s1 = st_alex.net.slice1
+    with torch.no_grad():
+        fused, plain = s1(x), s1.reference(x)
+    torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-5)
+    assert fused.is_contiguous(memory_format=torch.channels_last)
+    assert list(st_alex.state_dict())[:5] == ["scaling_layer.shift", "scaling_layer.scale", "net.slice1.0.weight",
+                                              "net.slice1.0.bias", "net.slice1.1.filt"]
 
 
 # The package's VGG builds (and randomly initialises) a 100M-parameter classifier: ~5 s.

@@ -77,7 +77,8 @@ def test_stlpips_loss_and_pred_gradient_equal_the_concatenated_computation(st_al
     ref.backward()
     assert float(ref.detach()) > 1e-3
     torch.testing.assert_close(loss, ref, rtol=1e-5, atol=1e-7)
-    torch.testing.assert_close(p_new.grad, p_ref.grad, rtol=1e-4, atol=1e-9)
+    # float32 sums in other orders (batch of one against two): 1e-4 of the gradient's scale
+    torch.testing.assert_close(p_new.grad, p_ref.grad, rtol=1e-4, atol=1e-4 * float(p_ref.grad.abs().max()))
     assert p_new.grad.abs().max() > 0
     # the target's trunk pass holds nothing for backward: the graph is about half the plain one
     assert saved < 0.6 * saved_ref, (saved, saved_ref)
@@ -91,7 +92,7 @@ def test_stlpips_target_that_wants_a_gradient_gets_the_plain_one(st_alex):
     loss.backward()
     ref.backward()
     torch.testing.assert_close(loss, ref, rtol=1e-5, atol=1e-7)
-    torch.testing.assert_close(t_new.grad, t_ref.grad, rtol=1e-4, atol=1e-9)
+    torch.testing.assert_close(t_new.grad, t_ref.grad, rtol=1e-4, atol=1e-4 * float(t_ref.grad.abs().max()))
 
 
 def test_stlpips_metric_values_are_unchanged(st_alex):
