@@ -66,7 +66,8 @@ def register(sub) -> None:
                                                          "(default: 3)")
     p.add_argument("--before", action="store_true",
                    help="with --training: also time each precision's step as before issue 27 (body geometry rebuilt "
-                        "every step, the perceptual loss backpropagated into its target), taking turns with the others")
+                        "every step, the perceptual loss backpropagated into its target, its first convolution and blur "
+                        "run one after the other), taking turns with the others")
     p.add_argument("--against", action="append", default=[], metavar="RUN",
                    help="with --training: also time this run folder's recipe (repeatable), taking turns with --run's, "
                         "and print each one's step over --run's")
