@@ -151,6 +151,14 @@ class ModelConfig:
     band of ``model/height_band.py`` (a skirt's hem swings about 0.35 m from the legs)."""
     uvh_height_freqs: int = 4
     """``uvh`` field: frequencies of the encoding of the normalised h given to the MLP."""
+    uvh_canonical_freqs: int = 0
+    """``uvh`` field: when > 0, the MLP also gets the sample carried to the canonical body, frequency
+    encoded with this many octaves: b_o plus the offset ``x - b_t`` turned from the posed closest face's
+    tangent frame into the canonical face's (:func:`~garmentnerf.model.uvh_field.canonical_positions`),
+    in the canonical body's box padded by ``uvh_height_range``. The same information as (b_o, h, the
+    local direction), laid out as a 3-D point: a one-frame occupancy probe fits the skirt's sheet from
+    such a point almost as fast as from posed xyz, and it still follows the body from frame to frame
+    (``docs/quality.md``, "A canonical position for the sample"). 0: off (the recipes before it)."""
     uvh_plane_channels: int = 16
     """``uvh`` field: channels of each of the three learned planes (u, v), (u, h), (v, h)."""
     uvh_plane_resolution: int = 256
@@ -478,8 +486,11 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
         if self.shell_spacing not in SHELL_SPACINGS:
             raise ValueError(f"ModelConfig.shell_spacing must be one of {SHELL_SPACINGS}, got {self.shell_spacing!r}")
-        if self.uvh_height_freqs < 0:
-            raise ValueError(f"ModelConfig.uvh_height_freqs must be >= 0, got {self.uvh_height_freqs}")
+        for name in ("uvh_height_freqs", "uvh_canonical_freqs"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.uvh_canonical_freqs and self.field != "uvh":
+            raise ValueError("ModelConfig.uvh_canonical_freqs belongs to the 'uvh' field")
         if len(self.uvh_height_range) != 2 or not self.uvh_height_range[1] > self.uvh_height_range[0]:
             raise ValueError(f"ModelConfig.uvh_height_range must be (low, high) metres with high > low, "
                              f"got {self.uvh_height_range}")

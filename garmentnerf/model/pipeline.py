@@ -85,7 +85,7 @@ from garmentnerf.model.normal_field import KERNEL_SIGMAS, NormalGrid, blurred_no
 from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
-from garmentnerf.model.uvh_field import UVHField, face_tangent_frames, local_offset_direction
+from garmentnerf.model.uvh_field import UVHField, canonical_positions, face_tangent_frames, local_offset_direction
 from garmentnerf.model.volume_rendering import render_packed_segmented
 
 #: Default samples per chunk (per-sample work: projection, feature reads, MLP, compositing).
@@ -296,6 +296,15 @@ class GarmentAnimationNeRF(nn.Module):
         self.chunk_points = int(chunk_points)
         self.projector = projector if projector is not None else BodyPointProjector(body)
         self._faces = body.faces.detach().cpu()
+        # the canonical skin's tangent frames (F_skin, 3, 3) and the box the canonical positions are
+        # mapped from (the body padded by the height band): ModelConfig.uvh_canonical_freqs
+        self._canonical_frames = self._canonical_box = None
+        if cfg.uvh_canonical_freqs:
+            canonical = self.projector.canonical_vertices.detach().to("cpu", torch.float32)
+            self._canonical_frames = face_tangent_frames(canonical, self.projector.faces, self.projector.uv,
+                                                         self.projector.uv_faces)
+            pad = max(abs(h) for h in cfg.uvh_height_range)
+            self._canonical_box = (canonical.min(dim=0).values - pad, canonical.max(dim=0).values + pad)
         self._image_generator_frozen = False
         if self.image_generator is not None and freeze_image_generator:
             self.set_image_generator_frozen(True)
@@ -475,6 +484,19 @@ class GarmentAnimationNeRF(nn.Module):
             return local_offset_direction(positions.detach().to("cpu", torch.float32), points.closest.cpu().float(),
                                           frames)
 
+    def canonical_inputs(self, points: BodyPoints, positions: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
+        """(n, 3) the samples ``positions`` carried to the canonical body
+        (:func:`~garmentnerf.model.uvh_field.canonical_positions`, with ``direction`` the
+        :meth:`offset_direction` of ``points``), mapped from the canonical body's box padded by the
+        height band to [-1, 1] (the ``uvh`` field's input with ``uvh_canonical_freqs``; CPU, no gradient)."""
+        with torch.no_grad():
+            faces = points.face.long().cpu()
+            length = (positions.detach().to("cpu", torch.float32) - points.closest.cpu().float()).norm(dim=-1)
+            x_c = canonical_positions(points.canonical.cpu().float(), length, direction.cpu().float(),
+                                      self._canonical_frames[faces])
+            lo, hi = self._canonical_box
+            return (x_c - lo) * (2.0 / (hi - lo)) - 1.0
+
     def detail_features(self, frame: FrameFeatures, closest: torch.Tensor,
                         normal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """f^d of surface points b_t ``(n, 3)``.
@@ -522,7 +544,10 @@ class GarmentAnimationNeRF(nn.Module):
             if cfg.use_detail_feature:
                 detail, _ = self.detail_features(frame, points.closest, skin_normal if soft_normal else None)
             if cfg.field == "uvh":
-                direction = self.offset_direction(frame, points, kept_positions).to(dev)
+                direction = self.offset_direction(frame, points, kept_positions)
+                canonical = (self.canonical_inputs(points, kept_positions, direction).to(dev)
+                             if cfg.uvh_canonical_freqs else None)
+                direction = direction.to(dev)
             else:
                 if cfg.use_dynamic_feature:
                     fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
@@ -531,7 +556,7 @@ class GarmentAnimationNeRF(nn.Module):
         with sw("mlp"), _autocast(precision, dev):
             if cfg.field == "uvh":
                 sigma, zeta = self.nerf(frame.dynamic_features, points.uv.to(dev), points.signed_distance.to(dev),
-                                        direction, detail)
+                                        direction, detail, canonical)
             else:
                 sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic,
                                         atlas)

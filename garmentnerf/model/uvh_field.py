@@ -23,9 +23,14 @@ Per sample, with (u, v) the atlas UV of the closest skin point b_t and h the sig
    corner or an edge of the skin) are told apart by it, and it means the same in every pose
    because the frame turns with the skin. Off the edge and corner cones it is (0, 0, +-1).
 4. A frequency encoding of the normalised h (``height_freqs``), and f^d as in the paper.
+5. Optionally (``canonical_freqs`` > 0) **the sample's canonical position**, frequency encoded:
+   b_o plus the offset ``x - b_t`` turned from the posed face's tangent frame into the canonical
+   face's (:func:`canonical_positions`), so that the point lands where it would sit around the
+   canonical body. It carries what (b_o, h, direction) carry, as one 3-D point an MLP fits like
+   posed xyz (one-frame occupancy probe) while it still follows the body.
 
-A small MLP (``depth x width``, e.g. 2 x 64) maps ``[f^s, f^p, f^d, direction, PE(h)]`` to the
-density (the paper field's activation, bias, scale and body prior) and zeta.
+A small MLP (``depth x width``, e.g. 2 x 64) maps ``[f^s, f^p, f^d, direction, PE(h), PE(x_c)]``
+to the density (the paper field's activation, bias, scale and body prior) and zeta.
 
 Shapes: N samples; R the info-map side; K ``slices``; C_s ``dynamic_dim``.
 """
@@ -80,6 +85,23 @@ def local_offset_direction(positions: torch.Tensor, closest: torch.Tensor, frame
     return torch.einsum("nij,nj->ni", frames, offset)
 
 
+def canonical_positions(canonical_closest: torch.Tensor, offset_length: torch.Tensor, direction: torch.Tensor,
+                        canonical_frames: torch.Tensor) -> torch.Tensor:
+    """(N, 3) samples carried to the canonical body through their closest faces.
+
+    Args:
+        canonical_closest: (N, 3) b_o, the closest point's barycentric twin on the canonical body.
+        offset_length: (N,) ``|x - b_t|`` (metres).
+        direction: (N, 3) the unit offset in the posed face's tangent frame
+            (:func:`local_offset_direction`).
+        canonical_frames: (N, 3, 3) the same faces' tangent frames on the canonical body
+            (:func:`face_tangent_frames`; rows T, B, N).
+    Returns:
+        ``b_o + |x - b_t| F_c^T direction``: for a body moved rigidly, the sample moved back.
+    """
+    return canonical_closest + offset_length[:, None] * torch.einsum("nji,nj->ni", canonical_frames, direction)
+
+
 def read_uvh_volume(volume: torch.Tensor, uv: torch.Tensor, height: torch.Tensor) -> torch.Tensor:
     """Trilinear reads of a UV-h feature volume.
 
@@ -118,6 +140,7 @@ class UVHField(nn.Module):
         plane_channels, plane_resolution, plane_height: the learned tri-plane's size.
         height_range: (h_min, h_max) metres spanned by the volume's slices and the planes' h axis.
         height_freqs: frequencies of the encoding of the normalised h.
+        canonical_freqs: octaves of the encoding of the canonical position (0: not an input).
         depth, width: hidden Linear + ReLU layers of the head.
         density_activation, density_bias, density_scale, body_prior_strength, body_prior_width:
             as :class:`~garmentnerf.model.nerf_mlp.GarmentNeRF`.
@@ -125,7 +148,8 @@ class UVHField(nn.Module):
 
     def __init__(self, dynamic_dim: int = 8, slices: int = 8, detail_dim: int = 8, appearance_dim: int = 64,
                  plane_channels: int = 16, plane_resolution: int = 256, plane_height: int = 64,
-                 height_range: tuple[float, float] = (-0.1, 0.4), height_freqs: int = 4, depth: int = 2,
+                 height_range: tuple[float, float] = (-0.1, 0.4), height_freqs: int = 4, canonical_freqs: int = 0,
+                 depth: int = 2,
                  width: int = 64, density_activation: str = "softplus", density_bias: float = -1.0,
                  density_scale: float = 1.0, body_prior_strength: float = 0.0, body_prior_width: float = 0.15):
         super().__init__()
@@ -135,12 +159,14 @@ class UVHField(nn.Module):
         self.appearance_dim = appearance_dim
         self.height_range = (float(height_range[0]), float(height_range[1]))
         self.height_freqs = height_freqs
+        self.canonical_freqs = canonical_freqs
         self.density_kind, self.density_bias, self.density_scale = density_activation, density_bias, density_scale
         self.body_prior_strength, self.body_prior_width = float(body_prior_strength), float(body_prior_width)
         self.planes = nn.ParameterList([
             nn.Parameter(torch.randn(1, plane_channels, rows, plane_resolution) * PLANE_INIT_STD)
             for rows in (plane_resolution, plane_height, plane_height)])
-        self.input_dim = dynamic_dim + 3 * plane_channels + detail_dim + 3 + (1 + 2 * height_freqs)
+        self.input_dim = (dynamic_dim + 3 * plane_channels + detail_dim + 3 + (1 + 2 * height_freqs)
+                          + (3 * (1 + 2 * canonical_freqs) if canonical_freqs else 0))
         layers: list[nn.Module] = []
         for i in range(depth):
             layers += [nn.Linear(self.input_dim if i == 0 else width, width), nn.ReLU(inplace=True)]
@@ -153,11 +179,12 @@ class UVHField(nn.Module):
         return cls(cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0, cfg.uvh_slices,
                    cfg.detail_feature_dim if cfg.use_detail_feature else 0, cfg.appearance_dim,
                    cfg.uvh_plane_channels, cfg.uvh_plane_resolution, cfg.uvh_plane_height, cfg.uvh_height_range,
-                   cfg.uvh_height_freqs, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
+                   cfg.uvh_height_freqs, cfg.uvh_canonical_freqs, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
                    cfg.density_scale, cfg.body_prior_strength, cfg.body_prior_width)
 
     def forward(self, volume: torch.Tensor | None, uv: torch.Tensor, distance: torch.Tensor,
-                direction: torch.Tensor, detail: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                direction: torch.Tensor, detail: torch.Tensor | None = None,
+                canonical: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Evaluate N samples.
 
         Args:
@@ -165,6 +192,8 @@ class UVHField(nn.Module):
             uv: (N, 2) atlas UV of b_t; distance: (N,) h (metres, positive outside).
             direction: (N, 3) :func:`local_offset_direction`.
             detail: (N, C_d) f^d, or None with the detail ablation.
+            canonical: (N, 3) the canonical positions (:func:`canonical_positions`) mapped to about
+                [-1, 1], exactly when built with ``canonical_freqs`` > 0.
         Returns:
             sigma (N,) density >= 0 in 1/metre, zeta (N, appearance_dim).
         """
@@ -174,6 +203,8 @@ class UVHField(nn.Module):
                              f"{tuple(distance.shape)} and {tuple(direction.shape)}")
         if (volume is None) != (self.dynamic_dim == 0) or (detail is None) != (self.detail_dim == 0):
             raise ValueError("UVHField: give the dynamic volume and f^d exactly when built with them")
+        if (canonical is None) != (self.canonical_freqs == 0):
+            raise ValueError("UVHField: give the canonical positions exactly when built with canonical_freqs")
         height = normalised_height(distance, self.height_range)
         with torch.autocast(uv.device.type, enabled=False):
             parts = []
@@ -185,9 +216,11 @@ class UVHField(nn.Module):
             if detail is not None:
                 parts.append(detail.float())
             parts += [direction.float(), positional_encoding(height.float()[:, None], self.height_freqs)]
+            if canonical is not None:
+                parts.append(positional_encoding(canonical.float(), self.canonical_freqs))
             first = self.trunk[0](torch.cat(parts, dim=-1))
         return field_heads(self, self.trunk[1:](first), distance)
 
 
-__all__ = ["UVHField", "face_tangent_frames", "local_offset_direction", "read_uvh_volume", "read_triplane",
-           "normalised_height"]
+__all__ = ["UVHField", "face_tangent_frames", "local_offset_direction", "canonical_positions", "read_uvh_volume",
+           "read_triplane", "normalised_height"]

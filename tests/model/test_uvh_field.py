@@ -111,6 +111,10 @@ def test_config_checks_and_round_trip():
         uvh_config(uvh_height_range=(0.3, 0.1))
     with pytest.raises(ValueError, match="'paper' field"):
         uvh_config(positional_encoding_freqs=2)
+    with pytest.raises(ValueError, match="uvh_canonical_freqs belongs to the 'uvh' field"):
+        tiny_config().replace(uvh_canonical_freqs=2)
+    with pytest.raises(ValueError, match="uvh_canonical_freqs must be >= 0"):
+        uvh_config(uvh_canonical_freqs=-1)
 
 
 def test_the_field_tells_apart_points_that_share_their_closest_body_point():
@@ -125,9 +129,13 @@ def test_the_field_tells_apart_points_that_share_their_closest_body_point():
     assert not torch.allclose(zeta[0], zeta[1])
 
 
-def test_a_uvh_model_renders_and_trains_its_grids_and_encoder(body, projector, walk_inputs):
+@pytest.mark.parametrize("canonical_freqs", [0, 2])
+def test_a_uvh_model_renders_and_trains_its_grids_and_encoder(body, projector, walk_inputs, canonical_freqs):
     torch.manual_seed(0)
-    cfg = uvh_config()
+    cfg = uvh_config(uvh_canonical_freqs=canonical_freqs)
+    assert GarmentAnimationNeRF(cfg, body, PALETTE, projector=projector).nerf.input_dim == (
+        GarmentAnimationNeRF(uvh_config(), body, PALETTE, projector=projector).nerf.input_dim
+        + (3 * (1 + 2 * canonical_freqs) if canonical_freqs else 0))
     model = GarmentAnimationNeRF(cfg, body, PALETTE, projector=projector)
     frame = model.prepare_frame(walk_inputs)
     assert frame.dynamic_features.shape == (cfg.dynamic_feature_dim * 4, 32, 32)
@@ -141,6 +149,37 @@ def test_a_uvh_model_renders_and_trains_its_grids_and_encoder(body, projector, w
     planes = [g for g in groups if any(p is model.nerf.planes[0] for p in g["params"])]
     assert len(planes) == 1 and planes[0]["lr_scale"] == cfg.uvh_plane_lr_scale
     assert len(planes[0]["params"]) == 3
+
+
+def test_canonical_positions_undo_a_rigid_motion_of_the_body(body, projector):
+    """Moved rigidly, the body takes its samples with it: a sample's canonical position is the motion
+    undone, R^T (x - t), wherever its closest point lies (inside a face, on an edge or a corner;
+    inside or outside the body), here mapped from the model's box to [-1, 1]."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    model = GarmentAnimationNeRF(uvh_config(uvh_canonical_freqs=2), body, PALETTE, projector=projector)
+    R = torch.tensor(Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix(), dtype=torch.float32)
+    t = torch.tensor([0.2, -0.1, 0.5])
+    template = projector.canonical_vertices.float()
+    posed = template @ R.T + t
+    mesh = trimesh.Trimesh(template.double().numpy(), projector.faces.numpy(), process=False)
+    rng = np.random.default_rng(3)
+    on_skin, face_ids = trimesh.sample.sample_surface(mesh, 2000, seed=3)
+    canonical = (on_skin + rng.uniform(-0.02, 0.25, size=(2000, 1)) * mesh.face_normals[face_ids]
+                 + rng.normal(scale=0.03, size=(2000, 3)))
+    canonical = torch.tensor(canonical, dtype=torch.float32)
+    positions = canonical @ R.T + t
+    frame = SimpleNamespace(posed_vertices=posed, surface=model.bind_body(posed))
+    points = model.sample_geometry(frame, positions)
+    got = model.canonical_inputs(points, positions, model.offset_direction(frame, points, positions))
+    lo, hi = model._canonical_box
+    assert (lo < canonical.min(0).values).all() and (canonical.max(0).values < hi).all()
+    want = (canonical - lo) * (2.0 / (hi - lo)) - 1.0
+    torch.testing.assert_close(got, want, rtol=0, atol=2e-5)
+    # not the identity: the closest points are spread over the body and the motion is large
+    assert (positions - canonical).norm(dim=-1).min() > 0.1
 
 
 def test_plane_total_variation_against_numpy_and_analytic_planes():
