@@ -220,8 +220,8 @@ def conv_blurpool(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | No
     r_lo, r_hi, Ho = _blurpool_interior(Hy, f, pad)
     c_lo, c_hi, Wo = _blurpool_interior(Wy, f, pad)
     blur = filt.to(x.dtype).expand(O, 1, f, f)
-    if r_hi < r_lo or c_hi < c_lo or pad >= min(Hy, Wy) or Ho - (r_hi - r_lo + 1) > 2 * k or Wo - (c_hi - c_lo + 1) > 2 * k:
-        # too small to have an interior (or mostly border): the plain composition
+    if r_hi < r_lo or c_hi < c_lo or pad >= min(Hy, Wy):
+        # too small to have an interior: the plain composition (which refuses a pad beyond the size)
         y = F.pad(F.conv2d(x, weight, bias, padding=padding), (pad,) * 4, mode="reflect")
         return F.conv2d(y, blur, stride=2, groups=O)
     xp = F.pad(x, (padding,) * 4)
