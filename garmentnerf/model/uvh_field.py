@@ -149,8 +149,7 @@ class UVHField(nn.Module):
     def __init__(self, dynamic_dim: int = 8, slices: int = 8, detail_dim: int = 8, appearance_dim: int = 64,
                  plane_channels: int = 16, plane_resolution: int = 256, plane_height: int = 64,
                  height_range: tuple[float, float] = (-0.1, 0.4), height_freqs: int = 4, canonical_freqs: int = 0,
-                 depth: int = 2,
-                 width: int = 64, density_activation: str = "softplus", density_bias: float = -1.0,
+                 depth: int = 2, width: int = 64, density_activation: str = "softplus", density_bias: float = -1.0,
                  density_scale: float = 1.0, body_prior_strength: float = 0.0, body_prior_width: float = 0.15):
         super().__init__()
         if not height_range[1] > height_range[0]:
@@ -179,8 +178,8 @@ class UVHField(nn.Module):
         return cls(cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0, cfg.uvh_slices,
                    cfg.detail_feature_dim if cfg.use_detail_feature else 0, cfg.appearance_dim,
                    cfg.uvh_plane_channels, cfg.uvh_plane_resolution, cfg.uvh_plane_height, cfg.uvh_height_range,
-                   cfg.uvh_height_freqs, cfg.uvh_canonical_freqs, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
-                   cfg.density_scale, cfg.body_prior_strength, cfg.body_prior_width)
+                   cfg.uvh_height_freqs, cfg.uvh_canonical_freqs, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation,
+                   cfg.density_bias, cfg.density_scale, cfg.body_prior_strength, cfg.body_prior_width)
 
     def forward(self, volume: torch.Tensor | None, uv: torch.Tensor, distance: torch.Tensor,
                 direction: torch.Tensor, detail: torch.Tensor | None = None,
