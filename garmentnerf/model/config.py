@@ -243,6 +243,10 @@ class ModelConfig:
     """Floor of the decoder widths (authors' code: 32)."""
     decoder_extra_layers: int = 2
     """Full-resolution conv3x3 + LeakyReLU layers after the upsampling (authors' code: 2)."""
+    decoder_low_layers: int = 0
+    """Conv3x3 + LeakyReLU layers of width decoder_width at the feature image's resolution, before the first
+    upsampling (not in the paper: 0). A layer there costs a sixteenth of one at full resolution and widens
+    the decoder's view of the feature image (the paper's M_D sees about 3 x 3 feature pixels)."""
     radiance_activation: str = "softplus"
     """``"softplus"`` (default: unbounded above, shifted so the untrained radiance is 1) or ``"sigmoid"``. The
     palette starts at mean colors, so pixels brighter than the mean need r > 1, which a sigmoid cannot give."""
@@ -473,7 +477,8 @@ class ModelConfig:
         if not (math.isfinite(self.frame_code_dropout) and 0 <= self.frame_code_dropout < 1):
             raise ValueError(f"ModelConfig.frame_code_dropout must lie in [0, 1), got {self.frame_code_dropout}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
-                     "decoder_extra_layers", "bbox_padding", "blend_weight_floor", "w_image", "w_image_l2", "w_mask",
+                     "decoder_extra_layers", "decoder_low_layers", "bbox_padding", "blend_weight_floor", "w_image",
+                     "w_image_l2", "w_mask",
                      "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation",
                      "w_plane_tv", "w_occupancy", "frame_code_resolution", "frame_codes"):
             if getattr(self, name) < 0:

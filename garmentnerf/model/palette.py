@@ -289,9 +289,10 @@ class DecomposedMaps:
 class PaletteDecoder(nn.Module):
     """M_D: feature image ``(B, C, h, w)`` -> :class:`DecomposedMaps` at ``(h, w) * 2**upsample_steps``.
 
-    Layers: [nearest x2 -> conv3x3 -> LeakyReLU(0.2)] x upsample_steps (widths ``width``,
-    ``width/2``, ... floored at ``min_width``), then ``extra_layers`` conv3x3 + LeakyReLU at full
-    resolution, then a conv3x3 to the raw heads.
+    Layers: ``low_layers`` conv3x3 + LeakyReLU(0.2) of width ``width`` at the feature image's own
+    resolution (not in the paper; 0 by default), then [nearest x2 -> conv3x3 -> LeakyReLU(0.2)] x
+    upsample_steps (widths ``width``, ``width/2``, ... floored at ``min_width``), then
+    ``extra_layers`` conv3x3 + LeakyReLU at full resolution, then a conv3x3 to the raw heads.
 
     Heads:
         radiance: softplus shifted so raw 0 -> 1 (default; can exceed 1 where the pixel is
@@ -303,7 +304,7 @@ class PaletteDecoder(nn.Module):
     Args:
         in_channels: C (paper: 128).
         palette_size: P (paper: 2).
-        width, min_width, upsample_steps, extra_layers: the conv stack.
+        width, min_width, upsample_steps, extra_layers, low_layers: the conv stack.
         radiance_channels: 3 (paper) or 1.
         radiance_activation: ``"softplus"`` or ``"sigmoid"``.
         offset_scale, weight_floor: see the heads.
@@ -314,7 +315,7 @@ class PaletteDecoder(nn.Module):
     def __init__(self, in_channels: int = 128, palette_size: int = 2, width: int = 64, min_width: int = 32,
                  upsample_steps: int = 2, extra_layers: int = 2, radiance_channels: int = 3,
                  radiance_activation: str = "softplus", offset_scale: float = 0.5, weight_floor: float = 0.05,
-                 head_only_weights: bool = False):
+                 head_only_weights: bool = False, low_layers: int = 0):
         super().__init__()
         if radiance_activation not in ("softplus", "sigmoid"):
             raise ValueError(f"unknown radiance activation {radiance_activation!r}")
@@ -329,6 +330,9 @@ class PaletteDecoder(nn.Module):
         self.upsample_steps = upsample_steps
         layers: list[nn.Module] = []
         c = in_channels
+        for _ in range(low_layers):
+            layers += [nn.Conv2d(c, width, 3, padding=1), nn.LeakyReLU(0.2, inplace=True)]
+            c = width
         for step in range(upsample_steps):
             out = max(width // 2 ** step, min_width)
             layers += [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(c, out, 3, padding=1),
@@ -344,7 +348,8 @@ class PaletteDecoder(nn.Module):
         return cls(cfg.feature_image_channels, cfg.palette_size, cfg.decoder_width, cfg.decoder_min_width,
                    cfg.decoder_upsample_steps, cfg.decoder_extra_layers, cfg.radiance_channels,
                    cfg.radiance_activation, cfg.offset_scale, cfg.blend_weight_floor,
-                   head_only_weights=cfg.w_segmentation > 0 and cfg.segmentation_head_only)
+                   head_only_weights=cfg.w_segmentation > 0 and cfg.segmentation_head_only,
+                   low_layers=cfg.decoder_low_layers)
 
     def forward(self, features: torch.Tensor) -> DecomposedMaps:
         """(B, C, h, w) -> maps at (B, ., 4h, 4w) for two upsampling steps."""
