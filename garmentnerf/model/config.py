@@ -109,6 +109,12 @@ class ModelConfig:
     brightness follows the truth's (``shading_correlation`` 0.82 against 0.03 for O1's recipe with another
     seed), 0.74 dB more inside the garment, the foreground level (within the 0.55 dB a seed moves); a step
     costs the same. Off by default (not in the paper); the long-run recipe turns it on."""
+    depth_normals: bool = False
+    """Give the decoder M_D the world-space normal of the rendered surface under each pixel (not in the paper):
+    the cross product of the derivatives of the world points the feature image's expected depth puts on its
+    rays (``model/depth_normals.py``), 3 channels after the rendered ones. Where ``shading_normals`` gives the
+    body's orientation, this is the cloth's own, folds included as far as the density has them; computed
+    from the depth without a gradient (it shades, it does not move the geometry)."""
     shading_normal_blur: float = 0.0
     """With ``shading_normals``: 0 gives each sample the normal at its closest body point; > 0 (metres) the
     body's normals blurred by a Gaussian of this standard deviation (:mod:`~garmentnerf.model.normal_field`:
@@ -399,9 +405,15 @@ class ModelConfig:
         return 3 * (self.history + 1 + len(self.velocity_smoothing) + int(self.world_normals))
 
     @property
-    def feature_image_channels(self) -> int:
-        """Channels of F^zeta, the decoder's input: zeta, then the shading normal when enabled."""
+    def zeta_channels(self) -> int:
+        """Channels each sample carries into the volume rendering: zeta, then the shading normal when enabled."""
         return self.appearance_dim + 3 * int(self.shading_normals)
+
+    @property
+    def feature_image_channels(self) -> int:
+        """Channels of F^zeta, the decoder's input: the rendered zeta_channels, then the depth normal when
+        enabled."""
+        return self.zeta_channels + 3 * int(self.depth_normals)
 
     @property
     def dynamic_encoder_channels(self) -> int:

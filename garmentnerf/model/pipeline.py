@@ -72,11 +72,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.conventions import Camera
+from garmentnerf.conventions import Camera, camera_rays
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 from garmentnerf.geometry.triangles import interpolate
 from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.depth_normals import depth_normals
 from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
@@ -520,7 +521,7 @@ class GarmentAnimationNeRF(nn.Module):
 
         Returns:
             sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops; C is
-            ``cfg.feature_image_channels``: with ``shading_normals`` the last 3 are the world-space
+            ``cfg.zeta_channels``: with ``shading_normals`` the last 3 are the world-space
             body normal at the closest point, or the blurred one with ``shading_normal_blur``), and how
             many samples the MLP evaluated.
         """
@@ -534,7 +535,7 @@ class GarmentAnimationNeRF(nn.Module):
                 kept = sample_filter.keep(points).nonzero().squeeze(1)
                 points = points.select(kept)
         if len(points) == 0:
-            return torch.zeros(n, device=dev), torch.zeros(n, cfg.feature_image_channels, device=dev), 0
+            return torch.zeros(n, device=dev), torch.zeros(n, cfg.zeta_channels, device=dev), 0
         kept_positions = positions if kept is None else positions[kept.to(positions.device)]
         soft_normal = cfg.use_detail_feature and cfg.detail_selection == "soft_normal"
         with sw("features"):
@@ -598,7 +599,8 @@ class GarmentAnimationNeRF(nn.Module):
                         chunk_points: int | None = None, timings: dict | None = None) -> dict:
         """The volume-rendering half of :meth:`render`: F^zeta, opacity, depth (no decoding).
 
-        Returns a dict with ``feature_image (C, h, w)``, ``opacity (h, w)``, ``depth (h, w)`` and
+        Returns a dict with ``feature_image (C, h, w)`` (the rendered zeta, then with ``depth_normals``
+        the rendered surface's normals), ``opacity (h, w)``, ``depth (h, w)`` and
         the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
         ``points_projected``, ``rays_terminated``; stage times are added to ``timings`` when
         given. See :meth:`render` for the arguments.
@@ -613,7 +615,7 @@ class GarmentAnimationNeRF(nn.Module):
         dev = self.device
         timings = {} if timings is None else timings
         sw = _Stopwatch(timings, dev)
-        C = cfg.feature_image_channels
+        C = cfg.zeta_channels
         n_pixels = fw * fh
 
         with sw("rays"):
@@ -659,6 +661,11 @@ class GarmentAnimationNeRF(nn.Module):
                 opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
             feature_image = feat.T.reshape(C, fh, fw)
+            if cfg.depth_normals:
+                origins, directions = camera_rays(camera.resized(fw, fh))
+                normals = depth_normals(depth.detach().reshape(fh, fw).cpu(), opacity.detach().reshape(fh, fw).cpu(),
+                                        origins, directions)
+                feature_image = torch.cat([feature_image, normals.to(dev, feature_image.dtype)])
         hit = samples.hit.cpu()  # rays given a segment: exactly those with samples
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
                 "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,

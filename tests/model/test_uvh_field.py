@@ -15,7 +15,8 @@ from garmentnerf.model.palette import DecomposedMaps
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.uvh_field import (UVHField, face_tangent_frames, local_offset_direction, normalised_height,
                                          read_triplane, read_uvh_volume)
-from garmentnerf.conventions import orbit_camera
+from garmentnerf.conventions import camera_rays, orbit_camera
+from garmentnerf.model.depth_normals import depth_normals
 from garmentnerf.train.settings import tiny_config
 from garmentnerf.train.trainer import param_groups
 
@@ -244,4 +245,26 @@ def test_shading_normals_are_trimeshs_normals_at_the_closest_point_after_the_sam
     assert np.median(angle) < 1.0 and np.percentile(angle, 95) < 5.0
     out = shaded.render(frame, orbit_camera(30.0, 10.0, 3.0, width=64, height=64))
     assert out.feature_image.shape[0] == cfg.appearance_dim + 3 and out.points_evaluated > 0
+    assert torch.isfinite(out.image).all()
+
+
+def test_depth_normals_follow_the_rendered_zeta_and_are_the_depths(body, projector, walk_inputs):
+    """With ``depth_normals`` the feature image is the plain model's rendered zeta, then the normals of the
+    depth it rendered beside it (:func:`depth_normals` of that depth and opacity on the camera's rays)."""
+    torch.manual_seed(0)
+    plain = GarmentAnimationNeRF(uvh_config(), body, PALETTE, projector=projector)
+    torch.manual_seed(0)
+    cfg = uvh_config(depth_normals=True)
+    model = GarmentAnimationNeRF(cfg, body, PALETTE, projector=projector)
+    assert cfg.feature_image_channels == cfg.zeta_channels + 3 == cfg.appearance_dim + 3
+    camera = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
+    with torch.no_grad():
+        want = plain.render(plain.prepare_frame(walk_inputs), camera, training=False)
+        out = model.render(model.prepare_frame(walk_inputs), camera, training=False)
+    torch.testing.assert_close(out.feature_image[:cfg.appearance_dim], want.feature_image)
+    size = cfg.feature_image_resolution
+    origins, directions = camera_rays(camera.resized(size, size))
+    normals = depth_normals(out.depth, out.opacity, origins, directions)
+    torch.testing.assert_close(out.feature_image[cfg.appearance_dim:], normals)
+    assert int((normals.norm(dim=0) > 0.999).sum()) >= 20  # the body prior's skin is opaque in an untrained model
     assert torch.isfinite(out.image).all()
