@@ -67,6 +67,12 @@ Foreground (what a user looks at; full-frame PSNR over a black background is mos
     ``shading_correlation`` (:func:`~garmentnerf.eval.metrics.shading_agreement`: does the
     cloth's brightness follow the truth's from view to view, the lit side as bright and the
     shaded side as dark? 1 and 1 when it does).
+    ``fold_correlation``: the correlation of the prediction's luma with the truth's over those pixels
+    within one view (:func:`~garmentnerf.eval.metrics.luma_correlation`: are its folds' lit ridges and
+    shaded creases where the truth's are? 0 for a garment of one brightness).
+    ``garment_flat_psnr``: ``garment_psnr`` of the truth's garment painted its own mean colour (the
+    outline exact, no shading; :func:`~garmentnerf.eval.metrics.flat_psnr`), a property of the
+    ground truth alone: a render under it draws folds that cost more than drawing none.
     A figure whose region is empty in a view (e.g. no body pixel) is left out of that view's row
     and of the mean. With a baseline, ``margin_db`` is the model's mean PSNR and ``fg_psnr``
     minus the nearest view's: the paper's yardstick, independent of the framing.
@@ -93,7 +99,8 @@ Result (:func:`evaluate_run`): a strict-JSON-serialisable dict (non-finite float
      "means": {"psnr": .., "ssim": .., "stlpips_alex": .., "tof": .., "fg_psnr": .., "body_psnr": ..,
                "garment_psnr": .., "garment_inner_psnr": .., "garment_outline_share": ..,
                "silhouette_iou": .., "sharpness": .., "garment_luma": .., "garment_luma_truth": ..,
-               "shading_contrast": .., "shading_correlation": ..},
+               "shading_contrast": .., "shading_correlation": .., "fold_correlation": ..,
+               "garment_flat_psnr": ..},
      "counts": {"images": .., "tof_pairs": ..},
      "unavailable": {"lpips_alex": "reason", ...},
      "per_frame": [{"sequence", "camera", "frame", "psnr", "ssim", "stlpips_alex"}, ...],
@@ -121,9 +128,9 @@ from tqdm import tqdm
 
 from garmentnerf.data.render_gt import LABEL_BODY, GroundTruthRenderer, garment_pixels
 from garmentnerf.data.scene import SceneImages
-from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, interior, is_psnr_metric,
-                                      masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement, sharpness_ratio,
-                                      silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
+from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, flat_psnr, interior, is_psnr_metric,
+                                      luma_correlation, masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement,
+                                      sharpness_ratio, silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
 from garmentnerf.eval.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
 from garmentnerf.gl.context import create_context
 from garmentnerf.render.presets import get_render_preset
@@ -443,7 +450,7 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
     Returns:
         ``fg_psnr``, ``body_psnr``, ``garment_psnr``, ``garment_inner_psnr``,
         ``garment_outline_share``, ``silhouette_iou``, ``sharpness``, ``garment_luma``,
-        ``garment_luma_truth``; a figure whose region is empty in this view is left out.
+        ``garment_luma_truth``, ``fold_correlation``, ``garment_flat_psnr``; a figure whose region is empty in this view is left out.
     """
     truth = target.labels != 0
     garment = garment_pixels(target.labels)
@@ -462,6 +469,8 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
         "sharpness": sharpness_ratio(pred, target.image, interior(garment, margin)),
         "garment_luma": mean_luma(pred, inner),
         "garment_luma_truth": mean_luma(target.image, inner),
+        "fold_correlation": luma_correlation(pred, target.image, inner),
+        "garment_flat_psnr": flat_psnr(target.image, garment),
     }
     return {k: v for k, v in values.items() if v is not None}
 
@@ -793,11 +802,13 @@ _HEAD = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips_alex": "LPIPS↓", "stlpip
          "fg_psnr": "fg PSNR↑", "body_psnr": "body PSNR↑", "garment_psnr": "garment PSNR↑",
          "garment_inner_psnr": "inside↑", "garment_outline_share": "outline err.",
          "silhouette_iou": "IoU↑", "sharpness": "sharpness→1", "shading_contrast": "shading→1",
-         "shading_correlation": "shading corr.↑"}
+         "shading_correlation": "shading corr.↑", "fold_correlation": "fold corr.↑",
+         "garment_flat_psnr": "flat garment"}
 
 #: The foreground figures in report order (a second table).
 FOREGROUND_ORDER = ("fg_psnr", "body_psnr", "garment_psnr", "garment_inner_psnr", "garment_outline_share",
-                    "silhouette_iou", "sharpness", "shading_contrast", "shading_correlation")
+                    "silhouette_iou", "sharpness", "shading_contrast", "shading_correlation", "fold_correlation",
+                    "garment_flat_psnr")
 
 
 def _fmt(v) -> str:

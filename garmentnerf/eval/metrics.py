@@ -240,6 +240,38 @@ def mean_luma(image, region: np.ndarray) -> float | None:
     return float((img[region] @ np.asarray(LUMA_WEIGHTS)).mean())
 
 
+def luma_correlation(pred, target, region: np.ndarray) -> float | None:
+    """Pearson correlation of the Rec. 709 lumas of ``pred`` and ``target`` ((H, W, 3) in [0, 1], or uint8)
+    over ``region``: do the prediction's bright and dark pixels (a fold's lit ridge, its shaded crease) lie
+    where the truth's do? 1: they do; 0: no relation; a prediction of one brightness scores 0. None with
+    fewer than 3 pixels or a truth of one brightness there (nothing to follow)."""
+    region = np.asarray(region, dtype=bool)
+    if int(region.sum()) < 3:
+        return None
+    lumas = []
+    for image in (pred, target):
+        img = np.asarray(image)
+        img = img.astype(np.float64) / 255.0 if img.dtype == np.uint8 else img.astype(np.float64)
+        lumas.append(img[region] @ np.asarray(LUMA_WEIGHTS))
+    p, t = lumas
+    if t.std() <= 1e-12:
+        return None
+    return float(np.corrcoef(p, t)[0, 1]) if p.std() > 1e-12 else 0.0
+
+
+def flat_psnr(target, region: np.ndarray, data_range: float = 1.0) -> float | None:
+    """PSNR over ``region`` of ``target`` ((H, W, C)) against its own mean colour there: what a
+    prediction scores that has the region's outline and mean colour exactly and nothing else (no
+    shading). None for an empty region."""
+    region = np.asarray(region, dtype=bool)
+    if not region.any():
+        return None
+    img = np.asarray(target)
+    img = img.astype(np.float64) / 255.0 if img.dtype == np.uint8 else img.astype(np.float64)
+    flat = np.broadcast_to(img[region].mean(axis=0), img.shape)
+    return masked_psnr(flat, img, region, data_range)
+
+
 def shading_agreement(pred_luma: Sequence[float], truth_luma: Sequence[float]) -> dict[str, float] | None:
     """How a prediction's brightness follows the truth's from view to view: the per-view mean lumas of
     both (e.g. :func:`mean_luma` inside the garment) give ``shading_contrast``, the standard deviation

@@ -202,6 +202,7 @@ def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context
     """fg / body / garment PSNR (scikit-image on the region's pixels), IoU and sharpness of one view,
     recomputed here from the render path's image and mask and the scene's labels; the margin."""
     from scipy import ndimage
+    from scipy.stats import pearsonr
     from skimage.metrics import peak_signal_noise_ratio
 
     from garmentnerf.data.scene import SceneImages
@@ -244,6 +245,10 @@ def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context
     luma = np.array([0.2126, 0.7152, 0.0722])
     assert row["garment_luma"] == pytest.approx(float((pred[inside] @ luma).mean()), rel=1e-9)
     assert row["garment_luma_truth"] == pytest.approx(float((gt[inside] @ luma).mean()), rel=1e-9)
+    assert row["fold_correlation"] == pytest.approx(pearsonr(pred[inside] @ luma, gt[inside] @ luma)[0], abs=1e-9)
+    garment = gt[labels == 2]
+    flat = np.broadcast_to(garment.mean(axis=0), garment.shape)
+    assert row["garment_flat_psnr"] == pytest.approx(peak_signal_noise_ratio(garment, flat, data_range=1.0), abs=1e-6)
     views = [f for f in unseen_view_result["per_frame"] if "garment_luma" in f]
     p, t = np.array([f["garment_luma"] for f in views]), np.array([f["garment_luma_truth"] for f in views])
     assert len(views) >= 3 and t.std() > 0

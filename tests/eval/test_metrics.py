@@ -474,6 +474,32 @@ def test_mean_luma_is_rec709_over_the_region():
     assert M.mean_luma(img, np.zeros((6, 7), bool)) is None
 
 
+def test_luma_correlation_and_flat_psnr_against_scipy_and_scikit_image():
+    from scipy.stats import pearsonr
+    from skimage.metrics import peak_signal_noise_ratio
+
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.1, 0.6, size=(9, 11, 3))
+    region = rng.uniform(size=(9, 11)) > 0.4
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    # folds where the truth's are, darker and of half the contrast: correlation 1 (a gain and a bias are not
+    # a misplaced fold); noise on top lowers it to scipy's figure; a flat image scores 0
+    dimmer = 0.5 * truth + 0.1
+    assert M.luma_correlation(dimmer, truth, region) == pytest.approx(1.0, abs=1e-12)
+    noisy = truth + rng.normal(0, 0.1, truth.shape)
+    want = pearsonr(noisy[region] @ luma, truth[region] @ luma)[0]
+    assert M.luma_correlation(noisy, truth, region) == pytest.approx(want, abs=1e-12)
+    assert M.luma_correlation(np.full_like(truth, 0.3), truth, region) == 0.0
+    assert M.luma_correlation(noisy, np.full_like(truth, 0.3), region) is None  # nothing to follow
+    assert M.luma_correlation(noisy, truth, np.zeros((9, 11), bool)) is None
+    # the truth against its own mean colour over the region
+    flat = np.broadcast_to(truth[region].mean(axis=0), truth[region].shape)
+    want = peak_signal_noise_ratio(truth[region], flat, data_range=1.0)
+    assert M.flat_psnr(truth, region) == pytest.approx(want, abs=1e-9)
+    assert M.flat_psnr(np.full_like(truth, 0.5), region) == float("inf")  # one colour: exact
+    assert M.flat_psnr(truth, np.zeros((9, 11), bool)) is None
+
+
 def test_shading_agreement_of_flattened_shifted_and_constant_brightness():
     from scipy.stats import pearsonr
 
