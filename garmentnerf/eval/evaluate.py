@@ -450,7 +450,8 @@ def foreground_metrics(pred: np.ndarray, target: GroundTruthView, pred_silhouett
     Returns:
         ``fg_psnr``, ``body_psnr``, ``garment_psnr``, ``garment_inner_psnr``,
         ``garment_outline_share``, ``silhouette_iou``, ``sharpness``, ``garment_luma``,
-        ``garment_luma_truth``, ``fold_correlation``, ``garment_flat_psnr``; a figure whose region is empty in this view is left out.
+        ``garment_luma_truth``, ``fold_correlation``, ``garment_flat_psnr``; a figure whose region is
+        empty in this view is left out.
     """
     truth = target.labels != 0
     garment = garment_pixels(target.labels)

@@ -5,9 +5,12 @@ The scene's lights are fixed in the world, and inside the garment the ground tru
 scaled by the shading of its folds (docs/quality.md, "What the error inside the garment is made
 of"), so the decoder needs the orientation of the *cloth* under each pixel, which neither the
 body-relative features nor the body's normal (``shading_normals``) give it. The field's density
-already carries the sheet's shape (the occupancy term fits it to the simulated cloth); its
-expected depth along each ray gives a world point per pixel, and the cross product of that point
-map's derivatives along the image rows and columns is the surface's normal there.
+carries as much of the sheet's shape as it has learned (the occupancy term fits it to the simulated
+cloth); its expected depth along each ray gives a world point per pixel, and the cross product of
+that point map's derivatives along the image rows and columns is the surface's normal there.
+Measured: lit by the ground truth's rig, these normals follow the truth's shading better than the
+body's normal does, but a decoder given them learned no better folds in a one-frame proxy
+(docs/quality.md, "The garment against a flat colour").
 
 Each derivative is the one-sided difference towards the neighbour whose depth is nearer the
 pixel's own (the smaller jump): at an occlusion edge (the skirt in front of a leg) the other side

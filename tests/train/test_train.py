@@ -549,8 +549,8 @@ def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_s
 ])
 def test_a_run_with_normals_trains_saves_and_loads_with_the_wider_first_conv(tiny_scene, gl_context, tmp_path,
                                                                             option, module, channels):
-    """``world_normals`` / ``shading_normals`` / ``depth_normals``: E / the decoder takes 3 more input channels; a run trains,
-    saves and loads with them."""
+    """``world_normals`` / ``shading_normals`` / ``depth_normals``: E / the decoder takes 3 more input
+    channels; a run trains, saves and loads with them."""
     cfg = tiny_config().replace(**{option: True})
     result, state = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
                         gl_context)
