@@ -248,12 +248,8 @@ def luma_correlation(pred, target, region: np.ndarray) -> float | None:
     region = np.asarray(region, dtype=bool)
     if int(region.sum()) < 3:
         return None
-    lumas = []
-    for image in (pred, target):
-        img = np.asarray(image)
-        img = img.astype(np.float64) / 255.0 if img.dtype == np.uint8 else img.astype(np.float64)
-        lumas.append(img[region] @ np.asarray(LUMA_WEIGHTS))
-    p, t = lumas
+    pred, target = _image_pair(pred, target)
+    p, t = pred[region] @ np.asarray(LUMA_WEIGHTS), target[region] @ np.asarray(LUMA_WEIGHTS)
     if t.std() <= 1e-12:
         return None
     return float(np.corrcoef(p, t)[0, 1]) if p.std() > 1e-12 else 0.0
@@ -266,8 +262,7 @@ def flat_psnr(target, region: np.ndarray, data_range: float = 1.0) -> float | No
     region = np.asarray(region, dtype=bool)
     if not region.any():
         return None
-    img = np.asarray(target)
-    img = img.astype(np.float64) / 255.0 if img.dtype == np.uint8 else img.astype(np.float64)
+    img = _as_float64_image(target, "target")
     flat = np.broadcast_to(img[region].mean(axis=0), img.shape)
     return masked_psnr(flat, img, region, data_range)
 
