@@ -31,8 +31,7 @@ def _one_sided(points: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, d
     """(h, w, 3) derivative of ``points (h, w, 3)`` along ``dim`` (0: rows, 1: columns) in pixels:
     the difference to the forward or backward neighbour, whichever is valid and nearer in depth; 0
     where neither is valid."""
-    h, w = depth.shape
-    size = (h, w)[dim]
+    size = depth.shape[dim]
 
     def shift(x: torch.Tensor, step: int, fill) -> torch.Tensor:
         # x shifted so that out[i] = x[i + step] along dim, ``fill`` past the edge
@@ -77,8 +76,7 @@ def depth_normals(depth: torch.Tensor, opacity: torch.Tensor, origins: torch.Ten
     along_rows = _one_sided(points, depth, valid, 1)  # d/d(column)
     along_cols = _one_sided(points, depth, valid, 0)  # d/d(row)
     normal = torch.linalg.cross(along_rows, along_cols, dim=-1)
-    length = normal.norm(dim=-1, keepdim=True)
-    normal = torch.where(length > 0, normal / length.clamp_min(1e-20), torch.zeros_like(normal))
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-20)  # a zero vector stays zero
     facing = (normal * directions).sum(dim=-1, keepdim=True) > 0
     normal = torch.where(facing, -normal, normal)
     return normal.permute(2, 0, 1)

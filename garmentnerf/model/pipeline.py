@@ -662,10 +662,10 @@ class GarmentAnimationNeRF(nn.Module):
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
             feature_image = feat.T.reshape(C, fh, fw)
             if cfg.depth_normals:
-                origins, directions = camera_rays(camera.resized(fw, fh))
-                normals = depth_normals(depth.detach().reshape(fh, fw).cpu(), opacity.detach().reshape(fh, fw).cpu(),
+                origins, directions = camera_rays(camera.resized(fw, fh), depth.dtype, depth.device)
+                normals = depth_normals(depth.detach().reshape(fh, fw), opacity.detach().reshape(fh, fw),
                                         origins, directions)
-                feature_image = torch.cat([feature_image, normals.to(dev, feature_image.dtype)])
+                feature_image = torch.cat([feature_image, normals.to(feature_image.dtype)])
         hit = samples.hit.cpu()  # rays given a segment: exactly those with samples
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
                 "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,

@@ -9,9 +9,9 @@ from garmentnerf.model.depth_normals import depth_normals
 
 
 def _rays(size: int = 48):
+    """(size, size, 3) origins and unit directions of a camera looking at the character's centre."""
     camera = orbit_camera(30.0, 10.0, 2.5, target=(0.0, 0.0, 0.9), width=size, height=size)
-    origins, directions = camera_rays(camera, dtype=torch.float64)
-    return camera, origins, directions
+    return camera_rays(camera, dtype=torch.float64)
 
 
 def _plane_depth(origins, directions, point, normal):
@@ -22,7 +22,7 @@ def _plane_depth(origins, directions, point, normal):
 
 
 def test_a_plane_gets_its_normal_facing_the_camera_at_every_pixel():
-    _, origins, directions = _rays()
+    origins, directions = _rays()
     for sign in (1.0, -1.0):  # the plane's normal given either way round: the result faces the camera
         depth, normal = _plane_depth(origins, directions, (0.0, 0.0, 0.9), (sign * 0.3, sign * -0.8, sign * 0.2))
         out = depth_normals(depth, torch.ones_like(depth), origins, directions)
@@ -31,7 +31,7 @@ def test_a_plane_gets_its_normal_facing_the_camera_at_every_pixel():
 
 
 def test_a_sphere_gets_its_radial_normal_to_the_pixel_angle():
-    _, origins, directions = _rays(64)
+    origins, directions = _rays(64)
     centre, radius = torch.tensor([0.0, 0.0, 0.9], dtype=torch.float64), 0.4
     # first intersection of each ray with the sphere
     oc = origins - centre
@@ -57,7 +57,7 @@ def test_a_sphere_gets_its_radial_normal_to_the_pixel_angle():
 
 
 def test_an_occlusion_edge_keeps_each_surface_its_own_normal():
-    _, origins, directions = _rays()
+    origins, directions = _rays()
     near, n_near = _plane_depth(origins, directions, (0.0, -0.3, 0.9), (0.5, -0.7, 0.1))
     far, n_far = _plane_depth(origins, directions, (0.0, 0.4, 0.9), (-0.2, -0.9, -0.3))
     left = torch.zeros_like(near, dtype=torch.bool)
@@ -74,7 +74,7 @@ def test_an_occlusion_edge_keeps_each_surface_its_own_normal():
 
 
 def test_pixels_without_opacity_or_a_neighbour_get_no_normal():
-    _, origins, directions = _rays(16)
+    origins, directions = _rays(16)
     depth, _ = _plane_depth(origins, directions, (0.0, 0.0, 0.9), (0.0, -1.0, 0.0))
     opacity = torch.zeros_like(depth)
     opacity[5, 5] = 1.0  # alone: no neighbour along rows or columns
