@@ -60,11 +60,11 @@ Timings
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import torch
@@ -80,6 +80,7 @@ from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.depth_normals import depth_normals
 from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
+from garmentnerf.model.importance_sampler import ImportanceSampler
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
 from garmentnerf.model.normal_field import KERNEL_SIGMAS, NormalGrid, blurred_normal_grid, read_normal_grid
@@ -145,7 +146,7 @@ class RenderOutput:
     points_projected: int = 0
     rays_terminated: int = 0
 
-    @cached_property
+    @functools.cached_property
     def image(self) -> torch.Tensor:
         """(3, H, W) the maps composed with :attr:`palette` over :attr:`background` (computed on
         first use, with autograd as the grad mode then says)."""
@@ -575,6 +576,29 @@ class GarmentAnimationNeRF(nn.Module):
             zeta = torch.zeros(n, zeta.shape[-1], device=dev).index_copy(0, rows, zeta)
         return sigma, zeta, len(points)
 
+    def density(self, frame: FrameFeatures, positions: torch.Tensor, *, precision: str = "float32",
+                chunk_points: int | None = None) -> torch.Tensor:
+        """sigma (n,) of ``frame`` at world ``positions (n, 3)``, without gradient, ``chunk_points`` at a time
+        (the importance sampler's coarse pass)."""
+        chunk = self.chunk_points if chunk_points is None else int(chunk_points)
+        with torch.no_grad():
+            parts = [self.evaluate_samples(frame, positions[c0:c0 + chunk], precision=precision)[0]
+                     for c0 in range(0, positions.shape[0], chunk)]
+        return torch.cat(parts) if parts else torch.zeros(0, device=self.device)
+
+    def box_sampler(self, samples_per_ray: int, precision: str = "float32"):
+        """The box sampler this model is rendered with at ``samples_per_ray`` stratified samples: the paper's
+        :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`, or with ``cfg.importance_samples`` the
+        :class:`~garmentnerf.model.importance_sampler.ImportanceSampler` over it (its fine samples scaled
+        with ``samples_per_ray`` as the coarse ones are)."""
+        cfg = self.cfg
+        box = BoxStratifiedSampler(samples_per_ray, cfg.bbox_padding)
+        if not cfg.importance_samples:
+            return box
+        fine = max(1, round(cfg.importance_samples * samples_per_ray / cfg.samples_per_ray))
+        return ImportanceSampler(box, functools.partial(self.density, precision=precision), fine,
+                                 cfg.importance_uniform_mix)
+
     # ------------------------------------------------------------------ per view
     def _ray_subset(self, rays, n_pixels: int, shape: tuple[int, int]) -> torch.Tensor | None:
         if rays is None:
@@ -611,7 +635,7 @@ class GarmentAnimationNeRF(nn.Module):
         fw, fh = feature_size if feature_size is not None else (cfg.feature_image_resolution,) * 2
         training = self.training if training is None else training
         chunk = self.chunk_points if chunk_points is None else int(chunk_points)
-        sampler = BoxStratifiedSampler.from_config(cfg) if sampler is None else sampler
+        sampler = self.box_sampler(cfg.samples_per_ray) if sampler is None else sampler
         dev = self.device
         timings = {} if timings is None else timings
         sw = _Stopwatch(timings, dev)

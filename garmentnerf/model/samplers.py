@@ -193,10 +193,18 @@ def stratified_intervals(t_near: torch.Tensor, t_far: torch.Tensor, num_samples:
         u = (bins + 0.5).expand(R, num_samples)
     length = (t_far - t_near).unsqueeze(-1)
     t = t_near.unsqueeze(-1) + length * (u / num_samples)
+    t_starts, t_ends = intervals_between(t, t_near, t_far)
+    return t, t_starts, t_ends
+
+
+def intervals_between(t: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The intervals that samples ``t (R, S)`` (sorted along each ray, inside [t_near, t_far] (R,)) stand
+    for: boundaries halfway between neighbours, the first starting at t_near and the last ending at
+    t_far, so they tile the segment. Returns t_starts, t_ends (R, S)."""
     mid = (t[:, 1:] + t[:, :-1]) * 0.5
     t_starts = torch.cat([t_near.unsqueeze(-1), mid], dim=-1)
     t_ends = torch.cat([mid, t_far.unsqueeze(-1)], dim=-1)
-    return t, t_starts, t_ends
+    return t_starts, t_ends
 
 
 def padded_box(aabb: torch.Tensor, padding: float) -> torch.Tensor:
@@ -268,4 +276,4 @@ class BoundBoxSampler:
 
 
 __all__ = ["RaySamples", "Sampler", "BoundSampler", "SampleFilter", "BoxStratifiedSampler", "BoundBoxSampler", "pixel_rays",
-           "padded_box", "body_aabb", "ray_aabb_intersect", "stratified_intervals"]
+           "padded_box", "body_aabb", "ray_aabb_intersect", "stratified_intervals", "intervals_between"]

@@ -18,6 +18,11 @@ preset           resolution  samples/ray  sampler                               
 ``interactive``  0.5         0.5 x S      shell + band + occlusion + stop (1e-2)       auto
 ===============  ==========  ===========  ===========================================  =========
 
+A model trained with importance sampling (``cfg.importance_samples``) is sampled in the box by every
+preset, each sample count (coarse and fine) scaled by the preset's factor: the fine pass tiles the coarse
+pass's segment, which the shell's culls would break. Its presets keep their resolution, precision and early
+termination.
+
 The culled presets also render only the character's screen rectangle
 (:attr:`RenderPreset.character_rect`): rays and the decoder run where the sampling box projects.
 
@@ -41,7 +46,6 @@ from pathlib import Path
 from garmentnerf.model.config import SAMPLERS
 from garmentnerf.model.height_band import SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
-from garmentnerf.model.samplers import BoxStratifiedSampler
 from garmentnerf.model.shell_sampler import ShellSampler
 
 #: Feature cells around the character's rectangle: the palette decoder's receptive field
@@ -100,7 +104,10 @@ class RenderPreset:
 
     def uses_shell(self, cfg) -> bool:
         """Whether this preset samples in the shell for a model of config ``cfg``: a shell preset
-        does, and every preset of a model trained in the shell (``cfg.sampler``)."""
+        does, and every preset of a model trained in the shell (``cfg.sampler``); no preset of a model
+        trained with ``cfg.importance_samples``, which samples in the box (coarse, then fine)."""
+        if cfg.importance_samples:  # the fine pass needs the coarse pass to tile each ray's segment
+            return False
         return self.sampler == "shell" or cfg.sampler == "shell"
 
     def sampling(self, model, height_range: HeightRange | None = None, gl_context=None) -> "SamplingPlan":
@@ -118,7 +125,7 @@ class RenderPreset:
         cfg = model.cfg
         n = self.samples_per_ray(cfg)
         if not self.uses_shell(cfg):
-            return SamplingPlan(self, BoxStratifiedSampler(n, cfg.bbox_padding), None, self.termination_eps,
+            return SamplingPlan(self, model.box_sampler(n, self.precision), None, self.termination_eps,
                                 self.precision)
         band = height_range if height_range is not None else HeightRange.default()
         faces = model.projector.faces

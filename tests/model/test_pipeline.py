@@ -349,3 +349,29 @@ def test_evaluate_samples_reuses_a_projection_it_is_given(model, frame):
     assert n == again[2] == 500
     assert torch.equal(sigma, again[0]) and torch.equal(zeta, again[1])
     assert float(sigma.max()) > 0
+
+
+def test_importance_sampling_is_the_default_and_every_presets_sampler(body, projector, walk_inputs):
+    """With ``importance_samples`` the model renders the fine samples drawn from a coarse pass, by default
+    and in every preset (each count scaled by the preset's factor), and its gradients reach every module."""
+    from garmentnerf.model.importance_sampler import ImportanceSampler
+    from garmentnerf.render.presets import RENDER_PRESETS
+
+    model = make_model(body, projector, importance_samples=6).eval()
+    cfg = model.cfg
+    frame = model.prepare_frame(walk_inputs)
+    with torch.no_grad():
+        out = model.render(frame, CAMERA)
+        plain = make_model(body, projector).eval().render(frame, CAMERA)
+    assert out.rays_evaluated == plain.rays_evaluated > 0
+    assert out.samples_placed == out.rays_evaluated * 6 != plain.samples_placed
+    for preset in RENDER_PRESETS.values():
+        plan = preset.sampling(model)
+        assert isinstance(plan.sampler, ImportanceSampler) and not preset.uses_shell(cfg)
+        scale = preset.samples_per_ray(cfg) / cfg.samples_per_ray
+        assert plan.sampler.num_samples == max(1, round(6 * scale))
+        assert plan.sampler.base.num_samples == preset.samples_per_ray(cfg)
+    model.train()
+    model.render(frame, CAMERA).image.mean().backward()
+    for name, module in model.trainable_modules().items():
+        assert sum(float(p.grad.abs().sum()) for p in module.parameters()) > 0, name

@@ -561,3 +561,17 @@ def test_a_run_with_normals_trains_saves_and_loads_with_the_wider_first_conv(tin
     assert getattr(loaded.config, option)
     convs = [m for m in loaded.model.get_submodule(module).modules() if isinstance(m, torch.nn.Conv2d)]
     assert convs[0].in_channels == channels(cfg)
+
+
+def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_context, tmp_path):
+    """``importance_samples``: each step renders the fine samples of a coarse pass; the run saves the
+    setting and its loaded model samples that way."""
+    from garmentnerf.model.importance_sampler import ImportanceSampler
+
+    cfg = tiny_config().replace(importance_samples=6)
+    result, _ = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
+                    gl_context)
+    assert all(math.isfinite(h["total"]) for h in result.history)
+    loaded = load_run(tmp_path / "r")
+    assert loaded.config.importance_samples == 6
+    assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
