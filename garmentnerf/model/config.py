@@ -351,6 +351,12 @@ class ModelConfig:
     0.1 on E1's recipe from scratch (recipe O1, docs/quality.md) it gained 0.3 dB over the character and 0.4 on
     the garment on held-out cameras, IoU +0.01, and lost 0.2 dB on the held-out motion and 1.2 on the body:
     off until it wins on both."""
+    w_distortion: float = 0.0
+    """The distortion term of mip-NeRF 360 (not in the paper; 0: off): the mean over the feature rays of the
+    expected distance between two points drawn from a ray's rendering weights
+    (:func:`~garmentnerf.model.volume_rendering.distortion_packed`, metres). It is smallest when a ray's
+    weight sits in one short interval, so it turns a fog into a surface and removes floaters; with
+    ``importance_samples`` the intervals there are short enough for the surface to be a thin sheet."""
     geometry_iterations: int = 0
     """NeRF steps at the start of the NeRF stage that train the occupancy term alone (a geometry warm-up, not
     in the paper; 0: none): nothing is rendered, a step costs E, G_en and the term's points, and every
@@ -508,7 +514,7 @@ class ModelConfig:
                      "decoder_extra_layers", "decoder_low_layers", "bbox_padding", "blend_weight_floor", "w_image",
                      "w_image_l2", "w_mask",
                      "w_perceptual", "w_sparsity", "w_offset", "w_palette", "w_opacity", "w_segmentation",
-                     "w_plane_tv", "w_occupancy", "frame_code_resolution", "frame_codes"):
+                     "w_plane_tv", "w_occupancy", "w_distortion", "frame_code_resolution", "frame_codes"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.atlas_feature_resolution // 2 ** (self.atlas_feature_levels - 1) < 1:

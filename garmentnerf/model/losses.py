@@ -118,7 +118,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
                    perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
                    opacity: torch.Tensor | None = None,
                    target_garment: torch.Tensor | None = None,
-                   planes=None, occupancy: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+                   planes=None, occupancy: tuple[torch.Tensor, torch.Tensor] | None = None,
+                   distortion: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """All loss terms of one batch.
 
     Args:
@@ -143,9 +144,11 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         occupancy: optional ``(sigma (N,), occupied (N,))``, the field's density at points of the frame and
             their labels; with ``cfg.w_occupancy`` > 0 their
             :func:`~garmentnerf.model.occupancy.occupancy_loss` (interval ``cfg.occupancy_step``) is a term.
+        distortion: optional (B, h, w) per-ray distortion of the feature rays; with ``cfg.w_distortion`` > 0
+            its mean is a term.
     Returns:
         dict of the unweighted terms ``image, [image_l2,] mask, [perceptual,] sparsity, offset, palette,
-        [opacity,] [segmentation,] [plane_tv,] [occupancy]`` and ``total``, the weighted sum.
+        [opacity,] [segmentation,] [plane_tv,] [occupancy,] [distortion]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
@@ -182,10 +185,13 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     w_occupancy = float(getattr(cfg, "w_occupancy", 0.0))
     if occupancy is not None and w_occupancy > 0:
         terms["occupancy"] = occupancy_loss(occupancy[0], occupancy[1], cfg.occupancy_step)
+    w_distortion = float(getattr(cfg, "w_distortion", 0.0))
+    if distortion is not None and w_distortion > 0:
+        terms["distortion"] = distortion.mean()
     weights = {"image": cfg.w_image, "image_l2": w_image_l2, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
                "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
                "segmentation": w_segmentation, "plane_tv": w_plane_tv,
-               "occupancy": w_occupancy}
+               "occupancy": w_occupancy, "distortion": w_distortion}
     terms["total"] = sum(weights[name] * value for name, value in terms.items())
     return terms
 

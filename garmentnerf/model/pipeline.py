@@ -130,6 +130,8 @@ class RenderOutput:
         samples_placed: samples the sampler placed.
         points_projected: samples projected on the body (those early termination did not skip).
         rays_terminated: rays stopped by early termination with samples left.
+        distortion: (h, w) each ray's distortion (:func:`~garmentnerf.model.volume_rendering.distortion_packed`)
+            in training with ``cfg.w_distortion`` > 0, else None.
     """
 
     maps: DecomposedMaps
@@ -145,6 +147,7 @@ class RenderOutput:
     samples_placed: int = 0
     points_projected: int = 0
     rays_terminated: int = 0
+    distortion: torch.Tensor | None = None
 
     @functools.cached_property
     def image(self) -> torch.Tensor:
@@ -624,7 +627,8 @@ class GarmentAnimationNeRF(nn.Module):
         """The volume-rendering half of :meth:`render`: F^zeta, opacity, depth (no decoding).
 
         Returns a dict with ``feature_image (C, h, w)`` (the rendered zeta, then with ``depth_normals``
-        the rendered surface's normals), ``opacity (h, w)``, ``depth (h, w)`` and
+        the rendered surface's normals), ``opacity (h, w)``, ``depth (h, w)``, ``distortion (h, w)`` (in
+        training with ``cfg.w_distortion``, else None) and
         the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
         ``points_projected``, ``rays_terminated``; stage times are added to ``timings`` when
         given. See :meth:`render` for the arguments.
@@ -670,8 +674,10 @@ class GarmentAnimationNeRF(nn.Module):
         field_keys = ("projection", "features", "mlp")
         field_before = sum(timings.get(k, 0.0) for k in field_keys)
         t0 = time.perf_counter()
+        with_distortion = bool(training and cfg.w_distortion > 0)
         march = render_packed_segmented(field, samples.t_starts, samples.t_ends, samples.ray_ids, n_rays, C,
-                                        chunk_points=chunk, termination_eps=float(termination_eps), device=dev)
+                                        chunk_points=chunk, termination_eps=float(termination_eps), device=dev,
+                                        with_distortion=with_distortion)
         march_ms = (time.perf_counter() - t0) * 1e3
         field_ms = sum(timings.get(k, 0.0) for k in field_keys) - field_before
         timings["compositing"] = timings.get("compositing", 0.0) + max(0.0, march_ms - field_ms)
@@ -684,6 +690,12 @@ class GarmentAnimationNeRF(nn.Module):
                 feat = feat.new_zeros(n_pixels, C).index_copy(0, idx, feat)
                 opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
+            distortion = None
+            if with_distortion:
+                distortion = march.distortion
+                if subset is not None:
+                    distortion = distortion.new_zeros(n_pixels).index_copy(0, idx, distortion)
+                distortion = distortion.reshape(fh, fw)
             feature_image = feat.T.reshape(C, fh, fw)
             if cfg.depth_normals:
                 origins, directions = camera_rays(camera.resized(fw, fh), depth.dtype, depth.device)
@@ -694,7 +706,7 @@ class GarmentAnimationNeRF(nn.Module):
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
                 "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
                 "samples_placed": int(samples.ray_ids.shape[0]), "points_projected": march.samples_evaluated,
-                "rays_terminated": int((march.terminated & hit).sum())}
+                "rays_terminated": int((march.terminated & hit).sum()), "distortion": distortion}
 
     def decode(self, feature_image: torch.Tensor, timings: dict | None = None) -> DecomposedMaps:
         """M_D: F^zeta ``(C, h, w)`` -> the decomposed maps (batch of 1) at ``2**decoder_upsample_steps``
@@ -749,7 +761,7 @@ class GarmentAnimationNeRF(nn.Module):
         bg = tuple(float(c) for c in (self.cfg.background if background is None else background))
         return RenderOutput(maps, out["opacity"], out["depth"], out["feature_image"], pal, bg,
                             out["points_evaluated"], out["rays_evaluated"], out["rays_total"], all_timings,
-                            out["samples_placed"], out["points_projected"], out["rays_terminated"])
+                            out["samples_placed"], out["points_projected"], out["rays_terminated"], out["distortion"])
 
     def forward(self, frame: FrameInputs | FrameFeatures, camera: Camera, **kwargs) -> RenderOutput:
         """:meth:`render`, preparing the frame first when given :class:`FrameInputs`."""

@@ -676,7 +676,8 @@ class Trainer(Closeable):
         terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
                                self.cfg, self.perceptual, opacity=out.opacity[None],
                                target_garment=garment[None] if segment else None,
-                               planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy)
+                               planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy,
+                               distortion=None if out.distortion is None else out.distortion[None])
         return terms, {"pred": pred, "target": image}
 
     def occupancy_targets(self, seq: str, frame: int, feats, n_points: int, generator: torch.Generator):

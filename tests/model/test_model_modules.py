@@ -322,6 +322,13 @@ def test_losses_without_perceptual_and_weighting():
     assert both["image"].item() == pytest.approx(0.1, abs=1e-6) and both["image_l2"].item() == pytest.approx(0.01, abs=1e-6)
     torch.testing.assert_close(both["total"] - out["total"], torch.tensor(cfg.w_image * 0.1 + 10.0 * 0.01 - cfg.w_palette * 6 * 0.01),
                                atol=1e-5, rtol=0)
+    # the distortion term: the mean of the per-ray map, weighted, and only when its weight is set
+    rays = torch.rand(1, 4, 4)
+    with_d = garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p + 0.1, p, cfg.replace(w_distortion=0.5),
+                            distortion=rays)
+    assert with_d["distortion"].item() == pytest.approx(rays.mean().item())
+    torch.testing.assert_close(with_d["total"] - out["total"], 0.5 * rays.mean(), atol=1e-6, rtol=0)
+    assert "distortion" not in garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p, p, cfg, distortion=rays)
 
 
 @pytest.mark.parametrize("factor", [1, 2, 4])

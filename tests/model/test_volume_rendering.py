@@ -322,3 +322,49 @@ def test_segmented_rendering_rejects_bad_settings():
     with pytest.raises(ValueError, match="termination_eps"):
         vr.render_packed_segmented(lambda i: None, torch.zeros(0), torch.zeros(0), torch.zeros(0, dtype=torch.long),
                                    1, 3, termination_eps=1.0)
+
+
+def _distortion_brute_force(weights, t_starts, t_ends, ray_ids, n_rays):
+    """The double sum of mip-NeRF 360's Eq. 15 written out, one ray at a time."""
+    out = torch.zeros(n_rays, dtype=weights.dtype)
+    mids = (t_starts + t_ends) / 2
+    for r in range(n_rays):
+        m = ray_ids == r
+        w, mid, d = weights[m], mids[m], (t_ends - t_starts)[m]
+        out[r] = (w[:, None] * w[None, :] * (mid[:, None] - mid[None, :]).abs()).sum() + (w ** 2 * d).sum() / 3
+    return out
+
+
+def test_distortion_of_analytic_cases():
+    # one interval holding the whole weight: the mean distance of two uniform points on it, delta / 3
+    one = vr.distortion_packed(torch.tensor([1.0]), torch.tensor([2.0]), torch.tensor([2.3]), torch.tensor([0]), 1)
+    assert one.item() == pytest.approx(0.1)
+    # two spikes: 2 w1 w2 |m1 - m2|
+    two = vr.distortion_packed(torch.tensor([0.25, 0.5]), torch.tensor([1.0, 3.0]), torch.tensor([1.0, 3.0]),
+                               torch.tensor([0, 0]), 1)
+    assert two.item() == pytest.approx(2 * 0.25 * 0.5 * 2.0)
+    # weight spread evenly over a segment of length L in many intervals: L / 3, the fog's cost
+    edges = torch.linspace(0.0, 0.6, 601, dtype=torch.float64)
+    fog = vr.distortion_packed(torch.full((600,), 1 / 600, dtype=torch.float64), edges[:-1], edges[1:],
+                               torch.zeros(600, dtype=torch.long), 1)
+    assert fog.item() == pytest.approx(0.2, rel=1e-6)
+
+
+def test_distortion_matches_the_double_sum_and_its_gradient_the_finite_differences():
+    ray_ids, ts, te, sigma, _ = _random_packed_rays(3, n_rays=9, max_samples=12)
+    ts, te = ts.double(), te.double()
+    w = vr.render_weights_from_density_packed(sigma.double(), te - ts, ray_ids, 9)
+    torch.testing.assert_close(vr.distortion_packed(w, ts, te, ray_ids, 9), _distortion_brute_force(w, ts, te, ray_ids, 9))
+    s = sigma.double().requires_grad_()
+    torch.autograd.gradcheck(lambda x: vr.distortion_packed(vr.render_weights_from_density_packed(x, te - ts, ray_ids, 9),
+                                                            ts, te, ray_ids, 9), (s,))
+
+
+@pytest.mark.parametrize("eps", [0.0, 1e-9])
+def test_segmented_rendering_accumulates_the_distortion_across_segments(eps):
+    ray_ids, ts, te, sigma, values = _random_packed_rays(4, n_rays=12, max_samples=10)
+    out = vr.render_packed_segmented(lambda i: (sigma[i], values[i]), ts, te, ray_ids, 12, 3, chunk_points=5,
+                                     termination_eps=eps, with_distortion=True)
+    w = vr.render_weights_from_density_packed(sigma, te - ts, ray_ids, 12)
+    torch.testing.assert_close(out.distortion, vr.distortion_packed(w, ts, te, ray_ids, 12), atol=1e-6, rtol=1e-5)
+    assert vr.render_packed_segmented(lambda i: (sigma[i], values[i]), ts, te, ray_ids, 12, 3).distortion is None

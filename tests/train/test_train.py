@@ -565,13 +565,14 @@ def test_a_run_with_normals_trains_saves_and_loads_with_the_wider_first_conv(tin
 
 def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_context, tmp_path):
     """``importance_samples``: each step renders the fine samples of a coarse pass; the run saves the
-    setting and its loaded model samples that way."""
+    setting and its loaded model samples that way. ``w_distortion`` adds its term to every step."""
     from garmentnerf.model.importance_sampler import ImportanceSampler
 
-    cfg = tiny_config().replace(importance_samples=6)
+    cfg = tiny_config().replace(importance_samples=6, w_distortion=0.1)
     result, _ = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
                     gl_context)
     assert all(math.isfinite(h["total"]) for h in result.history)
+    assert all(0 < h["distortion"] < 2.0 for h in result.history)  # metres: under the box's size
     loaded = load_run(tmp_path / "r")
     assert loaded.config.importance_samples == 6
     assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
