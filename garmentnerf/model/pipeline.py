@@ -729,9 +729,9 @@ class GarmentAnimationNeRF(nn.Module):
                 squared), so the maps are ``2**decoder_upsample_steps`` times that.
             rays: None (all), or a subset of the feature-image rays: (M,) unique row-major pixel
                 indices or an (h, w) bool mask; the others get zero features and opacity.
-            sampler: where samples go (:class:`~garmentnerf.model.samplers.Sampler`); default the
-                paper's :class:`~garmentnerf.model.samplers.BoxStratifiedSampler` of the config,
-                the sampling the model is trained with.
+            sampler: where samples go (:class:`~garmentnerf.model.samplers.Sampler`); default
+                :meth:`box_sampler` at ``cfg.samples_per_ray``: the paper's box sampler, or with
+                ``cfg.importance_samples`` the importance sampler over it.
             sample_filter: drops projected samples before the MLP (e.g. the garment's height
                 band, :class:`~garmentnerf.model.height_band.HeightBandFilter`); None keeps all.
             termination_eps: a ray stops once its transmittance falls below this (0: never; see
