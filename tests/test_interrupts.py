@@ -75,32 +75,34 @@ def test_without_a_signal_and_off_the_main_thread_it_only_runs_the_body():
     assert results == [45]
 
 
-class SignallingTree:
-    """A cKDTree whose query sends this process a SIGINT first, and records that it returned."""
+def test_a_ctrl_c_during_the_projections_search_acts_after_the_round_of_launches(monkeypatch):
+    """A SIGINT sent while the search kernel runs (from inside warp's launch) is raised once that
+    launch has returned, before the next round of points: the kernel is never abandoned
+    half-written, and a long projection still stops within a round."""
+    import warp
 
-    def __init__(self, tree):
-        self.tree, self.returned = tree, 0
+    from garmentnerf.geometry import face_bvh
 
-    def query(self, *args, **kwargs):
-        os.kill(os.getpid(), signal.SIGINT)
-        result = self.tree.query(*args, **kwargs)
-        self.returned += 1
-        return result
-
-
-def test_a_ctrl_c_during_the_projections_kd_query_acts_after_the_query():
     mesh = trimesh.creation.icosphere(subdivisions=2)
-    projector = SurfaceProjector(torch.as_tensor(mesh.faces), len(mesh.vertices))
+    projector = SurfaceProjector(torch.as_tensor(mesh.faces), len(mesh.vertices), chunk_size=500, threads=1)
     surface = projector.bind(torch.as_tensor(mesh.vertices, dtype=torch.float32))
     points = torch.as_tensor(np.random.default_rng(0).normal(size=(2000, 3)), dtype=torch.float32)
     expected = surface.project(points).distance
-    surface._tree = SignallingTree(surface._tree)
+    face_bvh._kernels()  # warp imported and the kernels defined before launch is wrapped
+    launch, returned = warp.launch, []
+
+    def signalling_launch(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        result = launch(*args, **kwargs)
+        returned.append(True)
+        return result
+
+    monkeypatch.setattr(warp, "launch", signalling_launch)
     with pytest.raises(KeyboardInterrupt):
         surface.project(points)
-    assert surface._tree.returned >= 1  # the query ran whole; the interrupt came after it
-    # the surface still answers, the same as before
-    surface._tree = surface._tree.tree
-    torch.testing.assert_close(surface.project(points).distance, expected)
+    assert len(returned) == 1  # the first round ran whole; the interrupt came after it, before the second
+    monkeypatch.setattr(warp, "launch", launch)
+    torch.testing.assert_close(surface.project(points).distance, expected)  # the surface still answers the same
 
 
 #: A program whose SIGINT lands inside an ``exec()`` of a string (as in a lazy import that builds a

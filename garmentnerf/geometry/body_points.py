@@ -117,7 +117,12 @@ class BodyPointProjector:
         """The exact projector of the skin faces (its search tree's face order is computed once,
         on the template)."""
         if self._exact is None:
-            self._exact = SurfaceProjector(self.faces, self.num_vertices, reference_vertices=self.canonical_vertices)
+            # the canonical position and the UV of every corner, interpolated in the search kernel
+            corners = [self.canonical_vertices[self.faces]]
+            if self.uv is not None:
+                corners.append(self.uv[self.uv_faces])
+            self._exact = SurfaceProjector(self.faces, self.num_vertices, reference_vertices=self.canonical_vertices,
+                                           corner_values=torch.cat(corners, dim=2))
         return self._exact
 
     @property
@@ -178,13 +183,18 @@ class BoundBody:
         """Body coordinates of ``points (N, 3)``, on the device of the points; ``face`` holds
         skin face ids (see the module docstring)."""
         proj = self.surface.project(points)
-        faces, uv_faces, canonical_vertices, uv_coords = self.projector._on(points.device)
         face, bary = proj.face.to(points.device), proj.bary.to(points.device)
-        canonical = interpolate(canonical_vertices.to(bary.dtype), faces, face, bary)
-        if uv_coords is not None:
-            uv = interpolate(uv_coords.to(bary.dtype), uv_faces, face, bary)
+        if proj.values is not None:  # the exact search interpolated them in its kernel
+            values = proj.values.to(points.device)
+            canonical = values[:, :3]
+            uv = values[:, 3:5] if values.shape[1] == 5 else bary.new_zeros(bary.shape[0], 2)
         else:
-            uv = bary.new_zeros(bary.shape[0], 2)
+            faces, uv_faces, canonical_vertices, uv_coords = self.projector._on(points.device)
+            canonical = interpolate(canonical_vertices.to(bary.dtype), faces, face, bary)
+            if uv_coords is not None:
+                uv = interpolate(uv_coords.to(bary.dtype), uv_faces, face, bary)
+            else:
+                uv = bary.new_zeros(bary.shape[0], 2)
         return BodyPoints(face=face, bary=bary, closest=proj.closest.to(points.device),
                           signed_distance=proj.signed_distance.to(points.device), canonical=canonical, uv=uv)
 

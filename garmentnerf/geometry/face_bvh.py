@@ -1,43 +1,50 @@
 """The exact nearest-face search of :mod:`~garmentnerf.geometry.projection`: a bounding-volume
-hierarchy of oriented cylinders over the faces, built once per posed frame, walked by a native
+hierarchy of oriented boxes over the faces, built once per posed frame, walked by a native
 (warp, CPU) kernel once per query point.
 
 Tree
 ----
 The faces are split recursively at the median of their centroids along the longest axis of the
-node's centroid box, down to leaves of one or two faces. The tree is complete and implicit
+node's centroid box, down to leaves of two or three faces. The tree is complete and implicit
 (heap numbering: node ``j`` has children ``2j + 1`` and ``2j + 2``; at depth ``l`` node ``j``
 holds the sorted faces ``[floor(j F / 2^l), floor((j + 1) F / 2^l))``), so it is a permutation of
 the faces plus per-node bounds.
 
-Each node is bounded by a *cylinder* aligned with the node's mean normal n (the normalised sum
-of its faces' area vectors): centre m, radius rho of the corners around the axis, and the slab
-``[a_lo, a_hi]`` of their heights ``(v - m) . n``. Both are convex and hold every corner, so
-they hold the faces (convex hulls of corners): ``|q - p| >= lb_cyl(q, node)`` for every point p of
-the node's faces, with ``lb_cyl^2 = max(0, r - rho)^2 + max(0, a_lo - a, a - a_hi)^2`` (a, r: the
-height and axial distance of q). On a body a node's faces are a nearly flat patch, so the slab
-is thin and the bound nearly tight; an axis-aligned box (or a sphere) around a tilted or curved
-patch sticks out of the surface by about its own size, and a query point at a distance d from the
-skin then has to open every node within ``sqrt(2 d size)`` of its foot point: most of the tree
-for the samples tens of centimetres off the body.
+Each node is bounded by an *oriented box* whose first axis is the node's mean normal n (the
+normalised sum of its faces' area vectors) and whose other two are the principal directions of
+its corners in the plane across n: centre m, and per axis the interval of the corners' heights
+along it. The box is convex and holds every corner, so it holds the faces (convex hulls of
+corners): ``|q - p| >= lb_obb(q, node)`` for every point p of the node's faces, with
+``lb_obb^2 = sum_k max(0, lo_k - a_k, a_k - hi_k)^2`` (a_k: the height of q along axis k). On a
+body a low node's faces are a nearly flat patch, so the box is a thin slab and the bound nearly
+tight; a node high in the tree is a tube (a forearm, a leg), whose normals sum across it, so the
+box's in-plane principal axis runs along the tube. An axis-aligned box (or a sphere) around a
+tilted or curved patch sticks out of the surface by about its own size, and a query point at a
+distance d from the skin then has to open every node within ``sqrt(2 d size)`` of its foot point:
+most of the tree for the samples tens of centimetres off the body. Each node also keeps its
+axis-aligned box (the same centre m, half extents e), which is the tighter of the two for some
+nodes high in the tree, and the bound used is the larger of the two,
+``lb^2 = max(lb_obb^2, sum_i max(0, |q_i - m_i| - e_i)^2)``: still a lower bound.
 
-The nodes high in the tree are not flat (a whole forearm, a leg: a tube, whose mean normal says
-little), and there the cylinder is the looser bound; so each node also keeps its axis-aligned
-box (the same centre m, half extents e), and the bound used is the larger of the two,
-``lb^2 = max(lb_cyl^2, sum_i max(0, |q_i - m_i| - e_i)^2)``: still a lower bound, with no square
-root more. On the bundled body walking (``garmentnerf bench``'s 262,144 points within 15 cm of the
-skin) the walk then tests 101 bounds and 15.7 faces per point, against 128 and 18.9 with the
-cylinder alone, for the same answers (docs/quality.md, "The projection's bound").
+On the bundled body walking (``garmentnerf bench``'s 262,144 points within 15 cm of the skin) the
+walk tests 65 bounds and 23.2 faces per point, against 101 and 15.7 with the normal-aligned
+cylinders, leaves of one or two faces and walks from the root this replaced (and 128 and 18.9
+with the cylinders alone), for the same answers; the projection is about 1.45 times faster
+(docs/quality.md, "The projection's bound" and "The projection's walk").
 
 Search
 ------
-Depth first, the nearer child first, a node skipped when ``lb^2`` exceeds the best squared
-distance found: exact, no certificate to fail, no retry. The point-face distance is that of
+The points of a batch are walked in Morton order (:func:`~garmentnerf.geometry.projection`'s
+``walk_order``) in blocks of ``BLOCK``: samples along a ray, and neighbouring rays, share their
+foot point's neighbourhood. Each point but a block's first starts at the leaf of its
+predecessor's face: it measures that leaf's faces, then walks up to the root, and at every level
+tests the sibling of the node it comes from, searching the sibling's subtree depth first (the
+nearer child first) when the sibling's bound does not exceed the best squared distance found. A
+block's first point searches from the root the same way. A node is skipped only when its bound
+exceeds the best distance, so the answer is exact whatever the start: no certificate to fail, no
+retry; ties go to the lowest slot. The point-face distance is that of
 :func:`~garmentnerf.geometry.triangles.face_frame_distance2` (the face's own frame), in float64;
-degenerate faces (no normal) are measured as their three edges. The points of a batch are walked
-in Morton order in blocks; each point starts with the best face of the point before it in its
-block as its bound (samples along a ray, and neighbouring rays, share their foot point's
-neighbourhood), which prunes most of the walk from the start.
+degenerate faces (no normal) are measured as their three edges.
 
 The bounds are grown by ``BOUND_SLACK`` (a nanometre) against rounding, far above the float64
 rounding of the coordinates (~1e-16 m), far below anything that would change which faces are
@@ -48,25 +55,33 @@ opened.
 import functools
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import torch
 
 from garmentnerf.geometry.triangles import FEATURE_TOL, face_frame_table
+from garmentnerf.interrupts import deferred_interrupts
 
-__all__ = ["FaceBVH", "BOUND_SLACK", "tree_order", "tree_depth"]
+__all__ = ["FaceBVH", "NearestFaces", "BOUND_SLACK", "DEFAULT_CHUNK_SIZE", "tree_order", "tree_depth"]
 
-#: Metres added to every node bound (radius and slab) against rounding.
+#: Metres added to every node bound (each interval and half extent) against rounding.
 BOUND_SLACK = 1e-9
-#: Points walked in a row by one kernel thread, each seeded with its predecessor's face.
-BLOCK = 16
+#: Points walked per round of kernel launches (a Ctrl-C acts between rounds).
+DEFAULT_CHUNK_SIZE = 65536
+#: Points walked in a row by one kernel thread, each starting at its predecessor's face.
+BLOCK = 64
 #: Columns of the per-face kernel table: the 19 rows of face_frame_table, then the corners b, c
 #: (a is in the frame rows) and the degenerate flag.
 _FACE_COLUMNS = 19 + 6 + 1
-#: Columns of the node table: m (3), n (3), rho, a_lo, a_hi, the box's half extents e (3).
-_NODE_COLUMNS = 12
+#: Columns of the node table: m (3), the oriented box's axes n, t1, t2 (9), its intervals [lo, hi]
+#: along n, t1, t2 (6), the axis-aligned box's half extents e (3).
+_NODE_COLUMNS = 21
 
-#: Fewest blocks a thread is given (smaller launches are not worth a thread).
-_MIN_BLOCKS_PER_THREAD = 256
+#: Fewest blocks a launch is given (smaller launches are not worth a thread).
+_MIN_BLOCKS_PER_LAUNCH = 64
+#: Launches per thread and round: the threads share the round's work as they finish, so a slow
+#: stretch of points (far from the body, or a shared core) does not leave the other threads idle.
+_LAUNCHES_PER_THREAD = 4
 
 _load_lock = threading.Lock()  # the first launch loads (maybe compiles) the module: one thread at a time
 _loaded: list = []
@@ -161,19 +176,21 @@ def _define_kernels():
 
     @wp.func
     def node_lb2(N: wp.array2d(dtype=wp.float64), j: int, qx: wp.float64, qy: wp.float64, qz: wp.float64):
+        # columns: m (0:3), n (3:6), t1 (6:9), t2 (9:12), lo/hi along n, t1, t2 (12:18), box e (18:21)
         px = qx - N[j, 0]
         py = qy - N[j, 1]
         pz = qz - N[j, 2]
         a = px * N[j, 3] + py * N[j, 4] + pz * N[j, 5]
-        wx = px - a * N[j, 3]
-        wy = py - a * N[j, 4]
-        wz = pz - a * N[j, 5]
-        dr = wp.max(wp.sqrt(wx * wx + wy * wy + wz * wz) - N[j, 6], wp.float64(0.0))
-        da = wp.max(wp.max(N[j, 7] - a, a - N[j, 8]), wp.float64(0.0))
-        ex = wp.max(wp.abs(px) - N[j, 9], wp.float64(0.0))
-        ey = wp.max(wp.abs(py) - N[j, 10], wp.float64(0.0))
-        ez = wp.max(wp.abs(pz) - N[j, 11], wp.float64(0.0))
-        return wp.max(dr * dr + da * da, ex * ex + ey * ey + ez * ez)
+        b = px * N[j, 6] + py * N[j, 7] + pz * N[j, 8]
+        c = px * N[j, 9] + py * N[j, 10] + pz * N[j, 11]
+        zero = wp.float64(0.0)
+        da = wp.max(wp.max(N[j, 12] - a, a - N[j, 13]), zero)
+        db = wp.max(wp.max(N[j, 14] - b, b - N[j, 15]), zero)
+        dc = wp.max(wp.max(N[j, 16] - c, c - N[j, 17]), zero)
+        ex = wp.max(wp.abs(px) - N[j, 18], zero)
+        ey = wp.max(wp.abs(py) - N[j, 19], zero)
+        ez = wp.max(wp.abs(pz) - N[j, 20], zero)
+        return wp.max(da * da + db * db + dc * dc, ex * ex + ey * ey + ez * ez)
 
     @wp.func
     def safe_ratio(num: wp.float64, den: wp.float64, tiny: wp.float64):
@@ -293,33 +310,61 @@ def _define_kernels():
             out[i, 7] = d
 
     @wp.kernel
-    def nearest_faces(points: wp.array2d(dtype=wp.float64), T: wp.array2d(dtype=wp.float64),
-                      N: wp.array2d(dtype=wp.float64), first_leaf: int, num_faces: int, num_points: int,
+    def nearest_faces(points: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int64),
+                      T: wp.array2d(dtype=wp.float64), N: wp.array2d(dtype=wp.float64),
+                      slot_face: wp.array(dtype=wp.int32), first_leaf: int, num_faces: int, num_walked: int,
                       block: int, out_face: wp.array(dtype=wp.int32), out_d2: wp.array(dtype=wp.float64),
                       out_work: wp.array2d(dtype=wp.int32), S: wp.array2d(dtype=wp.float64),
-                      feature_tol: wp.float64, out_geom: wp.array2d(dtype=wp.float64)):
+                      feature_tol: wp.float64, out_geom: wp.array2d(dtype=wp.float64),
+                      V: wp.array2d(dtype=wp.float64), out_values: wp.array2d(dtype=wp.float64)):
+        # Thread b walks the points rows[b * block : (b + 1) * block] in that order; every output
+        # goes to the point's own row.
         b = wp.tid()
         start = b * block
-        end = wp.min(start + block, num_points)
+        end = wp.min(start + block, num_walked)
         leaves = first_leaf + 1
         seed = int(-1)
-        for i in range(start, end):
+        for w in range(start, end):
+            i = int(rows[w])
             qx = points[i, 0]
             qy = points[i, 1]
             qz = points[i, 2]
             best = wp.float64(1.0e300)
             best_face = int(-1)
-            if seed >= 0:
-                best = face_d2(T, seed, qx, qy, qz)
-                best_face = seed
             stack = stack_vec()
             bound = bound_vec()
-            stack[0] = 0
-            bound[0] = wp.float64(0.0)
-            sp = int(1)
+            sp = int(0)
+            cur = int(0)
             n_nodes = int(0)
             n_faces = int(0)
-            while sp > 0:
+            if seed >= 0:  # start at the seed's leaf and walk up, opening the siblings
+                leaf = ((seed + 1) * leaves - 1) // num_faces
+                cur = first_leaf + leaf
+                lo = (leaf * num_faces) // leaves
+                hi = ((leaf + 1) * num_faces) // leaves
+                n_faces += hi - lo
+                for k in range(lo, hi):
+                    d2 = face_d2(T, k, qx, qy, qz)
+                    if d2 < best or (d2 == best and k < best_face):
+                        best = d2
+                        best_face = k
+            else:
+                stack[0] = 0
+                bound[0] = wp.float64(0.0)
+                sp = 1
+            while sp > 0 or cur > 0:
+                if sp == 0:
+                    sib = cur + 1
+                    if cur % 2 == 0:
+                        sib = cur - 1
+                    cur = (cur - 1) // 2
+                    l = node_lb2(N, sib, qx, qy, qz)
+                    n_nodes += 1
+                    if l <= best:
+                        stack[0] = sib
+                        bound[0] = l
+                        sp = 1
+                    continue
                 sp -= 1
                 node = stack[sp]
                 if bound[sp] > best:
@@ -352,16 +397,22 @@ def _define_kernels():
                         stack[sp] = c1
                         bound[sp] = l1
                         sp += 1
-            out_face[i] = best_face
+            out_face[i] = slot_face[best_face]
             out_d2[i] = best
             out_work[i, 0] = n_nodes
             out_work[i, 1] = n_faces
             seed = best_face
             if S.shape[0] > 0:
                 finish(T, S, best_face, qx, qy, qz, feature_tol, out_geom, i)
+                # the corner values at the closest point (V: per slot, corners a, b, c one after another)
+                if V.shape[0] > 0:
+                    nv = V.shape[1] // 3
+                    for c in range(nv):
+                        out_values[i, c] = (out_geom[i, 0] * V[best_face, c] + out_geom[i, 1] * V[best_face, nv + c]
+                                            + out_geom[i, 2] * V[best_face, 2 * nv + c])
 
     @wp.kernel
-    def node_cylinders(corners: wp.array2d(dtype=wp.float64), num_faces: int, first_node: int,
+    def node_boxes(corners: wp.array2d(dtype=wp.float64), num_faces: int, first_node: int,
                        out: wp.array2d(dtype=wp.float64), slack: wp.float64):
         # One node per thread: its faces are the sorted range of its level (heap numbering).
         j = wp.tid() + first_node
@@ -410,39 +461,107 @@ def _define_kernels():
             nx = sx / norm
             ny = sy / norm
             nz = sz / norm
-        rho2 = wp.float64(0.0)
+        # an orthonormal frame (n, u0, u1) (Duff et al. 2017, "Building an orthonormal basis,
+        # revisited"), then the principal axes (t1, t2) of the corners' spread across n
+        sgn = wp.float64(1.0)
+        if nz < wp.float64(0.0):
+            sgn = wp.float64(-1.0)
+        aa = wp.float64(-1.0) / (sgn + nz)
+        bb = nx * ny * aa
+        u0x = wp.float64(1.0) + sgn * nx * nx * aa
+        u0y = sgn * bb
+        u0z = -sgn * nx
+        u1x = bb
+        u1y = sgn + ny * ny * aa
+        u1z = -ny
+        sxx = wp.float64(0.0)
+        sxy = wp.float64(0.0)
+        syy = wp.float64(0.0)
+        for k in range(lo, hi):
+            for c in range(3):
+                px = corners[k, 3 * c] - mx
+                py = corners[k, 3 * c + 1] - my
+                pz = corners[k, 3 * c + 2] - mz
+                x = px * u0x + py * u0y + pz * u0z
+                y = px * u1x + py * u1y + pz * u1z
+                sxx += x * x
+                sxy += x * y
+                syy += y * y
+        th = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * sxy, sxx - syy)
+        cs = wp.cos(th)
+        sn = wp.sin(th)
+        t1x = cs * u0x + sn * u1x
+        t1y = cs * u0y + sn * u1y
+        t1z = cs * u0z + sn * u1z
+        t2x = ny * t1z - nz * t1y
+        t2y = nz * t1x - nx * t1z
+        t2z = nx * t1y - ny * t1x
         a_lo = big
         a_hi = -big
+        b_lo = big
+        b_hi = -big
+        c_lo = big
+        c_hi = -big
         for k in range(lo, hi):
             for c in range(3):
                 px = corners[k, 3 * c] - mx
                 py = corners[k, 3 * c + 1] - my
                 pz = corners[k, 3 * c + 2] - mz
                 a = px * nx + py * ny + pz * nz
-                wx = px - a * nx
-                wy = py - a * ny
-                wz = pz - a * nz
-                rho2 = wp.max(rho2, wx * wx + wy * wy + wz * wz)
+                b = px * t1x + py * t1y + pz * t1z
+                cc = px * t2x + py * t2y + pz * t2z
                 a_lo = wp.min(a_lo, a)
                 a_hi = wp.max(a_hi, a)
+                b_lo = wp.min(b_lo, b)
+                b_hi = wp.max(b_hi, b)
+                c_lo = wp.min(c_lo, cc)
+                c_hi = wp.max(c_hi, cc)
         out[j, 0] = mx
         out[j, 1] = my
         out[j, 2] = mz
         out[j, 3] = nx
         out[j, 4] = ny
         out[j, 5] = nz
-        out[j, 6] = wp.sqrt(rho2) + slack
-        out[j, 7] = a_lo - slack
-        out[j, 8] = a_hi + slack
-        out[j, 9] = wp.float64(0.5) * (x1 - x0) + slack
-        out[j, 10] = wp.float64(0.5) * (y1 - y0) + slack
-        out[j, 11] = wp.float64(0.5) * (z1 - z0) + slack
+        out[j, 6] = t1x
+        out[j, 7] = t1y
+        out[j, 8] = t1z
+        out[j, 9] = t2x
+        out[j, 10] = t2y
+        out[j, 11] = t2z
+        out[j, 12] = a_lo - slack
+        out[j, 13] = a_hi + slack
+        out[j, 14] = b_lo - slack
+        out[j, 15] = b_hi + slack
+        out[j, 16] = c_lo - slack
+        out[j, 17] = c_hi + slack
+        out[j, 18] = wp.float64(0.5) * (x1 - x0) + slack
+        out[j, 19] = wp.float64(0.5) * (y1 - y0) + slack
+        out[j, 20] = wp.float64(0.5) * (z1 - z0) + slack
 
-    return wp, nearest_faces, node_cylinders
+    return wp, nearest_faces, node_boxes
+
+
+class NearestFaces(NamedTuple):
+    """What :meth:`FaceBVH.query` finds for M points."""
+
+    face: torch.Tensor
+    """(M,) long: the nearest face (a row of the tree's ``faces``)."""
+    d2: torch.Tensor
+    """(M,) float64: the squared distance to it."""
+    work: torch.Tensor
+    """(M, 2) int32: node bounds and faces tested per point."""
+    geom: torch.Tensor | None
+    """(M, 8) float64 with the tree's ``normals``: barycentrics (in ``faces`` corner order),
+    closest point, distance, signed distance, as
+    :func:`~garmentnerf.geometry.triangles.closest_point_on_triangles` and the pseudo-normal sign
+    of :mod:`~garmentnerf.geometry.projection` give them; else None."""
+    values: torch.Tensor | None
+    """(M, C) float64 with ``normals`` and ``corner_values``: the corner values interpolated at the
+    closest point; else None."""
 
 
 class FaceBVH:
-    """The cylinder tree of one posed frame (see the module docstring).
+    """The oriented-box tree of one posed frame (see the module docstring).
 
     Args:
         vertices: (V, 3) float64 posed vertices (CPU).
@@ -454,17 +573,21 @@ class FaceBVH:
             on a reference pose; default: computed here from ``vertices``. Any order gives the
             same exact answers (up to ties); one that groups faces that are near each other in
             this pose gives tighter bounds and a faster search.
+        corner_values: (F, 3, C) values at the corners of every face (e.g. canonical positions and
+            UVs), interpolated at every closest point when ``normals`` is given.
     Attributes:
         order: (F,) the face of every sorted slot (the kernel's face numbering).
-        depth: the level of the leaves (``2^depth`` leaves of one or two faces).
+        depth: the level of the leaves (``2^depth`` leaves of two or three faces).
     """
 
     def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, order: torch.Tensor | None = None,
-                 normals: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None = None):
+                 normals: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                 corner_values: torch.Tensor | None = None):
         F = faces.shape[0]
         self.num_faces = F
         self.depth = tree_depth(F)
         self.order = tree_order(vertices, faces) if order is None else order
+        self.slot_face = self.order.to(torch.int32).contiguous()
         faces_s = faces[self.order]
         corners = vertices[faces_s]  # (F, 3, 3)
         table, degenerate = face_frame_table(vertices, faces_s)
@@ -474,7 +597,7 @@ class FaceBVH:
         T[:, 22:25] = corners[:, 2]
         T[:, 25] = degenerate.to(torch.float64)
         self.face_table = T.contiguous()
-        self.node_table = _node_cylinders(corners, self.depth)
+        self.node_table = _node_boxes(corners, self.depth)
         if normals is None:
             self.sign_table = torch.zeros(0, 21, dtype=torch.float64)
         else:
@@ -482,61 +605,74 @@ class FaceBVH:
             o = self.order
             self.sign_table = torch.cat([face_n[o], edge_n[face_edges[o]].reshape(F, 9),
                                          vertex_n[faces_s].reshape(F, 9)], dim=1).to(torch.float64).contiguous()
+        if corner_values is None:
+            self.value_table = torch.zeros(0, 0, dtype=torch.float64)
+        else:
+            if corner_values.ndim != 3 or corner_values.shape[:2] != (F, 3):
+                raise ValueError(f"corner_values must be (F={F}, 3, C), got {tuple(corner_values.shape)}")
+            self.value_table = corner_values[self.order].to(torch.float64).reshape(F, -1).contiguous()
 
-    def query(self, points: torch.Tensor, threads: int = 1
-              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """The nearest face of every point of ``points`` (M, 3) float64, walked in the given
-        order (put nearby points next to each other).
+    def query(self, points: torch.Tensor, threads: int = 1, walk_order: torch.Tensor | None = None,
+              chunk_size: int = DEFAULT_CHUNK_SIZE) -> "NearestFaces":
+        """The nearest face of every point of ``points`` (M, 3) float64.
 
         Args:
-            threads: kernel launches run at once on slices of the points (warp's CPU kernels
-                are serial; a launch releases the GIL).
+            threads: kernel launches run at once on slices of the walk (warp's CPU kernels are
+                serial; a launch releases the GIL).
+            walk_order: (M,) the rows of ``points`` in the order to walk them (put nearby points
+                next to each other: see the module docstring); default: as given.
+            chunk_size: points walked per round of launches; a Ctrl-C acts between rounds.
         Returns:
-            (M,) face index (of the original ``faces``), (M,) float64 squared distance, (M, 2)
-            int32 work: bounds tested and faces tested per point, and with ``normals`` (M, 8)
-            float64: barycentrics (in ``faces`` corner order), closest point, distance, signed
-            distance, as :func:`~garmentnerf.geometry.triangles.closest_point_on_triangles` and
-            the pseudo-normal sign of :mod:`~garmentnerf.geometry.projection` give them (else None).
+            :class:`NearestFaces`, in the rows of ``points``.
         """
         wp, kernel, _ = _kernels()
         M = points.shape[0]
         pts = points.to(torch.float64).contiguous()
+        rows = torch.arange(M) if walk_order is None else walk_order.to(torch.int64).contiguous()
+        if rows.shape != (M,):
+            raise ValueError(f"walk_order must hold the {M} rows of points, got shape {tuple(rows.shape)}")
         face = torch.empty(M, dtype=torch.int32)
         d2 = torch.empty(M, dtype=torch.float64)
         work = torch.empty(M, 2, dtype=torch.int32)
         solve = self.sign_table.shape[0] > 0
         geom = torch.empty(M if solve else 0, 8, dtype=torch.float64)
-        blocks = (M + BLOCK - 1) // BLOCK
-        tables = (wp.from_torch(self.face_table, dtype=wp.float64), wp.from_torch(self.node_table, dtype=wp.float64))
+        values = torch.empty(M if solve else 0, self.value_table.shape[1] // 3, dtype=torch.float64)
+        points_wp = wp.from_torch(pts, dtype=wp.float64)
+        tables = [wp.from_torch(self.face_table, dtype=wp.float64), wp.from_torch(self.node_table, dtype=wp.float64),
+                  wp.from_torch(self.slot_face, dtype=wp.int32), (1 << self.depth) - 1, self.num_faces]
+        outputs = [wp.from_torch(face, dtype=wp.int32), wp.from_torch(d2, dtype=wp.float64),
+                   wp.from_torch(work, dtype=wp.int32), wp.from_torch(self.sign_table, dtype=wp.float64),
+                   FEATURE_TOL, wp.from_torch(geom, dtype=wp.float64),
+                   wp.from_torch(self.value_table, dtype=wp.float64), wp.from_torch(values, dtype=wp.float64)]
 
-        def launch(b0: int, b1: int) -> None:
-            r0, r1 = b0 * BLOCK, min(b1 * BLOCK, M)
-            wp.launch(kernel, dim=b1 - b0, device="cpu",
-                      inputs=[wp.from_torch(pts[r0:r1], dtype=wp.float64), *tables, (1 << self.depth) - 1,
-                              self.num_faces, r1 - r0, BLOCK],
-                      outputs=[wp.from_torch(face[r0:r1], dtype=wp.int32), wp.from_torch(d2[r0:r1], dtype=wp.float64),
-                               wp.from_torch(work[r0:r1], dtype=wp.int32),
-                               wp.from_torch(self.sign_table, dtype=wp.float64), FEATURE_TOL,
-                               wp.from_torch(geom[r0:r1] if solve else geom, dtype=wp.float64)])
+        def launch(w0: int, w1: int) -> None:  # walks rows[w0:w1]
+            wp.launch(kernel, dim=(w1 - w0 + BLOCK - 1) // BLOCK, device="cpu",
+                      inputs=[points_wp, wp.from_torch(rows[w0:w1], dtype=wp.int64), *tables, w1 - w0, BLOCK],
+                      outputs=outputs)
 
-        threads = max(1, min(int(threads), blocks // _MIN_BLOCKS_PER_THREAD))
-        if M == 0:
-            pass
-        elif threads == 1 or not _loaded:
-            with _load_lock:
-                launch(0, blocks)
-                _loaded.append(True)
-        else:
-            cuts = [blocks * i // threads for i in range(threads + 1)]
-            jobs = [_pool(threads).submit(launch, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
-            for job in jobs:
-                job.result()
-        return self.order[face.long()], d2, work, (geom if solve else None)
+        for c0 in range(0, M, max(1, int(chunk_size))):
+            c1 = min(c0 + max(1, int(chunk_size)), M)
+            blocks = (c1 - c0 + BLOCK - 1) // BLOCK
+            n_launches = max(1, min(int(threads) * _LAUNCHES_PER_THREAD, blocks // _MIN_BLOCKS_PER_LAUNCH))
+            with deferred_interrupts():  # the kernel threads must finish before a Ctrl-C acts
+                if threads <= 1 or n_launches == 1 or not _loaded:
+                    with _load_lock:
+                        launch(c0, c1)
+                        _loaded.append(True)
+                else:
+                    cuts = [c0 + min(c1 - c0, BLOCK * (blocks * i // n_launches)) for i in range(n_launches + 1)]
+                    pool = _pool(min(int(threads), n_launches))
+                    jobs = [pool.submit(launch, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+                    for job in jobs:
+                        job.result()
+        return NearestFaces(face.long(), d2, work, geom if solve else None,
+                            values if solve and self.value_table.shape[0] > 0 else None)
 
 
 def tree_depth(num_faces: int) -> int:
-    """Level of the leaves: ``2^depth <= F < 2^(depth + 1)``, so leaves hold one or two faces."""
-    return max(0, int(num_faces).bit_length() - 1)
+    """Level of the leaves: ``2^(depth + 1) <= F < 2^(depth + 2)``, so leaves hold two or three
+    faces (one or more for F < 4)."""
+    return max(0, int(num_faces).bit_length() - 2)
 
 
 def tree_order(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -569,10 +705,11 @@ def _median_split_order(centroids: torch.Tensor, depth: int) -> torch.Tensor:
     return order
 
 
-def _node_cylinders(corners: torch.Tensor, depth: int) -> torch.Tensor:
-    """(2^(depth+1) - 1, 12) the bounds of every node (heap order) from the corners (F, 3, 3) of the
-    sorted faces: centre, unit axis, radius, slab [a_lo, a_hi] of the cylinder; half extents of the
-    box around the same centre."""
+def _node_boxes(corners: torch.Tensor, depth: int) -> torch.Tensor:
+    """(2^(depth+1) - 1, 21) the bounds of every node (heap order) from the corners (F, 3, 3) of the
+    sorted faces: the centre m of the corners' box; the oriented box's axes n (the mean normal),
+    t1, t2 (the principal directions of the corners across n); its intervals [lo, hi] of the
+    corners' heights about m along n, t1, t2; the axis-aligned box's half extents around m."""
     wp, _, kernel = _kernels()
     num_nodes = (1 << (depth + 1)) - 1
     out = torch.empty(num_nodes, _NODE_COLUMNS, dtype=torch.float64)

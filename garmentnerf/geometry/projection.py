@@ -14,20 +14,24 @@ Usage::
     canonical = projector.interpolate(template_vertices, proj.face, proj.bary)
     uv = interpolate(uv_coords, uv_faces, proj.face, proj.bary)
 
+or, with values per face corner given once (``SurfaceProjector(..., corner_values=...)``),
+``proj.values`` holds them interpolated by the search kernel itself.
+
 How the exact search stays cheap
 --------------------------------
 Each posed frame gets a bounding-volume hierarchy over its faces (:mod:`~garmentnerf.geometry.face_bvh`):
-a complete binary tree of median splits down to leaves of one or two faces, every node bounded by
-a thin cylinder around its faces' mean normal. A native kernel (warp, on the CPU) walks it depth
-first for every point, the nearer child first, and skips a node when its cylinder (or, high in
-the tree where a node is a tube rather than a patch, its axis-aligned box) is farther
-than the best face found: the answer is the exact nearest face (in float64), with nothing to
-certify or retry. Oriented cylinders hug a patch of skin, so a point tens of centimetres off the
-body opens only the nodes around its foot point, where an axis-aligned box (the scipy KD-tree of
-vertices this replaced) sticks out of the surface by its own size and lets the point's distance
-ball reach far more of them. The points are walked in Morton order, each starting from the face
-of the point before it (samples along a ray share their neighbourhood); ``stats`` counts the
-bounds and faces tested.
+a complete binary tree of median splits down to leaves of two or three faces, every node bounded
+by a box oriented along its faces' mean normal and their principal directions across it (and,
+where that is tighter, high in the tree, its axis-aligned box). A native kernel (warp, on the
+CPU) walks it for every point and skips a node when its box is farther than the best face found:
+the answer is the exact nearest face (in float64), with nothing to certify or retry. Oriented
+boxes hug a patch of skin, so a point tens of centimetres off the body opens only the nodes
+around its foot point, where an axis-aligned box (the scipy KD-tree of vertices this replaced)
+sticks out of the surface by its own size and lets the point's distance ball reach far more of
+them. The points are walked in Morton order, each starting at the leaf of the face of the point
+before it and walking up (samples along a ray share their neighbourhood); the kernel writes every
+answer to its point's own row, with the projector's ``corner_values`` (the body's canonical
+position and UV) interpolated there too; ``stats`` counts the bounds and faces tested.
 
 The tree's face order is computed once per topology when a reference pose is given
 (``reference_vertices``, the body's template), else on every :meth:`SurfaceProjector.bind`;
@@ -56,9 +60,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from garmentnerf.geometry.face_bvh import FaceBVH, tree_order
+from garmentnerf.geometry.face_bvh import DEFAULT_CHUNK_SIZE, FaceBVH, tree_order
 from garmentnerf.geometry.triangles import check_points, interpolate, pseudo_normals
-from garmentnerf.interrupts import deferred_interrupts
 
 __all__ = [
     "check_search_dtype",
@@ -68,8 +71,6 @@ __all__ = [
     "DEFAULT_CHUNK_SIZE",
 ]
 
-#: Points processed at once; bounds the memory of the float64 re-solve of the winners.
-DEFAULT_CHUNK_SIZE = 65536
 
 
 def check_search_dtype(vertices: torch.Tensor, num_vertices: int, dtype: torch.dtype | None) -> torch.dtype:
@@ -96,6 +97,8 @@ class SurfaceProjection:
         closest: (N, 3) the closest point.
         distance: (N,) unsigned distance ``|x - closest|``.
         signed_distance: (N,) the same distance, negative inside the surface, positive outside.
+        values: (N, C) the projector's ``corner_values`` interpolated at the closest point (None
+            without them).
     """
 
     face: torch.Tensor
@@ -103,13 +106,14 @@ class SurfaceProjection:
     closest: torch.Tensor
     distance: torch.Tensor
     signed_distance: torch.Tensor
+    values: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.face.shape[0])
 
     def to(self, device) -> "SurfaceProjection":
-        return SurfaceProjection(*(getattr(self, f).to(device) for f in
-                                   ("face", "bary", "closest", "distance", "signed_distance")))
+        return SurfaceProjection(*(None if getattr(self, f) is None else getattr(self, f).to(device) for f in
+                                   ("face", "bary", "closest", "distance", "signed_distance", "values")))
 
 
 class SurfaceProjector:
@@ -130,10 +134,15 @@ class SurfaceProjector:
             the template); None: each :meth:`bind` computes it on its own frame (a few tens of
             ms more per frame, a slightly tighter tree).
         threads: kernel launches run at once per query (default: torch's thread count).
+        corner_values: (F, 3, C) values at every face's corners that do not change with the pose
+            (e.g. canonical positions, UVs): every projection also returns them interpolated at
+            the closest point (``SurfaceProjection.values``, in float64 in the search kernel:
+            what :func:`interpolate` gives, without its gathers).
     """
 
     def __init__(self, faces: torch.Tensor | np.ndarray, num_vertices: int, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
-                 reference_vertices: torch.Tensor | None = None, threads: int | None = None):
+                 reference_vertices: torch.Tensor | None = None, threads: int | None = None,
+                 corner_values: torch.Tensor | None = None):
         if not isinstance(faces, torch.Tensor):
             faces = np.asarray(faces)
             if faces.dtype.kind not in "iu":
@@ -153,8 +162,11 @@ class SurfaceProjector:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be positive, got {threads}")
+        if corner_values is not None and (corner_values.ndim != 3 or corner_values.shape[:2] != (faces.shape[0], 3)):
+            raise ValueError(f"corner_values must be (F={faces.shape[0]}, 3, C), got {tuple(corner_values.shape)}")
         self.faces = faces
         self.num_vertices = int(num_vertices)
+        self.corner_values = None if corner_values is None else corner_values.detach().to("cpu", torch.float64)
         self.chunk_size = int(chunk_size)
         self.threads = threads
         self.tree_order = None
@@ -239,7 +251,7 @@ class PosedSurface:
         self._face_normals, self._edge_normals, self._vertex_normals = pseudo_normals(
             v64, F, P._face_edges, P.num_edges, cross, cross.norm(dim=1))
         self._tree = FaceBVH(v64, F, P.tree_order, (self._face_normals, self._edge_normals, self._vertex_normals,
-                                                    P._face_edges))
+                                                    P._face_edges), P.corner_values)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -260,36 +272,21 @@ class PosedSurface:
         if stats is not None:
             stats.update(points=N, pairs=0, bounds=0)
         q_all = points.detach().to("cpu", torch.float64)
-        # Nearby queries in a row: each starts from its predecessor's face, and the tree walk
-        # and the table reads stay in cache.
-        order = _spatial_order(q_all)
-        q_all = q_all[order]
-        face = torch.empty(N, dtype=torch.long)
-        bary = torch.empty(N, 3, dtype=self.dtype)
-        closest = torch.empty(N, 3, dtype=self.dtype)
-        dist = torch.empty(N, dtype=self.dtype)
-        signed = torch.empty(N, dtype=self.dtype)
-        chunk = self.projector.chunk_size
         threads = self.projector.threads or min(torch.get_num_threads(), os.cpu_count() or 1)
         with torch.no_grad():
-            for s in range(0, N, chunk):
-                q64 = q_all[s:s + chunk]
-                rows = order[s:s + chunk]
-                with deferred_interrupts():  # the kernel threads must finish before a Ctrl-C acts
-                    f, _, work, geom = self._tree.query(q64, threads)
-                if stats is not None:
-                    totals = work.sum(dim=0, dtype=torch.int64)
-                    stats["bounds"] += int(totals[0])
-                    stats["pairs"] += int(totals[1])
-                # The kernel solved the winner in full, in float64 (closest_point_on_triangles and
-                # _sign, ported): its barycentrics pick the sign's feature (face / edge / corner).
-                geom = geom.to(self.dtype)
-                face[rows] = f
-                bary[rows] = geom[:, 0:3]
-                closest[rows] = geom[:, 3:6]
-                dist[rows] = geom[:, 6]
-                signed[rows] = geom[:, 7]
-        out = SurfaceProjection(face, bary, closest, dist, signed)
+            # Nearby queries in a row: each starts from its predecessor's face, and the tree walk
+            # and the table reads stay in cache. The kernel solves the winner in full, in float64
+            # (closest_point_on_triangles and _sign, ported), and writes every point's own row.
+            found = self._tree.query(q_all, threads, walk_order=_spatial_order(q_all),
+                                     chunk_size=self.projector.chunk_size)
+            if stats is not None:
+                totals = found.work.sum(dim=0, dtype=torch.int64)
+                stats["bounds"] += int(totals[0])
+                stats["pairs"] += int(totals[1])
+            bary, closest, dist, signed = (found.geom[:, cols].to(self.dtype, copy=True)
+                                           for cols in (slice(0, 3), slice(3, 6), 6, 7))
+            values = None if found.values is None else found.values.to(self.dtype)
+        out = SurfaceProjection(found.face, bary, closest, dist, signed, values)
         return out if device.type == "cpu" else out.to(device)
 
 

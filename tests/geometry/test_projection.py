@@ -231,6 +231,59 @@ def test_projection_tiny_chunks_and_threads_agree():
     assert_exact_distances(mesh, points, one.distance.double().numpy(), atol=1e-5)
 
 
+def test_the_walk_order_changes_neither_answers_nor_rows():
+    """Each point starts at the leaf of the face of the point walked before it: a random walk, the
+    reversed Morton walk and no order at all give the same face and bit-identical results in every
+    point's own row, and the Morton walk, starting near the answer, tests fewer bounds."""
+    from garmentnerf.geometry import face_bvh
+    from garmentnerf.geometry.projection import _spatial_order
+
+    mesh = torus_mesh()
+    V = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
+    F = torch.as_tensor(np.asarray(mesh.faces))
+    points = torch.as_tensor(near_and_far_points(mesh, n_near=6000, n_far=1000, band=0.1, far=1.0, seed=21))
+    posed = SurfaceProjector(F, V.shape[0]).bind(V, torch.float64)
+    tree = face_bvh.FaceBVH(V, F, normals=(posed._face_normals, posed._edge_normals, posed._vertex_normals,
+                                           posed.projector._face_edges))
+    morton = _spatial_order(points)
+    ref = tree.query(points, walk_order=morton)
+    assert ref.values is None
+    for order in (torch.randperm(len(points), generator=torch.Generator().manual_seed(0)), morton.flip(0), None):
+        other = tree.query(points, walk_order=order, chunk_size=999)
+        assert torch.equal(other.face, ref.face) and torch.equal(other.d2, ref.d2) and torch.equal(other.geom, ref.geom)
+    random_walk = tree.query(points, walk_order=torch.randperm(len(points), generator=torch.Generator().manual_seed(1)))
+    assert ref.work[:, 0].double().mean() < 0.8 * random_walk.work[:, 0].double().mean()
+    assert_exact_distances(mesh, points.numpy(), ref.d2.sqrt().numpy(), atol=1e-10)
+    with pytest.raises(ValueError, match="walk_order"):
+        tree.query(points, walk_order=morton[:-1])
+
+
+def test_corner_values_are_interpolated_at_the_closest_point():
+    """The kernel's interpolation of per-corner values (the body's canonical position and UV)
+    equals :func:`interpolate` on the face and barycentrics it returns, and a value given per
+    corner (discontinuous across faces, like a UV seam) is read from the winning face's corners."""
+    mesh = MESHES["icosphere"]()
+    V = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
+    F = torch.as_tensor(np.asarray(mesh.faces))
+    points = torch.as_tensor(near_and_far_points(mesh, n_near=3000, n_far=300, band=0.1, far=1.0, seed=22))
+    g = torch.Generator().manual_seed(0)
+    per_vertex = torch.rand(V.shape[0], 3, generator=g, dtype=torch.float64)
+    per_corner = torch.rand(F.shape[0], 3, 2, generator=g, dtype=torch.float64)  # its own value at each face's corner
+    corner_values = torch.cat([per_vertex[F], per_corner], dim=2)
+    for dtype in (torch.float64, torch.float32):
+        proj = SurfaceProjector(F, V.shape[0], corner_values=corner_values).bind(V, dtype).project(points.to(dtype))
+        bary = proj.bary.double()
+        expected_vertex = interpolate(per_vertex, F, proj.face, bary)
+        expected_corner = (per_corner[proj.face] * bary.unsqueeze(-1)).sum(1)
+        atol = 1e-12 if dtype == torch.float64 else 1e-6
+        assert proj.values.dtype == dtype
+        torch.testing.assert_close(proj.values[:, :3].double(), expected_vertex, rtol=0, atol=atol)
+        torch.testing.assert_close(proj.values[:, 3:].double(), expected_corner, rtol=0, atol=atol)
+    assert SurfaceProjector(F, V.shape[0]).bind(V).project(points.float()).values is None
+    with pytest.raises(ValueError, match="corner_values"):
+        SurfaceProjector(F, V.shape[0], corner_values=corner_values[:-1])
+
+
 def test_projection_on_the_medial_axis():
     # On the axis of a torus the whole inner equator is equidistant: every face of the inner
     # ring is a candidate and the walk opens most of the tree; the answer stays exact.
@@ -381,9 +434,11 @@ def test_kernel_solve_matches_closest_point_on_triangles():
 
 @pytest.mark.parametrize("name", ["icosphere", "torus"])
 def test_every_node_bound_is_below_the_distance_to_its_faces(name):
-    """The walk skips a node when its bound (the larger of the cylinder's and the box's distance)
-    exceeds the best distance found: the bound, computed here from the node table in numpy, must
-    never exceed the true distance from a point to the node's faces (trimesh, brute force)."""
+    """The walk skips a node when its bound (the larger of the oriented box's and the axis-aligned
+    box's distance) exceeds the best distance found: the bound, computed here from the node table
+    in numpy, must never exceed the true distance from a point to the node's faces (trimesh, brute
+    force), the oriented box's axes must be orthonormal with the first along the faces' summed
+    area vector, and each box must hold every corner of its faces."""
     from garmentnerf.geometry.face_bvh import FaceBVH
 
     mesh = MESHES[name]()
@@ -394,21 +449,30 @@ def test_every_node_bound_is_below_the_distance_to_its_faces(name):
     order = tree.order.numpy()
     points = near_and_far_points(mesh, n_near=300, n_far=100, band=0.3, far=0.5, seed=3)
     rng = np.random.default_rng(0)
-    box_tighter = cylinder_tighter = False
+    aligned_tighter = oriented_tighter = False
     for level in (1, 3, 5, tree.depth):
         n = 1 << level
         for idx in rng.choice(n, size=min(n, 6), replace=False):
             j = n - 1 + idx
             lo, hi = (idx * len(order)) // n, ((idx + 1) * len(order)) // n
-            sub = trimesh.Trimesh(mesh.vertices, mesh.faces[order[lo:hi]], process=False)
+            node_faces = mesh.faces[order[lo:hi]]
+            axes = N[j, 3:12].reshape(3, 3)  # rows n, t1, t2
+            np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-12)
+            area_vector = mesh.area_faces[order[lo:hi]] @ mesh.face_normals[order[lo:hi]]
+            np.testing.assert_allclose(axes[0], area_vector / np.linalg.norm(area_vector), atol=1e-9)
+            corners = np.asarray(mesh.vertices)[node_faces.reshape(-1)] - N[j, 0:3]
+            heights = corners @ axes.T
+            spread = heights[:, 1:].T @ heights[:, 1:]  # t1, t2: the principal directions across n (about m)
+            assert abs(spread[0, 1]) <= 1e-9 * spread.trace() + 1e-15
+            assert (heights >= N[j, 12:18:2]).all() and (heights <= N[j, 13:18:2]).all()
+            assert (np.abs(corners) <= N[j, 18:21]).all()
+            sub = trimesh.Trimesh(mesh.vertices, node_faces, process=False)
             _, true_d, _ = trimesh.proximity.closest_point(sub, points)
-            p = points - N[j, 0:3]
-            a = p @ N[j, 3:6]
-            r = np.linalg.norm(p - a[:, None] * N[j, 3:6], axis=1)
-            cyl = np.maximum(r - N[j, 6], 0) ** 2 + np.maximum(np.maximum(N[j, 7] - a, a - N[j, 8]), 0) ** 2
-            box = (np.maximum(np.abs(p) - N[j, 9:12], 0) ** 2).sum(axis=1)
-            bound = np.maximum(cyl, box)
+            a = (points - N[j, 0:3]) @ axes.T
+            oriented = (np.maximum(np.maximum(N[j, 12:18:2] - a, a - N[j, 13:18:2]), 0) ** 2).sum(axis=1)
+            aligned = (np.maximum(np.abs(points - N[j, 0:3]) - N[j, 18:21], 0) ** 2).sum(axis=1)
+            bound = np.maximum(oriented, aligned)
             assert (bound <= true_d ** 2 + 1e-12).all(), (level, idx)
-            box_tighter |= bool((box > cyl).any())
-            cylinder_tighter |= bool((cyl > box).any())
-    assert box_tighter and cylinder_tighter  # each bound is the larger one somewhere
+            aligned_tighter |= bool((aligned > oriented).any())
+            oriented_tighter |= bool((oriented > aligned).any())
+    assert aligned_tighter and oriented_tighter  # each bound is the larger one somewhere
