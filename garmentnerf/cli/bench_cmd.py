@@ -7,6 +7,9 @@ With ``--run DIR``: every render preset on the run's model, then playback figure
 the previewer's render-ahead among them (``playback.render_ahead``, ``playback.completed_share``:
 :mod:`garmentnerf.viewer.playback_bench`; ``--playback-frames`` limits the clip).
 ``--plot`` draws ms/frame (log) against PSNR per preset (:func:`garmentnerf.perf.plot.write_plot`).
+``--against RUN`` renders every preset with another run's model too, taking turns view by view, and
+prints ``--run``'s speed-up over it per preset with the PSNR difference (e.g. a new bundled model
+against the one it replaces, kept outside the repo).
 
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
 side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`);
@@ -69,8 +72,9 @@ def register(sub) -> None:
                         "every step, the perceptual loss backpropagated into its target, its first convolution and blur "
                         "run one after the other), taking turns with the others")
     p.add_argument("--against", action="append", default=[], metavar="RUN",
-                   help="with --training: also time this run folder's recipe (repeatable), taking turns with --run's, "
-                        "and print each one's step over --run's")
+                   help="with --run: also measure this run folder's model (repeatable), taking turns with --run's, and "
+                        "print --run's speed-up over it: each render preset (its PSNR beside), or with --training each "
+                        "one's step over --run's")
     p.add_argument("--occupancy", type=int, default=None, metavar="STEPS",
                    help="with --run: train the run's recipe from scratch on the occupancy term alone (the geometry "
                         "warm-up, nothing rendered) for STEPS steps and print how its density fits the simulated "
@@ -105,9 +109,6 @@ def _run_training_bench(args: argparse.Namespace) -> int:
         raise ValueError(f"--precisions {args.precisions}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
     if args.steps < 3 or args.rounds < 1:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
-    for run in args.against:
-        if not (Path(run) / "run.json").is_file():
-            raise ValueError(f"--against {run}: not a run folder (no run.json)")
     results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, before=args.before,
                                  against=args.against, log=print)
     machine = results["machine"]
@@ -160,8 +161,11 @@ def run_bench(args: argparse.Namespace) -> int:
         raise ValueError("--plot needs --run")
     if getattr(args, "training", False) and (not getattr(args, "run", None) or getattr(args, "plot", None)):
         raise ValueError("--training needs --run (and draws no --plot)")
-    if getattr(args, "against", None) and not getattr(args, "training", False):
-        raise ValueError("--against needs --training")
+    if getattr(args, "against", None) and (not getattr(args, "run", None) or getattr(args, "occupancy", None) is not None):
+        raise ValueError("--against needs --run (and no --occupancy)")
+    for run in getattr(args, "against", None) or []:
+        if not (Path(run) / "run.json").is_file():
+            raise ValueError(f"--against {run}: not a run folder (no run.json)")
     occupancy = getattr(args, "occupancy", None)
     if occupancy is not None:
         if not getattr(args, "run", None) or getattr(args, "training", False) or getattr(args, "plot", None):
@@ -184,8 +188,15 @@ def run_bench(args: argparse.Namespace) -> int:
         presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
         results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
                                    sequence=args.sequence, playback_frames=args.playback_frames,
-                                   render_ahead=render_ahead_benchmark)
+                                   render_ahead=render_ahead_benchmark, against=args.against)
         _print_presets(results)
+        for other in results.get("against", []):
+            for row in other["presets"]:
+                name = row["preset"]
+                delta = results["psnr_vs_against_db"][other["run"]][name]
+                print(f"  {name:12s} {results['speedup_vs_against'][other['run']][name]:5.2f}x the speed of "
+                      f"{other['run']}'s ({row['ms_per_frame']:.1f} ms/frame)"
+                      + (f", PSNR {delta:+.2f} dB" if delta is not None else ""))
         ahead, share = results["playback"]["render_ahead"], results["playback"]["completed_share"]
         print(f"render-ahead of {ahead['frames']} frames at {ahead['fps']:g} fps, still {ahead['camera'][0]}x"
               f"{ahead['camera'][1]} camera; completed share of started renders "

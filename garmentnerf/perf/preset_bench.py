@@ -78,7 +78,7 @@ def _pick(items, count):
 
 def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, repeats: int = 2,
                      sequence: str | None = None, gl_context=None, log=print, playback_frames: int = 24,
-                     render_ahead=None) -> dict:
+                     render_ahead=None, against=()) -> dict:
     """Measure every preset on a run (see the module docstring) through
     :class:`~garmentnerf.render.session.RenderSession`, the path every command renders with.
 
@@ -97,8 +97,14 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             ``completed_share`` (the CLI passes
             :func:`garmentnerf.viewer.playback_bench.render_ahead_benchmark`; it lives with the
             viewer it drives, above this layer); None: not measured.
+        against: other run folders (e.g. the model a new one replaces) whose presets are measured
+            the same way in the same process, each preset's views taking turns with ``run_dir``'s,
+            so that their ratios compare like with like (a busy machine slows both alike).
     Returns:
-        A JSON-ready dict (``presets``: one row per preset; ``playback``).
+        A JSON-ready dict (``presets``: one row per preset; ``playback``; ``previewer_view``;
+        with ``against``: ``against`` (``[{"run", "step", "presets": [row]}]``), and per other
+        run and preset ``speedup_vs_against`` (its ms per frame over ``run_dir``'s) and
+        ``psnr_vs_against_db`` (``run_dir``'s PSNR minus its)).
     """
     for name, value in (("frames", frames), ("views", views), ("repeats", repeats),
                         ("playback-frames", playback_frames)):
@@ -107,51 +113,99 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
     chosen = _chosen_presets(presets)
     own_ctx = gl_context is None
     ctx = create_context(headless=True) if own_ctx else gl_context
-    run = load_run(run_dir)
-    cfg = run.config
-    images = session = None
+    measured: list[_MeasuredRun] = []
     try:
-        session = RenderSession(run, ctx, sequence)
-        motion, seq = session.motion, session.sequence
-        frame_ids = _pick(list(range(session.num_frames)), frames)
-        split, cams = _measured_views(run, views)
-        if run.scene is not None and seq is not None:
-            images = SceneImages(run.scene, renderer=GroundTruthRenderer(ctx), body_model=session.body)
-        band = session.height_range
-        log(f"run {run_dir}: step {run.step}, {cfg.feature_image_resolution}^2 rays x {cfg.samples_per_ray} samples, "
-            f"MLP {cfg.mlp_depth}x{cfg.mlp_width}; motion {motion.name} frames {frame_ids}; "
-            f"{len(cams)} '{split}' views; height band [{band.h_min:.3f}, {band.h_max:.3f}] m ({band.source})")
-        frame_timings = _frame_stage_timings(session, frame_ids)
-        gts = {} if images is None else {(f, c.name): images.image(seq, c.name, f)[0] for f in frame_ids for c in cams}
-        results = []
+        for path in (run_dir, *against):
+            measured.append(_MeasuredRun.open(path, ctx, sequence, frames, views, log))
+        main = measured[0]
         for preset in chosen:
-            per_view = _measure_views(session, preset, frame_ids, cams, repeats, frame_timings, gts)
-            row = _preset_row(preset, cfg, per_view)
-            results.append(row)
-            log(f"  {preset.name:12s} {row['ms_per_frame']:9.1f} ms/frame (render {row['render_ms']:8.1f} ms)  "
-                f"{row['points_per_frame']:>10,.0f} points" + (f"  PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f}"
-                                                              if row["psnr"] is not None else ""))
-        _add_reference_ratios(results)
-        playback = playback_benchmark(session, cams[0].camera, chosen, playback_frames, log=log)
+            for m in measured:  # taking turns, preset by preset
+                row = _preset_row(preset, m.run.config, _measure_views(m.session, preset, m.frame_ids, m.cams, repeats,
+                                                                       m.frame_timings, m.gts))
+                m.rows.append(row)
+                log(f"  {preset.name:12s} {row['ms_per_frame']:9.1f} ms/frame (render {row['render_ms']:8.1f} ms)  "
+                    f"{row['points_per_frame']:>10,.0f} points" + (f"  PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f}"
+                                                                  if row["psnr"] is not None else "")
+                    + (f"  [{m.path}]" if against else ""))
+        for m in measured:
+            _add_reference_ratios(m.rows)
+        session, cfg = main.session, main.run.config
+        playback = playback_benchmark(session, main.cams[0].camera, chosen, playback_frames, log=log)
         if render_ahead is not None:
-            ahead = render_ahead(run, sequence, chosen, playback_frames, ctx, log=log)
+            ahead = render_ahead(main.run, sequence, chosen, playback_frames, ctx, log=log)
             playback["completed_share"] = ahead.pop("completed_share")
             playback["render_ahead"] = ahead
-        previewer = previewer_view_benchmark(session, frame_ids[0], log=log)
-        return {"kind": "preset_benchmark", "run": str(run_dir), "step": run.step, "created": time.strftime("%Y-%m-%d %H:%M:%S"),
-                "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)}, "torch_threads": torch.get_num_threads(),
-                "model": {k: getattr(cfg, k) for k in ("image_resolution", "feature_image_resolution", "samples_per_ray",
-                                                          "mlp_depth", "mlp_width", "appearance_dim")},
-                "motion": motion.name, "sequence": seq, "frames": frame_ids, "cameras": [c.name for c in cams],
-                "camera_split": split, "ground_truth": images is not None, "height_range": band.to_dict(),
-                "presets": results, "playback": playback, "previewer_view": previewer}
+        previewer = previewer_view_benchmark(session, main.frame_ids[0], log=log)
+        results = {"kind": "preset_benchmark", "run": str(run_dir), "step": main.run.step,
+                   "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+                   "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)},
+                   "torch_threads": torch.get_num_threads(),
+                   "model": {k: getattr(cfg, k) for k in ("image_resolution", "feature_image_resolution",
+                                                             "samples_per_ray", "mlp_depth", "mlp_width",
+                                                             "appearance_dim")},
+                   "motion": session.motion.name, "sequence": session.sequence, "frames": main.frame_ids,
+                   "cameras": [c.name for c in main.cams], "camera_split": main.split,
+                   "ground_truth": main.images is not None, "height_range": session.height_range.to_dict(),
+                   "presets": main.rows, "playback": playback, "previewer_view": previewer}
+        if against:
+            results["against"] = [{"run": str(m.path), "step": m.run.step, "presets": m.rows} for m in measured[1:]]
+            results["speedup_vs_against"] = {str(m.path): {o["preset"]: o["ms_per_frame"] / r["ms_per_frame"]
+                                                           for o, r in zip(m.rows, main.rows)} for m in measured[1:]}
+            results["psnr_vs_against_db"] = {
+                str(m.path): {o["preset"]: (r["psnr"] - o["psnr"]) if r["psnr"] is not None and o["psnr"] is not None
+                              else None for o, r in zip(m.rows, main.rows)} for m in measured[1:]}
+        return results
     finally:
-        if images is not None:
-            images.close()
-        if session is not None:
-            session.close()
+        for m in measured:
+            m.close()
         if own_ctx:
             ctx.release()
+
+
+@dataclasses.dataclass
+class _MeasuredRun:
+    """A run's render session and what :func:`preset_benchmark` measures it on."""
+
+    path: object
+    run: object
+    session: RenderSession
+    images: SceneImages | None
+    frame_ids: list[int]
+    split: str
+    cams: list
+    gts: dict
+    frame_timings: dict
+    rows: list = dataclasses.field(default_factory=list)
+
+    @classmethod
+    def open(cls, path, ctx, sequence, frames: int, views: int, log) -> "_MeasuredRun":
+        run = load_run(path)
+        session = RenderSession(run, ctx, sequence)
+        images = None
+        try:
+            seq = session.sequence
+            frame_ids = _pick(list(range(session.num_frames)), frames)
+            split, cams = _measured_views(run, views)
+            if run.scene is not None and seq is not None:
+                images = SceneImages(run.scene, renderer=GroundTruthRenderer(ctx), body_model=session.body)
+            cfg, band = run.config, session.height_range
+            log(f"run {path}: step {run.step}, {cfg.feature_image_resolution}^2 rays x {cfg.samples_per_ray} samples, "
+                f"MLP {cfg.mlp_depth}x{cfg.mlp_width}; motion {session.motion.name} frames {frame_ids}; "
+                f"{len(cams)} '{split}' views; height band [{band.h_min:.3f}, {band.h_max:.3f}] m ({band.source})")
+            frame_timings = _frame_stage_timings(session, frame_ids)
+            gts = {} if images is None else {(f, c.name): images.image(seq, c.name, f)[0]
+                                             for f in frame_ids for c in cams}
+        except BaseException:
+            if images is not None:
+                images.close()
+            session.close()
+            raise
+        return cls(path, run, session, images, frame_ids, split, cams, gts, frame_timings)
+
+    def close(self) -> None:
+        if self.images is not None:
+            self.images.close()
+        self.session.close()
 
 
 def _chosen_presets(names) -> list:

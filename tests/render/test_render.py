@@ -264,6 +264,27 @@ def test_render_command_palette_and_scene_camera(run_dir, tmp_path, session):
     assert unclamped[drawn].mean() > 0.9 and err.max() <= 1 / 255 + 1e-6
 
 
+def test_the_preset_bench_measures_another_run_taking_turns(run_dir, tmp_path, gl_context):
+    """``bench --run A --against B``: B's presets are rendered on the same views, taking turns with
+    A's; a copy of the same model renders the same images (the same PSNR to the last bit, the same
+    points), and the speed-up is the ratio of the two rows' ms per frame."""
+    import shutil
+
+    from garmentnerf.perf.preset_bench import preset_benchmark
+
+    other = tmp_path / "other_run"
+    shutil.copytree(run_dir, other)
+    bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
+                             log=lambda *a: None, playback_frames=1, against=[other])
+    (theirs,) = bench["against"]
+    assert theirs["run"] == str(other) and [r["preset"] for r in theirs["presets"]] == ["reference", "interactive"]
+    for ours, row in zip(bench["presets"], theirs["presets"]):
+        assert row["views"][0]["camera"] == ours["views"][0]["camera"] and row["points_per_frame"] == ours["points_per_frame"]
+        assert row["psnr"] == ours["psnr"] and bench["psnr_vs_against_db"][str(other)][ours["preset"]] == 0.0
+        assert bench["speedup_vs_against"][str(other)][ours["preset"]] == pytest.approx(
+            row["ms_per_frame"] / ours["ms_per_frame"])
+
+
 def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir, tmp_path, session, gl_context):
     """``render --preset interactive``, the previewer's lowest quality level and the bench row
     ``interactive`` render the same thing: same points, same size, same image."""

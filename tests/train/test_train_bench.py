@@ -56,7 +56,8 @@ def test_training_bench_times_each_precision_and_leaves_nothing_behind(tiny_run,
     (["--training", "--run", "RUN", "--precisions", "float16"], "--precisions float16: each must be one of"),
     (["--training", "--run", "RUN", "--steps", "2"], "--steps must be >= 3"),
     (["--training", "--run", "RUN", "--against", "nowhere"], "--against nowhere: not a run folder"),
-    (["--run", "RUN", "--against", "RUN"], "--against needs --training"),
+    (["--against", "RUN"], "--against needs --run"),
+    (["--run", "RUN", "--against", "nowhere"], "--against nowhere: not a run folder"),
 ])
 def test_training_bench_refuses_bad_flags_in_one_line(tiny_run, capsys, flags, message):
     flags = [str(tiny_run) if f == "RUN" else f for f in flags]
