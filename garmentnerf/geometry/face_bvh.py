@@ -77,8 +77,8 @@ _FACE_COLUMNS = 19 + 6 + 1
 #: along n, t1, t2 (6), the axis-aligned box's half extents e (3).
 _NODE_COLUMNS = 21
 
-#: Fewest blocks a launch is given (smaller launches are not worth a thread).
-_MIN_BLOCKS_PER_LAUNCH = 64
+#: Fewest blocks a launch is given (a launch costs tens of microseconds; 16 blocks, a millisecond of work).
+_MIN_BLOCKS_PER_LAUNCH = 16
 #: Launches per thread and round: the threads share the round's work as they finish, so a slow
 #: stretch of points (far from the body, or a shared core) does not leave the other threads idle.
 _LAUNCHES_PER_THREAD = 4
@@ -625,7 +625,9 @@ class FaceBVH:
         for c0 in range(0, M, max(1, int(chunk_size))):
             c1 = min(c0 + max(1, int(chunk_size)), M)
             blocks = (c1 - c0 + BLOCK - 1) // BLOCK
-            n_launches = max(1, min(int(threads) * _LAUNCHES_PER_THREAD, blocks // _MIN_BLOCKS_PER_LAUNCH))
+            # a multiple of the threads, so that none is left with one launch more than the others
+            per_thread = max(1, min(_LAUNCHES_PER_THREAD, blocks // (_MIN_BLOCKS_PER_LAUNCH * max(1, int(threads)))))
+            n_launches = max(1, min(int(threads) * per_thread, blocks // _MIN_BLOCKS_PER_LAUNCH))
             with deferred_interrupts():  # the kernel threads must finish before a Ctrl-C acts
                 if threads <= 1 or n_launches == 1 or not _loaded:
                     with _load_lock:
