@@ -59,8 +59,16 @@ class BodyPoints:
     def select(self, index: torch.Tensor) -> "BodyPoints":
         """The points at ``index`` (a bool mask or indices, on any device)."""
         index = index.to(self.face.device)
-        return BodyPoints(*(getattr(self, k)[index] for k in
-                            ("face", "bary", "closest", "signed_distance", "canonical", "uv")))
+        return BodyPoints(*(getattr(self, k)[index] for k in _FIELDS))
+
+    @staticmethod
+    def concat(parts: "list[BodyPoints]") -> "BodyPoints":
+        """The points of ``parts`` (at least one), one after another."""
+        return BodyPoints(*(torch.cat([getattr(p, k) for p in parts]) for k in _FIELDS))
+
+
+#: The per-point tensors of :class:`BodyPoints`, in field order.
+_FIELDS = ("face", "bary", "closest", "signed_distance", "canonical", "uv")
 
 
 def main_component_faces(faces: np.ndarray) -> np.ndarray:

@@ -211,6 +211,27 @@ def test_cancellation(model, frame):
     torch.testing.assert_close(big_chunks.image, full.image, atol=1e-5, rtol=0)  # chunking changes nothing
 
 
+def test_a_renders_samples_are_projected_in_calls_that_change_nothing(model, frame, monkeypatch):
+    """The render projects its samples onto the body before the march, PROJECTION_CHUNK_POINTS per
+    call: in calls of 100 samples the image is the same to the last bit, and a cancel asked between
+    two calls stops the render before any sample reaches the field."""
+    from garmentnerf.model import pipeline
+
+    with torch.no_grad():
+        whole = model.render(frame, CAMERA, chunk_points=64)
+        calls = []
+        original = type(model).sample_geometry
+        monkeypatch.setattr(type(model), "sample_geometry",
+                            lambda self, f, positions: calls.append(positions.shape[0]) or original(self, f, positions))
+        monkeypatch.setattr(pipeline, "PROJECTION_CHUNK_POINTS", 100)
+        split = model.render(frame, CAMERA, chunk_points=64)
+        assert len(calls) > 2 and max(calls) == 100 and sum(calls) == split.points_projected
+        torch.testing.assert_close(split.image, whole.image, atol=0, rtol=0)
+        with pytest.raises(RenderCancelled) as info:
+            model.render(frame, CAMERA, chunk_points=64, should_cancel=lambda: True)
+        assert info.value.points_evaluated == 0
+
+
 def test_ray_subset(model, frame):
     mask = torch.zeros(16, 16, dtype=torch.bool)
     mask[4:12, 6:10] = True
