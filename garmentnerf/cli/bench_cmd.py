@@ -7,7 +7,7 @@ With ``--run DIR``: every render preset on the run's model, then playback figure
 the previewer's render-ahead among them (``playback.render_ahead``, ``playback.completed_share``:
 :mod:`garmentnerf.viewer.playback_bench`; ``--playback-frames`` limits the clip).
 ``--plot`` draws ms/frame (log) against PSNR per preset (:func:`garmentnerf.perf.plot.write_plot`).
-``--against RUN`` renders every preset with another run's model too, taking turns view by view, and
+``--against RUN`` renders every preset with another run's model too, taking turns preset by preset, and
 prints ``--run``'s speed-up over it per preset with the PSNR difference (e.g. a new bundled model
 against the one it replaces, kept outside the repo).
 

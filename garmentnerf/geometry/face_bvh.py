@@ -408,7 +408,7 @@ def _define_kernels():
 
     @wp.kernel
     def node_boxes(corners: wp.array2d(dtype=wp.float64), num_faces: int, first_node: int,
-                       out: wp.array2d(dtype=wp.float64), slack: wp.float64):
+                   out: wp.array2d(dtype=wp.float64), slack: wp.float64):
         # One node per thread: its faces are the sorted range of its level (heap numbering).
         j = wp.tid() + first_node
         level = int(0)

@@ -72,7 +72,6 @@ __all__ = [
 ]
 
 
-
 def check_search_dtype(vertices: torch.Tensor, num_vertices: int, dtype: torch.dtype | None) -> torch.dtype:
     """The search precision of a posed frame: ``dtype``, else that of ``vertices`` (float32 for
     other float types). Raises when ``vertices`` is not (num_vertices, 3) finite floats or the

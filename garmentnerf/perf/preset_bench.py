@@ -98,7 +98,7 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             :func:`garmentnerf.viewer.playback_bench.render_ahead_benchmark`; it lives with the
             viewer it drives, above this layer); None: not measured.
         against: other run folders (e.g. the model a new one replaces) whose presets are measured
-            the same way in the same process, each preset's views taking turns with ``run_dir``'s,
+            the same way in the same process, taking turns with ``run_dir``'s preset by preset,
             so that their ratios compare like with like (a busy machine slows both alike).
     Returns:
         A JSON-ready dict (``presets``: one row per preset; ``playback``; ``previewer_view``;
