@@ -99,7 +99,8 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
             viewer it drives, above this layer); None: not measured.
         against: other run folders (e.g. the model a new one replaces) whose presets are measured
             the same way in the same process, taking turns with ``run_dir``'s preset by preset,
-            so that their ratios compare like with like (a busy machine slows both alike).
+            so that their ratios compare like with like (a busy machine slows both alike); each
+            on its own scene's views and frames, the same ones when the runs share a scene.
     Returns:
         A JSON-ready dict (``presets``: one row per preset; ``playback``; ``previewer_view``;
         with ``against``: ``against`` (``[{"run", "step", "presets": [row]}]``), and per other
