@@ -547,6 +547,7 @@ class FaceBVH:
             this pose gives tighter bounds and a faster search.
         corner_values: (F, 3, C) values at the corners of every face (e.g. canonical positions and
             UVs), interpolated at every closest point when ``normals`` is given.
+        threads: the node bounds are computed on two threads when this is 2 or more.
     Attributes:
         order: (F,) the face of every sorted slot (the kernel's face numbering).
         depth: the level of the leaves (``2^depth`` leaves of two or three faces).
@@ -554,7 +555,7 @@ class FaceBVH:
 
     def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, order: torch.Tensor | None = None,
                  normals: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-                 corner_values: torch.Tensor | None = None):
+                 corner_values: torch.Tensor | None = None, threads: int = 1):
         F = faces.shape[0]
         self.num_faces = F
         self.depth = tree_depth(F)
@@ -569,7 +570,7 @@ class FaceBVH:
         T[:, 22:25] = corners[:, 2]
         T[:, 25] = degenerate.to(torch.float64)
         self.face_table = T.contiguous()
-        self.node_table = _node_boxes(corners, self.depth)
+        self.node_table = _node_boxes(corners, self.depth, threads)
         if normals is None:
             self.sign_table = torch.zeros(0, 21, dtype=torch.float64)
         else:
@@ -679,17 +680,29 @@ def _median_split_order(centroids: torch.Tensor, depth: int) -> torch.Tensor:
     return order
 
 
-def _node_boxes(corners: torch.Tensor, depth: int) -> torch.Tensor:
+def _node_boxes(corners: torch.Tensor, depth: int, threads: int = 1) -> torch.Tensor:
     """(2^(depth+1) - 1, 21) the bounds of every node (heap order) from the corners (F, 3, 3) of the
     sorted faces: the centre m of the corners' box; the oriented box's axes n (the mean normal),
     t1, t2 (the principal directions of the corners across n); its intervals [lo, hi] of the
-    corners' heights about m along n, t1, t2; the axis-aligned box's half extents around m."""
+    corners' heights about m along n, t1, t2; the axis-aligned box's half extents around m.
+    Every level reads all the corners, so with two or more ``threads`` the top levels and the
+    lower ones are computed at once (the lower part gets fewer levels: its many small nodes cost
+    more per corner)."""
     wp, _, kernel = _kernels()
     num_nodes = (1 << (depth + 1)) - 1
     out = torch.empty(num_nodes, _NODE_COLUMNS, dtype=torch.float64)
-    flat = corners.reshape(-1, 9).contiguous()
-    with _load_lock:
-        wp.launch(kernel, dim=num_nodes, device="cpu",
-                  inputs=[wp.from_torch(flat, dtype=wp.float64), corners.shape[0], 0,
-                          wp.from_torch(out, dtype=wp.float64), BOUND_SLACK])
+    arrays = (wp.from_torch(corners.reshape(-1, 9).contiguous(), dtype=wp.float64), wp.from_torch(out, dtype=wp.float64))
+
+    def launch(j0: int, j1: int) -> None:  # the nodes [j0, j1)
+        wp.launch(kernel, dim=j1 - j0, device="cpu", inputs=[arrays[0], corners.shape[0], j0, arrays[1], BOUND_SLACK])
+
+    if threads <= 1 or depth < 2 or not _loaded:
+        with _load_lock:
+            launch(0, num_nodes)
+            _loaded.append(True)
+    else:
+        cut = (1 << ((depth + 4) // 2)) - 1  # the first node of the lower levels (their nodes cost more each)
+        jobs = [_pool(2).submit(launch, 0, cut), _pool(2).submit(launch, cut, num_nodes)]
+        for job in jobs:
+            job.result()
     return out

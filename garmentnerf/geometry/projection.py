@@ -195,6 +195,10 @@ class SurfaceProjector:
         self._face_edges = self._face_edges.reshape(-1, 3)
         self.num_edges = int(self._face_edges.max()) + 1
 
+    def search_threads(self) -> int:
+        """Threads the search runs on: ``threads``, else torch's thread count (at most the CPUs)."""
+        return self.threads or min(torch.get_num_threads(), os.cpu_count() or 1)
+
     @property
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
@@ -250,7 +254,7 @@ class PosedSurface:
         self._face_normals, self._edge_normals, self._vertex_normals = pseudo_normals(
             v64, F, P._face_edges, P.num_edges, cross, cross.norm(dim=1))
         self._tree = FaceBVH(v64, F, P.tree_order, (self._face_normals, self._edge_normals, self._vertex_normals,
-                                                    P._face_edges), P.corner_values)
+                                                    P._face_edges), P.corner_values, P.search_threads())
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -271,7 +275,7 @@ class PosedSurface:
         if stats is not None:
             stats.update(points=N, pairs=0, bounds=0)
         q_all = points.detach().to("cpu", torch.float64)
-        threads = self.projector.threads or min(torch.get_num_threads(), os.cpu_count() or 1)
+        threads = self.projector.search_threads()
         with torch.no_grad():
             # Nearby queries in a row: each starts from its predecessor's face, and the tree walk
             # and the table reads stay in cache. The kernel solves the winner in full, in float64

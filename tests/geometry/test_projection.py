@@ -432,6 +432,22 @@ def test_kernel_solve_matches_closest_point_on_triangles():
     np.testing.assert_allclose(proj.distance.numpy(), np.linalg.norm(points - cp.numpy(), axis=1), atol=1e-12)
 
 
+def test_node_bounds_on_two_threads_are_the_same():
+    """The node table computed in two launches at once (top levels, lower levels) equals the one
+    computed in one launch, bit for bit, on a tree deep enough to split."""
+    from garmentnerf.geometry import face_bvh
+
+    mesh = MESHES["torus"]()
+    V = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
+    F = torch.as_tensor(np.asarray(mesh.faces))
+    order = face_bvh.tree_order(V, F)
+    depth = face_bvh.tree_depth(F.shape[0])
+    assert depth >= 4
+    corners = V[F[order]]
+    face_bvh.FaceBVH(V, F)  # the kernels loaded, so the two-thread path runs
+    assert torch.equal(face_bvh._node_boxes(corners, depth, 2), face_bvh._node_boxes(corners, depth, 1))
+
+
 @pytest.mark.parametrize("name", ["icosphere", "torus"])
 def test_every_node_bound_is_below_the_distance_to_its_faces(name):
     """The walk skips a node when its bound (the larger of the oriented box's and the axis-aligned
