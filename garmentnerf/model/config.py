@@ -168,6 +168,15 @@ class ModelConfig:
     local direction), laid out as a 3-D point: a one-frame occupancy probe fits the skirt's sheet from
     such a point almost as fast as from posed xyz, and it still follows the body from frame to frame
     (``docs/quality.md``, "A canonical position for the sample"). 0: off (the recipes before it)."""
+    uvh_sheet_layers: int = 0
+    """``uvh`` field: when > 0, E also emits this many per-frame *sheet heights* g(u, v) (in units of
+    0.1 m above the skin, read bilinearly at the sample's UV) and the MLP gets each ``h - g``, frequency
+    encoded (``uvh_sheet_freqs``): the garment as a height field over the body per frame, so the
+    density can rise and fall within millimetres of the sheet where E's volume has a slice every
+    ``(h_max - h_min) / uvh_slices`` (6 cm by default) and its trilinear reads spread the sheet into
+    a fog (``docs/quality.md``, "A sheet height per body point"). 0: off (the recipes before it)."""
+    uvh_sheet_freqs: int = 6
+    """``uvh`` field: frequencies of the encoding of ``h - g`` (normalised like h) per sheet layer."""
     uvh_plane_channels: int = 16
     """``uvh`` field: channels of each of the three learned planes (u, v), (u, h), (v, h)."""
     uvh_plane_resolution: int = 256
@@ -443,8 +452,11 @@ class ModelConfig:
 
     @property
     def dynamic_encoder_channels(self) -> int:
-        """Channels E emits: ``dynamic_feature_dim``, times ``uvh_slices`` for the ``uvh`` field."""
-        return self.dynamic_feature_dim * (self.uvh_slices if self.field == "uvh" else 1)
+        """Channels E emits: ``dynamic_feature_dim``, times ``uvh_slices`` for the ``uvh`` field, plus its
+        ``uvh_sheet_layers``."""
+        if self.field != "uvh":
+            return self.dynamic_feature_dim
+        return self.dynamic_feature_dim * self.uvh_slices + self.uvh_sheet_layers
 
     @property
     def geometry_dim(self) -> int:
@@ -537,11 +549,14 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.importance_uniform_mix must be in [0, 1], got {self.importance_uniform_mix}")
         if self.shell_spacing not in SHELL_SPACINGS:
             raise ValueError(f"ModelConfig.shell_spacing must be one of {SHELL_SPACINGS}, got {self.shell_spacing!r}")
-        for name in ("uvh_height_freqs", "uvh_canonical_freqs"):
+        for name in ("uvh_height_freqs", "uvh_canonical_freqs", "uvh_sheet_layers", "uvh_sheet_freqs"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ModelConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.uvh_canonical_freqs and self.field != "uvh":
             raise ValueError("ModelConfig.uvh_canonical_freqs belongs to the 'uvh' field")
+        if self.uvh_sheet_layers and (self.field != "uvh" or not self.use_dynamic_feature):
+            raise ValueError("ModelConfig.uvh_sheet_layers belongs to the 'uvh' field with its dynamic feature (E "
+                             "emits the sheet heights)")
         if len(self.uvh_height_range) != 2 or not self.uvh_height_range[1] > self.uvh_height_range[0]:
             raise ValueError(f"ModelConfig.uvh_height_range must be (low, high) metres with high > low, "
                              f"got {self.uvh_height_range}")

@@ -45,6 +45,15 @@ from garmentnerf.model.nerf_mlp import field_heads, positional_encoding
 
 #: Standard deviation of the tri-plane's initial values (small: the MLP starts near its bias).
 PLANE_INIT_STD = 0.1
+#: Metres per unit of E's sheet-height channels (``sheet_layers``): its outputs start near 0 and a
+#: unit is the order of a garment's height above the skin.
+SHEET_UNIT = 0.1
+
+
+def read_uv_maps(maps: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """(N, C) the maps ``(C, R, R)`` read bilinearly at atlas ``uv (N, 2)`` (borders clamped)."""
+    grid = (uv * 2.0 - 1.0).to(maps.dtype).view(1, 1, -1, 2)
+    return F.grid_sample(maps[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0].T
 
 
 def normalised_height(h: torch.Tensor, height_range: tuple[float, float]) -> torch.Tensor:
@@ -150,7 +159,8 @@ class UVHField(nn.Module):
                  plane_channels: int = 16, plane_resolution: int = 256, plane_height: int = 64,
                  height_range: tuple[float, float] = (-0.1, 0.4), height_freqs: int = 4, canonical_freqs: int = 0,
                  depth: int = 2, width: int = 64, density_activation: str = "softplus", density_bias: float = -1.0,
-                 density_scale: float = 1.0, body_prior_strength: float = 0.0, body_prior_width: float = 0.15):
+                 density_scale: float = 1.0, body_prior_strength: float = 0.0, body_prior_width: float = 0.15,
+                 sheet_layers: int = 0, sheet_freqs: int = 6):
         super().__init__()
         if not height_range[1] > height_range[0]:
             raise ValueError(f"height_range must be (low, high) with high > low, got {height_range}")
@@ -159,13 +169,17 @@ class UVHField(nn.Module):
         self.height_range = (float(height_range[0]), float(height_range[1]))
         self.height_freqs = height_freqs
         self.canonical_freqs = canonical_freqs
+        self.sheet_layers, self.sheet_freqs = int(sheet_layers), int(sheet_freqs)
+        if self.sheet_layers and not dynamic_dim:
+            raise ValueError("sheet_layers needs the dynamic volume (E emits the sheet heights)")
         self.density_kind, self.density_bias, self.density_scale = density_activation, density_bias, density_scale
         self.body_prior_strength, self.body_prior_width = float(body_prior_strength), float(body_prior_width)
         self.planes = nn.ParameterList([
             nn.Parameter(torch.randn(1, plane_channels, rows, plane_resolution) * PLANE_INIT_STD)
             for rows in (plane_resolution, plane_height, plane_height)])
         self.input_dim = (dynamic_dim + 3 * plane_channels + detail_dim + 3 + (1 + 2 * height_freqs)
-                          + (3 * (1 + 2 * canonical_freqs) if canonical_freqs else 0))
+                          + (3 * (1 + 2 * canonical_freqs) if canonical_freqs else 0)
+                          + self.sheet_layers * (1 + 2 * self.sheet_freqs))
         layers: list[nn.Module] = []
         for i in range(depth):
             layers += [nn.Linear(self.input_dim if i == 0 else width, width), nn.ReLU(inplace=True)]
@@ -179,7 +193,8 @@ class UVHField(nn.Module):
                    cfg.detail_feature_dim if cfg.use_detail_feature else 0, cfg.appearance_dim,
                    cfg.uvh_plane_channels, cfg.uvh_plane_resolution, cfg.uvh_plane_height, cfg.uvh_height_range,
                    cfg.uvh_height_freqs, cfg.uvh_canonical_freqs, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation,
-                   cfg.density_bias, cfg.density_scale, cfg.body_prior_strength, cfg.body_prior_width)
+                   cfg.density_bias, cfg.density_scale, cfg.body_prior_strength, cfg.body_prior_width,
+                   cfg.uvh_sheet_layers, cfg.uvh_sheet_freqs)
 
     def forward(self, volume: torch.Tensor | None, uv: torch.Tensor, distance: torch.Tensor,
                 direction: torch.Tensor, detail: torch.Tensor | None = None,
@@ -209,8 +224,13 @@ class UVHField(nn.Module):
             parts = []
             if volume is not None:
                 R = volume.shape[-1]
-                parts.append(read_uvh_volume(volume.float().reshape(self.dynamic_dim, self.slices, R, R), uv.float(),
-                                             height.float()))
+                body = self.dynamic_dim * self.slices
+                parts.append(read_uvh_volume(volume[:body].float().reshape(self.dynamic_dim, self.slices, R, R),
+                                             uv.float(), height.float()))
+                if self.sheet_layers:  # h - g(u, v) per layer, normalised like h (a span of 2 over the band)
+                    sheet = read_uv_maps(volume[body:body + self.sheet_layers].float(), uv.float()) * SHEET_UNIT
+                    offset = (distance.float()[:, None] - sheet) * (2.0 / (self.height_range[1] - self.height_range[0]))
+                    parts.append(positional_encoding(offset, self.sheet_freqs))
             parts.append(read_triplane(self.planes, uv.float(), height.float()))
             if detail is not None:
                 parts.append(detail.float())
@@ -222,4 +242,4 @@ class UVHField(nn.Module):
 
 
 __all__ = ["UVHField", "face_tangent_frames", "local_offset_direction", "canonical_positions", "read_uvh_volume",
-           "read_triplane", "normalised_height"]
+           "read_triplane", "read_uv_maps", "normalised_height", "SHEET_UNIT"]

@@ -13,8 +13,8 @@ from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.losses import garment_losses, plane_total_variation
 from garmentnerf.model.palette import DecomposedMaps
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
-from garmentnerf.model.uvh_field import (UVHField, face_tangent_frames, local_offset_direction, normalised_height,
-                                         read_triplane, read_uvh_volume)
+from garmentnerf.model.uvh_field import (SHEET_UNIT, UVHField, face_tangent_frames, local_offset_direction,
+                                         normalised_height, read_triplane, read_uv_maps, read_uvh_volume)
 from garmentnerf.conventions import camera_rays, orbit_camera
 from garmentnerf.model.depth_normals import depth_normals
 from garmentnerf.train.settings import tiny_config
@@ -116,6 +116,64 @@ def test_config_checks_and_round_trip():
         tiny_config().replace(uvh_canonical_freqs=2)
     with pytest.raises(ValueError, match="uvh_canonical_freqs must be >= 0"):
         uvh_config(uvh_canonical_freqs=-1)
+    assert uvh_config(uvh_sheet_layers=2).dynamic_encoder_channels == cfg.dynamic_feature_dim * 4 + 2
+    with pytest.raises(ValueError, match="uvh_sheet_layers belongs to the 'uvh' field"):
+        tiny_config().replace(uvh_sheet_layers=1)
+    with pytest.raises(ValueError, match="uvh_sheet_layers must be >= 0"):
+        uvh_config(uvh_sheet_layers=-1)
+
+
+def test_a_model_with_a_sheet_height_trains_it_through_the_encoder(body, projector, walk_inputs):
+    torch.manual_seed(0)
+    cfg = uvh_config(uvh_sheet_layers=1, uvh_sheet_freqs=3)
+    model = GarmentAnimationNeRF(cfg, body, PALETTE, projector=projector)
+    frame = model.prepare_frame(walk_inputs)
+    assert frame.dynamic_features.shape == (cfg.dynamic_feature_dim * 4 + 1, 32, 32)
+    out = model.render(frame, orbit_camera(30.0, 10.0, 3.0, width=64, height=64), training=True,
+                       generator=torch.Generator().manual_seed(0))
+    out.image.mean().backward()
+    assert model.encoder.head.weight.grad[-1].abs().sum() > 0  # E's sheet-height channel learns
+
+
+def test_sheet_heights_are_read_bilinearly_and_enter_the_field_as_h_minus_g():
+    """E's sheet-height channels (``uvh_sheet_layers``) are read like scipy's bilinear interpolation,
+    and the field sees them only as h - g: with the volume's, the planes' and the plain height
+    encoding's inputs taken out, moving the samples and the sheet up by 10 cm changes no zeta; the
+    sheet height gets gradient from the output."""
+    g = torch.Generator().manual_seed(2)
+    maps = torch.randn(2, 9, 9, generator=g, dtype=torch.float64)
+    uv = 0.06 + 0.88 * torch.rand(30, 2, generator=g, dtype=torch.float64)
+    got = read_uv_maps(maps, uv)
+    for c in range(2):
+        want = RegularGridInterpolator((texel_axis(9), texel_axis(9)), maps[c].numpy())(
+            np.stack([uv[:, 1].numpy() * 2 - 1, uv[:, 0].numpy() * 2 - 1], -1))
+        np.testing.assert_allclose(got[:, c].numpy(), want, atol=1e-10)
+    torch.manual_seed(0)
+    field = UVHField(dynamic_dim=2, slices=3, detail_dim=0, appearance_dim=4, plane_channels=2, plane_resolution=8,
+                     plane_height=4, depth=2, width=16, sheet_layers=1, sheet_freqs=3)
+    plain = UVHField(dynamic_dim=2, slices=3, detail_dim=0, appearance_dim=4, plane_channels=2, plane_resolution=8,
+                     plane_height=4, depth=2, width=16)
+    assert field.input_dim == plain.input_dim + 7
+    volume = torch.randn(7, 8, 8)
+    volume[6] = 0.5  # the sheet 5 cm above the skin everywhere
+    uv, direction = torch.full((3, 2), 0.4), torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    h = torch.tensor([0.05, 0.06, 0.30])
+    with torch.no_grad():
+        for plane in field.planes:
+            plane.zero_()  # no tri-plane reads
+        field.trunk[0].weight[:, 18:27] = 0.0  # nor the plain encoding of h: [volume 2, h - g 7, planes 6, direction 3, PE(h) 9]
+        flat = volume.clone()
+        flat[:6] = 0.0  # nor the volume's: zeta depends on h only through h - g
+        base = field(flat, uv, h, direction)[1]
+        raised = flat.clone()
+        raised[6] += 0.1 / SHEET_UNIT  # the sheet 10 cm higher, and the samples with it
+        moved = field(raised, uv, h + 0.1, direction)[1]
+        torch.testing.assert_close(moved, base, atol=1e-5, rtol=0)
+        assert (base[0] - base[2]).abs().max() > 1e-3  # 25 cm off the sheet is not on it
+    volume.requires_grad_(True)
+    sigma, zeta = field(volume, uv, h, direction)
+    (sigma.sum() + zeta.sum()).backward()
+    assert volume.grad[6].abs().sum() > 0  # the sheet height learns from the image
 
 
 def test_the_field_tells_apart_points_that_share_their_closest_body_point():
