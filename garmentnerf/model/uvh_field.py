@@ -41,6 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.nerf_mlp import field_heads, positional_encoding
 
 #: Standard deviation of the tri-plane's initial values (small: the MLP starts near its bias).
@@ -48,12 +49,6 @@ PLANE_INIT_STD = 0.1
 #: Metres per unit of E's sheet-height channels (``sheet_layers``): its outputs start near 0 and a
 #: unit is the order of a garment's height above the skin.
 SHEET_UNIT = 0.1
-
-
-def read_uv_maps(maps: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """(N, C) the maps ``(C, R, R)`` read bilinearly at atlas ``uv (N, 2)`` (borders clamped)."""
-    grid = (uv * 2.0 - 1.0).to(maps.dtype).view(1, 1, -1, 2)
-    return F.grid_sample(maps[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0].T
 
 
 def normalised_height(h: torch.Tensor, height_range: tuple[float, float]) -> torch.Tensor:
@@ -228,7 +223,8 @@ class UVHField(nn.Module):
                 parts.append(read_uvh_volume(volume[:body].float().reshape(self.dynamic_dim, self.slices, R, R),
                                              uv.float(), height.float()))
                 if self.sheet_layers:  # h - g(u, v) per layer, normalised like h (a span of 2 over the band)
-                    sheet = read_uv_maps(volume[body:body + self.sheet_layers].float(), uv.float()) * SHEET_UNIT
+                    maps = volume[body:body + self.sheet_layers].float().permute(1, 2, 0)  # (R, R, layers)
+                    sheet = sample_uv_map(maps, uv.float()) * SHEET_UNIT
                     offset = (distance.float()[:, None] - sheet) * (2.0 / (self.height_range[1] - self.height_range[0]))
                     parts.append(positional_encoding(offset, self.sheet_freqs))
             parts.append(read_triplane(self.planes, uv.float(), height.float()))
@@ -242,4 +238,4 @@ class UVHField(nn.Module):
 
 
 __all__ = ["UVHField", "face_tangent_frames", "local_offset_direction", "canonical_positions", "read_uvh_volume",
-           "read_triplane", "read_uv_maps", "normalised_height", "SHEET_UNIT"]
+           "read_triplane", "normalised_height", "SHEET_UNIT"]
