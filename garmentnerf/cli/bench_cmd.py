@@ -122,6 +122,9 @@ def _run_training_bench(args: argparse.Namespace) -> int:
     for stage in results["stages"]:
         print(f"  {stage:22s}" + "".join(f" {row['stages_s'][stage]:16.3f}" for _, row in columns))
     print(f"  {'step':22s}" + "".join(f" {row['s_per_step']:16.3f}" for _, row in columns))
+    if any(row["views_per_step"] > 1 for _, row in columns):
+        print(f"  {'views per step':22s}" + "".join(f" {row['views_per_step']:16d}" for _, row in columns))
+        print(f"  {'s per view':22s}" + "".join(f" {row['s_per_view']:16.3f}" for _, row in columns))
     for row in results["precisions"]:
         print(f"  {row['precision']:10s} {row['s_per_step']:7.3f} s/step   "
               f"{results['speedup_vs_first'][row['precision']]:5.2f}x")

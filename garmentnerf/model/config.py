@@ -420,6 +420,14 @@ class ModelConfig:
     in G_img pre-training. They are backpropagated one at a time and their gradients summed (each
     loss divided by the batch size), so memory stays that of one image and a step costs about
     ``batch_size`` single-image steps."""
+    views_per_step: int = 1
+    """Training cameras each image of a NeRF step renders of its frame (1: the paper's one). Above 1 the drawn
+    (frame, camera) pair's camera and ``views_per_step - 1`` other training cameras, drawn from the step's
+    generator, render the same frame: its encoders (E, G_en), planes and occupancy term are computed and
+    backpropagated once for all of them, and the image terms are their mean (what a batch of those images
+    would average). So a view costs less than an image of ``batch_size`` (the encoders are a fixed cost per
+    frame: issue 27's "planes computed once per frame, reused across views"), at the price of fewer frames
+    per view. Capped by the number of training cameras."""
     grad_clip_value: float = 40.0
     """Gradient clipping by value (authors' code: 40)."""
     generator_lr: float = 1e-4
@@ -504,7 +512,7 @@ class ModelConfig:
                  "encoder_width_scale", "neural_texture_channels", "neural_texture_levels",
                  "neural_texture_resolution", "generator_width_scale", "mlp_depth", "mlp_width",
                  "samples_per_ray", "palette_size", "decoder_width", "decoder_min_width", "offset_scale",
-                 "lr", "lr_final", "iterations", "batch_size", "grad_clip_value", "generator_lr",
+                 "lr", "lr_final", "iterations", "batch_size", "views_per_step", "grad_clip_value", "generator_lr",
                  "generator_iterations", "atlas_feature_levels", "atlas_feature_resolution", "atlas_feature_lr_scale",
                  "encoder_lr_scale", "uvh_slices", "uvh_plane_channels", "uvh_plane_resolution", "uvh_plane_height",
                  "uvh_plane_lr_scale", "perceptual_downsample", "occupancy_points", "occupancy_half_thickness",

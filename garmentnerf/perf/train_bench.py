@@ -59,6 +59,8 @@ STAGES = ("surface", "reference_images", "encoders", "rays", "projection", "feat
 #: :class:`~garmentnerf.model.pipeline.RenderOutput` timings (ms) that a step pays.
 _RENDER_TIMINGS = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp",
                    "compositing", "decoder")
+#: Those of them that are the frame's (:meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame`).
+_FRAME_TIMINGS = ("surface", "reference_images", "encoders")
 
 
 class _StageClock:
@@ -77,11 +79,16 @@ class _StageClock:
         self._wrap(trainer, "_with_body", "body_layer")
         self._wrap(trainer, "_occupancy", "occupancy")
         render = trainer.model.render
+        self._frames_counted: set[int] = set()  # ids of the step's frame features whose own stages are counted
 
-        def timed_render(*args, **kwargs):
-            out = render(*args, **kwargs)
+        def timed_render(feats, *args, **kwargs):
+            out = render(feats, *args, **kwargs)
+            # a frame rendered from several views (``views_per_step``) was prepared once: its stages count once
+            first_view = id(feats) not in self._frames_counted
+            self._frames_counted.add(id(feats))
             for k in _RENDER_TIMINGS:
-                self._add(k, out.timings.get(k, 0.0) / 1e3)
+                if first_view or k not in _FRAME_TIMINGS:
+                    self._add(k, out.timings.get(k, 0.0) / 1e3)
             return out
 
         trainer.model.render = timed_render
@@ -117,6 +124,7 @@ class _StageClock:
         """The stage seconds of the step that ends now (the remainders computed as described)."""
         now = time.perf_counter()
         c, self.current = self.current, {}
+        self._frames_counted.clear()
         step, self._t_step = now - self._t_step, now
         forward, batch = c.pop("nerf_step", 0.0), c.pop("backward_batch", 0.0)
         stages = {k: c.get(k, 0.0) for k in STAGES}
@@ -156,7 +164,9 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
         log: called with one line per finished round (None: silent).
     Returns:
         ``{"run", "steps_timed", "machine", "stages", "precisions": [row], "speedup_vs_first"}``,
-        a row ``{"precision", "s_per_step", "s_per_step_all", "stages_s", "stages_s_all"}``
+        a row ``{"precision", "s_per_step", "views_per_step", "s_per_view", "s_per_step_all", "stages_s",
+        "stages_s_all"}`` (``s_per_view``: a step's seconds over the camera views it renders per image,
+        ``ModelConfig.views_per_step``)
         (``stages_s``: the median seconds per step of each of ``stages``; ``stages_s_all``: each
         timed step's, in the order of ``s_per_step_all``); ``speedup_vs_first`` is the first
         precision's seconds per step over each one's. With ``before``, also ``"before": [row]``
@@ -211,7 +221,9 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
                 trainer.close()
 
     def row(v) -> dict:
-        return {"precision": v[1], "s_per_step": float(np.median(intervals[v])),
+        views = infos[v[0]][1].views_per_step
+        return {"precision": v[1], "s_per_step": float(np.median(intervals[v])), "views_per_step": views,
+                "s_per_view": float(np.median(intervals[v])) / views,
                 "s_per_step_all": [float(x) for x in intervals[v]],
                 "stages_s": {k: float(np.median([lap[k] for lap in stages[v]])) for k in STAGES},
                 "stages_s_all": [{k: float(lap[k]) for k in STAGES} for lap in stages[v]]}

@@ -18,7 +18,9 @@ Stage 2 -- the NeRF (``cfg.iterations`` steps). E, G_en, M_NeRF, M_D and the pal
     (``cfg.feature_image_resolution`` squared rays, decoded to ``cfg.image_resolution``): what the
     pipeline renders. The image is the
     whole camera, or with ``cfg.training_crop_density`` a window of the camera at that density
-    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). The
+    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). With
+    ``cfg.views_per_step`` > 1 each pair's frame is also rendered from that many - 1 other training
+    cameras, its encoders run once for all of them, and the image terms are their mean. The
     samples go where the ``reference`` render preset puts them for this model: the paper's box, or
     with ``cfg.sampler == "shell"`` the garment's shell (its band measured on the training garments
     and kept in the run folder, :data:`~garmentnerf.model.height_band.SHELL_BAND_FILE`). Adam with
@@ -665,20 +667,38 @@ class Trainer(Closeable):
         seq, frame, cam = self._pick(self.pairs, step, 2, index)
         feats = self._prepared_frame(seq, frame, self._step_code(seq, frame, step, index))
         box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
-        camera, window = self.data.frames.training_view(cam, box, gen)
-        out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,
-                                sampler=self.sampling.sampler, sample_filter=self.sampling.sample_filter)
-        pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
-        image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
+        cams = [cam, *self._other_views(cam, gen)]
         pal = self.model.palette
         segment = step - self.generator_iterations >= self.cfg.segmentation_start
         occupancy = self._occupancy(seq, frame, feats, gen) if self.cfg.w_occupancy > 0 else None
-        terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
-                               self.cfg, self.perceptual, opacity=out.opacity[None],
-                               target_garment=garment[None] if segment else None,
-                               planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy,
-                               distortion=None if out.distortion is None else out.distortion[None])
-        return terms, {"pred": pred, "target": image}
+        views = []
+        for name in cams:
+            camera, window = self.data.frames.training_view(name, box, gen)
+            out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,
+                                    sampler=self.sampling.sampler, sample_filter=self.sampling.sample_filter)
+            pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
+            image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, name, frame, window))
+            terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
+                                   self.cfg, self.perceptual, opacity=out.opacity[None],
+                                   target_garment=garment[None] if segment else None,
+                                   planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy,
+                                   distortion=None if out.distortion is None else out.distortion[None])
+            views.append((terms, {"pred": pred, "target": image}))
+        if len(views) == 1:
+            return views[0]
+        # the mean over the views: the frame's terms (occupancy, plane_tv) are the same in each, so they keep
+        # their weight; the image terms weigh as a batch of these images would
+        terms = {k: sum(t[k] for t, _ in views) / len(views) for k in views[0][0]}
+        return terms, views[0][1]
+
+    def _other_views(self, camera: str, gen: torch.Generator) -> list[str]:
+        """The ``cfg.views_per_step - 1`` other training cameras a NeRF image renders its frame from besides
+        ``camera`` (drawn from the step's generator ``gen``; none, and no draw, at 1)."""
+        n = min(self.cfg.views_per_step, len(self.cameras)) - 1
+        if n <= 0:
+            return []
+        others = [c for c in self.cameras if c != camera]
+        return [others[int(i)] for i in torch.randperm(len(others), generator=gen)[:n]]
 
     def occupancy_targets(self, seq: str, frame: int, feats, n_points: int, generator: torch.Generator):
         """``n_points`` points of frame ``frame`` of ``seq`` (half around its simulated cloth, half in its

@@ -145,6 +145,48 @@ def test_a_batch_is_the_mean_loss_of_its_images_drawn_in_the_single_image_order(
         assert sum(float(g.abs().sum()) for g in accumulated) > 0
 
 
+def test_views_per_step_renders_one_frame_from_several_cameras_through_one_encoder_pass(
+        tiny_scene, gl_context, tmp_path, monkeypatch):
+    """cfg.views_per_step 2: an image of a NeRF step prepares its frame (E, G_en) once, renders it from
+    the drawn pair's camera and one other training camera, and its terms are the mean of the two
+    views' terms (the occupancy term, computed once for the frame, keeps its value); the views drawn
+    repeat for the same step (a resume renders the same ones)."""
+    import garmentnerf.train.trainer as trainer_module
+    from garmentnerf.train.trainer import _seed_of
+
+    cfg = tiny_config().replace(views_per_step=2, w_occupancy=0.1, occupancy_points=256)
+    tc = make_tc(tiny_scene, tmp_path / "views", generator_iterations=0, model_config=cfg)
+    per_view, prepared, rendered = [], [], []
+    losses = trainer_module.garment_losses
+
+    def recorded_losses(*args, **kwargs):
+        terms = losses(*args, **kwargs)
+        per_view.append({k: float(v.detach()) for k, v in terms.items()})
+        return terms
+
+    monkeypatch.setattr(trainer_module, "garment_losses", recorded_losses)
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        prepare, view = tr.model.prepare_frame, tr.data.frames.training_view
+        monkeypatch.setattr(tr.model, "prepare_frame", lambda *a, **k: prepared.append(1) or prepare(*a, **k))
+        monkeypatch.setattr(tr.data.frames, "training_view", lambda name, *a, **k: rendered.append(name) or view(name, *a, **k))
+        tr._enter_stage("nerf")
+        step = 3
+        terms, images = tr._nerf_step(step, 0, torch.Generator().manual_seed(_seed_of(tr.tc.seed, 0, step)))
+        first = list(rendered)
+        tr._nerf_step(step, 0, torch.Generator().manual_seed(_seed_of(tr.tc.seed, 0, step)))
+        _, _, cam = tr._pick(tr.pairs, step, 2, 0)
+    assert len(prepared) == 2 and len(per_view) == 4  # one encoder pass and two views per call
+    assert first[0] == cam and first[1] != cam and first[1] in tiny_scene.camera_names("train")
+    assert rendered[2:] == first
+    for key in terms:
+        assert float(terms[key].detach()) == pytest.approx((per_view[0][key] + per_view[1][key]) / 2, rel=1e-6), key
+    assert per_view[0]["occupancy"] == per_view[1]["occupancy"] == pytest.approx(float(terms["occupancy"].detach()))
+    assert per_view[0]["image"] != pytest.approx(per_view[1]["image"], rel=1e-3)  # two different images
+    assert images["pred"].shape == images["target"].shape
+    terms["total"].backward()
+    assert sum(float(p.grad.abs().sum()) for p in tr.params if p.grad is not None) > 0
+
+
 def test_encoder_lr_scale_gives_the_unets_their_own_rate():
     """cfg.encoder_lr_scale: E and G_en form their own Adam group at that scale (and at 1 stay in the
     main group, so optimiser states saved before the setting still load); a first Adam step, which

@@ -124,3 +124,28 @@ def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_p
     ratio = results["speedup_vs_against"][str(heavy)]["float32"]
     assert ratio == pytest.approx(heavy_row["s_per_step"] / light["s_per_step"]) and ratio > 1.0
     assert f"{ratio:5.2f}x faster than {heavy}'s recipe" in printed
+
+
+def test_training_bench_counts_a_frame_rendered_from_several_views_once(tiny_scene, tmp_path, capsys):
+    """A recipe with ``views_per_step`` 2: the frame's stages (its encoders) are counted once per step,
+    not once per view, so the stages still partition the step with no negative remainder, and the row
+    gives the seconds per view beside the seconds per step."""
+    from garmentnerf.train.settings import tiny_config
+
+    run = tmp_path / "views"
+    config = tmp_path / "views.json"
+    config.write_text(json.dumps(tiny_config().replace(views_per_step=2).to_dict()))
+    assert main(["train", "--scene", str(tiny_scene.root), "--out", str(run), "--model-config", str(config),
+                 "--perceptual", "none", "--no-progress", "--threads", "1", "--iterations", "2",
+                 "--generator-iterations", "1", "--image-every", "0"]) == 0
+    out = tmp_path / "views_bench.json"
+    assert main(["bench", "--run", str(run), "--training", "--precisions", "float32", "--steps", "5",
+                 "--rounds", "1", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    row, = json.loads(out.read_text())["precisions"]
+    assert row["views_per_step"] == 2 and row["s_per_view"] == pytest.approx(row["s_per_step"] / 2)
+    for step_s, stages in zip(row["s_per_step_all"], row["stages_s_all"]):
+        assert sum(stages.values()) == pytest.approx(step_s, abs=2e-3)
+        assert all(v >= 0 for v in stages.values()), stages
+        assert stages["encoders"] > 0
+    assert f"  {'s per view':22s} {row['s_per_view']:16.3f}" in printed
