@@ -427,7 +427,9 @@ class ModelConfig:
     backpropagated once for all of them, and the image terms are their mean (what a batch of those images
     would average). So a view costs less than an image of ``batch_size`` (the encoders are a fixed cost per
     frame: issue 27's "planes computed once per frame, reused across views"), at the price of fewer frames
-    per view. Capped by the number of training cameras."""
+    per view; the views' graphs are held together until the backward, so memory grows with them. Capped by
+    the number of training cameras. On one frame at equal CPU time 2 views lost 0.25 dB of garment
+    (``docs/quality.md``, proxy PV2)."""
     grad_clip_value: float = 40.0
     """Gradient clipping by value (authors' code: 40)."""
     generator_lr: float = 1e-4
