@@ -79,13 +79,15 @@ class _StageClock:
         self._wrap(trainer, "_with_body", "body_layer")
         self._wrap(trainer, "_occupancy", "occupancy")
         render = trainer.model.render
-        self._frames_counted: set[int] = set()  # ids of the step's frame features whose own stages are counted
+        # the step's frame features whose own stages are counted (held, so that no id is reused within a step)
+        self._frames_counted: list = []
 
         def timed_render(feats, *args, **kwargs):
             out = render(feats, *args, **kwargs)
             # a frame rendered from several views (``views_per_step``) was prepared once: its stages count once
-            first_view = id(feats) not in self._frames_counted
-            self._frames_counted.add(id(feats))
+            first_view = not any(f is feats for f in self._frames_counted)
+            if first_view:
+                self._frames_counted.append(feats)
             for k in _RENDER_TIMINGS:
                 if first_view or k not in _FRAME_TIMINGS:
                     self._add(k, out.timings.get(k, 0.0) / 1e3)
