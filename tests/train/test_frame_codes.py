@@ -140,3 +140,69 @@ def test_code_dropout_trains_only_the_kept_codes_and_resumes_exactly(tiny_scene,
     assert_same_steps(full.history[3:], rest.history, full_state, rest_state)
     with pytest.raises(ValueError, match="frame_code_dropout"):
         codes_config(frame_code_dropout=1.0)
+
+
+def test_the_normalized_code_step_moves_each_drawn_code_by_its_rate_along_its_gradient():
+    """``normalized_code_step`` against the formula in numpy: a code with a gradient moves by
+    ``-s * g / rms(g)`` (its RMS step is exactly ``s``, a texel in proportion to its gradient), a code whose
+    gradient is zero or absent does not move."""
+    from garmentnerf.train.trainer import normalized_code_step
+
+    rng = np.random.default_rng(3)
+    codes0 = rng.normal(size=(5, 2, 3, 3)).astype(np.float32)
+    grad = np.zeros_like(codes0)
+    grad[1] = rng.normal(size=(2, 3, 3))
+    grad[3] = 1e-6 * rng.normal(size=(2, 3, 3))  # tiny gradients move as far: the step is per code
+    grad[3, 0, 0, 0] = 0.0  # a texel without gradient inside a drawn code does not move
+    codes = torch.tensor(codes0)
+    moved = normalized_code_step(codes, torch.tensor(grad), 0.05)
+    assert moved == [1, 3]
+    expected = codes0.copy()
+    for i in (1, 3):
+        expected[i] -= 0.05 * grad[i] / np.sqrt(np.mean(grad[i].astype(np.float64) ** 2))
+    np.testing.assert_allclose(codes.numpy(), expected, rtol=1e-5, atol=1e-7)
+    for i in (1, 3):
+        assert np.sqrt(np.mean((codes.numpy()[i] - codes0[i]) ** 2)) == pytest.approx(0.05, rel=1e-5)
+    assert codes.numpy()[3, 0, 0, 0] == codes0[3, 0, 0, 0]
+    assert normalized_code_step(codes, None, 0.05) == []
+
+
+def test_normalized_codes_move_only_on_their_visits_outside_adam_and_resume_exactly(tiny_scene, gl_context, tmp_path,
+                                                                                     monkeypatch):
+    """``frame_code_step`` ``normalized``: the codes are not in Adam; a frame drawn once has a code of RMS
+    ``lr * frame_code_lr_scale`` of its step (the step is stateless: nothing carries it on afterwards), a
+    frame never drawn keeps a zero code, and an interrupted run resumes to the same codes."""
+    from garmentnerf.model.pipeline import GarmentAnimationNeRF
+    from garmentnerf.train.trainer import Trainer, param_groups
+
+    visits = []  # the frame of every image rendered, in step order (batches of one)
+    prepare = GarmentAnimationNeRF.prepare_frame
+
+    def recording(self, inputs, geometry=None, code=None):
+        visits.append(int(inputs.frame))
+        return prepare(self, inputs, geometry, code=code)
+
+    monkeypatch.setattr(GarmentAnimationNeRF, "prepare_frame", recording)
+    short = codes_config(iterations=2, frame_code_step="normalized")  # two steps: two frames drawn once each
+    tc = make_tc(tiny_scene, tmp_path / "short", generator_iterations=0, iterations=2, model_config=short)
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        groups = param_groups(tr.model, list(tr.model.parameters()), tr.cfg)
+        assert not any(p is tr.model.frame_codes.codes for g in groups for p in g["params"])
+        rates = [tr.lr_at(step) * short.frame_code_lr_scale for step in range(2)]
+    _, state = run(tc, gl_context)
+    assert len(visits) == 2 and visits[0] != visits[1], visits  # the seed draws two frames: each checked below
+    rms = state["frame_codes.codes"].flatten(1).square().mean(dim=1).sqrt().numpy()
+    for frame in range(rms.shape[0]):
+        steps = [i for i, f in enumerate(visits) if f == frame]
+        if not steps:
+            assert rms[frame] == 0.0
+        else:
+            assert rms[frame] == pytest.approx(rates[steps[0]], rel=1e-4)
+    cfg = codes_config(iterations=6, frame_code_step="normalized")
+    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=6,
+                                   model_config=cfg), gl_context)
+    part, _ = run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=6, model_config=cfg,
+                          stop_after=2), gl_context)
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=6),
+                           gl_context)
+    assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
