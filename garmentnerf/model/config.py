@@ -22,8 +22,6 @@ RADIANCE_ACTIVATIONS = ("softplus", "sigmoid")
 SAMPLERS = ("box", "shell")
 #: How samples are spaced inside the shell (``ModelConfig.shell_spacing``, :class:`~garmentnerf.model.shell_sampler.ShellSampler`).
 SHELL_SPACINGS = ("box", "shell")
-#: How the per-frame codes learn (:attr:`ModelConfig.frame_code_step`).
-FRAME_CODE_STEPS = ("adam", "normalized")
 
 
 @dataclass
@@ -67,15 +65,6 @@ class ModelConfig:
     """The per-frame codes learn at ``lr`` times this: each is seen once in about as many steps as there are
     training frames (the sequence occupancy probe: 50 gave +0.07 IoU on the training frames after 600
     steps, 10 +0.01; docs/quality.md)."""
-    frame_code_step: str = "adam"
-    """How the per-frame codes learn. ``adam``: in the Adam optimiser with the other weights, at
-    ``frame_code_lr_scale`` times the rate. Adam moves every texel of a code by about the rate in the sign of
-    its gradient, however small that gradient, and its momentum then carries a visited code on for about ten
-    steps more while other frames are drawn: a visit moves a texel about ten times the rate whether or not
-    it matters to the image. ``normalized``: each step, every code with a gradient moves against it by
-    ``frame_code_lr_scale`` times the rate in RMS over the code (``normalized_code_step``): a texel in
-    proportion to its gradient, no state, a code not drawn does not move. Measured on the bundled C5 (codes
-    trained alone, docs/quality.md, "Per-frame codes on the bundled field")."""
     frame_code_dropout: float = 0.0
     """Probability that a training step renders its frame without the frame's code (E's output alone;
     0: never). The codes learn each training frame's own garment fast but let E learn less of the rule
@@ -545,8 +534,6 @@ class ModelConfig:
             raise ValueError("ModelConfig.frame_code_resolution needs the dynamic feature (use_dynamic_feature)")
         if not (math.isfinite(self.frame_code_lr_scale) and self.frame_code_lr_scale > 0):
             raise ValueError(f"ModelConfig.frame_code_lr_scale must be > 0, got {self.frame_code_lr_scale}")
-        if self.frame_code_step not in FRAME_CODE_STEPS:
-            raise ValueError(f"ModelConfig.frame_code_step must be one of {FRAME_CODE_STEPS}, got {self.frame_code_step!r}")
         if not (math.isfinite(self.frame_code_dropout) and 0 <= self.frame_code_dropout < 1):
             raise ValueError(f"ModelConfig.frame_code_dropout must lie in [0, 1), got {self.frame_code_dropout}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",
@@ -704,4 +691,4 @@ class ModelConfig:
         return dataclasses.replace(self, **changes)
 
 
-__all__ = ["ModelConfig", "FIELDS", "SAMPLERS", "SHELL_SPACINGS", "FRAME_CODE_STEPS", "DETAIL_SELECTION_MODES", "DENSITY_ACTIVATIONS", "RADIANCE_ACTIVATIONS"]
+__all__ = ["ModelConfig", "FIELDS", "SAMPLERS", "SHELL_SPACINGS", "DETAIL_SELECTION_MODES", "DENSITY_ACTIVATIONS", "RADIANCE_ACTIVATIONS"]

@@ -130,7 +130,7 @@ from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN
 
 # The settings and checkpoint names are defined in :mod:`.settings` and :mod:`.checkpoints`; they
 # stay importable from here, where callers have always found them.
-__all__ = ["Trainer", "TrainResult", "train", "normalized_code_step", "TrainConfig", "MODEL_PRESETS", "model_config_for", "tiny_config",
+__all__ = ["Trainer", "TrainResult", "train", "TrainConfig", "MODEL_PRESETS", "model_config_for", "tiny_config",
            "latest_checkpoint", "checkpoints", "CheckpointWriteError", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS"]
 
 #: Frames whose body geometry a trainer keeps between NeRF steps (the bundled body's takes ~5 MB:
@@ -162,9 +162,7 @@ def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> l
     ``cfg.atlas_feature_lr_scale``; the U-Nets E and G_en at ``cfg.encoder_lr_scale`` when it is not
     1 (at 1 they stay in the main group, so an optimiser state saved before the setting loads);
     the ``uvh`` field's tri-plane (``model.grid_prefixes()``) at ``cfg.uvh_plane_lr_scale``; the
-    per-frame codes at ``cfg.frame_code_lr_scale`` (not in Adam at all when ``cfg.frame_code_step`` is
-    ``normalized``: :func:`normalized_code_step` moves them); everything else at 1. Groups left empty are
-    dropped."""
+    per-frame codes at ``cfg.frame_code_lr_scale``; everything else at 1. Groups left empty are dropped."""
     def ids_under(prefixes: tuple[str, ...]) -> set[int]:
         return {id(p) for name, p in model.named_parameters() if name.startswith(prefixes)} if prefixes else set()
 
@@ -173,28 +171,12 @@ def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> l
     grid_ids = ids_under(model.grid_prefixes())
     code_ids = ids_under(model.frame_code_prefixes())
     scaled = atlas_ids | encoder_ids | grid_ids | code_ids
-    if cfg.frame_code_step == "normalized":
-        params = [p for p in params if id(p) not in code_ids]
     groups = [{"params": [p for p in params if id(p) not in scaled], "lr_scale": 1.0},
               {"params": [p for p in params if id(p) in atlas_ids], "lr_scale": float(cfg.atlas_feature_lr_scale)},
               {"params": [p for p in params if id(p) in encoder_ids], "lr_scale": float(cfg.encoder_lr_scale)},
               {"params": [p for p in params if id(p) in grid_ids], "lr_scale": float(cfg.uvh_plane_lr_scale)},
               {"params": [p for p in params if id(p) in code_ids], "lr_scale": float(cfg.frame_code_lr_scale)}]
     return [g for g in groups if g["params"]]
-
-
-def normalized_code_step(codes: torch.Tensor, grad: torch.Tensor | None, step_rms: float) -> list[int]:
-    """Moves each code of ``codes`` (frames, C, r, r) that has a gradient in ``grad`` (the same shape; None:
-    no code was drawn) against it by ``step_rms`` in RMS over the code: ``c -= step_rms * g / rms(g)``, in
-    place (``ModelConfig.frame_code_step`` ``normalized``). A texel moves in proportion to its gradient;
-    a code whose gradient is zero does not move. Returns the indices of the codes moved."""
-    if grad is None:
-        return []
-    rms = grad.flatten(1).square().mean(dim=1).sqrt()  # (frames,)
-    moved = torch.nonzero(rms > 0).flatten()
-    with torch.no_grad():
-        codes[moved] -= step_rms * grad[moved] / rms[moved].view(-1, 1, 1, 1)
-    return moved.tolist()
 
 
 class Trainer(Closeable):
@@ -837,16 +819,12 @@ class Trainer(Closeable):
                     lr = self.lr_at(step)
                     for group in self.optimizer.param_groups:
                         group["lr"] = lr * group.get("lr_scale", 1.0)
-                    for param in self.params:  # the optimiser's and those it does not hold (normalized codes)
-                        param.grad = None
+                    self.optimizer.zero_grad(set_to_none=True)
                     values, images = self._backward_batch(step, stage)
                     self.dist.average_gradients(self.params)
                     torch.nn.utils.clip_grad_value_(self.params, self.cfg.grad_clip_value)
                     with interrupts.hold():  # a step is applied whole or not at all
                         self.optimizer.step()
-                        if self.cfg.frame_code_step == "normalized" and self.model.frame_codes is not None:
-                            codes = self.model.frame_codes.codes
-                            normalized_code_step(codes, codes.grad, lr * self.cfg.frame_code_lr_scale)
                         self.step = step + 1
                         rng_done = rng_state()
                     history.append({"step": self.step, "stage": stage, **values})
