@@ -138,12 +138,18 @@ def run_make(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     scene = make_scene(args.out, spec, settings=settings, keep_chunks=not args.drop_chunks)
     for name in scene.sequence_names():
-        sim = scene.simulation.get(name, {})
-        pen = sim.get("penetration_max_m")
-        pen_text = f", max penetration {pen * 1000:.1f} mm" if pen is not None else ""
-        print(f"{name}: {scene.num_frames(name)} frames ({scene.sequence(name).split}){pen_text}")
+        print(f"{name}: {scene.num_frames(name)} frames ({scene.sequence(name).split}){_penetration_text(scene, name)}")
     print(f"scene written to {scene.root}")
     return 0
+
+
+def _penetration_text(scene, name: str) -> str:
+    """", max penetration ..." for a sequence's line (empty when its garment file records none)."""
+    from garmentnerf.data.garment_sequence import penetration_summary, recorded_penetration
+    from garmentnerf.data.simulate import PENETRATION_BOUND_M
+
+    pen = recorded_penetration(scene.garment_path(name))
+    return "" if pen is None else f", {penetration_summary(pen, PENETRATION_BOUND_M)}"
 
 
 def _parse_setting(text: str):
@@ -166,7 +172,8 @@ def run_add_sequence(args: argparse.Namespace) -> int:
 
     target, source = Scene.load(args.scene), Scene.load(args.source)
     info = import_sequence(target, source, args.sequence, as_name=args.as_name, split=args.split)
-    print(f"{info.name}: {info.frames} frames ({info.split}, {info.motion}) added to {target.scene_file}")
+    print(f"{info.name}: {info.frames} frames ({info.split}, {info.motion}) added to {target.scene_file}"
+          f"{_penetration_text(target, info.name)}")
     return 0
 
 

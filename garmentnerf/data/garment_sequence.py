@@ -45,7 +45,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.data.garments import Garment
     from garmentnerf.data.simulate import SimResult
 
-__all__ = ["GarmentSequence", "GarmentSequenceError", "save_sequence", "load_sequence", "QUANT_LEVELS"]
+__all__ = ["GarmentSequence", "GarmentSequenceError", "save_sequence", "load_sequence", "penetration_summary",
+           "recorded_penetration", "QUANT_LEVELS"]
 
 _FORMAT = "garmentnerf.garment_sequence"
 _VERSION = 1
@@ -150,6 +151,28 @@ def _check_arrays(vertices, faces, color, penetration, fps, where: str):
         fail("penetration_max_m", "must be finite and >= 0")
     if not (isinstance(fps, (int, float, np.floating, np.integer)) and math.isfinite(float(fps)) and fps > 0):
         fail("fps", f"must be a finite number > 0, got {fps!r}")
+
+
+def recorded_penetration(path: str | Path) -> np.ndarray | None:
+    """The (T,) per-frame penetration (metres) a scene's ``garment.npz`` records: a file written by
+    :func:`save_sequence` has it; a plain ``vertices``/``faces`` file (which scenes also accept)
+    records none, and gives None."""
+    with np.load(path, allow_pickle=False) as archive:
+        return np.asarray(archive["penetration_max_m"]) if "penetration_max_m" in archive.files else None
+
+
+def penetration_summary(penetration_max_m: np.ndarray, bound_m: float) -> str:
+    """One line on how deep a simulated sequence's cloth went into the body: its deepest frame and,
+    when frames pass ``bound_m`` (metres; the simulator's ``PENETRATION_BOUND_M``), how many and the
+    first of them (where a sequence made with ``data make --frames`` should end).
+    ``penetration_max_m``: (T,) metres per frame."""
+    pen = np.asarray(penetration_max_m, dtype=np.float64)
+    text = f"max penetration {pen.max() * 1000:.1f} mm"
+    over = np.flatnonzero(pen > bound_m)
+    if over.size:
+        text += (f", {over.size} of {pen.size} frames over the {bound_m * 1000:g} mm bound, the first at frame"
+                 f" {over[0]} (cloth through the body)")
+    return text
 
 
 def save_sequence(path: str | Path, vertices, faces, *, color, kind: str, penetration_max_m, fps: float,

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from garmentnerf.cli.main import main
+from garmentnerf.data.garment_sequence import penetration_summary, recorded_penetration, save_sequence
 from garmentnerf.data.scene import Scene, SceneError
 from garmentnerf.data.scene_merge import import_sequence
 from support.scenes import build_scene
@@ -103,3 +104,25 @@ def test_cli(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "already exists" in err and err.count("\n") == 1
     assert target.scene_file.read_text() == text
+
+
+def test_penetration_summary_counts_the_frames_over_the_bound():
+    assert penetration_summary(np.array([0.0, 0.004, 0.0099]), 0.010) == "max penetration 9.9 mm"
+    line = penetration_summary(np.array([0.0, 0.02, 0.005, 0.0931, 0.011]), 0.010)
+    assert line == ("max penetration 93.1 mm, 3 of 5 frames over the 10 mm bound, the first at frame 1 "
+                    "(cloth through the body)")
+
+
+def test_cli_reports_the_imported_sequences_penetration(tmp_path, capsys):
+    target = build_scene(tmp_path / "target")
+    source = build_scene(tmp_path / "source", train_frames=4)
+    path = source.garment_path("train")
+    with np.load(path) as plain:  # the support scene's plain vertices/faces file, which records no penetration
+        vertices, faces = plain["vertices"], plain["faces"]
+    save_sequence(path, vertices, faces, color=(0.2, 0.4, 0.8), kind="skirt", fps=source.fps,
+                  penetration_max_m=np.array([0.001, 0.002, 0.030, 0.004], np.float32))
+    assert recorded_penetration(path)[2] == np.float32(0.030)
+    assert main(["data", "add-sequence", str(target.root), "--from", str(source.root), "--as", "train_more"]) == 0
+    out = capsys.readouterr().out
+    assert "max penetration 30.0 mm, 1 of 4 frames over the 10 mm bound, the first at frame 2" in out
+
