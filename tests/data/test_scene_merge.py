@@ -125,4 +125,3 @@ def test_cli_reports_the_imported_sequences_penetration(tmp_path, capsys):
     assert main(["data", "add-sequence", str(target.root), "--from", str(source.root), "--as", "train_more"]) == 0
     out = capsys.readouterr().out
     assert "max penetration 30.0 mm, 1 of 4 frames over the 10 mm bound, the first at frame 2" in out
-
