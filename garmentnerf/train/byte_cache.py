@@ -1,0 +1,154 @@
+"""A least-recently-used cache bounded by the bytes of the tensors its values hold.
+
+The trainer keeps three kinds of per-frame data between steps (a frame's inputs, its ground-truth
+targets, its bound body geometry); each grows with the training frames, so each is bounded in
+bytes, not in entries: a four-sequence scene has 680 training frames, and a frame's body geometry
+alone holds ~20 MB (its closest-point search tables are float64).
+
+:func:`tensor_bytes` measures a value: the tensors (and numpy arrays) reachable from it through
+dataclass fields, attributes, ``__slots__`` and containers, each distinct data pointer counted once
+at its own size (a view is charged its elements, not its base's). Tensors shared with something long-lived (the model's topology tables, which every frame's bound
+body points at) are passed as ``exclude`` so that they are not charged to every frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+from collections import OrderedDict
+from collections.abc import Callable, Hashable, Iterator
+from typing import Generic, TypeVar
+
+import numpy as np
+import torch
+
+__all__ = ["ByteBoundedLRU", "tensor_bytes", "tensor_storages"]
+
+V = TypeVar("V")
+#: Objects not looked into: scalars, strings, and modules and classes (whose attributes are not a value's).
+_LEAVES = (str, bytes, int, float, bool, complex, torch.dtype, torch.device, types.ModuleType, type)
+
+
+def _children(obj) -> Iterator[object]:
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        yield from obj
+    elif isinstance(obj, dict):
+        yield from obj.values()
+    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        for f in dataclasses.fields(obj):
+            yield getattr(obj, f.name, None)
+    else:
+        if hasattr(obj, "__dict__") and not isinstance(obj, type):
+            yield from vars(obj).values()
+        for cls in type(obj).__mro__:
+            for name in getattr(cls, "__slots__", ()):
+                yield getattr(obj, name, None)
+
+
+def _walk_buffers(obj) -> Iterator[tuple[int, int]]:
+    """(data pointer, bytes) of every tensor and numpy array reachable from ``obj`` (repeats
+    included). A view counts its own elements, not its base's: a frame's posed vertices are a view
+    of its sequence's, which the frame does not add to memory."""
+    seen: set[int] = set()
+    stack = [obj]
+    while stack:
+        o = stack.pop()
+        if o is None or isinstance(o, _LEAVES) or id(o) in seen:
+            continue
+        seen.add(id(o))
+        if isinstance(o, torch.Tensor):
+            yield o.data_ptr(), o.numel() * o.element_size()
+        elif isinstance(o, np.ndarray):
+            yield o.__array_interface__["data"][0], o.nbytes
+        elif not callable(o) or dataclasses.is_dataclass(o) or hasattr(o, "__dict__"):
+            stack.extend(_children(o))
+
+
+def tensor_storages(obj) -> frozenset[int]:
+    """The data pointers of the tensors and numpy arrays reachable from ``obj`` (for
+    :func:`tensor_bytes`' ``exclude``)."""
+    return frozenset(key for key, _ in _walk_buffers(obj))
+
+
+def tensor_bytes(obj, exclude: frozenset[int] = frozenset()) -> int:
+    """Bytes of the tensors and numpy arrays reachable from ``obj``, each data pointer once (at the
+    largest size seen there), those whose data pointer is in ``exclude`` not at all."""
+    sizes: dict[int, int] = {}
+    for key, size in _walk_buffers(obj):
+        if key not in exclude and key != 0:
+            sizes[key] = max(size, sizes.get(key, 0))
+    return sum(sizes.values())
+
+
+class ByteBoundedLRU(Generic[V]):
+    """Values by key; when the sizes of the values kept pass ``budget_bytes``, the least recently
+    used go first (a value larger than the budget is not kept at all; a budget of 0 keeps nothing).
+
+    Args:
+        budget_bytes: the bound (>= 0).
+        size_of: ``size_of(value) -> bytes`` (measured once, when the value is put).
+    """
+
+    def __init__(self, budget_bytes: int, size_of: Callable[[V], int] = tensor_bytes) -> None:
+        self._size_of = size_of
+        self._entries: OrderedDict[Hashable, tuple[V, int]] = OrderedDict()
+        self._nbytes = 0
+        self.budget_bytes = 0
+        self.set_budget(budget_bytes)
+
+    def set_budget(self, budget_bytes: int) -> None:
+        """Change the bound (>= 0); the least recently used values leave until it holds."""
+        if not budget_bytes >= 0:
+            raise ValueError(f"cache budget must be >= 0 bytes, got {budget_bytes!r}")
+        self.budget_bytes = int(budget_bytes)
+        self._evict()
+
+    def _evict(self) -> None:
+        while self._nbytes > self.budget_bytes and self._entries:
+            _, (_, old) = self._entries.popitem(last=False)
+            self._nbytes -= old
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the kept values hold (as ``size_of`` measured them)."""
+        return self._nbytes
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._entries
+
+    def get(self, key: Hashable) -> V | None:
+        """The value of ``key`` (now the most recently used), or None."""
+        entry = self._entries.get(key)
+        if entry is None:
+            return None
+        self._entries.move_to_end(key)
+        return entry[0]
+
+    def put(self, key: Hashable, value: V) -> V:
+        """Keep ``value`` under ``key`` (replacing any), then evict down to the budget; returns ``value``."""
+        self.pop(key)
+        size = int(self._size_of(value))
+        self._entries[key] = (value, size)
+        self._nbytes += size
+        self._evict()
+        return value
+
+    def pop(self, key: Hashable) -> V | None:
+        """Remove ``key`` and return its value (None when absent)."""
+        entry = self._entries.pop(key, None)
+        if entry is None:
+            return None
+        self._nbytes -= entry[1]
+        return entry[0]
+
+    def get_or_make(self, key: Hashable, make: Callable[[], V]) -> V:
+        """The value of ``key``, made by ``make()`` and kept when absent."""
+        value = self.get(key)
+        return self.put(key, make()) if value is None else value
+
+    def clear(self) -> None:
+        self._entries.clear()
+        self._nbytes = 0

@@ -1,0 +1,72 @@
+"""The byte-bounded LRU of the trainer's per-frame caches: sizes against hand-counted tensors,
+eviction order and bound."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+
+from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_storages
+
+
+@dataclass
+class _Frame:
+    vertices: torch.Tensor
+    extra: object = None
+
+
+class _Slotted:
+    __slots__ = ("table", "arrays")
+
+    def __init__(self, table, arrays):
+        self.table, self.arrays = table, arrays
+
+
+class _Tree:
+    def __init__(self, nodes):
+        self.nodes = nodes
+        self.parent = self  # a cycle
+
+
+def test_tensor_bytes_counts_each_tensor_once_at_its_own_size():
+    sequence = torch.zeros(10, 7, 3)  # a sequence; a frame is a view of one row
+    table = torch.zeros(5, 4, dtype=torch.float64)
+    array = np.zeros((6, 2), dtype=np.float32)
+    frame = _Frame(sequence[2], extra=[_Slotted(table, {"a": array, "again": array}), _Tree(table), (table,)])
+    assert tensor_bytes(frame) == 7 * 3 * 4 + 5 * 4 * 8 + 6 * 2 * 4
+    # what the model holds is not charged
+    assert tensor_bytes(frame, exclude=tensor_storages(table)) == 7 * 3 * 4 + 6 * 2 * 4
+    assert tensor_bytes(_Frame(torch.zeros(0))) == 0
+
+
+def test_lru_evicts_the_least_recently_used_down_to_its_budget():
+    cache = ByteBoundedLRU(3 * 400, size_of=tensor_bytes)
+    value = {k: torch.zeros(100) for k in "abcd"}  # 400 bytes each
+    for k in "abc":
+        cache.put(k, value[k])
+    assert cache.nbytes == 1200 and len(cache) == 3
+    assert cache.get("a") is value["a"]  # a is now the most recent
+    cache.put("d", value["d"])
+    assert "b" not in cache and all(k in cache for k in "acd") and cache.nbytes == 1200
+    cache.put("a", torch.zeros(200))  # replaced: 800 bytes, so c goes
+    assert "c" not in cache and cache.nbytes == 400 + 800
+    cache.set_budget(900)
+    assert list(k for k in "abcd" if k in cache) == ["a"] and cache.nbytes == 800
+    made = []
+    assert cache.get_or_make("e", lambda: made.append(1) or torch.zeros(10)) is not None
+    assert cache.get_or_make("e", lambda: made.append(1) or torch.zeros(10)) is not None and made == [1]
+    assert cache.pop("e") is not None and cache.pop("e") is None and cache.nbytes == 800
+
+
+def test_a_value_over_the_budget_is_not_kept():
+    cache = ByteBoundedLRU(100)
+    assert cache.put("big", torch.zeros(100)) is not None
+    assert len(cache) == 0 and cache.nbytes == 0
+    empty = ByteBoundedLRU(0)
+    empty.put("x", torch.zeros(1))
+    assert len(empty) == 0
+    with pytest.raises(ValueError, match="budget"):
+        ByteBoundedLRU(-1)
