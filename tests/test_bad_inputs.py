@@ -49,6 +49,8 @@ CASES = [
     (["train", "--scene", "{scene}", "--out", "{file}/run"], "is a file, not a folder"),
     (["train", "--scene", "{scene}", "--out", "{new}", "--device", "potato"], "--device 'potato'"),
     (["train", "--scene", "{scene}", "--out", "{new}", "--threads", "0"], "--threads"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--cache-gib", "0"], "--cache-gib"),
+    (["train", "--scene", "{scene}", "--out", "{new}", "--cache-gib", "nan"], "--cache-gib"),
     (["train", "--out", "{new}"], "--scene"),
     (["train", "--scene", "{new}", "--out", "{new}/run"], "{new}"),
     (["train", "--scene", "{scene}", "--out", "{new}", "--frames", "x"], "--frames"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 from pathlib import Path
 
@@ -85,6 +86,10 @@ def register(sub) -> None:
                         "it fast, a CPU with AMX-BF16 or a CUDA GPU with bfloat16, else float32; on --resume: the "
                         "run's, another one is refused)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--cache-gib", type=float, default=None, metavar="G",
+                   help="memory the per-frame caches may hold, in GiB (default 7: 4 for the body geometry, 2 for the "
+                        "ground-truth images, 1 for the frames' inputs, shared in those proportions; training "
+                        "results do not depend on it, only the time spent rebuilding what was evicted)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -132,6 +137,11 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     if args.threads is not None and args.threads < 1:
         raise ValueError(f"--threads must be at least 1, got {args.threads}")
+    caches = {}
+    if args.cache_gib is not None:
+        if not (math.isfinite(args.cache_gib) and args.cache_gib > 0):
+            raise ValueError(f"--cache-gib must be a positive number of GiB, got {args.cache_gib:g}")
+        caches = cache_bounds(args.cache_gib)
 
     bounds = (("--log-every", args.log_every, 1), ("--ckpt-every", args.ckpt_every, 1),
               ("--image-every", args.image_every, 0), ("--stop-after", args.stop_after, 0),
@@ -157,13 +167,20 @@ def run(args: argparse.Namespace) -> int:
                      progress=not args.no_progress, init_generator=args.init_generator,
                      init_weights=args.init_weights, training_crop_density=args.training_crop_density,
                      body_appearance=args.body_appearance,
-                     loss_weights=_loss_weights(args.loss_weight), precision=args.precision)
+                     loss_weights=_loss_weights(args.loss_weight), precision=args.precision, **caches)
     if not args.resume and args.scene is None:
         raise ValueError("--scene is required for a new run")
     # `kill` (SIGTERM, what schedulers and `timeout` send) saves a checkpoint like Ctrl-C does.
     with interrupting(signal.SIGTERM), Trainer(tc) as trainer:
         result = trainer.train()
     return 130 if result.interrupted else 0
+
+
+def cache_bounds(gib: float) -> dict[str, int]:
+    """The :class:`~garmentnerf.train.settings.TrainConfig` cache bounds for ``gib`` GiB in all, shared as
+    the defaults are (geometry 4 : targets 2 : inputs 1)."""
+    unit = gib * 2**30 / 7
+    return {"geometry_cache_bytes": int(4 * unit), "cache_bytes": int(2 * unit), "inputs_cache_bytes": int(unit)}
 
 
 def read_model_config(path):

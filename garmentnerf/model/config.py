@@ -417,6 +417,13 @@ class ModelConfig:
     """In the NeRF stage the U-Nets E and G_en, which make the per-frame features f_d and f_s, learn at
     the scheduled rate times this (1: as every other network; the paper has no such scale). 10 lost
     0.83 dB on the garment of the demo's held-out cameras (recipe C15, ``docs/quality.md``)."""
+    trained_parameters: tuple[str, ...] = ()
+    """Prefixes of the parameter names (``model.named_parameters()``) the NeRF stage trains; every other
+    weight is held exactly: left out of the optimiser, and no gradient is computed for it. Empty: every
+    weight trains (the paper). ``("frame_codes.",)`` learns per-frame codes on a finished field. Before this
+    setting such stages held the other weights with a tiny rate (``lr`` 1e-6 and a large
+    ``frame_code_lr_scale``), and over 1,600 steps that drift cost 0.05 dB of garment on the motions
+    without codes (``docs/quality.md``, "The bundled model C7C5"). A prefix no parameter has is an error."""
     iterations: int = 200_000
     """Training iterations (paper: 200k)."""
     batch_size: int = 1
@@ -445,6 +452,7 @@ class ModelConfig:
         self.background = tuple(float(c) for c in self.background)
         self.uvh_height_range = tuple(float(h) for h in self.uvh_height_range)
         self.velocity_smoothing = tuple(float(t) for t in self.velocity_smoothing)
+        self.trained_parameters = tuple(str(p) for p in self.trained_parameters)
         self.validate()
 
     # ------------------------------------------------------------------ derived sizes
@@ -525,6 +533,9 @@ class ModelConfig:
                  "occupancy_step", "occupancy_spread")
         if self.history < 0:
             raise ValueError(f"ModelConfig.history must be >= 0, got {self.history}")
+        if any(not prefix for prefix in self.trained_parameters):
+            raise ValueError(f"ModelConfig.trained_parameters: empty prefix in {list(self.trained_parameters)} "
+                             "(leave the list empty to train every weight)")
         if not all(math.isfinite(t) and t > 0 for t in self.velocity_smoothing):
             raise ValueError(f"ModelConfig.velocity_smoothing must hold positive seconds, got "
                              f"{list(self.velocity_smoothing)}")

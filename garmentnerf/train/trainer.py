@@ -176,6 +176,18 @@ def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> l
     return [g for g in groups if g["params"]]
 
 
+def trained_parameter_ids(model, prefixes: tuple[str, ...]) -> set[int]:
+    """``id`` of each parameter of ``model`` whose name starts with one of ``prefixes``
+    (:attr:`ModelConfig.trained_parameters`); ValueError naming a prefix no parameter has."""
+    named = list(model.named_parameters())
+    for prefix in prefixes:
+        if not any(name.startswith(prefix) for name, _ in named):
+            tops = sorted({name.split(".")[0] + "." for name, _ in named})
+            raise ValueError(f"model_config.trained_parameters: no parameter of the model starts with '{prefix}' "
+                             f"(its parameters start with {', '.join(tops)})")
+    return {id(p) for name, p in named if name.startswith(prefixes)}
+
+
 class Trainer(Closeable):
     """One training run (see the module docstring). Use :meth:`train`, then :meth:`close`.
 
@@ -489,6 +501,11 @@ class Trainer(Closeable):
         else:
             m.set_image_generator_frozen(True)
             params = [p for mod in m.trainable_modules().values() for p in mod.parameters() if p.requires_grad]
+            if self.cfg.trained_parameters:
+                trained = trained_parameter_ids(m, self.cfg.trained_parameters)
+                for p in params:
+                    p.requires_grad_(id(p) in trained)
+                params = [p for p in params if id(p) in trained]
             lr = self.cfg.lr
         m.train()
         self.params = params

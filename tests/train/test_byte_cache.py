@@ -70,3 +70,14 @@ def test_a_value_over_the_budget_is_not_kept():
     assert len(empty) == 0
     with pytest.raises(ValueError, match="budget"):
         ByteBoundedLRU(-1)
+
+
+def test_train_cache_gib_shares_its_total_as_the_defaults_do():
+    from garmentnerf.cli.train_cmd import cache_bounds
+    from garmentnerf.train.settings import TrainConfig
+
+    defaults = TrainConfig(scene=None, out="x")
+    names = ("geometry_cache_bytes", "cache_bytes", "inputs_cache_bytes")
+    assert cache_bounds(7) == {n: getattr(defaults, n) for n in names}
+    half = cache_bounds(3.5)
+    assert all(half[n] == getattr(defaults, n) // 2 for n in names) and sum(half.values()) == 7 * 2**29

@@ -140,3 +140,41 @@ def test_code_dropout_trains_only_the_kept_codes_and_resumes_exactly(tiny_scene,
     assert_same_steps(full.history[3:], rest.history, full_state, rest_state)
     with pytest.raises(ValueError, match="frame_code_dropout"):
         codes_config(frame_code_dropout=1.0)
+
+
+def test_a_codes_stage_holds_every_other_weight_exactly_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
+    """``trained_parameters=("frame_codes.",)`` on weights trained without codes: after the stage every
+    weight but the codes is the starting one to the bit, no gradient was computed for them, and an
+    interrupted stage resumes exactly."""
+    from garmentnerf.train.trainer import Trainer
+
+    _, plain_state = run(make_tc(tiny_scene, tmp_path / "plain", generator_iterations=0, iterations=1), gl_context)
+    start = tmp_path / "plain" / "model.safetensors"
+    cfg = codes_config(iterations=4, trained_parameters=("frame_codes.",))
+    tc = make_tc(tiny_scene, tmp_path / "codes", generator_iterations=0, iterations=4, model_config=cfg,
+                 init_weights=start)
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        full = tr.train()
+        held = [(name, p) for name, p in tr.model.named_parameters() if not name.startswith("frame_codes.")]
+        assert held and all(p.grad is None and not p.requires_grad for _, p in held)
+        state = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+    assert plain_state.keys() == state.keys() - {"frame_codes.codes"}
+    assert all(torch.equal(state[k], v) for k, v in plain_state.items())
+    assert (state["frame_codes.codes"].flatten(1).abs().amax(dim=1) > 0).any()
+    run(make_tc(tiny_scene, tmp_path / "part", generator_iterations=0, iterations=4, model_config=cfg,
+                init_weights=start, stop_after=2), gl_context)
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "part", resume=True, generator_iterations=0, iterations=4),
+                           gl_context)
+    assert_same_steps(full.history[2:], rest.history, state, rest_state)
+
+
+def test_a_trained_parameters_prefix_the_model_lacks_is_refused(tiny_scene, gl_context, tmp_path):
+    from garmentnerf.train.trainer import Trainer
+
+    cfg = tiny_config().replace(iterations=1, trained_parameters=("frame_codes.",))  # no codes in this model
+    with pytest.raises(ValueError, match=r"trained_parameters: no parameter of the model starts with 'frame_codes\.'"):
+        with Trainer(make_tc(tiny_scene, tmp_path / "x", generator_iterations=0, iterations=1, model_config=cfg),
+                     gl_context, log=lambda m: None) as tr:
+            tr.train()
+    with pytest.raises(ValueError, match="empty prefix"):
+        tiny_config().replace(trained_parameters=("",))
