@@ -128,9 +128,9 @@ class TrainConfig:
     """Bound of the in-memory cache of the frames' inputs (info maps, reference G-buffers and images:
     1.4 MB a frame at the bundled sizes); evicted frames are built again."""
     geometry_cache_bytes: int = 4 << 30
-    """Bound of the frames' body geometry kept between NeRF steps (the bound closest-point search, 18 MB
-    of tensors a frame for the bundled body, about 26 MB of memory); evicted frames are bound again.
-    0: bound at every step."""
+    """Bound of the frames' body geometry kept between NeRF steps (the bound closest-point search: 18 MB of
+    tensors a frame for the bundled body, the 170 frames of the bundled scene 3.0 GiB); evicted frames are
+    bound again. 0: bound at every step."""
     init_generator: str | Path | None = None
     """*run*; a weights file (a run's ``model.safetensors`` or a checkpoint) whose pre-trained G_img (with its
     neural texture) a new run starts from, skipping stage 1; the model configs must agree on G_img's shapes."""

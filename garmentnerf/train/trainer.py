@@ -416,10 +416,9 @@ class Trainer(Closeable):
         self._body_pass = None  # the BodyLayerPass of the body layer, made on first use
         self.shell_band = self._shell_band(resume_info)
         self.sampling = get_render_preset("reference").sampling(self.model, self.shell_band, self.data.frames.ctx)
-        #: The frames' body geometry kept between steps, by (sequence, frame); its tensors shared with
-        #: the model (the topology tables every bound body points at) are not charged to the frames.
-        model_tensors = tensor_storages(self.model)
-        self.geometry_cache = ByteBoundedLRU(tc.geometry_cache_bytes, lambda g: tensor_bytes(g, model_tensors))
+        #: The frames' body geometry kept between steps, by (sequence, frame).
+        self.geometry_cache = ByteBoundedLRU(tc.geometry_cache_bytes, self._geometry_bytes)
+        self._model_tensors: frozenset[int] | None = None
         # Per training sequence, its simulated garment (vertices (T, Vg, 3)) and the garment topology's
         # projector: the occupancy term's labels (ModelConfig.w_occupancy), loaded on first use.
         self._garments: dict[str, tuple[np.ndarray, SurfaceProjector]] = {}
@@ -665,6 +664,13 @@ class Trainer(Closeable):
             self.geometry_cache.put((seq, frame), replace(feats, dynamic_features=None, reference_images=None,
                                                           detail_features=None, timings={}))
         return feats
+
+    def _geometry_bytes(self, geometry) -> int:
+        """What a frame's geometry adds to memory: its tensors but those it shares with the model (the
+        topology tables every bound body points at, which the model makes on its first frame)."""
+        if self._model_tensors is None:
+            self._model_tensors = tensor_storages(self.model)
+        return tensor_bytes(geometry, self._model_tensors)
 
     def _geometry_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
         """A step of the geometry warm-up (``cfg.geometry_iterations``): the occupancy term alone, at the
