@@ -199,7 +199,7 @@ class SceneFrames(Closeable):
         cam = self.camera(camera)
         size = (cam.width, cam.height)
         whole = self._targets.get_or_make(("view", sequence, camera, frame, size),
-                             lambda: self._composite(sequence, camera, frame, size))
+                                          lambda: self._composite(sequence, camera, frame, size))
         if window is None:
             return whole
         rows, cols = window.slices()

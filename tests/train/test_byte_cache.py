@@ -81,3 +81,23 @@ def test_train_cache_gib_shares_its_total_as_the_defaults_do():
     assert cache_bounds(7) == {n: getattr(defaults, n) for n in names}
     half = cache_bounds(3.5)
     assert all(half[n] == getattr(defaults, n) // 2 for n in names) and sum(half.values()) == 7 * 2**29
+
+
+def test_scene_frames_rebuild_evicted_inputs_and_targets_to_the_same_values(tiny_scene, gl_context):
+    from garmentnerf.train.frames import SceneFrames
+    from garmentnerf.train.settings import tiny_config
+
+    with SceneFrames(tiny_scene, tiny_config(), gl_context) as frames:
+        first = frames.inputs("train", 1)
+        target = frames.target("train", "cam01", 1)
+        one_input, one_target = tensor_bytes(first), tensor_bytes(target)
+    # room for one frame's inputs and one view's target: the second frame evicts the first
+    with SceneFrames(tiny_scene, tiny_config(), gl_context, cache_bytes=one_target,
+                     inputs_cache_bytes=one_input) as frames:
+        a, ta = frames.inputs("train", 1), frames.target("train", "cam01", 1)
+        frames.inputs("train", 2), frames.target("train", "cam01", 2)
+        assert frames.inputs("train", 1) is not a and frames.target("train", "cam01", 1) is not ta  # rebuilt
+        b, tb = frames.inputs("train", 1), frames.target("train", "cam01", 1)
+    for name in ("posed_vertices", "info_maps", "reference_uv", "reference_mask", "reference_depth", "reference_face"):
+        assert torch.equal(getattr(a, name), getattr(first, name)) and torch.equal(getattr(b, name), getattr(a, name))
+    assert all(torch.equal(x, y) for x, y in zip(ta, tb)) and all(torch.equal(x, y) for x, y in zip(ta, target))
