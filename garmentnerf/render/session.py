@@ -81,7 +81,7 @@ from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.frame_context import FrameInputBuilder
-from garmentnerf.model.palette import check_palette
+from garmentnerf.model.palette import DecomposedMaps, check_palette
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion

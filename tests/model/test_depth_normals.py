@@ -1,7 +1,6 @@
 """depth_normals against analytic surfaces: planes (exact), a sphere (to the pixel's angle), an
 occlusion edge, the opacity rule and the orientation."""
 
-import numpy as np
 import torch
 
 from garmentnerf.conventions import camera_rays, orbit_camera

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from garmentnerf.conventions import orbit_camera, project_points
-from garmentnerf.render.camera_path import CameraPath, Keyframe, save_camera_path
+from garmentnerf.render.camera_path import CameraPath, Keyframe
 from garmentnerf.viewer.camera import OrbitController
 from garmentnerf.viewer.export_jobs import ExportSettings, plan_path
 from garmentnerf.viewer.path_editor import PATH_COLOR, PathEditor, frustum_lines, path_lines
