@@ -689,6 +689,7 @@ class ModelConfig:
         out["background"] = list(self.background)
         out["uvh_height_range"] = list(self.uvh_height_range)
         out["velocity_smoothing"] = list(self.velocity_smoothing)
+        out["trained_parameters"] = list(self.trained_parameters)
         return out
 
     @classmethod
