@@ -25,7 +25,7 @@ PAPER_SIZES = ("image_resolution", "reference_resolution", "feature_image_resolu
 SCHEDULE = ("lr", "lr_final", "iterations", "generator_iterations", "segmentation_start")
 #: The bundled model's last run learned per-frame codes alone on its finished field (TRAINING.md, run 7):
 #: a stage after the field's recipe, which the GPU recipe trains (the codes would follow it the same way).
-CODES_STAGE = ("frame_code_resolution", "frame_code_lr_scale", "frame_codes")
+CODES_STAGE = ("frame_code_resolution", "frame_code_lr_scale", "frame_codes", "trained_parameters")
 #: The issue's limit on the bundled weights.
 BUNDLE_LIMIT_BYTES = 25_000_000
 
