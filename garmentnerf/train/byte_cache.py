@@ -7,8 +7,10 @@ alone holds ~20 MB (its closest-point search tables are float64).
 
 :func:`tensor_bytes` measures a value: the tensors (and numpy arrays) reachable from it through
 dataclass fields, attributes, ``__slots__`` and containers, each distinct data pointer counted once
-at its own size (a view is charged its elements, not its base's). Tensors shared with something long-lived (the model's topology tables, which every frame's bound
-body points at) are passed as ``exclude`` so that they are not charged to every frame.
+at its own size (a view is charged its elements, not its base's). Tensors shared with something
+long-lived (the model's topology tables, which every frame's bound body points at) are passed as
+``exclude`` (:func:`tensor_pointers` of the long-lived thing) so that they are not charged to every
+frame.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Generic, TypeVar
 import numpy as np
 import torch
 
-__all__ = ["ByteBoundedLRU", "tensor_bytes", "tensor_storages"]
+__all__ = ["ByteBoundedLRU", "tensor_bytes", "tensor_pointers"]
 
 V = TypeVar("V")
 #: Objects not looked into: scalars, strings, and modules and classes (whose attributes are not a value's).
@@ -60,11 +62,11 @@ def _walk_buffers(obj) -> Iterator[tuple[int, int]]:
             yield o.data_ptr(), o.numel() * o.element_size()
         elif isinstance(o, np.ndarray):
             yield o.__array_interface__["data"][0], o.nbytes
-        elif not callable(o) or dataclasses.is_dataclass(o) or hasattr(o, "__dict__"):
+        else:
             stack.extend(_children(o))
 
 
-def tensor_storages(obj) -> frozenset[int]:
+def tensor_pointers(obj) -> frozenset[int]:
     """The data pointers of the tensors and numpy arrays reachable from ``obj`` (for
     :func:`tensor_bytes`' ``exclude``)."""
     return frozenset(key for key, _ in _walk_buffers(obj))

@@ -116,7 +116,7 @@ from garmentnerf.model.occupancy import occupancy_labels, occupancy_loss, occupa
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
-from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_storages
+from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_pointers
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
@@ -669,7 +669,7 @@ class Trainer(Closeable):
         """What a frame's geometry adds to memory: its tensors but those it shares with the model (the
         topology tables every bound body points at, which the model makes on its first frame)."""
         if self._model_tensors is None:
-            self._model_tensors = tensor_storages(self.model)
+            self._model_tensors = tensor_pointers(self.model)
         return tensor_bytes(geometry, self._model_tensors)
 
     def _geometry_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_storages
+from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_pointers
 
 
 @dataclass
@@ -38,7 +38,7 @@ def test_tensor_bytes_counts_each_tensor_once_at_its_own_size():
     frame = _Frame(sequence[2], extra=[_Slotted(table, {"a": array, "again": array}), _Tree(table), (table,)])
     assert tensor_bytes(frame) == 7 * 3 * 4 + 5 * 4 * 8 + 6 * 2 * 4
     # what the model holds is not charged
-    assert tensor_bytes(frame, exclude=tensor_storages(table)) == 7 * 3 * 4 + 6 * 2 * 4
+    assert tensor_bytes(frame, exclude=tensor_pointers(table)) == 7 * 3 * 4 + 6 * 2 * 4
     assert tensor_bytes(_Frame(torch.zeros(0))) == 0
 
 
