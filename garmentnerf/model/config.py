@@ -68,7 +68,8 @@ class ModelConfig:
     of a drawn code by about the rate in the sign of its gradient, however small, and whose momentum carries
     the code on for about ten more steps after the visit. Codes trained alone on the bundled C5 (session 19,
     docs/quality.md, "Per-frame codes on the bundled field"): at a rate of 5e-2 they lost 0.65 dB of
-    foreground on the held-out cameras (lumpy skirts), at 1.5e-2 they gained 0.31, at 5e-3 0.21."""
+    foreground on the held-out cameras (lumpy skirts), at 1.5e-2 they gained 0.31, at 5e-3 0.21. To train
+    the codes alone, set ``trained_parameters`` and give ``lr`` the codes' rate with this at 1."""
     frame_code_dropout: float = 0.0
     """Probability that a training step renders its frame without the frame's code (E's output alone;
     0: never). The codes learn each training frame's own garment fast but let E learn less of the rule
