@@ -126,7 +126,7 @@ class TrainConfig:
     """Bound of the in-memory target cache (the ground-truth images at the training density)."""
     inputs_cache_bytes: int = 1 << 30
     """Bound of the in-memory cache of the frames' inputs (info maps, reference G-buffers and images:
-    1.4 MB a frame at the bundled sizes); evicted frames are built again."""
+    1.8 MB a frame at the bundled sizes with G_img's reference images); evicted frames are built again."""
     geometry_cache_bytes: int = 4 << 30
     """Bound of the frames' body geometry kept between NeRF steps (the bound closest-point search: 18 MB of
     tensors a frame for the bundled body, the 170 frames of the bundled scene 3.0 GiB); evicted frames are

@@ -78,9 +78,9 @@ Devices and several processes
 Caches
     Per-frame inputs and targets stay in memory on the CPU (:class:`~garmentnerf.train.frames.SceneFrames`),
     each in a byte-bounded LRU (``TrainConfig.inputs_cache_bytes``, ``cache_bytes``). There are no
-    data-loader workers: a frame's inputs are built once (a few ms of GL) and later steps read
-    memory. The body geometry of a frame (its bound closest-point search, vertex normals and box)
-    is built at the frame's first NeRF step and reused by the later ones, in a byte-bounded LRU too
+    data-loader workers: a frame's inputs are built on first use (a few ms of GL) and later steps
+    read memory until the cache evicts them. The body geometry of a frame (its bound closest-point
+    search, vertex normals and box) is built at the frame's first NeRF step and reused by the later ones, in a byte-bounded LRU too
     (``TrainConfig.geometry_cache_bytes``, :attr:`Trainer.geometry_cache`): rebuilding it cost ~10 %
     of a step of the bundled recipe. All three grow with the training frames (a four-sequence scene
     has 680), so all three are bounded.
