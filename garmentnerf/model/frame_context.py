@@ -198,6 +198,18 @@ def _slice_posed(posed: "PosedBody", start: int, stop: int) -> "PosedBody":
                      posed.rest_vertices)
 
 
+def frame_vertices(posed: "PosedBody", frame: int) -> torch.Tensor:
+    """(V, 3) float32 CPU copy of frame ``frame``'s posed vertices, owning its memory.
+
+    Not a view: a row of ``posed.vertices`` would keep the whole clip's (T, V, 3) tensor alive for
+    as long as the frame's inputs live (28 MB for the demo's 170 frames, against the frame's 165 kB).
+    The trainer keeps frames long after the clip they were built from is gone, and with several
+    sequences each frame kept a different posing of its clip: training on four sequences grew by
+    about 13 MB per new frame until it was killed (``docs/quality.md``, "The trainer's memory,
+    found and fixed")."""
+    return posed.vertices[frame].detach().to("cpu", torch.float32).clone(memory_format=torch.contiguous_format)
+
+
 class FrameInputBuilder:
     """Runs the GL passes that make :class:`FrameInputs`: info maps and reference-camera G-buffers.
 
@@ -261,8 +273,7 @@ class FrameInputBuilder:
         attributes = self.info_map_renderer.vertex_attributes(window, fps)
         maps = self.info_map_renderer.render_attributes(attributes[-1]).stacked()
         info_ms = (time.perf_counter() - t0) * 1e3
-        vertices = posed.vertices[frame].detach().to("cpu", torch.float32).contiguous()
-        return self._inputs(vertices, maps, frame, info_ms)
+        return self._inputs(frame_vertices(posed, frame), maps, frame, info_ms)
 
     def build_clip(self, posed: "PosedBody", fps: float, frames: Sequence[int] | None = None) -> list[FrameInputs]:
         """Inputs of every frame of a posed clip (or of ``frames``); per-vertex work done once."""
@@ -276,8 +287,7 @@ class FrameInputBuilder:
             t1 = time.perf_counter()
             maps = self.info_map_renderer.render_attributes(attributes[f]).stacked()
             info_ms = shared_ms + (time.perf_counter() - t1) * 1e3
-            vertices = posed.vertices[f].detach().to("cpu", torch.float32).contiguous()
-            out.append(self._inputs(vertices, maps, f, info_ms))
+            out.append(self._inputs(frame_vertices(posed, f), maps, f, info_ms))
         return out
 
     # ------------------------------------------------------------------ lifetime
@@ -293,5 +303,5 @@ class FrameInputBuilder:
         self.release()
 
 
-__all__ = ["FrameInputs", "FrameFeatures", "FrameInputBuilder", "resolve_reference_cameras",
+__all__ = ["FrameInputs", "FrameFeatures", "FrameInputBuilder", "frame_vertices", "resolve_reference_cameras",
            "REFERENCE_CAMERA_NAMES"]

@@ -6,11 +6,13 @@ bytes, not in entries: a four-sequence scene has 680 training frames, and a fram
 alone holds 18 MB of tensors (its closest-point search tables are float64).
 
 :func:`tensor_bytes` measures a value: the tensors (and numpy arrays) reachable from it through
-dataclass fields, attributes, ``__slots__`` and containers, each distinct data pointer counted once
-at its own size (a view is charged its elements, not its base's). Tensors shared with something
-long-lived (the model's topology tables, which every frame's bound body points at) are passed as
-``exclude`` (:func:`tensor_pointers` of the long-lived thing) so that they are not charged to every
-frame.
+dataclass fields, attributes, ``__slots__`` and containers, each charged the whole memory it keeps
+alive -- a tensor its storage, a numpy array its outermost base array -- each storage once. A view
+is charged its base's size: a frame's row of a (T, V, 3) clip keeps the whole clip in memory, and
+the caches once held such rows at 1/170 of what they cost (``docs/quality.md``, "The trainer's
+memory, found and fixed"). Tensors shared with something long-lived (the model's topology tables, which every frame's
+bound body points at) are passed as ``exclude`` (:func:`tensor_pointers` of the long-lived thing) so
+that they are not charged to every frame.
 """
 
 from __future__ import annotations
@@ -48,9 +50,9 @@ def _children(obj) -> Iterator[object]:
 
 
 def _walk_buffers(obj) -> Iterator[tuple[int, int]]:
-    """(data pointer, bytes) of every tensor and numpy array reachable from ``obj`` (repeats
-    included). A view counts its own elements, not its base's: a frame's posed vertices are a view
-    of its sequence's, which the frame does not add to memory."""
+    """(pointer, bytes) of the memory every tensor and numpy array reachable from ``obj`` keeps alive
+    (repeats included): a tensor's storage, a numpy array's outermost ndarray base. A view yields
+    its base's memory, which it keeps alive, so that all views of one buffer count it once."""
     seen: set[int] = set()
     stack = [obj]
     while stack:
@@ -59,22 +61,25 @@ def _walk_buffers(obj) -> Iterator[tuple[int, int]]:
             continue
         seen.add(id(o))
         if isinstance(o, torch.Tensor):
-            yield o.data_ptr(), o.numel() * o.element_size()
+            storage = o.untyped_storage()
+            yield storage.data_ptr(), storage.nbytes()
         elif isinstance(o, np.ndarray):
+            while isinstance(o.base, np.ndarray):
+                o = o.base
             yield o.__array_interface__["data"][0], o.nbytes
         else:
             stack.extend(_children(o))
 
 
 def tensor_pointers(obj) -> frozenset[int]:
-    """The data pointers of the tensors and numpy arrays reachable from ``obj`` (for
-    :func:`tensor_bytes`' ``exclude``)."""
+    """The pointers of the memory the tensors and numpy arrays reachable from ``obj`` keep alive
+    (their storages and bases; for :func:`tensor_bytes`' ``exclude``)."""
     return frozenset(key for key, _ in _walk_buffers(obj))
 
 
 def tensor_bytes(obj, exclude: frozenset[int] = frozenset()) -> int:
-    """Bytes of the tensors and numpy arrays reachable from ``obj``, each data pointer once (at the
-    largest size seen there), those whose data pointer is in ``exclude`` not at all."""
+    """Bytes of memory the tensors and numpy arrays reachable from ``obj`` keep alive: each storage
+    (or outermost numpy base) once, those whose pointer is in ``exclude`` not at all."""
     sizes: dict[int, int] = {}
     for key, size in _walk_buffers(obj):
         if key not in exclude and key != 0:

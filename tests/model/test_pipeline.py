@@ -64,6 +64,11 @@ def test_frame_inputs(gl_context, body, walk_clip, walk_inputs):
         whole = builder.build_clip(posed, fps)
     assert len(whole) == 3
     torch.testing.assert_close(whole[2].info_maps, walk_inputs.info_maps, atol=1e-5, rtol=0)
+    # each frame holds its own vertices, not a row of the clip that would keep the whole clip alive
+    own_bytes = posed.vertices.shape[1] * 3 * 4
+    for inputs in (walk_inputs, *whole):
+        assert inputs.posed_vertices.untyped_storage().nbytes() == own_bytes
+    torch.testing.assert_close(walk_inputs.posed_vertices, posed.vertices[2], atol=0, rtol=0)
     assert walk_inputs.info_maps[3:].abs().max() > 0  # the body moves
     with pytest.raises(ValueError, match="info_maps"):
         walk_inputs.validate(cfg.replace(history=1))

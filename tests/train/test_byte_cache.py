@@ -31,15 +31,29 @@ class _Tree:
         self.parent = self  # a cycle
 
 
-def test_tensor_bytes_counts_each_tensor_once_at_its_own_size():
-    sequence = torch.zeros(10, 7, 3)  # a sequence; a frame is a view of one row
+def test_tensor_bytes_counts_each_buffer_once_at_what_it_keeps_alive():
+    vertices = torch.zeros(7, 3)
     table = torch.zeros(5, 4, dtype=torch.float64)
     array = np.zeros((6, 2), dtype=np.float32)
-    frame = _Frame(sequence[2], extra=[_Slotted(table, {"a": array, "again": array}), _Tree(table), (table,)])
+    frame = _Frame(vertices, extra=[_Slotted(table, {"a": array, "again": array}), _Tree(table), (table,),
+                                    table[1:3], array[::2]])  # views of buffers already counted
     assert tensor_bytes(frame) == 7 * 3 * 4 + 5 * 4 * 8 + 6 * 2 * 4
-    # what the model holds is not charged
+    # what the model holds is not charged, nor are views of it
     assert tensor_bytes(frame, exclude=tensor_pointers(table)) == 7 * 3 * 4 + 6 * 2 * 4
+    assert tensor_bytes(_Frame(table[2:]), exclude=tensor_pointers(table)) == 0
     assert tensor_bytes(_Frame(torch.zeros(0))) == 0
+
+
+def test_a_view_is_charged_the_buffer_it_keeps_alive():
+    # a frame's row of a clip keeps the whole clip in memory for as long as the row lives
+    clip = torch.zeros(10, 7, 3)
+    row = clip[2]
+    assert tensor_bytes(_Frame(row)) == 10 * 7 * 3 * 4
+    del clip
+    assert row._base is not None and row.untyped_storage().nbytes() == 10 * 7 * 3 * 4  # still alive
+    assert tensor_bytes(_Frame(row.clone())) == 7 * 3 * 4
+    grid = np.zeros((10, 8), np.float64)
+    assert tensor_bytes(_Frame(grid[3:5, ::2].T)) == 10 * 8 * 8  # a view of a view: the outermost base
 
 
 def test_lru_evicts_the_least_recently_used_down_to_its_budget():
