@@ -306,7 +306,8 @@ class Trainer(Closeable):
         scene_path = self.tc.scene
         if resume_info is not None and scene_path is None and resume_info.get("scene"):
             p = Path(resume_info["scene"])
-            scene_path = p if p.is_absolute() else self.out / p
+            # recorded relative to the run folder: resolved, so the resume's record names the folder itself
+            scene_path = p if p.is_absolute() else (self.out / p).resolve()
         if scene_path is None:
             raise ValueError("no scene given (--scene)")
         self.scene_path = Path(scene_path)
