@@ -10,9 +10,9 @@ dataclass fields, attributes, ``__slots__`` and containers, each charged the who
 alive -- a tensor its storage, a numpy array its outermost base array -- each storage once. A view
 is charged its base's size: a frame's row of a (T, V, 3) clip keeps the whole clip in memory, and
 the caches once held such rows at 1/170 of what they cost (``docs/quality.md``, "The trainer's
-memory, found and fixed"). Tensors shared with something long-lived (the model's topology tables, which every frame's
-bound body points at) are passed as ``exclude`` (:func:`tensor_pointers` of the long-lived thing) so
-that they are not charged to every frame.
+memory, found and fixed"). Tensors shared with something long-lived (the model's topology tables,
+which every frame's bound body points at) are passed as ``exclude`` (:func:`tensor_pointers` of the
+long-lived thing) so that they are not charged to every frame.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def tensor_bytes(obj, exclude: frozenset[int] = frozenset()) -> int:
     sizes: dict[int, int] = {}
     for key, size in _walk_buffers(obj):
         if key not in exclude and key != 0:
-            sizes[key] = max(size, sizes.get(key, 0))
+            sizes[key] = size  # every view of a storage yields the storage's size
     return sum(sizes.values())
 
 
