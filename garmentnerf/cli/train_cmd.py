@@ -69,7 +69,10 @@ def register(sub) -> None:
                         "model.safetensors or checkpoint) and skip G_img pre-training (a new run only)")
     p.add_argument("--init-weights", default=None, metavar="SAFETENSORS",
                    help="start a new run from all the weights of this file (a run's model.safetensors or "
-                        "checkpoint; same model sizes) at the NeRF stage: fine-tuning (a new run only)")
+                        "checkpoint) at the NeRF stage: fine-tuning (a new run only). The model sizes must match, "
+                        "except a wider NeRF MLP, added per-frame codes, a decoder that also reads the shading "
+                        "normals, and a palette of another size (another garment's run: each garment layer "
+                        "starts from the file's garment channels, the colours from this scene's labels)")
     p.add_argument("--training-crop-density", type=float, default=None, metavar="D",
                    help="train on windows of the model's image size placed on the character, at D pixels per "
                         "scene pixel (1: the scene's own resolution); 0: whole frames (default: the preset's, 0; "

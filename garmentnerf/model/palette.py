@@ -357,7 +357,8 @@ class PaletteDecoder(nn.Module):
         raw = self.head(trunk)
         B, _, H, W = raw.shape
         P, Cr = self.palette_size, self.radiance_channels
-        r_raw, o_raw, w_raw, m_raw = torch.split(raw, [Cr, 3 * P, P, 1], dim=1)
+        rows = palette_head_rows(Cr, P)
+        r_raw, o_raw, w_raw, m_raw = torch.split(raw, [len(r) for r in rows.values()], dim=1)
         if self.radiance_activation == "softplus":
             radiance = F.softplus(r_raw + _SOFTPLUS_ONE)
         else:
@@ -365,14 +366,26 @@ class PaletteDecoder(nn.Module):
         offsets = self.offset_scale * torch.tanh(o_raw).view(B, P, 3, H, W)
         head_only = None
         if self.head_only_weights and self.training and torch.is_grad_enabled():
-            rows = slice(Cr + 3 * P, Cr + 4 * P)
-            head_only = self._normalised_weights(F.conv2d(trunk.detach(), self.head.weight[rows],
-                                                          self.head.bias[rows], padding=self.head.padding))
+            weight_rows = slice(rows["weights"].start, rows["weights"].stop)
+            head_only = self._normalised_weights(F.conv2d(trunk.detach(), self.head.weight[weight_rows],
+                                                          self.head.bias[weight_rows], padding=self.head.padding))
         return DecomposedMaps(radiance, offsets, self._normalised_weights(w_raw), restoring_sigmoid(m_raw), head_only)
 
     def _normalised_weights(self, w_raw: torch.Tensor) -> torch.Tensor:
         w = F.softplus(w_raw) + self.weight_floor
         return w / w.sum(dim=1, keepdim=True)
+
+
+def palette_head_rows(radiance_channels: int, palette_size: int) -> dict[str, range]:
+    """Rows of :class:`PaletteDecoder`'s raw head output, in order: ``radiance`` (``radiance_channels``),
+    ``offsets`` (3 per colour, colour-major: colour c's at 3c, 3c + 1, 3c + 2), ``weights`` (one per
+    colour) and ``mask`` (1)."""
+    rows, start = {}, 0
+    for name, count in (("radiance", radiance_channels), ("offsets", 3 * palette_size), ("weights", palette_size),
+                        ("mask", 1)):
+        rows[name] = range(start, start + count)
+        start += count
+    return rows
 
 
 def palette_names(palette_size: int) -> list[str]:

@@ -48,6 +48,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import torch
 from safetensors.torch import load_file, save
@@ -237,7 +238,9 @@ def load_module_weights(path, model: torch.nn.Module, prefix: str) -> None:
 
 
 def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] = (),
-                 may_grow: tuple[str, ...] = ()) -> list[str]:
+                 may_grow: tuple[str, ...] = (),
+                 adapt: Callable[[dict[str, torch.Tensor], dict[str, torch.Tensor]], list[str]] | None = None
+                 ) -> list[str]:
     """Load a ``.safetensors`` written by :func:`save_weights` into ``model`` (strict).
 
     Args:
@@ -248,8 +251,11 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
             ``model`` (a wider MLP started from a narrower one's weights,
             :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.growable_prefixes`): each is
             embedded by :func:`grow_linear_tensor` so the model computes what the file's model did.
+        adapt: called as ``adapt(state, model_state)`` before the keys and shapes are checked, may change
+            the file's tensors in ``state`` to fit the model and returns the keys it changed (another
+            garment's weights as a start: :func:`~garmentnerf.train.transfer.transfer_garment_state`).
     Returns:
-        The keys that kept the model's values, whole or (grown ones) in part, sorted.
+        The keys that kept the model's values, whole or (grown or adapted ones) in part, sorted.
     Raises:
         FileNotFoundError: missing file; ValueError: unreadable file or keys/shapes that do not
         match the model (both name the file).
@@ -265,6 +271,7 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
         if old in state and new not in state:
             state[new] = state.pop(old)
     own = model.state_dict()
+    adapted = adapt(state, own) if adapt is not None else []
     kept = sorted(k for k in set(own) - set(state) if k.startswith(tuple(may_be_missing)))
     missing = sorted(set(own) - set(state) - set(kept))
     unexpected = sorted(set(state) - set(own))
@@ -288,7 +295,7 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
         raise ValueError(f"{path}: {key} has shape {tuple(value.shape)}, the model config expects {want}")
     with torch.no_grad():
         model.load_state_dict({**{k: own[k] for k in kept}, **state}, strict=True)
-    return sorted(kept + grown)
+    return sorted(set(kept + grown + adapted))
 
 
 def grow_linear_tensor(trained: torch.Tensor, fresh: torch.Tensor) -> torch.Tensor:

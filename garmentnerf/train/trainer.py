@@ -129,6 +129,7 @@ from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_f
                                    save_run_model, save_weights)
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
                                         new_run_settings, resume_settings, show_setting, tiny_config)
+from garmentnerf.train.transfer import transfer_garment_state
 
 # The settings and checkpoint names are defined in :mod:`.settings` and :mod:`.checkpoints`; they
 # stay importable from here, where callers have always found them.
@@ -472,14 +473,15 @@ class Trainer(Closeable):
         elif tc.init_weights is not None:
             new = load_weights(tc.init_weights, self.model,
                                self.model.zero_start_prefixes() + self.model.frame_code_prefixes(),
-                               self.model.growable_prefixes())
+                               self.model.growable_prefixes(), adapt=transfer_garment_state)
             self.step = self.generator_iterations
             self._enter_stage(self._stage_of(self.step))
             self.log(f"all weights from {tc.init_weights}: G_img pre-training skipped, the NeRF stage starts at "
                      f"step {self.step}")
             if new:
-                self.log(f"new or grown in this config, starting from their initialisation (the model's output is "
-                         f"unchanged until they train): {', '.join(new)}")
+                self.log(f"new or changed in this config (new tensors start at their initialisation, grown ones compute "
+                         f"what the file's did, a palette of another size takes the file's garment channels and this "
+                         f"scene's colours): {', '.join(new)}")
         elif tc.init_generator is not None and self.generator_iterations:
             load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations

@@ -1,0 +1,93 @@
+"""One garment's trained weights as the start of another garment's run (``garmentnerf train --init-weights``).
+
+The body's appearance, the motion encoder E, the field and the decoder's trunk of a trained run know the
+character and a garment on it; a new garment's run can start from them instead of from nothing (the
+layered dress from the skirt's run: docs/quality.md, "The dress from the skirt's weights", about the
+figures of a from-scratch run for a fifth of its CPU). Two differences between the two runs' configs are
+bridged here, each so that the start computes what the file's model computed:
+
+* **a palette of another size** (one colour per layer of a layered garment): the decoder head's
+  per-colour channels (three offsets and a blend weight) of the new garment layer ``k`` are those of the
+  file's layer ``min(k, file_layers - 1)``, and the body's (always the last colour) are the body's. The
+  palette's colours themselves are left at the new model's initialisation (the new scene's label
+  colours, :func:`~garmentnerf.model.palette.palette_from_labels`): the file's are another garment's.
+* **a decoder that reads more channels** (``shading_normals``: the body's normal after zeta): the first
+  convolution's new input columns start at zero.
+
+Usage (what :class:`~garmentnerf.train.trainer.Trainer` does with ``--init-weights``)::
+
+    load_weights(path, model, adapt=transfer_garment_state)
+"""
+
+from __future__ import annotations
+
+import torch
+
+from garmentnerf.model.palette import palette_head_rows
+
+__all__ = ["transfer_garment_state", "palette_channel_sources"]
+
+#: State-dict keys of the decoder's per-colour output convolution and of the palette.
+_HEAD_KEYS = ("decoder.head.weight", "decoder.head.bias")
+_PALETTE_KEYS = ("palette.colors", "palette.initial")
+
+
+def palette_channel_sources(file_size: int, model_size: int) -> list[int]:
+    """For each colour of a ``model_size`` palette, the colour of a ``file_size`` palette whose decoder
+    channels it starts from: garment layer ``k`` from layer ``min(k, file layers - 1)``, body from body.
+
+    >>> palette_channel_sources(2, 3)    # the skirt's garment colour for both of the dress's layers
+    [0, 0, 1]
+    """
+    if file_size < 2 or model_size < 2:
+        raise ValueError(f"palettes of a garment and the body have at least 2 colours, got {file_size} and "
+                         f"{model_size}")
+    file_layers, model_layers = file_size - 1, model_size - 1
+    return [min(k, file_layers - 1) for k in range(model_layers)] + [file_size - 1]
+
+
+def _head_row_index(radiance_channels: int, file_size: int, model_size: int) -> list[int]:
+    """Row of the file's decoder head that each row of the model's head takes."""
+    src = palette_channel_sources(file_size, model_size)
+    old, new = palette_head_rows(radiance_channels, file_size), palette_head_rows(radiance_channels, model_size)
+    index = [0] * (radiance_channels + 4 * model_size + 1)
+    for r_new, r_old in zip(new["radiance"], old["radiance"]):
+        index[r_new] = r_old
+    for c in range(model_size):
+        for i in range(3):
+            index[new["offsets"][3 * c + i]] = old["offsets"][3 * src[c] + i]
+        index[new["weights"][c]] = old["weights"][src[c]]
+    index[new["mask"][0]] = old["mask"][0]
+    return index
+
+
+def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> list[str]:
+    """Fit ``state`` (weights read from a file, changed in place) to a model whose state dict is ``own``
+    where the two differ as described in the module's docstring; every other tensor is left as it is (the
+    caller's shape check names any other difference).
+
+    Returns:
+        The keys changed, sorted.
+    """
+    changed = []
+    if all(k in state and k in own for k in _PALETTE_KEYS + _HEAD_KEYS):
+        file_size, model_size = state["palette.colors"].shape[0], own["palette.colors"].shape[0]
+        if file_size != model_size:
+            out_rows_file = state["decoder.head.bias"].shape[0]
+            radiance_channels = out_rows_file - 4 * file_size - 1
+            index = torch.tensor(_head_row_index(radiance_channels, file_size, model_size))
+            for key in _HEAD_KEYS:
+                state[key] = state[key][index].clone()
+            for key in _PALETTE_KEYS:
+                state[key] = own[key].detach().clone()
+            changed += [*_HEAD_KEYS, *_PALETTE_KEYS]
+    for key, value in list(state.items()):
+        want = own.get(key)
+        if (want is None or not key.startswith("decoder.") or value.dim() != 4 or want.dim() != 4
+                or value.shape[0] != want.shape[0] or value.shape[2:] != want.shape[2:]
+                or value.shape[1] >= want.shape[1]):
+            continue
+        extra = torch.zeros(value.shape[0], want.shape[1] - value.shape[1], *value.shape[2:], dtype=value.dtype)
+        state[key] = torch.cat([value, extra], dim=1)
+        changed.append(key)
+    return sorted(changed)

@@ -1,0 +1,70 @@
+"""Another garment's weights as a run's start (:mod:`garmentnerf.train.transfer`), checked through the
+decoder the weights end up in: the start must compute what the file's model computed."""
+
+import pytest
+import torch
+
+from garmentnerf.train.run import build_model, load_weights, save_weights
+from garmentnerf.train.settings import tiny_config
+from garmentnerf.train.transfer import palette_channel_sources, transfer_garment_state
+
+#: A layered garment's scene colours: inner layer, outer layer, body.
+LAYERED_PALETTE = {"garment": [0.5, 0.35, 0.05], "body": [0.41, 0.32, 0.28],
+                   "garment_layers": [[0.46, 0.31, 0.04], [0.55, 0.37, 0.05]]}
+
+
+def test_palette_channel_sources():
+    assert palette_channel_sources(2, 3) == [0, 0, 1]      # skirt -> dress: both layers from the garment
+    assert palette_channel_sources(2, 2) == [0, 1]
+    assert palette_channel_sources(3, 2) == [0, 2]         # dress -> skirt: the inner layer, the body
+    assert palette_channel_sources(3, 4) == [0, 1, 1, 2]   # a third layer from the outer one
+    with pytest.raises(ValueError, match="at least 2"):
+        palette_channel_sources(1, 3)
+
+
+def _decoded(model, features):
+    with torch.no_grad():
+        return model.decoder(features)
+
+
+def test_a_one_layer_run_starts_a_layered_garment_with_shading_normals(tmp_path):
+    torch.manual_seed(0)
+    skirt = build_model(tiny_config())
+    with torch.no_grad():  # trained-looking weights: nothing zero or symmetric by chance
+        for p in skirt.decoder.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    save_weights(tmp_path / "skirt.safetensors", skirt)
+    dress_cfg = tiny_config().replace(palette_size=3, shading_normals=True)
+    dress = build_model(dress_cfg, LAYERED_PALETTE)
+    dress_palette = dress.palette.colors.detach().clone()
+    with pytest.raises(ValueError, match="has shape"):  # without the adapter the shapes do not match
+        load_weights(tmp_path / "skirt.safetensors", dress)
+
+    changed = load_weights(tmp_path / "skirt.safetensors", dress, adapt=transfer_garment_state)
+    assert {"decoder.head.weight", "decoder.head.bias", "palette.colors", "palette.initial"} <= set(changed)
+    assert any(k.startswith("decoder.body.") for k in changed)  # the first conv's input columns
+
+    features = torch.randn(2, tiny_config().feature_image_channels, 6, 5)
+    normals = torch.randn(2, 3, 6, 5)
+    a = _decoded(skirt, features)
+    b = _decoded(dress, torch.cat([features, normals], dim=1))
+    torch.testing.assert_close(b.radiance, a.radiance)
+    torch.testing.assert_close(b.mask, a.mask)
+    torch.testing.assert_close(b.offsets[:, 0], a.offsets[:, 0])   # inner layer: the skirt's garment
+    torch.testing.assert_close(b.offsets[:, 1], a.offsets[:, 0])   # outer layer: the skirt's garment
+    torch.testing.assert_close(b.offsets[:, 2], a.offsets[:, 1])   # body: the body
+    # the blend weights: both layers the garment's, in the skirt's proportion to the body's
+    torch.testing.assert_close(b.weights[:, 0], b.weights[:, 1])
+    torch.testing.assert_close(b.weights[:, 0] / b.weights[:, 2], a.weights[:, 0] / a.weights[:, 1])
+    # the colours are the dress scene's, not the skirt's
+    torch.testing.assert_close(dress.palette.colors.detach(), dress_palette)
+    torch.testing.assert_close(dress.palette.colors.detach()[0], torch.tensor(LAYERED_PALETTE["garment_layers"][0]))
+
+
+def test_matching_weights_pass_unchanged():
+    model = build_model(tiny_config())
+    own = model.state_dict()
+    state = {k: v.clone() for k, v in own.items()}
+    assert transfer_garment_state(state, own) == []
+    for k, v in own.items():
+        assert torch.equal(state[k], v), k
