@@ -66,7 +66,8 @@ def register(sub) -> None:
                         "(on --resume: the run's)")
     p.add_argument("--init-generator", default=None, metavar="SAFETENSORS",
                    help="start a new run from the pre-trained G_img in this weights file (a run's "
-                        "model.safetensors or checkpoint) and skip G_img pre-training (a new run only)")
+                        "model.safetensors or checkpoint) and skip G_img pre-training (a new run only); with "
+                        "--init-weights, G_img from this file and every other weight from that one")
     p.add_argument("--init-weights", default=None, metavar="SAFETENSORS",
                    help="start a new run from all the weights of this file (a run's model.safetensors or "
                         "checkpoint) at the NeRF stage: fine-tuning (a new run only). The model sizes must match, "

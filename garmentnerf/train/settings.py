@@ -133,11 +133,14 @@ class TrainConfig:
     bound again. 0: bound at every step."""
     init_generator: str | Path | None = None
     """*run*; a weights file (a run's ``model.safetensors`` or a checkpoint) whose pre-trained G_img (with its
-    neural texture) a new run starts from, skipping stage 1; the model configs must agree on G_img's shapes."""
+    neural texture) a new run starts from, skipping stage 1; the model configs must agree on G_img's shapes.
+    With ``init_weights``, G_img is this file's and every other weight that file's (another garment's run
+    as the start: G_img pre-trained on this scene's images, the rest from the other garment)."""
     init_weights: str | Path | None = None
     """*run*; a weights file (a run's ``model.safetensors`` or a checkpoint) a new run takes *all* its weights
     from, starting at the NeRF stage with a fresh optimiser and the full lr schedule (fine-tuning, e.g. with
-    another ``training_crop_density``); the model configs must agree on every shape."""
+    another ``training_crop_density``); the model configs must agree on every shape but those
+    :mod:`~garmentnerf.train.transfer` and the growable MLP bridge (another garment's run as the start)."""
     training_crop_density: float | None = None
     """Sets the model config's ``training_crop_density`` for a new run (None: the preset's; 0: whole frames; > 0:
     character windows at that many pixels per scene pixel). A resume keeps the run's and refuses another."""
@@ -180,8 +183,6 @@ class TrainConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.generator_iterations is not None and self.generator_iterations < 0:
             raise ValueError(f"generator_iterations must be >= 0, got {self.generator_iterations}")
-        if self.init_weights is not None and self.init_generator is not None:
-            raise ValueError("init_weights and init_generator exclude each other (init_weights holds G_img too)")
         if self.training_crop_density is not None and not (0 <= self.training_crop_density < math.inf):
             raise ValueError(f"training_crop_density must be a number >= 0, got {self.training_crop_density}")
         if self.precision is not None and self.precision not in TRAINING_PRECISIONS:

@@ -474,10 +474,13 @@ class Trainer(Closeable):
             new = load_weights(tc.init_weights, self.model,
                                self.model.zero_start_prefixes() + self.model.frame_code_prefixes(),
                                self.model.growable_prefixes(), adapt=transfer_garment_state)
+            if tc.init_generator is not None:
+                load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations
             self._enter_stage(self._stage_of(self.step))
-            self.log(f"all weights from {tc.init_weights}: G_img pre-training skipped, the NeRF stage starts at "
-                     f"step {self.step}")
+            generator = "" if tc.init_generator is None else f", G_img from {tc.init_generator}"
+            self.log(f"all weights from {tc.init_weights}{generator}: G_img pre-training skipped, the NeRF stage "
+                     f"starts at step {self.step}")
             if new:
                 self.log(f"new or changed in this config (new tensors start at their initialisation, grown ones compute "
                          f"what the file's did, a palette of another size takes the file's garment channels and this "

@@ -163,8 +163,17 @@ def test_init_weights_starts_the_nerf_stage_from_every_weight(tiny_scene, gl_con
         result = tr.train()
     assert result.finished and load_run(out).step == 2
     assert any("all weights from" in m for m in messages)
-    with pytest.raises(ValueError, match="exclude each other"):
-        _tc(tiny_scene, tmp_path / "x", init_weights="a", init_generator="b").validate()
+    # with a G_img pre-trained elsewhere (another garment's run as the start): G_img from that file, the rest
+    # from the weights file
+    from safetensors.torch import save_file
+    generator = {k: v + 0.5 for k, v in donor.items() if k.startswith("image_generator.")}
+    save_file(generator, str(tmp_path / "generator.safetensors"))
+    tc = _tc(tiny_scene, tmp_path / "both", init_weights=donor_run / "model.safetensors",
+             init_generator=tmp_path / "generator.safetensors", iterations=1)
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        state = tr.model.state_dict()
+        assert generator and all(torch.equal(state[k], v) for k, v in generator.items())
+        assert all(torch.equal(state[k], v) for k, v in donor.items() if k not in generator)
     with pytest.raises(ValueError, match="training_crop_density"):
         _tc(tiny_scene, tmp_path / "x", training_crop_density=-1.0).validate()
 
