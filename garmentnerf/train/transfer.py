@@ -1,18 +1,20 @@
 """One garment's trained weights as the start of another garment's run (``garmentnerf train --init-weights``).
 
-The body's appearance, the motion encoder E, the field and the decoder's trunk of a trained run know the
-character and a garment on it; a new garment's run can start from them instead of from nothing (the
-layered dress from the skirt's run: docs/quality.md, "The dress from the skirt's weights", about the
-figures of a from-scratch run for a fifth of its CPU). Two differences between the two runs' configs are
-bridged here, each so that the start computes what the file's model computed:
+The motion encoder E, the field and the decoder's trunk of a trained run know the character and a garment
+on it; a new garment's run can start from them instead of from nothing (the layered dress from the skirt's
+run: docs/quality.md, "The dress from the skirt's weights" and "The dress from the skirt's field, with
+codes": the figures of a from-scratch run for a fifth of its CPU, and 2.9 dB more after the codes). Two
+differences between the two runs' configs are bridged here:
 
 * **a palette of another size** (one colour per layer of a layered garment): the decoder head's
   per-colour channels (three offsets and a blend weight) of the new garment layer ``k`` are those of the
-  file's layer ``min(k, file_layers - 1)``, and the body's (always the last colour) are the body's. The
-  palette's colours themselves are left at the new model's initialisation (the new scene's label
-  colours, :func:`~garmentnerf.model.palette.palette_from_labels`): the file's are another garment's.
+  file's layer ``min(k, file_layers - 1)``, and the body's (always the last colour) are the body's. So the
+  start decodes the file's radiance, mask and offsets, and its blend weights in the file's proportion of
+  garment to body. The palette's colours themselves are left at the new model's initialisation (the new
+  scene's label colours, :func:`~garmentnerf.model.palette.palette_from_labels`): the file's are another
+  garment's.
 * **a decoder that reads more channels** (``shading_normals``: the body's normal after zeta): the first
-  convolution's new input columns start at zero.
+  convolution's new input columns start at zero, so it computes what the file's did.
 
 Usage (what :class:`~garmentnerf.train.trainer.Trainer` does with ``--init-weights``)::
 
