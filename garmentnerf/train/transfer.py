@@ -52,7 +52,7 @@ def _head_row_index(radiance_channels: int, file_size: int, model_size: int) -> 
     """Row of the file's decoder head that each row of the model's head takes."""
     src = palette_channel_sources(file_size, model_size)
     old, new = palette_head_rows(radiance_channels, file_size), palette_head_rows(radiance_channels, model_size)
-    index = [0] * (radiance_channels + 4 * model_size + 1)
+    index = [0] * sum(len(rows) for rows in new.values())
     for r_new, r_old in zip(new["radiance"], old["radiance"]):
         index[r_new] = r_old
     for c in range(model_size):
@@ -75,8 +75,9 @@ def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.
     if all(k in state and k in own for k in _PALETTE_KEYS + _HEAD_KEYS):
         file_size, model_size = state["palette.colors"].shape[0], own["palette.colors"].shape[0]
         if file_size != model_size:
-            out_rows_file = state["decoder.head.bias"].shape[0]
-            radiance_channels = out_rows_file - 4 * file_size - 1
+            # the radiance rows are what the file's head holds beyond its per-colour and mask rows
+            radiance_channels = state["decoder.head.bias"].shape[0] - sum(
+                len(rows) for rows in palette_head_rows(0, file_size).values())
             index = torch.tensor(_head_row_index(radiance_channels, file_size, model_size))
             for key in _HEAD_KEYS:
                 state[key] = state[key][index].clone()

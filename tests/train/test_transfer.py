@@ -1,5 +1,6 @@
 """Another garment's weights as a run's start (:mod:`garmentnerf.train.transfer`), checked through the
-decoder the weights end up in: the start must compute what the file's model computed."""
+decoder the weights end up in: the start computes the file's radiance, mask and offsets, and its blend
+weights in the file's proportions."""
 
 import pytest
 import torch
