@@ -13,6 +13,12 @@ differences between the two runs' configs are bridged here:
   garment to body. The palette's colours themselves are left at the new model's initialisation (the new
   scene's label colours, :func:`~garmentnerf.model.palette.palette_from_labels`): the file's are another
   garment's.
+* **another garment's colours** (a palette of the same size whose ``palette.initial``, the label colours
+  the file's run started from, is not the new scene's; the t-shirt from the skirt): the palette is the new
+  model's, so the new garment's colour is its palette colour and not an offset the decoder learns over the
+  file's colour (which a recolouring would keep: the t-shirt TTC of docs/quality.md rendered magenta when
+  recoloured blue). A file whose ``palette.initial`` is the new scene's (a continuation of the same
+  garment, float16 rounding allowed) keeps its learned colours.
 * **a decoder that reads more channels** (``shading_normals``: the body's normal after zeta): the first
   convolution's new input columns start at zero, so it computes what the file's did.
 
@@ -32,6 +38,10 @@ __all__ = ["transfer_garment_state", "palette_channel_sources"]
 #: State-dict keys of the decoder's per-colour output convolution and of the palette.
 _HEAD_KEYS = ("decoder.head.weight", "decoder.head.bias")
 _PALETTE_KEYS = ("palette.colors", "palette.initial")
+
+#: Two palettes' starting colours within this (per channel, in [0, 1]) are the same garment's: float16
+#: rounding of a packed demo moves them by less than 1e-3, two garments' label colours differ by far more.
+SAME_GARMENT_COLOUR_TOLERANCE = 1e-2
 
 
 def palette_channel_sources(file_size: int, model_size: int) -> list[int]:
@@ -84,6 +94,11 @@ def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.
             for key in _PALETTE_KEYS:
                 state[key] = own[key].detach().clone()
             changed += [*_HEAD_KEYS, *_PALETTE_KEYS]
+        elif not torch.allclose(state["palette.initial"].float(), own["palette.initial"].float(),
+                                atol=SAME_GARMENT_COLOUR_TOLERANCE):
+            for key in _PALETTE_KEYS:
+                state[key] = own[key].detach().clone()
+            changed += list(_PALETTE_KEYS)
     for key, value in list(state.items()):
         want = own.get(key)
         if (want is None or not key.startswith("decoder.") or value.dim() != 4 or want.dim() != 4

@@ -69,3 +69,27 @@ def test_matching_weights_pass_unchanged():
     assert transfer_garment_state(state, own) == []
     for k, v in own.items():
         assert torch.equal(state[k], v), k
+
+
+def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours(tmp_path):
+    """The t-shirt from the skirt (two colours each): the file's palette is another garment's, so the new
+    scene's colours replace it and the decoder is left as it is; a continuation of the same garment (its
+    file packed in float16) keeps the colours it learned."""
+    torch.manual_seed(1)
+    skirt = build_model(tiny_config(), {"garment": [0.03, 0.20, 0.35], "body": [0.41, 0.32, 0.28]})
+    with torch.no_grad():
+        skirt.palette.colors.add_(0.05)   # learned colours, away from the initial ones
+    state = {k: v.detach().clone() for k, v in skirt.state_dict().items()}
+    tshirt = build_model(tiny_config(), {"garment": [0.44, 0.05, 0.06], "body": [0.41, 0.32, 0.28]})
+    own = tshirt.state_dict()
+    assert transfer_garment_state(state, own) == ["palette.colors", "palette.initial"]
+    torch.testing.assert_close(state["palette.initial"][0], torch.tensor([0.44, 0.05, 0.06]))
+    torch.testing.assert_close(state["palette.colors"], own["palette.colors"])
+    assert torch.equal(state["decoder.head.weight"], skirt.state_dict()["decoder.head.weight"])
+
+    continued = {k: v.detach().clone().half().float() for k, v in skirt.state_dict().items()}  # a packed demo
+    again = build_model(tiny_config(), {"garment": [0.03, 0.20, 0.35], "body": [0.41, 0.32, 0.28]})
+    assert transfer_garment_state(continued, again.state_dict()) == []
+    torch.testing.assert_close(continued["palette.colors"], skirt.palette.colors.detach().half().float())
+    assert not torch.allclose(continued["palette.colors"], again.palette.colors.detach(), atol=1e-2)
+
