@@ -91,12 +91,10 @@ def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.
             index = torch.tensor(_head_row_index(radiance_channels, file_size, model_size))
             for key in _HEAD_KEYS:
                 state[key] = state[key][index].clone()
-            for key in _PALETTE_KEYS:
-                state[key] = own[key].detach().clone()
-            changed += [*_HEAD_KEYS, *_PALETTE_KEYS]
-        elif not torch.allclose(state["palette.initial"].float(), own["palette.initial"].float(),
-                                atol=SAME_GARMENT_COLOUR_TOLERANCE):
-            for key in _PALETTE_KEYS:
+            changed += list(_HEAD_KEYS)
+        if file_size != model_size or not torch.allclose(
+                state["palette.initial"].float(), own["palette.initial"].float(), atol=SAME_GARMENT_COLOUR_TOLERANCE):
+            for key in _PALETTE_KEYS:  # another garment's colours: the new scene's instead
                 state[key] = own[key].detach().clone()
             changed += list(_PALETTE_KEYS)
     for key, value in list(state.items()):

@@ -71,7 +71,7 @@ def test_matching_weights_pass_unchanged():
         assert torch.equal(state[k], v), k
 
 
-def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours(tmp_path):
+def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours():
     """The t-shirt from the skirt (two colours each): the file's palette is another garment's, so the new
     scene's colours replace it and the decoder is left as it is; a continuation of the same garment (its
     file packed in float16) keeps the colours it learned."""
@@ -92,4 +92,3 @@ def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours(tm
     assert transfer_garment_state(continued, again.state_dict()) == []
     torch.testing.assert_close(continued["palette.colors"], skirt.palette.colors.detach().half().float())
     assert not torch.allclose(continued["palette.colors"], again.palette.colors.detach(), atol=1e-2)
-
