@@ -3,8 +3,8 @@
 The motion encoder E, the field and the decoder's trunk of a trained run know the character and a garment
 on it; a new garment's run can start from them instead of from nothing (the layered dress from the skirt's
 run: docs/quality.md, "The dress from the skirt's weights" and "The dress from the skirt's field, with
-codes": the figures of a from-scratch run for a fifth of its CPU, and 2.9 dB more after the codes). Two
-differences between the two runs' configs are bridged here:
+codes": the figures of a from-scratch run for a fifth of its CPU, and 2.9 dB more after the codes). Three
+differences between the two runs are bridged here:
 
 * **a palette of another size** (one colour per layer of a layered garment): the decoder head's
   per-colour channels (three offsets and a blend weight) of the new garment layer ``k`` are those of the
