@@ -18,7 +18,10 @@ differences between the two runs are bridged here:
   model's, so the new garment's colour is its palette colour and not an offset the decoder learns over the
   file's colour (which a recolouring would keep: the t-shirt TTC of docs/quality.md rendered magenta when
   recoloured blue). A file whose ``palette.initial`` is the new scene's (a continuation of the same
-  garment, float16 rounding allowed) keeps its learned colours.
+  garment, float16 rounding allowed) keeps its learned colours. The test is on colours alone: a file of the
+  same garment whose run started from other colours (the bundled dress, whose first weights were made by
+  a script that started both layers at another gold) is taken for another garment's, and its palette is
+  reset to the scene's.
 * **a decoder that reads more channels** (``shading_normals``: the body's normal after zeta): the first
   convolution's new input columns start at zero, so it computes what the file's did.
 
