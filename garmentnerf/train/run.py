@@ -68,7 +68,7 @@ MODEL_FILE = "model.safetensors"
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
 
-__all__ = ["LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "build_model",
+__all__ = ["LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "run_garment", "build_model",
            "save_weights", "load_weights", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
            "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "remove_run_temporaries"]
 
@@ -402,6 +402,27 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
     model = model.to(device).eval()
     appearance = load_body_appearance(run_dir / BODY_APPEARANCE_FILE) if (run_dir / BODY_APPEARANCE_FILE).is_file() else None
     return LoadedRun(run_dir, model, config, loaded_scene, int(info["step"]), info, betas, appearance)
+
+
+def run_garment(run_dir) -> dict | None:
+    """The garment (``scene.json``'s ``garment``: kind, colour, ...) of the scene recorded in the
+    ``run.json`` of ``run_dir``, or None where that cannot be read (no or another kind of ``run.json``, a
+    scene that is not there): what tells whether a weights file is a continuation of a garment's run or
+    another garment's (:func:`~garmentnerf.train.transfer.transfer_garment_state`)."""
+    run_dir = Path(run_dir)
+    try:
+        recorded = read_run_info(run_dir).get("scene")
+    except (FileNotFoundError, ValueError):
+        return None
+    if not recorded:
+        return None
+    path = Path(recorded) if Path(recorded).is_absolute() else (run_dir / recorded).resolve()
+    if not (path / "scene.json").is_file():
+        return None
+    try:
+        return dict(Scene.load(path).garment)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def create_untrained_run(run_dir, scene_path, config: ModelConfig, seed: int = 0) -> Path:

@@ -89,6 +89,7 @@ Caches
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import math
 import sys
@@ -126,7 +127,7 @@ from garmentnerf.train.perceptual import make_perceptual
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model,
                                    frame_code_record,
                                    load_module_weights, load_weights, read_run_info, remove_run_temporaries,
-                                   save_run_model, save_weights)
+                                   run_garment, save_run_model, save_weights)
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
                                         new_run_settings, resume_settings, show_setting, tiny_config)
 from garmentnerf.train.transfer import transfer_garment_state
@@ -471,9 +472,12 @@ class Trainer(Closeable):
                 self.log("loss weights from step " + str(self.step) + ": " +
                          ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_weights is not None:
+            file_garment = run_garment(Path(tc.init_weights).parent)
+            same_garment = None if file_garment is None else file_garment == dict(self.scene.garment)
             new = load_weights(tc.init_weights, self.model,
                                self.model.zero_start_prefixes() + self.model.frame_code_prefixes(),
-                               self.model.growable_prefixes(), adapt=transfer_garment_state)
+                               self.model.growable_prefixes(),
+                               adapt=functools.partial(transfer_garment_state, same_garment=same_garment))
             if tc.init_generator is not None:
                 load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations
@@ -481,6 +485,13 @@ class Trainer(Closeable):
             generator = "" if tc.init_generator is None else f", G_img from {tc.init_generator}"
             self.log(f"all weights from {tc.init_weights}{generator}: G_img pre-training skipped, the NeRF stage "
                      f"starts at step {self.step}")
+            if same_garment is None:
+                verdict = "no run.json naming a readable scene beside it: decided by its palette's starting colours"
+            elif same_garment:
+                verdict = f"{file_garment.get('kind')}, this scene's (its run.json's scene): its learned palette kept"
+            else:
+                verdict = f"{file_garment.get('kind')}, another (its run.json's scene): this scene's colours instead"
+            self.log(f"the file's garment: {verdict}")
             if new:
                 self.log(f"new or changed in this config (new tensors start at their initialisation, grown ones compute "
                          f"what the file's did, a palette of another size takes the file's garment channels and this "

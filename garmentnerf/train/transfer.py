@@ -13,21 +13,23 @@ differences between the two runs are bridged here:
   garment to body. The palette's colours themselves are left at the new model's initialisation (the new
   scene's label colours, :func:`~garmentnerf.model.palette.palette_from_labels`): the file's are another
   garment's.
-* **another garment's colours** (a palette of the same size whose ``palette.initial``, the label colours
-  the file's run started from, is not the new scene's; the t-shirt from the skirt): the palette is the new
-  model's, so the new garment's colour is its palette colour and not an offset the decoder learns over the
-  file's colour (which a recolouring would keep: the t-shirt TTC of docs/quality.md rendered magenta when
-  recoloured blue). A file whose ``palette.initial`` is the new scene's (a continuation of the same
-  garment, float16 rounding allowed) keeps its learned colours. The test is on colours alone: a file of the
-  same garment whose run started from other colours (the bundled dress, whose first weights were made by
-  a script that started both layers at another gold) is taken for another garment's, and its palette is
-  reset to the scene's.
+* **another garment's colours** (a palette of the same size from another garment's run; the t-shirt from
+  the skirt): the palette is the new model's, so the new garment's colour is its palette colour and not an
+  offset the decoder learns over the file's colour (which a recolouring would keep: the t-shirt TTC of
+  docs/quality.md rendered magenta when recoloured blue). A continuation of the same garment keeps the
+  colours it learned. Which of the two a file is, the caller says (``same_garment``: the trainer compares
+  the garment of the scene recorded in the ``run.json`` beside the file with its own scene's,
+  :func:`~garmentnerf.train.run.run_garment`). Where nobody can say, the file's ``palette.initial`` (the
+  label colours its run started from) is compared with the new scene's, float16 rounding allowed: that
+  test takes a file of the same garment whose run started from other colours (the bundled dress, whose
+  first weights were made by a script that started both layers at another gold) for another garment's.
 * **a decoder that reads more channels** (``shading_normals``: the body's normal after zeta): the first
   convolution's new input columns start at zero, so it computes what the file's did.
 
 Usage (what :class:`~garmentnerf.train.trainer.Trainer` does with ``--init-weights``)::
 
-    load_weights(path, model, adapt=transfer_garment_state)
+    same = run_garment(path.parent) == scene.garment if run_garment(path.parent) is not None else None
+    load_weights(path, model, adapt=functools.partial(transfer_garment_state, same_garment=same))
 """
 
 from __future__ import annotations
@@ -76,10 +78,15 @@ def _head_row_index(radiance_channels: int, file_size: int, model_size: int) -> 
     return index
 
 
-def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> list[str]:
+def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.Tensor],
+                           same_garment: bool | None = None) -> list[str]:
     """Fit ``state`` (weights read from a file, changed in place) to a model whose state dict is ``own``
     where the two differ as described in the module's docstring; every other tensor is left as it is (the
     caller's shape check names any other difference).
+
+    Args:
+        same_garment: whether the file was trained on this model's garment (its learned palette is kept),
+            or on another (the palette is the model's); None decides by the palettes' starting colours.
 
     Returns:
         The keys changed, sorted.
@@ -95,8 +102,10 @@ def transfer_garment_state(state: dict[str, torch.Tensor], own: dict[str, torch.
             for key in _HEAD_KEYS:
                 state[key] = state[key][index].clone()
             changed += list(_HEAD_KEYS)
-        if file_size != model_size or not torch.allclose(
-                state["palette.initial"].float(), own["palette.initial"].float(), atol=SAME_GARMENT_COLOUR_TOLERANCE):
+        if same_garment is None and file_size == model_size:
+            same_garment = torch.allclose(state["palette.initial"].float(), own["palette.initial"].float(),
+                                          atol=SAME_GARMENT_COLOUR_TOLERANCE)
+        if file_size != model_size or not same_garment:
             for key in _PALETTE_KEYS:  # another garment's colours: the new scene's instead
                 state[key] = own[key].detach().clone()
             changed += list(_PALETTE_KEYS)

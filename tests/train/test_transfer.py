@@ -92,3 +92,73 @@ def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours():
     assert transfer_garment_state(continued, again.state_dict()) == []
     torch.testing.assert_close(continued["palette.colors"], skirt.palette.colors.detach().half().float())
     assert not torch.allclose(continued["palette.colors"], again.palette.colors.detach(), atol=1e-2)
+
+
+def test_the_caller_says_which_garment_a_file_is_over_its_starting_colours():
+    """A file whose run started from colours that are not its scene's (the bundled dress's) is the same
+    garment when the caller says so, and keeps what it learned; a file whose starting colours match is
+    another garment's when the caller says that."""
+    torch.manual_seed(2)
+    scene_colours = {"garment": [0.51, 0.35, 0.05], "body": [0.41, 0.32, 0.28]}
+    first = build_model(tiny_config(), {"garment": [0.96, 0.66, 0.08], "body": [0.41, 0.32, 0.28]})
+    with torch.no_grad():
+        first.palette.colors.mul_(1.5).clamp_(0, 1)
+    state = {k: v.detach().clone() for k, v in first.state_dict().items()}
+    own = build_model(tiny_config(), scene_colours).state_dict()
+    assert transfer_garment_state(dict(state), own) == ["palette.colors", "palette.initial"]  # colours alone
+    kept = dict(state)
+    assert transfer_garment_state(kept, own, same_garment=True) == []
+    torch.testing.assert_close(kept["palette.colors"], first.palette.colors.detach())
+    matching = {k: v.clone() for k, v in own.items()}
+    assert transfer_garment_state(matching, own, same_garment=False) == ["palette.colors", "palette.initial"]
+
+
+def test_run_garment_reads_the_scene_recorded_beside_the_weights(tiny_scene, tmp_path):
+    from garmentnerf.train.run import create_untrained_run, run_garment
+
+    run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config())
+    assert run_garment(run) == tiny_scene.garment and run_garment(run)["kind"] == "skirt"
+    assert run_garment(tmp_path) is None                     # no run.json
+    (run / "run.json").write_text((run / "run.json").read_text().replace(
+        '"scene": ', '"scene": "/nonexistent/scene", "was": '))
+    assert run_garment(run) is None                          # a scene that is not there
+
+
+def test_continuing_a_run_whose_palette_started_elsewhere_keeps_its_learned_colours(tiny_scene, gl_context, tmp_path):
+    """The trainer's ``--init-weights`` on a file of the same scene whose ``palette.initial`` is not the
+    scene's label colours (how the bundled dress's files are): the learned palette is kept. The same file
+    without its run.json falls back to the colour test and takes the scene's colours."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    from garmentnerf.train.settings import TrainConfig
+    from garmentnerf.train.trainer import Trainer
+
+    def config(out, init):
+        return TrainConfig(scene=tiny_scene.root, out=out, model_config=tiny_config(), iterations=2,
+                           generator_iterations=1, perceptual="none", progress=False, log_every=1, image_every=0,
+                           ckpt_every=100, init_weights=init)
+
+    donor = tmp_path / "donor"
+    with Trainer(config(donor, None), gl_context, log=lambda m: None) as tr:
+        tr.train()
+    weights = load_file(str(donor / "model.safetensors"))
+    weights["palette.initial"] = torch.tensor([[0.96, 0.66, 0.08], [0.41, 0.32, 0.28]])
+    learned = torch.tensor([[0.8, 0.5, 0.1], [0.45, 0.33, 0.3]])
+    weights["palette.colors"] = learned
+    save_file(weights, str(donor / "model.safetensors"))
+
+    messages = []
+    with Trainer(config(tmp_path / "continued", donor / "model.safetensors"), gl_context, log=messages.append) as tr:
+        torch.testing.assert_close(tr.model.palette.colors.detach(), learned)
+    assert any("the file's garment: skirt, this scene's" in m for m in messages)
+
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    shutil.copy(donor / "model.safetensors", alone / "model.safetensors")
+    messages = []
+    with Trainer(config(tmp_path / "reset", alone / "model.safetensors"), gl_context, log=messages.append) as tr:
+        scene_colours = torch.tensor([tiny_scene.palette_init["garment"], tiny_scene.palette_init["body"]])
+        torch.testing.assert_close(tr.model.palette.colors.detach(), scene_colours.float())
+    assert any("decided by its palette's starting colours" in m for m in messages)
