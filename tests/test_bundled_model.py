@@ -96,3 +96,41 @@ def test_recolor_turns_the_garment_to_the_new_hue(rendered):
     # dress; 0.88 for the t-shirt bundled before, O1)
     lum_before, lum_after = before[lab == 2].sum(axis=1), garment.sum(axis=1)
     assert np.corrcoef(lum_before, lum_after)[0, 1] > 0.8
+
+
+def test_the_culled_preset_keeps_the_tshirt_that_lies_under_the_skin(gl_context, monkeypatch):
+    """The bundled t-shirt puts its chest's opacity 5 to 7 cm under the skin (a model trained in the box is
+    never told where under the skin its density may go). The `full` preset's culls must keep it: with the
+    data's 5 cm under the skin they cut it away and the chest shows holes (pixels far from the `reference`
+    render, which culls nothing); with the margin for box-trained runs it matches the reference."""
+    from garmentnerf.model.height_band import HEIGHT_MARGIN_IN
+    from garmentnerf.render import presets
+    from garmentnerf.render.cameras import cameras_for, parse_camera_spec
+    from garmentnerf.render.session import RenderSession
+    from garmentnerf.train.run import load_run
+
+    run_dir = demo("tshirt").run_dir
+    if not (run_dir / "run.json").is_file():
+        pytest.skip("the tshirt demo is not installed")
+    torch.set_num_threads(2)
+    run = load_run(run_dir)
+    frame = 130
+
+    def pixels_off() -> tuple[int, float]:
+        """Pixels of the character more than 0.2 off the reference render, and the band's h_min."""
+        with RenderSession(run, gl_context, motion="train") as session, torch.no_grad():
+            camera = cameras_for(parse_camera_spec("orbit:0:10", run.scene), [frame], 384, run.scene,
+                                 [session.body_center(frame)[:2]])[0]
+            reference = session.render(frame, camera, preset="reference")
+            full = session.render(frame, camera, preset="full")
+            diff = np.abs(full.composite() - reference.composite()).max(axis=-1)
+            return int((diff[reference.alpha() > 0.5] > 0.2).sum()), session.height_range.h_min
+
+    now, h_min = pixels_off()
+    monkeypatch.setattr(presets, "BOX_TRAINED_MARGIN_IN", HEIGHT_MARGIN_IN)
+    before, h_min_before = pixels_off()
+    # the t-shirt's lowest measured height is the skin (0): the band starts the margin under it
+    assert h_min == pytest.approx(-0.10, abs=1e-6)
+    assert h_min_before == pytest.approx(-HEIGHT_MARGIN_IN, abs=1e-6)
+    assert before >= 10, (now, before)   # the holes: the chest's opacity cut away (15 pixels measured)
+    assert now <= 2, (now, before)       # none measured
