@@ -28,7 +28,8 @@ differences between the two runs are bridged here:
 
 Usage (what :class:`~garmentnerf.train.trainer.Trainer` does with ``--init-weights``)::
 
-    same = run_garment(path.parent) == scene.garment if run_garment(path.parent) is not None else None
+    garment = run_garment(path.parent)      # None: no run.json naming a readable scene
+    same = None if garment is None else garment == scene.garment
     load_weights(path, model, adapt=functools.partial(transfer_garment_state, same_garment=same))
 """
 
