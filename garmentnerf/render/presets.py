@@ -35,8 +35,9 @@ differs from ``reference`` only by density the model put there (and by at most 1
 transmittance). A model trained in the box puts some under the skin where the cloth lies on it, so
 its band reaches :data:`BOX_TRAINED_MARGIN_IN` under the skin; behind a hand in front of the garment
 the skipped density is what ``reference`` wrongly draws over the fingers. ``auto`` precision is
-float16 autocast on CUDA and float32 on the CPU (bfloat16 autocast renders only 4 to 6 % faster on the development CPU, whose AMX-BF16 makes the MLP's
-products 8 times faster: the MLP is a small share of a render, the body projection the largest). See
+float16 autocast on CUDA and float32 on the CPU (bfloat16 autocast renders only 4 to 6 % faster on
+the development CPU, whose AMX-BF16 makes the MLP's products 8 times faster: the MLP is a small share
+of a render, the body projection the largest). See
 :mod:`garmentnerf.model.shell_sampler` for the culls.
 """
 
