@@ -46,7 +46,7 @@ import torch
 from garmentnerf.eval.perceptual import STLPIPS
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.train.run import MODEL_FILE, read_run_info
+from garmentnerf.train.run import MODEL_FILE, read_run_info, recorded_scene_path
 from garmentnerf.train.settings import TrainConfig, training_precision
 from garmentnerf.train.trainer import Trainer
 
@@ -254,10 +254,9 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
 def run_recipe(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
     """(scene folder, model config, body appearance file or None, G_img steps) of a run folder."""
     info = read_run_info(run_dir)
-    if not info.get("scene"):
+    scene = recorded_scene_path(run_dir, info)
+    if scene is None:
         raise ValueError(f"{run_dir}: the run names no scene to train on")
-    scene = Path(info["scene"])
-    scene = scene if scene.is_absolute() else (run_dir / scene).resolve()
     cfg = ModelConfig.from_dict(dict(info["model_config"]))
     appearance = run_dir / BODY_APPEARANCE_FILE
     return (scene, cfg, appearance if appearance.is_file() else None,

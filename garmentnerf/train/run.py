@@ -68,7 +68,7 @@ MODEL_FILE = "model.safetensors"
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
 
-__all__ = ["LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "run_garment", "build_model",
+__all__ = ["LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run", "read_run_info", "recorded_scene_path", "run_garment", "build_model",
            "save_weights", "load_weights", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE",
            "MODEL_FILE", "CHECKPOINT_DIR", "TB_DIR", "remove_run_temporaries"]
 
@@ -387,8 +387,7 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
             raise FileNotFoundError(f"{path}: no scene.json (scene given to load_run)")
         loaded_scene = Scene.load(path)
     elif info.get("scene"):
-        path = Path(info["scene"])
-        path = path if path.is_absolute() else (run_dir / path).resolve()
+        path = recorded_scene_path(run_dir, info)
         if (path / "scene.json").is_file():
             loaded_scene = Scene.load(path)
     body, betas = _body_for(info, str(file))
@@ -404,20 +403,25 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
     return LoadedRun(run_dir, model, config, loaded_scene, int(info["step"]), info, betas, appearance)
 
 
+def recorded_scene_path(run_dir, info: dict) -> Path | None:
+    """The scene folder a run's ``run.json`` (``info``) records, or None: recorded relative to the run
+    folder ``run_dir`` (resolved here) or absolute."""
+    if not info.get("scene"):
+        return None
+    path = Path(info["scene"])
+    return path if path.is_absolute() else (Path(run_dir) / path).resolve()
+
+
 def run_garment(run_dir) -> dict | None:
     """The garment (``scene.json``'s ``garment``: kind, colour, ...) of the scene recorded in the
     ``run.json`` of ``run_dir``, or None where that cannot be read (no or another kind of ``run.json``, a
     scene that is not there): what tells whether a weights file is a continuation of a garment's run or
     another garment's (:func:`~garmentnerf.train.transfer.transfer_garment_state`)."""
-    run_dir = Path(run_dir)
     try:
-        recorded = read_run_info(run_dir).get("scene")
+        path = recorded_scene_path(run_dir, read_run_info(run_dir))
     except (FileNotFoundError, ValueError):
         return None
-    if not recorded:
-        return None
-    path = Path(recorded) if Path(recorded).is_absolute() else (run_dir / recorded).resolve()
-    if not (path / "scene.json").is_file():
+    if path is None or not (path / "scene.json").is_file():
         return None
     try:
         return dict(Scene.load(path).garment)

@@ -15,6 +15,7 @@ import torch
 
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.pipeline import bfloat16_is_fast
+from garmentnerf.train.run import recorded_scene_path
 
 __all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
            "TRAINING_PRECISIONS", "tiny_config", "model_config_for", "loss_weight_names", "training_precision",
@@ -303,9 +304,7 @@ def resume_settings(tc: TrainConfig, info: dict, cfg: ModelConfig, run_dir: Path
     if tc.stop_after is not None:
         changes["stop_after"] = [recorded.get("stop_after"), tc.stop_after]
     if tc.scene is not None and info.get("scene"):
-        rec_scene = Path(info["scene"])
-        rec_scene = rec_scene if rec_scene.is_absolute() else run_dir / rec_scene
-        if Path(tc.scene).resolve() != rec_scene.resolve():
+        if Path(tc.scene).resolve() != recorded_scene_path(run_dir, info).resolve():
             changes["scene"] = [info["scene"], str(tc.scene)]
     resolved = dataclasses.replace(tc, **values)
     # a run.json from before these settings were recorded: the defaults

@@ -126,8 +126,8 @@ from garmentnerf.train.frames import SceneFramesFactory
 from garmentnerf.train.perceptual import make_perceptual
 from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model,
                                    frame_code_record,
-                                   load_module_weights, load_weights, read_run_info, remove_run_temporaries,
-                                   run_garment, save_run_model, save_weights)
+                                   load_module_weights, load_weights, read_run_info, recorded_scene_path,
+                                   remove_run_temporaries, run_garment, save_run_model, save_weights)
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
                                         new_run_settings, resume_settings, show_setting, tiny_config)
 from garmentnerf.train.transfer import transfer_garment_state
@@ -307,9 +307,8 @@ class Trainer(Closeable):
         """``self.scene`` from ``--scene``, else (a resume) the folder the run recorded."""
         scene_path = self.tc.scene
         if resume_info is not None and scene_path is None and resume_info.get("scene"):
-            p = Path(resume_info["scene"])
-            # recorded relative to the run folder: resolved, so the resume's record names the folder itself
-            scene_path = p if p.is_absolute() else (self.out / p).resolve()
+            # resolved, so the resume's record names the folder itself
+            scene_path = recorded_scene_path(self.out, resume_info)
         if scene_path is None:
             raise ValueError("no scene given (--scene)")
         self.scene_path = Path(scene_path)
