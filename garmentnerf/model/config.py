@@ -76,6 +76,12 @@ class ModelConfig:
     that alone renders a motion it never saw (FC1 lost 0.7 dB of foreground on the held-out motion,
     docs/quality.md, "Per-frame codes"); dropped steps ask E to stand alone. Drawn per image from
     ``(seed, step, rank, image)``, so a resumed run drops the same steps."""
+    frame_code_support_margin: int = -1
+    """-1 (default): each per-frame code covers the whole atlas. k >= 0: the codes hold values only on the
+    texels that the garment's closest body points over the training frames read (their bilinear footprint,
+    grown by k texels; :mod:`garmentnerf.model.frame_codes`), and are zero elsewhere, so codes as fine as E's
+    output fit a demo's size: the dress's at 128 x 128 with k = 2 hold 32 % of the texels. The trainer
+    finds that support when a run starts; it is stored with the weights."""
     info_map_resolution: int = 128
     """Side of the UV info maps N_t, V_t and of the dynamic feature map F^s_t (paper: 128)."""
     image_resolution: int = 512
@@ -550,6 +556,11 @@ class ModelConfig:
             raise ValueError("ModelConfig.frame_code_resolution needs the dynamic feature (use_dynamic_feature)")
         if not (math.isfinite(self.frame_code_lr_scale) and self.frame_code_lr_scale > 0):
             raise ValueError(f"ModelConfig.frame_code_lr_scale must be > 0, got {self.frame_code_lr_scale}")
+        if self.frame_code_support_margin < -1:
+            raise ValueError(f"ModelConfig.frame_code_support_margin must be -1 (dense codes) or >= 0 texels, "
+                             f"got {self.frame_code_support_margin}")
+        if self.frame_code_support_margin >= 0 and not self.frame_code_resolution:
+            raise ValueError("ModelConfig.frame_code_support_margin needs per-frame codes (frame_code_resolution)")
         if not (math.isfinite(self.frame_code_dropout) and 0 <= self.frame_code_dropout < 1):
             raise ValueError(f"ModelConfig.frame_code_dropout must lie in [0, 1), got {self.frame_code_dropout}")
         for name in ("positional_encoding_freqs", "atlas_feature_channels", "decoder_upsample_steps",

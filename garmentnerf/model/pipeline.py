@@ -82,6 +82,7 @@ from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.depth_normals import depth_normals
 from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
+from garmentnerf.model.frame_codes import FrameCodes
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.importance_sampler import ImportanceSampler
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
@@ -244,22 +245,6 @@ def _autocast(precision: str, device: torch.device):
     return torch.autocast(device_type=device.type, dtype=getattr(torch, precision))
 
 
-class FrameCodes(nn.Module):
-    """Per-frame codes (``ModelConfig.frame_code_resolution``): ``codes`` (frames, C, r, r), zero at
-    the start; a call gives one code upsampled bilinearly to E's output resolution."""
-
-    def __init__(self, count: int, channels: int, resolution: int) -> None:
-        super().__init__()
-        self.codes = nn.Parameter(torch.zeros(count, channels, resolution, resolution))
-
-    def forward(self, index: int, resolution: int) -> torch.Tensor:
-        """(C, R, R) code ``index`` at ``resolution`` R; ValueError when out of range."""
-        if not 0 <= int(index) < self.codes.shape[0]:
-            raise ValueError(f"per-frame code {index} out of range (the model has {self.codes.shape[0]})")
-        code = self.codes[int(index)].unsqueeze(0)
-        return F.interpolate(code, size=(resolution, resolution), mode="bilinear", align_corners=False)[0]
-
-
 class GarmentAnimationNeRF(nn.Module):
     """E, G_img, G_en, M_NeRF, M_D and the palette, with the per-frame and per-view passes.
 
@@ -301,7 +286,8 @@ class GarmentAnimationNeRF(nn.Module):
         self.nerf = UVHField.from_config(cfg) if cfg.field == "uvh" else GarmentNeRF.from_config(cfg)
         self.frame_codes = None  # per-frame residuals of F^s_t (ModelConfig.frame_code_resolution)
         if cfg.frame_code_resolution and cfg.frame_codes:
-            self.frame_codes = FrameCodes(cfg.frame_codes, cfg.dynamic_encoder_channels, cfg.frame_code_resolution)
+            self.frame_codes = FrameCodes(cfg.frame_codes, cfg.dynamic_encoder_channels, cfg.frame_code_resolution,
+                                          sparse=cfg.frame_code_support_margin >= 0)
         self.decoder = PaletteDecoder.from_config(cfg)
         self.palette = Palette(palette_initial_colors(palette_init, cfg.palette_size))
         self.visibility_tolerance = float(visibility_tolerance)
@@ -388,6 +374,13 @@ class GarmentAnimationNeRF(nn.Module):
         if self.frame_codes is None:
             raise ValueError("this model has no per-frame codes (ModelConfig.frame_code_resolution)")
         return self.frame_codes(index, resolution)
+
+    def adopt_state_shapes(self, state: dict[str, torch.Tensor]) -> None:
+        """Fit the tensors whose shape is data, not configuration, to a state dict about to be loaded:
+        the sparse per-frame codes take its support (:meth:`FrameCodes.adopt_state
+        <garmentnerf.model.frame_codes.FrameCodes.adopt_state>`)."""
+        if self.frame_codes is not None:
+            self.frame_codes.adopt_state(state, "frame_codes.")
 
     def grid_prefixes(self) -> tuple[str, ...]:
         """State-dict prefixes of the feature grids that learn at ``cfg.uvh_plane_lr_scale`` times the

@@ -254,6 +254,8 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
         adapt: called as ``adapt(state, model_state)`` before the keys and shapes are checked, may change
             the file's tensors in ``state`` to fit the model and returns the keys it changed (another
             garment's weights as a start: :func:`~garmentnerf.train.transfer.transfer_garment_state`).
+            A :class:`GarmentAnimationNeRF` then takes the shapes the file's data fixes
+            (:meth:`~GarmentAnimationNeRF.adopt_state_shapes`: the sparse codes' support).
     Returns:
         The keys that kept the model's values, whole or (grown or adapted ones) in part, sorted.
     Raises:
@@ -270,8 +272,10 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
     for old, new in RENAMED_WEIGHTS.items():
         if old in state and new not in state:
             state[new] = state.pop(old)
+    adapted = adapt(state, model.state_dict()) if adapt is not None else []
+    if isinstance(model, GarmentAnimationNeRF):
+        model.adopt_state_shapes(state)
     own = model.state_dict()
-    adapted = adapt(state, own) if adapt is not None else []
     kept = sorted(k for k in set(own) - set(state) if k.startswith(tuple(may_be_missing)))
     missing = sorted(set(own) - set(state) - set(kept))
     unexpected = sorted(set(state) - set(own))

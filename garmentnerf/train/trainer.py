@@ -111,6 +111,8 @@ from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance, save_body_appearance
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.frame_codes import adapt_frame_codes, garment_texels, grow_texels
+from garmentnerf.model.frame_context import frame_vertices
 from garmentnerf.model.height_band import SHELL_BAND_FILE, load_height_range, measure_height_range, save_height_range
 from garmentnerf.model.losses import garment_losses, generator_losses
 from garmentnerf.model.occupancy import occupancy_labels, occupancy_loss, occupancy_points
@@ -457,6 +459,8 @@ class Trainer(Closeable):
         """Resume from the newest readable checkpoint (recording what the resume changes), or start
         from a pre-trained G_img, or from step 0."""
         tc = self.tc
+        if not ckpts:
+            self._find_code_support()
         if ckpts:
             self._resume_from(ckpts)
             if setting_changes:
@@ -473,10 +477,11 @@ class Trainer(Closeable):
         elif tc.init_weights is not None:
             file_garment = run_garment(Path(tc.init_weights).parent)
             same_garment = None if file_garment is None else file_garment == dict(self.scene.garment)
+            garment_state = functools.partial(transfer_garment_state, same_garment=same_garment)
             new = load_weights(tc.init_weights, self.model,
                                self.model.zero_start_prefixes() + self.model.frame_code_prefixes(),
                                self.model.growable_prefixes(),
-                               adapt=functools.partial(transfer_garment_state, same_garment=same_garment))
+                               adapt=lambda state, own: garment_state(state, own) + adapt_frame_codes(state, own))
             if tc.init_generator is not None:
                 load_module_weights(tc.init_generator, self.model, "image_generator")
             self.step = self.generator_iterations
@@ -587,6 +592,27 @@ class Trainer(Closeable):
         self.last_checkpoint = state_file
         self.last_checkpoint_step = step
         return state_file
+
+    def _find_code_support(self) -> None:
+        """A new run's sparse per-frame codes (``ModelConfig.frame_code_support_margin``) take their
+        support: the texels the garment's closest body points read over the training frames."""
+        codes = self.model.frame_codes
+        if codes is None or not codes.sparse:
+            return
+        hit = torch.zeros(codes.resolution, codes.resolution, dtype=torch.bool)
+        for seq in self.code_offsets:
+            vertices = read_garment_arrays(self.scene.garment_path(seq)).vertices
+            posed = self.data.frames.posed(seq)
+            for frame in range(len(vertices)):
+                points = torch.from_numpy(np.ascontiguousarray(vertices[frame], dtype=np.float32))
+                uv = self.model.projector.project(points, frame_vertices(posed, frame)).uv
+                hit |= garment_texels(uv, codes.resolution)
+        margin = self.cfg.frame_code_support_margin
+        support = grow_texels(hit, margin)
+        codes.set_support(support)
+        self.log(f"per-frame codes held on {int(support.sum())} of {support.numel()} texels "
+                 f"({support.float().mean().item():.1%}: the garment's footprint over the training frames, "
+                 f"grown by {margin})")
 
     def _resume_from(self, ckpts: list[tuple[int, Path, Path]]) -> None:
         """Load the newest readable checkpoint of ``ckpts`` (newest first); each unreadable one is

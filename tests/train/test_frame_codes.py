@@ -19,7 +19,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def codes_config(**kw):
-    return tiny_config().replace(frame_code_resolution=4, frame_code_lr_scale=20.0, **kw)
+    return tiny_config().replace(**{"frame_code_resolution": 4, "frame_code_lr_scale": 20.0, **kw})
 
 
 def test_a_run_trains_one_code_per_training_frame_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
@@ -178,3 +178,54 @@ def test_a_trained_parameters_prefix_the_model_lacks_is_refused(tiny_scene, gl_c
             tr.train()
     with pytest.raises(ValueError, match="empty prefix"):
         tiny_config().replace(trained_parameters=("",))
+
+
+def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resume_exactly(tiny_scene, gl_context,
+                                                                                         tmp_path):
+    """``frame_code_support_margin``: a new run's codes are held on the texels its garment's closest body
+    points read over the training frames (grown by the margin) and start from a dense-codes file's codes
+    resampled to their resolution; the support goes with the weights into the run and its checkpoints,
+    a resumed run takes the same steps, and the codes stay zero off the support."""
+    from safetensors.torch import load_file
+
+    from garmentnerf.data.scene import read_garment_arrays
+    from garmentnerf.model.frame_codes import garment_texels, grow_texels, resample_codes
+    from garmentnerf.train.trainer import Trainer
+
+    run(make_tc(tiny_scene, tmp_path / "dense", generator_iterations=0, iterations=1,
+                model_config=codes_config(iterations=1)), gl_context)
+    start = tmp_path / "dense" / "model.safetensors"
+    cfg = codes_config(iterations=4, frame_code_resolution=8, frame_code_support_margin=1)
+    with Trainer(make_tc(tiny_scene, tmp_path / "s", generator_iterations=0, model_config=cfg, init_weights=start),
+                 gl_context, log=lambda m: None) as tr:
+        held = tr.model.frame_codes
+        expected = resample_codes(load_file(start)["frame_codes.codes"], 8).flatten(2)[:, :, held.support.flatten()]
+        torch.testing.assert_close(held.codes.detach(), expected)
+    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=4,
+                                   model_config=cfg, init_weights=start), gl_context)
+    support = full_state["frame_codes.support"]
+    loaded = load_run(tmp_path / "a")
+    hit = torch.zeros(8, 8, dtype=torch.bool)
+    vertices = read_garment_arrays(tiny_scene.garment_path("train")).vertices
+    posed = tiny_scene.load_motion("train").pose(loaded.model.body, loaded.info.get("body", {}).get("shape"))
+    for frame in range(len(vertices)):
+        uv = loaded.model.projector.project(torch.from_numpy(np.asarray(vertices[frame], np.float32)),
+                                            posed.vertices[frame].float()).uv
+        hit |= garment_texels(uv, 8)
+    assert torch.equal(support, grow_texels(hit, 1)) and 0 < int(support.sum()) < 64
+    assert full_state["frame_codes.codes"].shape == (tiny_scene.num_frames("train"), cfg.dynamic_encoder_channels,
+                                                     int(support.sum()))
+    assert torch.equal(loaded.model.frame_codes.support, support)
+    torch.testing.assert_close(loaded.model.frame_codes.codes.detach(), full_state["frame_codes.codes"])
+    # interrupted after two steps and resumed: the same steps, the same support and codes
+    run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=4, model_config=cfg,
+                init_weights=start, stop_after=2), gl_context)
+    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=4),
+                           gl_context)
+    assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
+    for i in range(tiny_scene.num_frames("train")):
+        assert torch.count_nonzero(loaded.model.frame_codes.dense(i)[:, ~support]) == 0
+    with pytest.raises(ValueError, match="frame_code_support_margin needs per-frame codes"):
+        tiny_config().replace(frame_code_support_margin=0)
+    with pytest.raises(ValueError, match="frame_code_support_margin must be -1"):
+        codes_config(frame_code_support_margin=-2)
