@@ -80,7 +80,7 @@ class ModelConfig:
     """-1 (default): each per-frame code covers the whole atlas. k >= 0: the codes hold values only on the
     texels that the garment's closest body points over the training frames read (their bilinear footprint,
     grown by k texels; :mod:`garmentnerf.model.frame_codes`), and are zero elsewhere, so codes as fine as E's
-    output fit a demo's size: the dress's at 128 x 128 with k = 2 hold 32 % of the texels. The trainer
+    output fit a demo's size: the dress's at 128 x 128 with k = 2 hold 35 % of the texels. The trainer
     finds that support when a run starts; it is stored with the weights."""
     info_map_resolution: int = 128
     """Side of the UV info maps N_t, V_t and of the dynamic feature map F^s_t (paper: 128)."""

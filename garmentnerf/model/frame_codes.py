@@ -7,8 +7,8 @@ points, a part of the atlas (about a third for the bundled dress at 128 x 128), 
 (``ModelConfig.frame_code_support_margin`` >= 0) keeps values only on a fixed set of texels, its
 **support**, and is zero elsewhere: codes as fine as E's own output then fit a demo's size budget.
 The support is the bilinear footprint of the garment's closest body points over the training frames
-(:func:`garment_texels`), grown by a margin (:func:`grow_texels`); it is data, not configuration, so it is stored with the
-weights (the buffer ``support``) and a model takes it from the file it loads
+(:func:`garment_texels`), grown by a margin (:func:`grow_texels`); it is data, not configuration, so
+it is stored with the weights (the buffer ``support``) and a model takes it from the file it loads
 (:meth:`FrameCodes.adopt_state`).
 
 Layouts of ``codes``: ``(frames, C, r, r)`` dense; ``(frames, C, K)`` sparse, K the support's

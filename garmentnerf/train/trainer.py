@@ -459,7 +459,7 @@ class Trainer(Closeable):
         """Resume from the newest readable checkpoint (recording what the resume changes), or start
         from a pre-trained G_img, or from step 0."""
         tc = self.tc
-        if not ckpts:
+        if not ckpts:  # a resume takes the codes' support from its checkpoint
             self._find_code_support()
         if ckpts:
             self._resume_from(ckpts)
