@@ -21,7 +21,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["FrameCodes", "garment_texels", "grow_texels", "resample_codes", "adapt_frame_codes"]
+__all__ = ["FrameCodes", "on_grid", "garment_texels", "grow_texels", "resample_codes", "adapt_frame_codes"]
 
 
 class FrameCodes(nn.Module):
@@ -74,11 +74,7 @@ class FrameCodes(nn.Module):
         if not 0 <= int(index) < self.count:
             raise ValueError(f"per-frame code {index} out of range (the model has {self.count})")
         code = self.codes[int(index)]
-        if not self.sparse:
-            return code
-        texels = self.support.flatten().nonzero().squeeze(1)
-        flat = code.new_zeros(self.channels, self.resolution * self.resolution).index_copy(1, texels, code)
-        return flat.view(self.channels, self.resolution, self.resolution)
+        return code if not self.sparse else on_grid(code, self.support)
 
     def forward(self, index: int, resolution: int) -> torch.Tensor:
         """(C, R, R) code ``index`` at ``resolution`` R (E's output); ValueError when out of range."""
@@ -87,6 +83,15 @@ class FrameCodes(nn.Module):
             return code
         return F.interpolate(code.unsqueeze(0), size=(resolution, resolution), mode="bilinear",
                              align_corners=False)[0]
+
+
+def on_grid(values: torch.Tensor, support: torch.Tensor) -> torch.Tensor:
+    """(..., K) values on the K texels of ``support`` ((r, r) bool, row-major) -> (..., r, r), zero
+    off the support (differentiable in ``values``)."""
+    r = support.shape[-1]
+    texels = support.flatten().nonzero().squeeze(1)
+    flat = values.new_zeros(*values.shape[:-1], r * r).index_copy(-1, texels, values)
+    return flat.view(*values.shape[:-1], r, r)
 
 
 def garment_texels(uv: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -135,12 +140,7 @@ def adapt_frame_codes(state: dict[str, torch.Tensor], own: dict[str, torch.Tenso
     if codes.shape[:2] != want.shape[:2]:
         return []
     if support_key in state:  # the file's codes are sparse: make them dense first
-        support = state[support_key].bool()
-        r = support.shape[-1]
-        texels = support.flatten().nonzero().squeeze(1)
-        dense = codes.new_zeros(*codes.shape[:2], r * r)
-        dense[:, :, texels] = codes
-        codes = dense.view(*codes.shape[:2], r, r)
+        codes = on_grid(codes, state[support_key].bool())
     target_support = own.get(support_key)
     if target_support is None:
         if support_key not in state and codes.shape == want.shape:
