@@ -68,9 +68,13 @@ def register(sub) -> None:
     p.add_argument("--rounds", type=int, default=3, help="with --training: rounds, the precisions taking turns "
                                                          "(default: 3)")
     p.add_argument("--before", action="store_true",
-                   help="with --training: also time each precision's step as before issue 27 (body geometry rebuilt "
-                        "every step, the perceptual loss backpropagated into its target, its first convolution and blur "
-                        "run one after the other), taking turns with the others")
+                   help="with --training: also time each precision's step as before issue 27 (body geometry and "
+                        "encoders rebuilt every step, Adam not fused, the perceptual loss backpropagated into its target, "
+                        "its first convolution and blur run one after the other), taking turns with the others")
+    p.add_argument("--cold", action="store_true",
+                   help="with --training: time each step with its frame's inputs, body geometry and frozen encoders "
+                        "made in it (a run's first visit to each frame) instead of from the trainer's caches (a long "
+                        "run's steady state)")
     p.add_argument("--against", action="append", default=[], metavar="RUN",
                    help="with --run: also measure this run folder's model (repeatable), taking turns with --run's, and "
                         "print --run's speed-up over it: each render preset (its PSNR beside), or with --training each "
@@ -110,10 +114,11 @@ def _run_training_bench(args: argparse.Namespace) -> int:
     if args.steps < 3 or args.rounds < 1:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
     results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, before=args.before,
-                                 against=args.against, log=print)
+                                 against=args.against, cold=args.cold, log=print)
     machine = results["machine"]
     print(f"machine: {machine['processor']}, torch threads {machine['torch_threads']}, AMX-BF16 {machine['amx_bf16']}; "
-          f"{results['steps_timed']} steps timed per precision")
+          f"{results['steps_timed']} steps timed per precision, frames "
+          f"{'cached' if results['frames_cached'] else 'prepared in the step (--cold)'}")
     columns = [(row["precision"], row) for row in results["precisions"]]
     columns += [(f"{row['precision']} before", row) for row in results.get("before", [])]
     columns += [(f"{Path(a['run']).name} {row['precision']}", row) for a in results.get("against", [])

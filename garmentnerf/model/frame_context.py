@@ -134,6 +134,10 @@ class FrameFeatures:
             (E and G_en).
         normal_grid: the blurred body normals the shading reads
             (:class:`~garmentnerf.model.normal_field.NormalGrid`; ``shading_normal_blur`` > 0), or None.
+        encoder_output: (C_s, R, R) E's output before the per-frame code, kept only while no
+            parameter of E trains (then it is the same every time the frame is prepared, and
+            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame` reuses it from
+            ``geometry``); None otherwise.
     """
 
     posed_vertices: torch.Tensor
@@ -148,6 +152,7 @@ class FrameFeatures:
     frame: int | None = None
     timings: dict[str, float] = field(default_factory=dict)
     normal_grid: "NormalGrid | None" = None
+    encoder_output: torch.Tensor | None = None
 
     def detach(self) -> "FrameFeatures":
         """The same features cut from the autograd graph (for caching across renders)."""

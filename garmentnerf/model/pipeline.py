@@ -169,6 +169,11 @@ class RenderOutput:
         return self.maps.compose(palette.to(self.maps.mask.device), bg)[0]
 
 
+def _trains(module: nn.Module) -> bool:
+    """Whether any parameter of ``module`` takes a gradient (False for a frozen module)."""
+    return any(p.requires_grad for p in module.parameters())
+
+
 class _Stopwatch:
     """Accumulates wall time per stage into a dict (ms), synchronising CUDA when used."""
 
@@ -400,14 +405,21 @@ class GarmentAnimationNeRF(nn.Module):
         caller's grad mode says (G_img always without while frozen); call under
         ``torch.no_grad()`` for viewing.
 
-        ``geometry``: features prepared earlier for the same posed body (only their
-        ``posed_vertices``, ``vertex_normals``, ``surface`` and ``aabb`` are read), whose body
-        geometry is then reused instead of rebuilt: binding the body (its search tree) and its normals
+        ``geometry``: features prepared earlier for the same frame (the same inputs; only their
+        ``posed_vertices``, ``vertex_normals``, ``surface``, ``aabb``, ``normal_grid`` and, as below,
+        ``encoder_output`` and ``detail_features`` are read), whose body geometry is then reused
+        instead of rebuilt: binding the body (its search tree) and its normals
         cost more than the encoders, and a trainer meets each frame many times. ValueError when
         its vertices are not exactly those of ``inputs``.
 
         ``code``: the frame's per-frame code (a training frame of a model with codes,
         :meth:`frame_code`), added to E's output; None: E's output alone.
+
+        While no parameter of E trains, its output is the same every time the frame is prepared: it is
+        returned as ``encoder_output`` and, when ``geometry`` carries it, reused instead of running E
+        again; so is ``geometry``'s ``detail_features`` while neither G_en nor the reference images have
+        a gradient to take. A codes-only stage (``ModelConfig.trained_parameters``) then runs neither
+        encoder after a frame's first step.
         """
         cfg = self.cfg
         inputs.validate(cfg, self.body.asset.num_vertices)
@@ -428,10 +440,15 @@ class GarmentAnimationNeRF(nn.Module):
             else:
                 raise ValueError(f"geometry of frame {geometry.frame} is not that of the posed body of frame "
                                  f"{inputs.frame}")
-        dynamic = reference_images = detail = None
+        dynamic = reference_images = detail = encoder_output = None
         if cfg.use_dynamic_feature:
             with sw("encoders"):
-                dynamic = self.encoder(inputs.info_maps.to(dev, torch.float32).unsqueeze(0))[0]
+                if not _trains(self.encoder) and geometry is not None and geometry.encoder_output is not None:
+                    dynamic = geometry.encoder_output
+                else:
+                    dynamic = self.encoder(inputs.info_maps.to(dev, torch.float32).unsqueeze(0))[0]
+                if not _trains(self.encoder):
+                    encoder_output = dynamic.detach()
                 if code is not None:
                     dynamic = dynamic + self.frame_code(code, dynamic.shape[-1])
         if cfg.use_detail_feature:
@@ -444,10 +461,15 @@ class GarmentAnimationNeRF(nn.Module):
                         reference_images = self.image_generator(inputs.reference_uv.to(dev, torch.float32),
                                                                 inputs.reference_mask.to(dev))
             with sw("encoders"):
-                detail = self.detail_encoder(reference_images)
+                kept = None if geometry is None else geometry.detail_features
+                if (kept is not None and not kept.requires_grad and not reference_images.requires_grad
+                        and not _trains(self.detail_encoder)):
+                    detail = kept
+                else:
+                    detail = self.detail_encoder(reference_images)
         return FrameFeatures(verts, normals, surface, aabb, dynamic, reference_images, detail,
                              tuple(inputs.reference_cameras), inputs.reference_depth.detach().cpu(), inputs.frame,
-                             timings, normal_grid)
+                             timings, normal_grid, encoder_output)
 
     def _normal_grid(self, posed_vertices: torch.Tensor) -> NormalGrid | None:
         """The frame's blurred body normals (``shading_normal_blur`` > 0), else None."""

@@ -9,6 +9,12 @@ same state, and both draw the same views (same seed). A step's time is the inter
 consecutive step callbacks (render, losses, backward, optimiser); the first step of each round
 and the one that ends it (it writes a checkpoint) are left out, and the median is reported.
 
+Before each round, each trainer prepares the frames its steps will draw (:meth:`Trainer.warm_frames
+<garmentnerf.train.trainer.Trainer.warm_frames>`): a step is timed as a long run pays it once it has
+met each frame, with the frame's inputs (info maps, reference passes, G_img's images) and body
+geometry in the trainer's caches, and a frozen encoder's output with the geometry. ``cold=True``
+times the steps with all of that built in them instead (a run's first visit to each frame).
+
 Stages (:data:`STAGES`, seconds per step, the median of each over the timed steps)
     ``surface``, ``reference_images``, ``encoders``: :meth:`prepare_frame
     <garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame>`'s own timings (body geometry;
@@ -25,7 +31,8 @@ Stages (:data:`STAGES`, seconds per step, the median of each over the timed step
     code in the training loop.
 
 ``before=True`` adds, per precision, a trainer timed as the step was before issue 27: body
-geometry rebuilt at every step (a geometry cache of 0 bytes), shift-tolerant LPIPS's first
+geometry and the encoders rebuilt at every step (a geometry cache of 0 bytes; the frame's inputs
+cached, as they were), Adam's update one operation at a time (not fused), shift-tolerant LPIPS's first
 convolution and blur run one after the other (``STLPIPS(fused=False)``) and the perceptual loss's target
 tracked by autograd (handed over as a tensor that requires grad, so its features are
 backpropagated as in the concatenated batch of old); it takes its turn with the others, so the
@@ -140,6 +147,8 @@ class _StageClock:
 def _as_before(trainer) -> None:
     """Make ``trainer`` step as before issue 27 (see the module docstring)."""
     trainer.geometry_cache.set_budget(0)
+    for group in trainer.optimizer.param_groups:  # Adam one operation at a time over each tensor
+        group["fused"] = False
     if isinstance(trainer.perceptual, STLPIPS):  # the first convolution and its blur one by one
         trainer.perceptual = STLPIPS(trainer.perceptual.variant, reduction=trainer.perceptual.reduction,
                                      weights_path=trainer.perceptual.weights_path, fused=False).to(trainer.device)
@@ -148,7 +157,7 @@ def _as_before(trainer) -> None:
 
 
 def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: int = 8, rounds: int = 3,
-                       before: bool = False, against=(), log=None) -> dict:
+                       before: bool = False, against=(), cold: bool = False, log=None) -> dict:
     """Median seconds per NeRF step of the run in ``run_dir`` for each of ``precisions``, whole and
     by stage.
 
@@ -163,6 +172,8 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
         against: other run folders whose recipes are timed the same way, at the same precisions,
             taking their turns with ``run_dir``'s (recipes compared in one run: e.g. a new recipe
             against the bundled model's).
+        cold: time each step with its frame prepared in it (see the module docstring) instead of
+            from the caches.
         log: called with one line per finished round (None: silent).
     Returns:
         ``{"run", "steps_timed", "machine", "stages", "precisions": [row], "speedup_vs_first"}``,
@@ -211,6 +222,8 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
                         laps.append(clock.lap())
 
                     trainer.step_callback = done
+                    if not cold:
+                        trainer.warm_frames(steps)
                     trainer.tc = dataclasses.replace(trainer.tc, stop_after=trainer.step + steps)
                     trainer.train()
                     intervals[v] += list(np.diff(stamps)[:-1])  # neither the first step nor the checkpointed last
@@ -232,7 +245,7 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
 
     rows = [row((0, p, False)) for p in resolved]
     first = rows[0]["s_per_step"]
-    results = {"run": str(run_dir), "steps_timed": len(intervals[variants[0]]),
+    results = {"run": str(run_dir), "steps_timed": len(intervals[variants[0]]), "frames_cached": not cold,
                "machine": {"torch_threads": torch.get_num_threads(),
                            "processor": platform.processor() or platform.machine(),
                            "amx_bf16": bool(torch.cpu.get_capabilities().get("amx_bf16", False))},

@@ -53,3 +53,39 @@ def test_the_cache_keeps_the_most_recent_frames_under_its_bound(tiny_scene, gl_c
     changes = sum(a != b for a, b in zip(order, order[1:]))
     assert 0 < changes < len(order) - 1  # a frame followed by another and by itself: both cases seen
     assert kept == 1 and held == frame_bytes and sum(bound.values()) == 1 + changes
+
+
+def _encoder_calls(scene, out, gl_context, cache_bytes: int, trained_parameters=()):
+    """A run of 7 NeRF steps with per-frame codes (only ``trained_parameters`` training, all when
+    empty): its history, final weights, E's and G_en's forward calls and each step's frame."""
+    cfg = tiny_config().replace(frame_code_resolution=4, frame_code_lr_scale=20.0,
+                                trained_parameters=tuple(trained_parameters))
+    tc = TrainConfig(scene=scene.root, out=out, model_config=cfg, iterations=7, generator_iterations=1,
+                     perceptual="none", progress=False, log_every=100, image_every=0, ckpt_every=100,
+                     geometry_cache_bytes=cache_bytes)
+    calls = Counter()
+    with Trainer(tc, gl_context, log=lambda m: None) as tr:
+        for name in ("encoder", "detail_encoder"):
+            getattr(tr.model, name).register_forward_hook(lambda m, i, o, name=name: calls.update([name]))
+        order = [tr._pick(tr.pairs, step, 2)[:2] for step in range(tr.generator_iterations, tr.total_steps)]
+        result = tr.train()
+        state = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+    return result.history, state, calls, order
+
+
+def test_frozen_encoders_run_once_per_frame_and_training_is_unchanged(tiny_scene, gl_context, tmp_path):
+    """A codes-only stage (E and G_en frozen) keeps their outputs with the frame's geometry: each runs
+    once per frame, and the losses and weights are those of running them at every step, bit for bit.
+    With every weight training they run at every step, cache or not."""
+    codes = ("frame_codes.",)
+    history, state, calls, order = _encoder_calls(tiny_scene, tmp_path / "cached", gl_context, 4 << 30, codes)
+    frames = len(set(order))
+    assert 1 < frames < 7
+    assert calls == {"encoder": frames, "detail_encoder": frames}
+    history_every, state_every, calls_every, _ = _encoder_calls(tiny_scene, tmp_path / "every", gl_context, 0, codes)
+    assert calls_every == {"encoder": 7, "detail_encoder": 7}
+    assert history == history_every
+    assert state.keys() == state_every.keys() and all(torch.equal(state[k], state_every[k]) for k in state)
+    assert state["frame_codes.codes"].abs().amax() > 0  # the codes trained
+    _, _, calls_all, _ = _encoder_calls(tiny_scene, tmp_path / "all", gl_context, 4 << 30)
+    assert calls_all == {"encoder": 7, "detail_encoder": 7}

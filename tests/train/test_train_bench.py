@@ -86,12 +86,26 @@ def test_training_bench_splits_the_step_by_stage_beside_the_step_before(tiny_run
             assert all(stages[k] > 0 for k in ("encoders", "projection", "mlp", "decoder", "perceptual",
                                                "perceptual_backward", "backward_other", "optimizer"))
             assert all(v >= 0 for v in stages.values()), stages
-    # 3 frames: from the second round on every frame's geometry is kept, while before it is rebuilt
-    assert max(s["surface"] for s in now["stages_s_all"][3:]) < 0.1 * before["stages_s"]["surface"]
+    # each round's frames are prepared before it is timed: their geometry is kept, while before it is rebuilt
+    assert results["frames_cached"] is True
+    assert max(s["surface"] for s in now["stages_s_all"]) < 0.1 * before["stages_s"]["surface"]
     assert results["speedup_vs_before"]["float32"] == pytest.approx(before["s_per_step"] / now["s_per_step"])
     for stage in STAGES:
         assert f"  {stage:22s} {now['stages_s'][stage]:16.3f} {before['stages_s'][stage]:16.3f}" in printed
     assert f"  {'float32':10s} {results['speedup_vs_before']['float32']:5.2f}x faster than before" in printed
+
+
+def test_training_bench_cold_builds_each_frame_in_its_first_step(tiny_run, tmp_path, capsys):
+    """``--cold``: a step meeting a frame for the first time binds its body (3 frames, so the first
+    round's steps do), as the warm default's steps never do."""
+    out = tmp_path / "cold.json"
+    assert main(["bench", "--run", str(tiny_run), "--training", "--precisions", "float32", "--steps", "5",
+                 "--rounds", "1", "--cold", "--json", str(out)]) == 0
+    assert "frames prepared in the step (--cold)" in capsys.readouterr().out
+    results = json.loads(out.read_text())
+    assert results["frames_cached"] is False
+    surface = [s["surface"] for s in results["precisions"][0]["stages_s_all"]]
+    assert max(surface) > 1e-3 and min(surface) < 0.1 * max(surface)  # built on a first visit, kept after
 
 
 def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_path, capsys):
