@@ -67,7 +67,7 @@ import functools
 import time
 from collections.abc import Callable
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -470,6 +470,17 @@ class GarmentAnimationNeRF(nn.Module):
         return FrameFeatures(verts, normals, surface, aabb, dynamic, reference_images, detail,
                              tuple(inputs.reference_cameras), inputs.reference_depth.detach().cpu(), inputs.frame,
                              timings, normal_grid, encoder_output)
+
+    def reusable_frame(self, features: FrameFeatures) -> FrameFeatures:
+        """What of a frame's ``features`` a later :meth:`prepare_frame` of the same frame reuses when given
+        it as ``geometry``: the body geometry, E's output before the code (kept only while E is frozen)
+        and G_en's output while neither G_en nor the reference images take a gradient; the rest (this
+        step's graph, the reference images its inputs hold) left out."""
+        detail = features.detail_features
+        frozen_detail = (detail is not None and not detail.requires_grad and self.detail_encoder is not None
+                         and not _trains(self.detail_encoder))
+        return replace(features, dynamic_features=None, reference_images=None, timings={},
+                       detail_features=detail if frozen_detail else None)
 
     def _normal_grid(self, posed_vertices: torch.Tensor) -> NormalGrid | None:
         """The frame's blurred body normals (``shading_normal_blur`` > 0), else None."""

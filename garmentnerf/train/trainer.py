@@ -704,14 +704,13 @@ class Trainer(Closeable):
         inputs = self._nerf_inputs(seq, frame)
         geometry = self.geometry_cache.get((seq, frame))
         feats = self.model.prepare_frame(inputs, geometry, code=code)
-        if geometry is None and self.geometry_cache.budget_bytes > 0:
-            # the geometry, and what of the encoders' outputs no gradient reaches (frozen encoders: see
-            # prepare_frame); the rest belongs to this step's graph, and the inputs cache holds the
-            # reference images
-            detail = feats.detail_features
-            self.geometry_cache.put((seq, frame), replace(
-                feats, dynamic_features=None, reference_images=None, timings={},
-                detail_features=detail if detail is not None and not detail.requires_grad else None))
+        if self.geometry_cache.budget_bytes > 0:
+            keep = self.model.reusable_frame(feats)
+            # kept on the first visit, and again when it holds more (the encoders frozen since: a frame
+            # prepared before the NeRF stage froze them, e.g. by warm_frames)
+            if geometry is None or any(getattr(keep, k) is not None and getattr(geometry, k) is None
+                                       for k in ("encoder_output", "detail_features")):
+                self.geometry_cache.put((seq, frame), keep)
         return feats
 
     def warm_frames(self, steps: int) -> int:

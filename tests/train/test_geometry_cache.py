@@ -68,24 +68,32 @@ def _encoder_calls(scene, out, gl_context, cache_bytes: int, trained_parameters=
         for name in ("encoder", "detail_encoder"):
             getattr(tr.model, name).register_forward_hook(lambda m, i, o, name=name: calls.update([name]))
         order = [tr._pick(tr.pairs, step, 2)[:2] for step in range(tr.generator_iterations, tr.total_steps)]
+        # the first two steps' frames prepared ahead, as the bench does, here before the NeRF stage froze
+        # the encoders: each of those frames is kept again, with their outputs, at its first NeRF step
+        tr.warm_frames(2)
         result = tr.train()
         state = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+        kept = [tr.geometry_cache.get(key) for key in set(order)]
+    if cache_bytes:
+        assert all((f.encoder_output is not None) == bool(trained_parameters) for f in kept)
+        assert all((f.detail_features is not None) == bool(trained_parameters) for f in kept)
     return result.history, state, calls, order
 
 
 def test_frozen_encoders_run_once_per_frame_and_training_is_unchanged(tiny_scene, gl_context, tmp_path):
     """A codes-only stage (E and G_en frozen) keeps their outputs with the frame's geometry: each runs
-    once per frame, and the losses and weights are those of running them at every step, bit for bit.
+    once per frame (and once more for a frame prepared before the stage froze them), and the losses and
+    weights are those of running them at every step, bit for bit.
     With every weight training they run at every step, cache or not."""
     codes = ("frame_codes.",)
     history, state, calls, order = _encoder_calls(tiny_scene, tmp_path / "cached", gl_context, 4 << 30, codes)
-    frames = len(set(order))
+    frames, warmed = len(set(order)), len(set(order[:2]))
     assert 1 < frames < 7
-    assert calls == {"encoder": frames, "detail_encoder": frames}
+    assert calls == {"encoder": warmed + frames, "detail_encoder": warmed + frames}
     history_every, state_every, calls_every, _ = _encoder_calls(tiny_scene, tmp_path / "every", gl_context, 0, codes)
-    assert calls_every == {"encoder": 7, "detail_encoder": 7}
+    assert calls_every == {"encoder": warmed + 7, "detail_encoder": warmed + 7}
     assert history == history_every
     assert state.keys() == state_every.keys() and all(torch.equal(state[k], state_every[k]) for k in state)
     assert state["frame_codes.codes"].abs().amax() > 0  # the codes trained
     _, _, calls_all, _ = _encoder_calls(tiny_scene, tmp_path / "all", gl_context, 4 << 30)
-    assert calls_all == {"encoder": 7, "detail_encoder": 7}
+    assert calls_all == {"encoder": warmed + 7, "detail_encoder": warmed + 7}
