@@ -62,7 +62,8 @@ import torch
 from garmentnerf.geometry.triangles import FEATURE_TOL, face_frame_table
 from garmentnerf.interrupts import deferred_interrupts
 
-__all__ = ["FaceBVH", "NearestFaces", "BOUND_SLACK", "DEFAULT_CHUNK_SIZE", "tree_order", "tree_depth"]
+__all__ = ["FaceBVH", "NearestFaces", "BOUND_SLACK", "DEFAULT_CHUNK_SIZE", "MORTON_MIN_POINTS", "tree_order", "tree_depth",
+           "morton_order", "morton_codes_reference"]
 
 #: Metres added to every node bound (each interval and half extent) against rounding.
 BOUND_SLACK = 1e-9
@@ -510,7 +511,78 @@ def _define_kernels():
         out[j, 19] = wp.float64(0.5) * (y1 - y0) + slack
         out[j, 20] = wp.float64(0.5) * (z1 - z0) + slack
 
-    return wp, nearest_faces, node_boxes
+    @wp.func
+    def spread_bits(v: int):  # bit i of a 10-bit v -> bit 3 i
+        v = (v | (v << 16)) & 0x030000FF
+        v = (v | (v << 8)) & 0x0300F00F
+        v = (v | (v << 4)) & 0x030C30C3
+        return (v | (v << 2)) & 0x09249249
+
+    @wp.kernel
+    def morton_codes(points: wp.array2d(dtype=wp.float64), lo: wp.vec3d, scale: wp.vec3d,
+                     out: wp.array(dtype=wp.int32)):
+        # morton_codes_reference's codes: 10 bits per axis over the points' box, interleaved x, y, z
+        i = wp.tid()
+        x = spread_bits(int((points[i, 0] - lo[0]) * scale[0]))
+        y = spread_bits(int((points[i, 1] - lo[1]) * scale[1]))
+        z = spread_bits(int((points[i, 2] - lo[2]) * scale[2]))
+        out[i] = x | (y << 1) | (z << 2)
+
+    return _Kernels(wp, nearest_faces, node_boxes, morton_codes)
+
+
+class _Kernels(NamedTuple):
+    warp: object  # the warp module
+    nearest_faces: object
+    node_boxes: object
+    morton_codes: object
+
+
+#: Points below which :func:`morton_order` keeps the given order (sorting them costs more than it saves).
+MORTON_MIN_POINTS = 1024
+
+
+def _morton_cells(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lo (3,), scale (3,)) float64: a point's cell along each axis is ``(p - lo) * scale`` truncated,
+    0 to 1023 over the points' box."""
+    lo, hi = points.min(dim=0).values, points.max(dim=0).values
+    return lo, 1023.0 / (hi - lo).clamp_min(1e-12)
+
+
+def morton_order(points: torch.Tensor) -> torch.Tensor:
+    """(N,) permutation putting points (N, 3) float64 in Morton (Z-curve) order over their bounding box
+    (10 bits per axis; fewer than :data:`MORTON_MIN_POINTS` points keep their order): the codes in one
+    kernel pass, then a sort (:func:`morton_codes_reference` computes the codes in torch)."""
+    N = points.shape[0]
+    if N < MORTON_MIN_POINTS:
+        return torch.arange(N)
+    kernels = _kernels()
+    wp = kernels.warp
+    pts = points.to(torch.float64).contiguous()
+    lo, scale = _morton_cells(pts)
+    codes = torch.empty(N, dtype=torch.int32)
+    args = [wp.from_torch(pts, dtype=wp.float64), wp.vec3d(*lo.tolist()), wp.vec3d(*scale.tolist()),
+            wp.from_torch(codes, dtype=wp.int32)]
+    with _load_lock:  # the first launch of the module loads it
+        wp.launch(kernels.morton_codes, dim=N, device="cpu", inputs=args)
+        _loaded.append(True)
+    return torch.argsort(codes)
+
+
+def morton_codes_reference(points: torch.Tensor) -> torch.Tensor:
+    """(N,) int64 the Morton codes of points (N, 3) that :func:`morton_order` sorts by, in torch
+    operations (the reference the tests compare its kernel with)."""
+    pts = points.to(torch.float64)
+    lo, scale = _morton_cells(pts)
+    cells = ((pts - lo) * scale).to(torch.int64)
+
+    def spread(v):  # bit i of v -> bit 3 i
+        v = (v | (v << 16)) & 0x030000FF
+        v = (v | (v << 8)) & 0x0300F00F
+        v = (v | (v << 4)) & 0x030C30C3
+        return (v | (v << 2)) & 0x09249249
+
+    return spread(cells[:, 0]) | (spread(cells[:, 1]) << 1) | (spread(cells[:, 2]) << 2)
 
 
 class NearestFaces(NamedTuple):
@@ -598,7 +670,8 @@ class FaceBVH:
         Returns:
             :class:`NearestFaces`, in the rows of ``points``.
         """
-        wp, kernel, _ = _kernels()
+        kernels = _kernels()
+        wp, kernel = kernels.warp, kernels.nearest_faces
         M = points.shape[0]
         pts = points.to(torch.float64).contiguous()
         rows = torch.arange(M) if walk_order is None else walk_order.to(torch.int64).contiguous()
@@ -688,7 +761,8 @@ def _node_boxes(corners: torch.Tensor, depth: int, threads: int = 1) -> torch.Te
     Every level reads all the corners, so with two or more ``threads`` the top levels and the
     lower ones are computed at once (the lower part gets fewer levels: its many small nodes cost
     more per corner)."""
-    wp, _, kernel = _kernels()
+    kernels = _kernels()
+    wp, kernel = kernels.warp, kernels.node_boxes
     num_nodes = (1 << (depth + 1)) - 1
     out = torch.empty(num_nodes, _NODE_COLUMNS, dtype=torch.float64)
     arrays = (wp.from_torch(corners.reshape(-1, 9).contiguous(), dtype=wp.float64), wp.from_torch(out, dtype=wp.float64))

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from garmentnerf.geometry.face_bvh import DEFAULT_CHUNK_SIZE, FaceBVH, tree_order
+from garmentnerf.geometry.face_bvh import DEFAULT_CHUNK_SIZE, FaceBVH, morton_order, tree_order
 from garmentnerf.geometry.triangles import check_points, interpolate, pseudo_normals
 
 __all__ = [
@@ -280,7 +280,7 @@ class PosedSurface:
             # Nearby queries in a row: each starts from its predecessor's face, and the tree walk
             # and the table reads stay in cache. The kernel solves the winner in full, in float64
             # (closest_point_on_triangles and _sign, ported), and writes every point's own row.
-            found = self._tree.query(q_all, threads, walk_order=_spatial_order(q_all),
+            found = self._tree.query(q_all, threads, walk_order=morton_order(q_all),
                                      chunk_size=self.projector.chunk_size)
             if stats is not None:
                 totals = found.work.sum(dim=0, dtype=torch.int64)
@@ -291,21 +291,3 @@ class PosedSurface:
             values = None if found.values is None else found.values.to(self.dtype)
         out = SurfaceProjection(found.face, bary, closest, dist, signed, values)
         return out if device.type == "cpu" else out.to(device)
-
-
-def _spatial_order(points: torch.Tensor) -> torch.Tensor:
-    """(N,) permutation putting points (N, 3) in Morton (Z-curve) order over their bounding box."""
-    N = points.shape[0]
-    if N < 1024:
-        return torch.arange(N)
-    lo, hi = points.min(dim=0).values, points.max(dim=0).values
-    cells = ((points - lo) * (1023.0 / (hi - lo).clamp_min(1e-12))).to(torch.int64)  # 10 bits per axis
-
-    def spread(v):  # bit i of v -> bit 3 i
-        v = (v | (v << 16)) & 0x030000FF
-        v = (v | (v << 8)) & 0x0300F00F
-        v = (v | (v << 4)) & 0x030C30C3
-        return (v | (v << 2)) & 0x09249249
-
-    code = spread(cells[:, 0]) | (spread(cells[:, 1]) << 1) | (spread(cells[:, 2]) << 2)
-    return torch.argsort(code)

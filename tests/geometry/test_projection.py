@@ -236,7 +236,6 @@ def test_the_walk_order_changes_neither_answers_nor_rows():
     reversed Morton walk and no order at all give the same face and bit-identical results in every
     point's own row, and the Morton walk, starting near the answer, tests fewer bounds."""
     from garmentnerf.geometry import face_bvh
-    from garmentnerf.geometry.projection import _spatial_order
 
     mesh = torus_mesh()
     V = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
@@ -245,7 +244,7 @@ def test_the_walk_order_changes_neither_answers_nor_rows():
     posed = SurfaceProjector(F, V.shape[0]).bind(V, torch.float64)
     tree = face_bvh.FaceBVH(V, F, normals=(posed._face_normals, posed._edge_normals, posed._vertex_normals,
                                            posed.projector._face_edges))
-    morton = _spatial_order(points)
+    morton = face_bvh.morton_order(points)
     ref = tree.query(points, walk_order=morton)
     assert ref.values is None
     for order in (torch.randperm(len(points), generator=torch.Generator().manual_seed(0)), morton.flip(0), None):
@@ -256,6 +255,27 @@ def test_the_walk_order_changes_neither_answers_nor_rows():
     assert_exact_distances(mesh, points.numpy(), ref.d2.sqrt().numpy(), atol=1e-10)
     with pytest.raises(ValueError, match="walk_order"):
         tree.query(points, walk_order=morton[:-1])
+
+
+def test_the_morton_kernel_sorts_by_the_reference_codes():
+    """The kernel's Morton codes order the points as the torch reference's do (any order among equal
+    codes), on a body's points, on a flat set (one axis of zero extent) and with integer coordinates on
+    cell boundaries; fewer than MORTON_MIN_POINTS points keep their order."""
+    from garmentnerf.geometry import face_bvh
+
+    g = torch.Generator().manual_seed(3)
+    mesh = torus_mesh()
+    body = torch.as_tensor(near_and_far_points(mesh, n_near=20000, n_far=2000, band=0.1, far=1.0, seed=23))
+    flat = torch.rand(5000, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 0.0, 1.0]) + 0.5
+    grid = torch.randint(0, 1024, (5000, 3), generator=g).double()  # cells exactly at integers, 0 to 1023
+    for points in (body, flat, grid):
+        order = face_bvh.morton_order(points)
+        assert torch.equal(order.sort().values, torch.arange(len(points)))
+        codes = face_bvh.morton_codes_reference(points)
+        assert bool((codes[order].diff() >= 0).all())
+        assert codes.unique().numel() > len(points) // 2  # the codes do tell the points apart
+    few = body[: face_bvh.MORTON_MIN_POINTS - 1]
+    assert torch.equal(face_bvh.morton_order(few), torch.arange(len(few)))
 
 
 def test_corner_values_are_interpolated_at_the_closest_point():
