@@ -86,6 +86,14 @@ _LAUNCHES_PER_THREAD = 4
 
 _load_lock = threading.Lock()  # the first launch loads (maybe compiles) the module: one thread at a time
 _loaded: list = []
+
+
+def _mark_loaded() -> None:
+    """Record that warp has loaded the kernels' module (under ``_load_lock``): later launches may run at once."""
+    if not _loaded:
+        _loaded.append(True)
+
+
 _pools: dict = {}
 
 
@@ -563,9 +571,12 @@ def morton_order(points: torch.Tensor) -> torch.Tensor:
     codes = torch.empty(N, dtype=torch.int32)
     args = [wp.from_torch(pts, dtype=wp.float64), wp.vec3d(*lo.tolist()), wp.vec3d(*scale.tolist()),
             wp.from_torch(codes, dtype=wp.int32)]
-    with _load_lock:  # the first launch of the module loads it
+    if _loaded:
         wp.launch(kernels.morton_codes, dim=N, device="cpu", inputs=args)
-        _loaded.append(True)
+    else:
+        with _load_lock:  # the first launch of the module loads it
+            wp.launch(kernels.morton_codes, dim=N, device="cpu", inputs=args)
+            _mark_loaded()
     return torch.argsort(codes)
 
 
@@ -706,7 +717,7 @@ class FaceBVH:
                 if threads <= 1 or n_launches == 1 or not _loaded:
                     with _load_lock:
                         launch(c0, c1)
-                        _loaded.append(True)
+                        _mark_loaded()
                 else:
                     cuts = [c0 + min(c1 - c0, BLOCK * (blocks * i // n_launches)) for i in range(n_launches + 1)]
                     pool = _pool(min(int(threads), n_launches))
@@ -773,7 +784,7 @@ def _node_boxes(corners: torch.Tensor, depth: int, threads: int = 1) -> torch.Te
     if threads <= 1 or depth < 2 or not _loaded:
         with _load_lock:
             launch(0, num_nodes)
-            _loaded.append(True)
+            _mark_loaded()
     else:
         cut = (1 << ((depth + 4) // 2)) - 1  # the first node of the lower levels (their nodes cost more each)
         jobs = [_pool(2).submit(launch, 0, cut), _pool(2).submit(launch, cut, num_nodes)]

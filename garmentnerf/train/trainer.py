@@ -83,8 +83,8 @@ Caches
     search, vertex normals and box) is built at the frame's first NeRF step and reused by the later ones, in a byte-bounded LRU too
     (``TrainConfig.geometry_cache_bytes``, :attr:`Trainer.geometry_cache`): rebuilding it cost ~10 %
     of a step of the bundled recipe. With the encoders frozen (a codes-only stage), their outputs
-    are kept with it, and the frame's later steps run neither E nor G_en. All three grow with the training frames (a four-sequence scene
-    has 680), so all three are bounded.
+    are kept with it, and the frame's later steps run neither E nor G_en. All three grow with the
+    training frames (a four-sequence scene has 680), so all three are bounded.
 """
 
 from __future__ import annotations
