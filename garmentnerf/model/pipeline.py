@@ -443,11 +443,12 @@ class GarmentAnimationNeRF(nn.Module):
         dynamic = reference_images = detail = encoder_output = None
         if cfg.use_dynamic_feature:
             with sw("encoders"):
-                if not _trains(self.encoder) and geometry is not None and geometry.encoder_output is not None:
+                frozen = not _trains(self.encoder)
+                if frozen and geometry is not None and geometry.encoder_output is not None:
                     dynamic = geometry.encoder_output
                 else:
                     dynamic = self.encoder(inputs.info_maps.to(dev, torch.float32).unsqueeze(0))[0]
-                if not _trains(self.encoder):
+                if frozen:
                     encoder_output = dynamic.detach()
                 if code is not None:
                     dynamic = dynamic + self.frame_code(code, dynamic.shape[-1])
