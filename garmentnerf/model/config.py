@@ -337,9 +337,13 @@ class ModelConfig:
     perceptual_downsample: int = 1
     """The NeRF's perceptual term compares the image and its target area-averaged by this factor (1: at the
     training resolution, as the paper). G_img's pre-training keeps its term at full resolution. Must divide
-    ``image_resolution``. At 2 the term costs 3.4 times less (1.18x on a UV-h step, ``bench --training``) but
-    did not pay at equal CPU time: recipe V1 lost 0.2 dB of foreground on the unseen views and 0.4 on the
-    unseen motion to E1, and 1.2 to 1.4 dB of body (docs/quality.md); hence 1."""
+    ``image_resolution``. At 2 the term costs 3.4 times less. Where it pays depends on the stage
+    (docs/quality.md):
+    - Where every weight trains, it did not pay at equal CPU time: a UV-h step was 1.18x cheaper, and recipe
+      V1 lost 0.2 dB of foreground on the unseen views and 0.4 on the unseen motion to E1, and 1.2 to 1.4 dB
+      of body. Hence the default of 1.
+    - In a codes-only stage, where the field and the body are held, it pays: the step is 1.29x cheaper, with
+      equal results at equal steps and +0.11 dB of foreground at equal CPU (proxies PD1, PD2E)."""
     w_sparsity: float = 2e-4
     """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
