@@ -342,8 +342,9 @@ class ModelConfig:
     - Where every weight trains, it did not pay at equal CPU time: a UV-h step was 1.18x cheaper, and recipe
       V1 lost 0.2 dB of foreground on the unseen views and 0.4 on the unseen motion to E1, and 1.2 to 1.4 dB
       of body. Hence the default of 1.
-    - In a codes-only stage, where the field and the body are held, it pays: the step is 1.29x cheaper, with
-      equal results at equal steps and +0.11 dB of foreground at equal CPU (proxies PD1, PD2E)."""
+    - In a codes-only stage, where the field and the body are held, the step is 1.29x cheaper. Over 1,200
+      steps it gained 0.11 dB of foreground at equal CPU (proxies PD1, PD2E). Over the bundle's 6,400 steps
+      it cost 0.12 dB at equal steps (C7C10H). Equal CPU at that length is not measured."""
     w_sparsity: float = 2e-4
     """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
