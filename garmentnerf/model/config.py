@@ -344,7 +344,8 @@ class ModelConfig:
       of body. Hence the default of 1.
     - In a codes-only stage, where the field and the body are held, the step is 1.29x cheaper. Over 1,200
       steps it gained 0.11 dB of foreground at equal CPU (proxies PD1, PD2E). Over the bundle's 6,400 steps
-      it cost 0.12 dB at equal steps (C7C10H). Equal CPU at that length is not measured."""
+      it cost 0.12 dB at equal steps (C7C10H), and 0.13 after 2,400 more (C7C11H). Equal CPU at that length
+      is not measured."""
     w_sparsity: float = 2e-4
     """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
