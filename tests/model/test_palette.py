@@ -320,3 +320,27 @@ def test_head_only_weights_reach_only_the_weight_head():
     with torch.no_grad():
         assert dec(torch.randn(1, 8, 4, 4)).weights_head_only is None  # rendering pays nothing for it
     assert dec.eval()(torch.randn(1, 8, 4, 4)).weights_head_only is None
+
+
+@pytest.mark.parametrize("size", [(2, 1), (3, 5), (4, 3)])  # integer factors of (6, 5), and a non-integer shrink
+def test_shrinking_maps_averages_each_output_pixels_area(size):
+    """A shrink is the box filter the ground truth is made with: OpenCV's INTER_AREA, exactly for an
+    integer factor; the weights still sum to 1."""
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+    m = maps(weight_garment=torch.rand(B, H, W, generator=torch.Generator().manual_seed(3)), offsets=True)
+    big = DecomposedMaps(m.radiance, m.offsets, m.weights, m.mask, None, m.radiance.clone(), m.mask.clone())
+    small = big.resized(*size)
+    hwc = big.radiance[0].permute(1, 2, 0).numpy().astype(np.float64)
+    ref = torch.from_numpy(cv2.resize(hwc, size, interpolation=cv2.INTER_AREA)).permute(2, 0, 1).float()
+    exact = W % size[0] == 0 and H % size[1] == 0
+    if exact:
+        torch.testing.assert_close(small.radiance[0], ref, atol=1e-6, rtol=0)
+        torch.testing.assert_close(small.body_color[0], ref, atol=1e-6, rtol=0)
+    else:  # F.interpolate's area averages whole input pixels; INTER_AREA weighs the cut ones by their share
+        assert float((small.radiance[0] - ref).abs().max()) < 0.25
+    torch.testing.assert_close(small.weights.sum(1), torch.ones(B, size[1], size[0]))
+    # Growing a side keeps the bilinear filter (what the previewer's GPU does when it magnifies).
+    grown = big.resized(2 * W, 2 * H)
+    expect = torch.nn.functional.interpolate(big.mask, size=(2 * H, 2 * W), mode="bilinear", align_corners=False)
+    torch.testing.assert_close(grown.mask, expect, atol=1e-6, rtol=0)
