@@ -15,6 +15,10 @@ With ``--run DIR --training``: seconds per NeRF training step of the run's recip
 side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`);
 ``--before`` adds each precision's step as it was before issue 27 beside it; ``--against RUN``
 times other runs' recipes taking turns with it (recipes compared in one run).
+
+Every mode ends with what other processes took of the machine while it ran
+(:class:`~garmentnerf.cpu_load.OtherProcessesLoad`), in cores, also kept in the JSON as
+``machine.other_processes_cores``: figures measured beside another CPU-heavy job say so.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import json
 from pathlib import Path
 
 from garmentnerf.cli.common import add_demo_arg, check_output_file, run_folder_arg
+from garmentnerf.cpu_load import OtherProcessesLoad, load_report
 from garmentnerf.io_utils import atomic_write_path
 
 ROWS = [
@@ -102,7 +107,7 @@ def _print_presets(results: dict) -> None:
               + " ".join(f"{r['stages_ms'][k]:9.1f}" for k in PAPER_STAGES))
 
 
-def _run_training_bench(args: argparse.Namespace) -> int:
+def _run_training_bench(args: argparse.Namespace) -> dict:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.perf.train_bench import training_benchmark
     from garmentnerf.train.settings import TRAINING_PRECISIONS
@@ -140,23 +145,14 @@ def _run_training_bench(args: argparse.Namespace) -> int:
         for row in a["precisions"]:
             print(f"  {row['precision']:10s} {results['speedup_vs_against'][a['run']][row['precision']]:5.2f}x faster "
                   f"than {a['run']}'s recipe ({row['s_per_step']:.3f} s/step)")
-    if args.json:
-        with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
-            tmp.write_text(json.dumps(results, indent=1))
-        print(f"wrote {args.json}")
-    return 0
+    return results
 
 
-def _run_occupancy_probe(args: argparse.Namespace) -> int:
+def _run_occupancy_probe(args: argparse.Namespace) -> dict:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.perf.occupancy_probe import occupancy_probe
 
-    results = occupancy_probe(args.run, steps=args.occupancy, eval_every=args.eval_every, log=print)
-    if args.json:
-        with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
-            tmp.write_text(json.dumps(results, indent=1))
-        print(f"wrote {args.json}")
-    return 0
+    return occupancy_probe(args.run, steps=args.occupancy, eval_every=args.eval_every, log=print)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -184,46 +180,61 @@ def run_bench(args: argparse.Namespace) -> int:
         if path:
             check_output_file(path, flag, args.overwrite)
     if occupancy is not None:
-        return _run_occupancy_probe(args)
-    if getattr(args, "training", False):
-        return _run_training_bench(args)
-    if getattr(args, "run", None):
-        # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
+        mode = _run_occupancy_probe
+    elif getattr(args, "training", False):
+        mode = _run_training_bench
+    elif getattr(args, "run", None):
+        mode = _run_presets
+    else:
+        mode = _run_foundation
+    with OtherProcessesLoad() as load:
+        results = mode(args)
+    results.setdefault("machine", {})["other_processes_cores"] = load.cores
+    print(load_report(load.cores))
+    if args.json:
+        with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
+            tmp.write_text(json.dumps(results, indent=1))
+        print(f"wrote {args.json}")
+    if getattr(args, "plot", None):
         from garmentnerf.perf.plot import write_plot
-        from garmentnerf.perf.preset_bench import preset_benchmark
-        from garmentnerf.viewer.playback_bench import render_ahead_benchmark
 
-        presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
-        results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
-                                   sequence=args.sequence, playback_frames=args.playback_frames,
-                                   render_ahead=render_ahead_benchmark, against=args.against)
-        _print_presets(results)
-        for other in results.get("against", []):
-            for row in other["presets"]:
-                name = row["preset"]
-                delta = results["psnr_vs_against_db"][other["run"]][name]
-                print(f"  {name:12s} {results['speedup_vs_against'][other['run']][name]:5.2f}x the speed of "
-                      f"{other['run']}'s ({row['ms_per_frame']:.1f} ms/frame)"
-                      + (f", PSNR {delta:+.2f} dB" if delta is not None else ""))
-        ahead, share = results["playback"]["render_ahead"], results["playback"]["completed_share"]
-        print(f"render-ahead of {ahead['frames']} frames at {ahead['fps']:g} fps, still {ahead['camera'][0]}x"
-              f"{ahead['camera'][1]} camera; completed share of started renders "
-              + (f"{share:.2f}" if share is not None else "n/a"))
-        for name, row in ahead["presets"].items():
-            clip = f"{row['seconds_for_clip']:7.1f} s" if row["seconds_for_clip"] is not None else "timeout"
-            fps = f"{row['fps_after']:5.1f}" if row["fps_after"] is not None else "  n/a"
-            print(f"  {name:12s} clip rendered ahead in {clip}, then {fps} fps; max lag {row['max_lag_frames']} "
-                  f"frames (one render: {row['lag_budget_frames']} frames; {1e3 * row['render_s']:.0f} ms with the "
-                  f"frame's features cached, {1e3 * row['render_s_cold']:.0f} ms without; the longest "
-                  f"{row['longest_render_frames']} frames)")
-        if args.json:
-            with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
-                tmp.write_text(json.dumps(results, indent=1))
-            print(f"wrote {args.json}")
-        if args.plot:
-            write_plot(results, args.plot, overwrite=args.overwrite)
-            print(f"wrote {args.plot}")
-        return 0
+        write_plot(results, args.plot, overwrite=args.overwrite)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _run_presets(args: argparse.Namespace) -> dict:
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
+    from garmentnerf.perf.preset_bench import preset_benchmark
+    from garmentnerf.viewer.playback_bench import render_ahead_benchmark
+
+    presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
+    results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
+                               sequence=args.sequence, playback_frames=args.playback_frames,
+                               render_ahead=render_ahead_benchmark, against=args.against)
+    _print_presets(results)
+    for other in results.get("against", []):
+        for row in other["presets"]:
+            name = row["preset"]
+            delta = results["psnr_vs_against_db"][other["run"]][name]
+            print(f"  {name:12s} {results['speedup_vs_against'][other['run']][name]:5.2f}x the speed of "
+                  f"{other['run']}'s ({row['ms_per_frame']:.1f} ms/frame)"
+                  + (f", PSNR {delta:+.2f} dB" if delta is not None else ""))
+    ahead, share = results["playback"]["render_ahead"], results["playback"]["completed_share"]
+    print(f"render-ahead of {ahead['frames']} frames at {ahead['fps']:g} fps, still {ahead['camera'][0]}x"
+          f"{ahead['camera'][1]} camera; completed share of started renders "
+          + (f"{share:.2f}" if share is not None else "n/a"))
+    for name, row in ahead["presets"].items():
+        clip = f"{row['seconds_for_clip']:7.1f} s" if row["seconds_for_clip"] is not None else "timeout"
+        fps = f"{row['fps_after']:5.1f}" if row["fps_after"] is not None else "  n/a"
+        print(f"  {name:12s} clip rendered ahead in {clip}, then {fps} fps; max lag {row['max_lag_frames']} "
+              f"frames (one render: {row['lag_budget_frames']} frames; {1e3 * row['render_s']:.0f} ms with the "
+              f"frame's features cached, {1e3 * row['render_s_cold']:.0f} ms without; the longest "
+              f"{row['longest_render_frames']} frames)")
+    return results
+
+
+def _run_foundation(args: argparse.Namespace) -> dict:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.perf.foundation_bench import foundation_benchmark
 
@@ -242,8 +253,4 @@ def run_bench(args: argparse.Namespace) -> int:
         print(f"    field {name:6s} render {row['render_us_per_sample']:6.2f} us ({row['render_samples_per_s']:>10,.0f}/s)"
               f"   train {row['train_us_per_sample']:6.2f} us ({row['train_samples_per_s']:>10,.0f}/s)"
               f"   {row['parameters']:,} parameters")
-    if args.json:
-        with atomic_write_path(Path(args.json), overwrite=args.overwrite) as tmp:
-            tmp.write_text(json.dumps(results, indent=2))
-        print(f"wrote {args.json}")
-    return 0
+    return results

@@ -40,6 +40,7 @@ import time
 
 import numpy as np
 
+from garmentnerf.cpu_load import OtherProcessesLoad, load_report
 from garmentnerf.io_utils import atomic_write_path
 
 #: UI frames read back after a palette change before giving up on seeing it.
@@ -225,9 +226,11 @@ def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.
         result["first_neural_frame_s"] = time.perf_counter() - t0
         if not ok:
             raise RuntimeError(f"no neural frame within {timeout:.0f} s ({view.error() or 'no error'})")
-    result["ui_busy"] = measure_busy_fps(app, seconds)
-    result["recolor"] = measure_recolor(app, timeout)
-    result["presets"] = measure_presets(app, repeats, timeout)
+    with OtherProcessesLoad() as load:
+        result["ui_busy"] = measure_busy_fps(app, seconds)
+        result["recolor"] = measure_recolor(app, timeout)
+        result["presets"] = measure_presets(app, repeats, timeout)
+    result["other_processes_cores"] = load.cores  # the X server's share included
     if view.renderer is not None:
         st = view.renderer.stats
         result["worker"] = {"renders": st.renders, "superseded": st.dropped, "errors": st.errors,
@@ -259,6 +262,8 @@ def print_figures(result: dict, file=sys.stdout) -> None:
         size = "x".join(map(str, p["render_size"])) if p["render_size"] else "?"
         print(f"  neural frame, preset {name} (quality {p['quality']}): "
               f"{f'{med:.0f} ms' if med is not None else 'not measured'} at {size}", file=file)
+    if "other_processes_cores" in result:
+        print(f"  {load_report(result['other_processes_cores'])}", file=file)
 
 
 def write_json(result: dict, path, overwrite: bool = False) -> None:

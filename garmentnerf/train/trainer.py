@@ -93,6 +93,7 @@ import contextlib
 import functools
 import io
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -104,6 +105,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from garmentnerf.cpu_load import OtherProcessesLoad, busy_machine_warning
 from garmentnerf.data.scene import Scene, read_garment_arrays
 from garmentnerf.geometry.projection import SurfaceProjector
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
@@ -213,6 +215,7 @@ class Trainer(Closeable):
         self._log = log
         self.out = Path(tc.out)
         self.step_callback: Callable[[int, dict], None] | None = None
+        self._setup_load = OtherProcessesLoad()  # read when training starts (busy_machine_warning)
         if tc.threads:
             torch.set_num_threads(int(tc.threads))
         try:
@@ -891,7 +894,11 @@ class Trainer(Closeable):
                    desc="train", unit="step", dynamic_ncols=True, file=sys.stderr)
         rng_done = rng_state()  # the RNG state after the last completed step (what a checkpoint holds)
         interrupted = False
+        warning = busy_machine_warning(self._setup_load.so_far(), torch.get_num_threads(), "this training")
+        if warning is not None:
+            self.log(f"warning: {warning}")
         t_start, s_start = time.perf_counter(), self.step
+        load = OtherProcessesLoad()
         with HeldInterrupts() as interrupts:  # see hold() below
             try:
                 while self.step < end:
@@ -937,8 +944,10 @@ class Trainer(Closeable):
         done = self.step >= self.total_steps
         if not interrupted:
             rate = (time.perf_counter() - t_start) / max(1, self.step - s_start)
+            others = load.stop()
+            beside = "" if others is None else f"; other processes used {others:.1f} of {os.cpu_count() or 1} cores"
             self.log(f"{'finished' if done else 'stopped'} at step {self.step}/{self.total_steps} "
-                     f"({rate:.2f} s/step); run: {self.out}")
+                     f"({rate:.2f} s/step{beside}); run: {self.out}")
         return TrainResult(self.step, interrupted, history, self.last_checkpoint, done)
 
     def close(self) -> None:

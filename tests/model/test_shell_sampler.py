@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -449,3 +450,6 @@ def test_bench_cli_with_run(tmp_path, tiny_scene):
         assert {"seconds_for_clip", "fps_after", "max_lag_frames"} <= set(row) and row["seconds_for_clip"] > 0
     assert all(0 <= p["rays_missing_share"] < 1 for p in data["presets"])
     assert out_png.stat().st_size > 1000
+    # other processes' load over the benchmark, beside its figures (garmentnerf.cpu_load; None off Linux)
+    others = data["machine"]["other_processes_cores"]
+    assert others is None or 0.0 <= others <= os.cpu_count()

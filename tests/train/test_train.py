@@ -618,3 +618,38 @@ def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_co
     loaded = load_run(tmp_path / "r")
     assert loaded.config.importance_samples == 6
     assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
+
+
+def test_a_busy_machine_is_named_at_the_start_and_its_load_at_the_end(tiny_scene, tmp_path, gl_context):
+    """Other processes filling every core while the trainer sets up: train() starts with a one-line
+    warning naming their load, and its last line gives their share over the training."""
+    import re
+    import subprocess
+    import sys
+    import time
+
+    spin = "import time\nend = time.time() + 60\nwhile time.time() < end: pass"
+    children = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(os.cpu_count() or 1)]
+    lines: list[str] = []
+
+    def log(message: str) -> None:
+        lines.append(message)
+        if message.startswith("warning:"):  # seen: let the training itself run on a quiet machine
+            for child in children:
+                child.kill()
+
+    try:
+        time.sleep(0.5)  # the children are running
+        with Trainer(make_tc(tiny_scene, tmp_path / "run"), gl_context, log=log) as tr:
+            tr.train()
+    finally:
+        for child in children:
+            child.kill()
+            child.wait()
+    if not os.path.isfile("/proc/stat"):
+        pytest.skip("the machine's load is read from /proc/stat")
+    warning = [m for m in lines if m.startswith("warning:")]
+    assert len(warning) == 1 and re.fullmatch(
+        r"warning: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its own, "
+        r"this training will run slower until they stop", warning[0]), lines
+    assert re.search(r"finished at step 5/5 \(\d+\.\d\d s/step; other processes used \d+\.\d of \d+ cores\)", lines[-1]), lines

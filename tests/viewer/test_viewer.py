@@ -779,6 +779,10 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     sizes = [data["presets"][n]["render_size"][0] for n in VIEWER_LEVELS]
     assert sizes[0] < sizes[1] < sizes[2]  # higher presets render more pixels
     assert data["worker"]["errors"] == 0
+    # other processes' load meanwhile (the X server's included), printed and kept beside the figures
+    others = data["other_processes_cores"]
+    assert others is None or 0.0 <= others <= os.cpu_count(), others
+    assert "other processes" in proc.stdout
 
 
 def test_neural_viewer_survives_random_input_and_zero_size(xvfb, untrained_run, tmp_path, monkeypatch):
