@@ -21,7 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["CpuReading", "OtherProcessesLoad", "busy_machine_warning", "cores_used_by_others", "load_report", "read_cpu"]
+__all__ = ["BUSY_CORES", "CpuReading", "OtherProcessesLoad", "busy_machine_warning", "cores_used_by_others", "load_report",
+           "read_cpu"]
 
 #: ``/proc/stat``'s columns (after the label) that count busy time: user, nice, system, irq,
 #: softirq, steal. Not idle or iowait; guest time is already inside user.
