@@ -46,9 +46,9 @@ Resolution
     the maps at the *rendered* size; :meth:`NeuralFrame.maps_at` resamples them
     (:meth:`~garmentnerf.model.palette.DecomposedMaps.resized`: averaged by area when shrinking,
     bilinear when growing, weights renormalised) to any output size, and the composition happens
-    there, once, with the palette the caller chose. The viewer uploads the rendered-size maps and lets the GPU upsample them
-    bilinearly before the same formula (``shaders/viewer_palette.frag``), which equals the CPU
-    path wherever the resampling is plain bilinear (upsampling).
+    there, once, with the palette the caller chose. The viewer uploads the rendered-size maps and
+    lets the GPU upsample them bilinearly before the same formula (``shaders/viewer_palette.frag``),
+    which equals the CPU path wherever the resampling is plain bilinear (upsampling).
 
 Caching and precomputation
     The per-frame work (GL passes for the info maps and reference G-buffers, E, G_img, G_en, the
