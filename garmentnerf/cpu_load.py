@@ -5,7 +5,7 @@ Why
     machine, a training of two threads ran at 0.45 s a step alone and at 5.8 beside the test suite.
     Nothing said so: the figures simply came out wrong. :class:`OtherProcessesLoad` measures it. The
     benchmark commands record it beside their figures, and ``garmentnerf train`` prints it when it ends
-    and warns at its start when the machine is busy.
+    and warns (:class:`BusyWatch`) at its start and at a checkpoint when the machine has become busy.
 
 How
     ``/proc/stat``'s first line counts the time every core spent busy (user, nice, system, irq,
@@ -21,8 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["BUSY_CORES", "CpuReading", "OtherProcessesLoad", "busy_machine_warning", "cores_used_by_others", "load_report",
-           "read_cpu"]
+__all__ = ["BUSY_CORES", "BusyWatch", "CpuReading", "OtherProcessesLoad", "busy_machine_warning", "cores_used_by_others",
+           "load_report", "read_cpu"]
 
 #: ``/proc/stat``'s columns (after the label) that count busy time: user, nice, system, irq,
 #: softirq, steal. Not idle or iowait; guest time is already inside user.
@@ -106,6 +106,36 @@ def busy_machine_warning(cores: float | None, threads: int, what: str) -> str | 
         return None
     return (f"other processes are using {cores:.1f} of this machine's {total} cores: with {threads} thread"
             f"{'s' if threads != 1 else ''} of its own, {what} will run slower until they stop")
+
+
+class BusyWatch:
+    """Warns once each time other processes start to oversubscribe the machine during long work.
+
+    Each :meth:`check` measures other processes' load since the previous one (or since the watch
+    was made) and returns :func:`busy_machine_warning`'s line when that stretch was busy and the one
+    before it was not; otherwise None. A stretch shorter than 0.1 s is not judged: it carries on
+    into the next check.
+
+    Args:
+        threads: this process's own threads.
+        what: the work, as the warning names it ("this training").
+    """
+
+    def __init__(self, threads: int, what: str, stat_file: str | Path = "/proc/stat") -> None:
+        self.threads = int(threads)
+        self.what = what
+        self.stat_file = stat_file
+        self._stretch = OtherProcessesLoad(stat_file)
+        self._busy = False
+
+    def check(self) -> str | None:
+        cores = self._stretch.so_far()
+        if cores is None:
+            return None
+        self._stretch = OtherProcessesLoad(self.stat_file)
+        warning = busy_machine_warning(cores, self.threads, self.what)
+        was_busy, self._busy = self._busy, warning is not None
+        return None if was_busy else warning
 
 
 def load_report(cores: float | None) -> str:

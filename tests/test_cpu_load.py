@@ -4,6 +4,7 @@ real busy process told apart from this one's own work."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import time
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from garmentnerf.cpu_load import (BUSY_CORES, CpuReading, OtherProcessesLoad, busy_machine_warning,
+from garmentnerf.cpu_load import (BUSY_CORES, BusyWatch, CpuReading, OtherProcessesLoad, busy_machine_warning,
                                   cores_used_by_others, read_cpu)
 
 LINUX = Path("/proc/stat").is_file()
@@ -71,3 +72,30 @@ def test_a_busy_process_beside_counts_and_this_ones_own_work_does_not():
     # one core kept busy by the child (less what the machine's scheduler gives others), none by our spin
     assert beside.cores - own_work.cores > 0.6, (beside.cores, own_work.cores)
     assert own_work.cores < beside.cores
+
+
+def test_busy_watch_warns_once_each_time_the_machine_becomes_busy(tmp_path, monkeypatch):
+    """A /proc/stat written by the test: stretches of two busy cores, then a quiet one, then busy again."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    hz = os.sysconf("SC_CLK_TCK")
+    stat = tmp_path / "stat"
+    busy_ticks = [0]
+
+    def advance(cores: float, seconds: float = 0.2) -> None:
+        """Sleep ``seconds`` while the file says ``cores`` cores were busy meanwhile."""
+        time.sleep(seconds)
+        busy_ticks[0] += round(cores * seconds * hz)
+        stat.write_text(f"cpu  {busy_ticks[0]} 0 0 100000 0 0 0 0 0 0\n")
+
+    advance(0.0, 0.0)
+    watch = BusyWatch(1, "this work", stat)
+    assert watch.check() is None  # less than 0.1 s: not judged, the stretch carries on
+    advance(2.0)
+    assert re.fullmatch(r"other processes are using (?:1\.[6-9]|2\.0) of this machine's 2 cores: with 1 thread of its own, "
+                        r"this work will run slower until they stop", watch.check() or "")
+    advance(2.0)
+    assert watch.check() is None  # still busy: said once
+    advance(0.0)
+    assert watch.check() is None  # quiet again
+    advance(1.5)
+    assert watch.check() is not None  # busy once more: said again

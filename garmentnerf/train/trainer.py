@@ -105,7 +105,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from garmentnerf.cpu_load import OtherProcessesLoad, busy_machine_warning
+from garmentnerf.cpu_load import BusyWatch, OtherProcessesLoad
 from garmentnerf.data.scene import Scene, read_garment_arrays
 from garmentnerf.geometry.projection import SurfaceProjector
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
@@ -215,9 +215,9 @@ class Trainer(Closeable):
         self._log = log
         self.out = Path(tc.out)
         self.step_callback: Callable[[int, dict], None] | None = None
-        self._setup_load = OtherProcessesLoad()  # read when training starts (busy_machine_warning)
         if tc.threads:
             torch.set_num_threads(int(tc.threads))
+        self._busy_watch = BusyWatch(torch.get_num_threads(), "this training")  # checked at the start and checkpoints
         try:
             self._setup(gl_context)
         except BaseException:
@@ -894,7 +894,7 @@ class Trainer(Closeable):
                    desc="train", unit="step", dynamic_ncols=True, file=sys.stderr)
         rng_done = rng_state()  # the RNG state after the last completed step (what a checkpoint holds)
         interrupted = False
-        warning = busy_machine_warning(self._setup_load.so_far(), torch.get_num_threads(), "this training")
+        warning = self._busy_watch.check()  # the set-up's stretch
         if warning is not None:
             self.log(f"warning: {warning}")
         t_start, s_start = time.perf_counter(), self.step
@@ -927,6 +927,9 @@ class Trainer(Closeable):
                         if boundary:
                             self._enter_stage("nerf")
                         self.save_checkpoint(rng_done)
+                        warning = self._busy_watch.check()
+                        if warning is not None:
+                            self.log(f"warning at step {self.step}: {warning}")
                     if self.step_callback is not None:
                         self.step_callback(self.step, values)
             except KeyboardInterrupt:

@@ -653,3 +653,47 @@ def test_a_busy_machine_is_named_at_the_start_and_its_load_at_the_end(tiny_scene
         r"warning: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its own, "
         r"this training will run slower until they stop", warning[0]), lines
     assert re.search(r"finished at step 5/5 \(\d+\.\d\d s/step; other processes used \d+\.\d of \d+ cores\)", lines[-1]), lines
+
+
+def test_a_machine_that_becomes_busy_is_named_at_the_next_checkpoint(tiny_scene, tmp_path, gl_context):
+    """Other processes filling every core from step 2 on: the checkpoint at step 4 says so, once."""
+    import re
+    import subprocess
+    import sys
+    import time
+
+    from garmentnerf.cpu_load import BUSY_CORES, OtherProcessesLoad
+
+    if not os.path.isfile("/proc/stat"):
+        pytest.skip("the machine's load is read from /proc/stat")
+    with OtherProcessesLoad() as before:
+        time.sleep(0.5)
+    if before.cores > BUSY_CORES:
+        pytest.skip(f"the machine is busy already ({before.cores:.1f} cores): no change to see")
+    spin = "import time\nend = time.time() + 60\nwhile time.time() < end: pass"
+    children: list[subprocess.Popen] = []
+    lines: list[str] = []
+
+    def log(message: str) -> None:
+        lines.append(message)
+        if message.startswith("warning"):
+            for child in children:
+                child.kill()
+
+    def start_at_step_2(step: int, terms: dict) -> None:
+        if step == 2:
+            children.extend(subprocess.Popen([sys.executable, "-c", spin]) for _ in range(os.cpu_count() or 1))
+            time.sleep(0.5)  # they spin
+
+    try:
+        with Trainer(make_tc(tiny_scene, tmp_path / "run", ckpt_every=2), gl_context, log=log) as tr:
+            tr.step_callback = start_at_step_2
+            tr.train()
+    finally:
+        for child in children:
+            child.kill()
+            child.wait()
+    warnings = [m for m in lines if m.startswith("warning")]
+    assert len(warnings) == 1 and re.fullmatch(
+        r"warning at step 4: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its "
+        r"own, this training will run slower until they stop", warnings[0]), lines
