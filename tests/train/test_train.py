@@ -620,9 +620,10 @@ def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_co
     assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
 
 
-def test_a_busy_machine_is_named_at_the_start_and_its_load_at_the_end(tiny_scene, tmp_path, gl_context):
-    """Other processes filling every core while the trainer sets up: train() starts with a one-line
-    warning naming their load, and its last line gives their share over the training."""
+def test_a_busy_machine_is_named_once_and_its_load_at_the_end(tiny_scene, tmp_path, gl_context):
+    """Other processes filling every core while the trainer sets up: a one-line warning names their
+    load, at the start (or, when the set-up took under 0.1 s, too short to judge, at the first
+    checkpoint), and the last line gives their share over the training."""
     import re
     import subprocess
     import sys
@@ -634,7 +635,7 @@ def test_a_busy_machine_is_named_at_the_start_and_its_load_at_the_end(tiny_scene
 
     def log(message: str) -> None:
         lines.append(message)
-        if message.startswith("warning:"):  # seen: let the training itself run on a quiet machine
+        if message.startswith("warning"):  # seen: let the training itself run on a quiet machine
             for child in children:
                 child.kill()
 
@@ -648,9 +649,9 @@ def test_a_busy_machine_is_named_at_the_start_and_its_load_at_the_end(tiny_scene
             child.wait()
     if not os.path.isfile("/proc/stat"):
         pytest.skip("the machine's load is read from /proc/stat")
-    warning = [m for m in lines if m.startswith("warning:")]
+    warning = [m for m in lines if m.startswith("warning")]
     assert len(warning) == 1 and re.fullmatch(
-        r"warning: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its own, "
+        r"warning(?: at step 2)?: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its own, "
         r"this training will run slower until they stop", warning[0]), lines
     assert re.search(r"finished at step 5/5 \(\d+\.\d\d s/step; other processes used \d+\.\d of \d+ cores\)", lines[-1]), lines
 
