@@ -344,8 +344,9 @@ class ModelConfig:
       of body. Hence the default of 1.
     - In a codes-only stage, where the field and the body are held, the step is 1.29x cheaper. Over 1,200
       steps it gained 0.11 dB of foreground at equal CPU (proxies PD1, PD2E). Over the bundle's 6,400 steps
-      it cost 0.12 dB at equal steps (C7C10H), and 0.13 after 2,400 more (C7C11H). Equal CPU at that length
-      is not measured."""
+      it cost 0.12 dB at equal steps (C7C10H), and 0.13 after 2,400 more (C7C11H). At equal CPU time
+      (8,256 + 3,096 steps, C7C11HE) it gained 0.22 dB of foreground over the bundled C7C11, on 90 of 120
+      views: the codes stage's term is worth taking at 2."""
     w_sparsity: float = 2e-4
     """Blend-weight sparsity (paper lambda_3 = 2e-4)."""
     w_offset: float = 0.03
