@@ -620,17 +620,31 @@ def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_co
     assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
 
 
+
+def _spinning_processes(count: int) -> list:
+    """``count`` Python processes that each keep a core busy for up to a minute (end them with ``_end``)."""
+    import subprocess
+    import sys
+
+    spin = "import time\nend = time.time() + 60\nwhile time.time() < end: pass"
+    return [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(count)]
+
+
+def _end(processes: list) -> None:
+    for process in processes:
+        process.kill()
+        process.wait()
+
 def test_a_busy_machine_is_named_once_and_its_load_at_the_end(tiny_scene, tmp_path, gl_context):
     """Other processes filling every core while the trainer sets up: a one-line warning names their
     load, at the start (or, when the set-up took under 0.1 s, too short to judge, at a checkpoint
     after it), and the last line gives their share over the training."""
     import re
-    import subprocess
-    import sys
     import time
 
-    spin = "import time\nend = time.time() + 60\nwhile time.time() < end: pass"
-    children = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(os.cpu_count() or 1)]
+    if not os.path.isfile("/proc/stat"):
+        pytest.skip("the machine's load is read from /proc/stat")
+    children = _spinning_processes(os.cpu_count() or 1)
     lines: list[str] = []
 
     def log(message: str) -> None:
@@ -644,11 +658,7 @@ def test_a_busy_machine_is_named_once_and_its_load_at_the_end(tiny_scene, tmp_pa
         with Trainer(make_tc(tiny_scene, tmp_path / "run"), gl_context, log=log) as tr:
             tr.train()
     finally:
-        for child in children:
-            child.kill()
-            child.wait()
-    if not os.path.isfile("/proc/stat"):
-        pytest.skip("the machine's load is read from /proc/stat")
+        _end(children)
     warning = [m for m in lines if m.startswith("warning")]
     assert len(warning) == 1 and re.fullmatch(
         r"warning(?: at step \d)?: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its own, "
@@ -659,8 +669,6 @@ def test_a_busy_machine_is_named_once_and_its_load_at_the_end(tiny_scene, tmp_pa
 def test_a_machine_that_becomes_busy_is_named_at_the_next_checkpoint(tiny_scene, tmp_path, gl_context):
     """Other processes filling every core from step 2 on: the checkpoint at step 4 says so, once."""
     import re
-    import subprocess
-    import sys
     import time
 
     from garmentnerf.cpu_load import BUSY_CORES, OtherProcessesLoad
@@ -671,8 +679,7 @@ def test_a_machine_that_becomes_busy_is_named_at_the_next_checkpoint(tiny_scene,
         time.sleep(0.5)
     if before.cores > BUSY_CORES:
         pytest.skip(f"the machine is busy already ({before.cores:.1f} cores): no change to see")
-    spin = "import time\nend = time.time() + 60\nwhile time.time() < end: pass"
-    children: list[subprocess.Popen] = []
+    children: list = []
     lines: list[str] = []
 
     def log(message: str) -> None:
@@ -683,7 +690,7 @@ def test_a_machine_that_becomes_busy_is_named_at_the_next_checkpoint(tiny_scene,
 
     def start_at_step_2(step: int, terms: dict) -> None:
         if step == 2:
-            children.extend(subprocess.Popen([sys.executable, "-c", spin]) for _ in range(os.cpu_count() or 1))
+            children.extend(_spinning_processes(os.cpu_count() or 1))
             time.sleep(0.5)  # they spin
 
     try:
@@ -691,9 +698,7 @@ def test_a_machine_that_becomes_busy_is_named_at_the_next_checkpoint(tiny_scene,
             tr.step_callback = start_at_step_2
             tr.train()
     finally:
-        for child in children:
-            child.kill()
-            child.wait()
+        _end(children)
     warnings = [m for m in lines if m.startswith("warning")]
     assert len(warnings) == 1 and re.fullmatch(
         r"warning at step 4: other processes are using \d+\.\d of this machine's \d+ cores: with 1 thread of its "
