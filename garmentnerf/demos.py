@@ -154,7 +154,7 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     each before anything under ``root`` changes.
     """
     # lazy: the registry above is read by every command's flag checks; loading a run needs torch
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     target = demo(name, root)
     run_dir = Path(run_dir)
@@ -198,7 +198,7 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
 
 def pack_weights(source: Path, destination: Path) -> int:
     """Copy a weights file with its float32 tensors cast to float16 (what a demo ships; the
-    model computes in float32 after loading, :func:`~garmentnerf.train.run.load_weights`).
+    model computes in float32 after loading, :func:`~garmentnerf.runs.load_weights`).
     Returns the bytes written."""
     import torch
     from safetensors import safe_open

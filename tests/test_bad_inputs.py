@@ -102,7 +102,7 @@ def _tree_digest(root: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory, tiny_scene):
-    from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.runs import create_untrained_run
 
     root = tmp_path_factory.mktemp("world")
     scene = root / "scene"

@@ -20,7 +20,7 @@ SIZE = 128  # a quarter of the model's rays per side: fast on the CPU, enough fo
 def rendered(request, gl_context):
     from garmentnerf.data.scene import SceneImages
     from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     run_dir = demo(request.param).run_dir
     if not (run_dir / "run.json").is_file():
@@ -107,7 +107,7 @@ def test_the_culled_preset_keeps_the_tshirt_that_lies_under_the_skin(gl_context,
     from garmentnerf.render import presets
     from garmentnerf.render.cameras import cameras_for, parse_camera_spec
     from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     run_dir = demo("tshirt").run_dir
     if not (run_dir / "run.json").is_file():

@@ -12,7 +12,7 @@ from safetensors.torch import load_file
 from garmentnerf.cli.main import main
 from garmentnerf.demos import (DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo,
                                pack_weights)
-from garmentnerf.train.run import create_untrained_run, load_run
+from garmentnerf.runs import create_untrained_run, load_run
 from garmentnerf.train.settings import tiny_config
 
 

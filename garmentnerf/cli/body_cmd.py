@@ -114,7 +114,7 @@ def run_fit_appearance(args: argparse.Namespace) -> int:
     from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, save_body_appearance
     from garmentnerf.train.body_appearance import collect_body_samples, fit_body_appearance
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     if args.frame_stride < 1:
         raise ValueError(f"--frame-stride must be at least 1, got {args.frame_stride}")

@@ -104,7 +104,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from garmentnerf.eval.evaluate import RESOLUTIONS, SPLITS, evaluate_run, format_result_table, parse_frame_range
     from garmentnerf.eval.gallery import Gallery
     from garmentnerf.render.presets import get_render_preset
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     # everything that can be wrong with the arguments fails before the model loads
     run_dir = run_folder_arg(args)

@@ -192,7 +192,7 @@ def _checked_render_args(args: argparse.Namespace):
 def _load_render_run(args: argparse.Namespace):
     """(run folder, loaded run) of ``--run`` or ``--demo`` (default: the default demo) with ``--scene``."""
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     run_dir = run_folder_arg(args, DEFAULT_DEMO)
     run = load_run(run_dir, device=args.device, scene=args.scene)

@@ -103,7 +103,7 @@ def run_view(args: argparse.Namespace) -> int:
     run = None
     if run_dir is not None:
         # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
-        from garmentnerf.train.run import load_run
+        from garmentnerf.runs import load_run
 
         run = load_run(run_dir, scene=args.scene)
         if run.scene is None and run.info.get("scene") and args.motion is None:

@@ -135,8 +135,8 @@ from garmentnerf.eval.perceptual import LPIPS, STLPIPS, lpips_available, stlpips
 from garmentnerf.gl.context import create_context
 from garmentnerf.render.presets import get_render_preset
 from garmentnerf.render.session import RenderSession, resolve_composition
+from garmentnerf.runs import load_run
 from garmentnerf.train.frames import area_resize
-from garmentnerf.train.run import load_run
 
 if TYPE_CHECKING:
     from garmentnerf.eval.gallery import Gallery
@@ -571,7 +571,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
     """Render and score a run on one split (see the module docstring for every convention).
 
     Args:
-        run: a :class:`~garmentnerf.train.run.LoadedRun` or a run folder.
+        run: a :class:`~garmentnerf.runs.LoadedRun` or a run folder.
         split: ``seen``, ``unseen_view`` or ``unseen_motion``.
         frames: None (the split's default), ``"A:B"``, a ``slice`` or a list of frame indices,
             applied to every sequence of the split.

@@ -51,8 +51,8 @@ from garmentnerf.eval.perceptual import lpips_available
 from garmentnerf.gl.context import create_context
 from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.runs import RUN_FILE, load_run, read_run_info
 from garmentnerf.train.checkpoints import latest_checkpoint
-from garmentnerf.train.run import RUN_FILE, load_run, read_run_info
 from garmentnerf.train.settings import MODEL_PRESETS, TrainConfig, model_config_for
 from garmentnerf.train.trainer import Trainer
 

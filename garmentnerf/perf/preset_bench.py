@@ -38,7 +38,7 @@ from garmentnerf.model.pipeline import FRAME_STAGES, RENDER_STAGES
 from garmentnerf.render.cameras import orbit_view
 from garmentnerf.render.presets import RENDER_PRESET_NAMES, get_render_preset
 from garmentnerf.render.session import RenderSession
-from garmentnerf.train.run import load_run
+from garmentnerf.runs import load_run
 
 __all__ = ["PAPER_STAGES", "preset_benchmark", "playback_benchmark", "previewer_view_benchmark"]
 

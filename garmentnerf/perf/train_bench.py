@@ -53,7 +53,7 @@ import torch
 from garmentnerf.eval.perceptual import STLPIPS
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.train.run import MODEL_FILE, read_run_info, recorded_scene_path
+from garmentnerf.runs import MODEL_FILE, read_run_info, recorded_scene_path
 from garmentnerf.train.settings import TrainConfig, training_precision
 from garmentnerf.train.trainer import Trainer
 

@@ -89,7 +89,7 @@ from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
 from garmentnerf.render.presets import CHARACTER_RECT_MARGIN, get_render_preset, height_range_for_run
 from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
-from garmentnerf.train.run import frame_code_offset
+from garmentnerf.runs import frame_code_offset
 
 #: How a view is composed (module docstring, "the two compositions").
 COMPOSITIONS = ("auto", "nerf", "raster_body")
@@ -219,7 +219,7 @@ class RenderSession(Closeable):
     """Renders views of a run's model for a motion (see the module docstring).
 
     Args:
-        run: a :class:`garmentnerf.train.run.LoadedRun` (uses ``model``, ``config``, ``scene``,
+        run: a :class:`garmentnerf.runs.LoadedRun` (uses ``model``, ``config``, ``scene``,
             ``palette()``).
         gl_ctx: a moderngl context for the input passes (headless is fine); must be usable on the
             thread that calls :meth:`render`.

@@ -1,7 +1,7 @@
 """Training the model on a scene.
 
-- :mod:`~garmentnerf.train.run`: the run folder format (``run.json``, weights, atomic writes) and
-  loading a run.
+- :mod:`~garmentnerf.train.run`: the trainer's part of a run folder (checkpoints, logs, resuming);
+  the run folder itself (``run.json``, weights, loading a run) is :mod:`garmentnerf.runs`.
 - :mod:`~garmentnerf.train.settings`: :class:`~garmentnerf.train.settings.TrainConfig`, the model
   presets, and the settings a resume trains with.
 - :mod:`~garmentnerf.train.trainer`: the two-stage trainer (G_img pre-training, then the NeRF).
@@ -10,7 +10,3 @@
 - :mod:`~garmentnerf.train.perceptual`: the perceptual loss network (VGG19 or shift-tolerant LPIPS).
 - :mod:`~garmentnerf.train.distributed`: data-parallel training over ``torch.distributed``.
 """
-
-from garmentnerf.train.run import LoadedRun, create_untrained_run, load_run, save_run_model
-
-__all__ = ["LoadedRun", "load_run", "save_run_model", "create_untrained_run"]

@@ -3,7 +3,7 @@ RNG states they hold, what a failed write says, and which of them are kept.
 
 A checkpoint's state file holds ``step``, ``stage``, ``optimizer``, ``rng`` (:func:`rng_state`),
 ``generator_iterations``, ``model_config``, ``seed`` and ``world_size``; the weights file the
-model's parameters (:func:`garmentnerf.train.run.save_weights`). Complete means both files are
+model's parameters (:func:`garmentnerf.runs.save_weights`). Complete means both files are
 there; readable is checked by :func:`read_checkpoint_state` when a run resumes.
 """
 

@@ -15,7 +15,7 @@ import torch
 
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.pipeline import bfloat16_is_fast
-from garmentnerf.train.run import recorded_scene_path
+from garmentnerf.runs import recorded_scene_path
 
 __all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
            "TRAINING_PRECISIONS", "tiny_config", "model_config_for", "loss_weight_names", "training_precision",

@@ -129,10 +129,9 @@ from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_file
 from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
 from garmentnerf.train.perceptual import make_perceptual
-from garmentnerf.train.run import (CHECKPOINT_DIR, RUN_FILE, TB_DIR, body_info_from_scene, build_model,
-                                   frame_code_record,
-                                   load_module_weights, load_weights, read_run_info, recorded_scene_path,
-                                   remove_run_temporaries, run_garment, save_run_model, save_weights)
+from garmentnerf.runs import (RUN_FILE, body_info_from_scene, build_model, frame_code_record, load_weights,
+                              read_run_info, recorded_scene_path, run_garment, save_run_model, save_weights)
+from garmentnerf.train.run import CHECKPOINT_DIR, TB_DIR, load_module_weights, remove_run_temporaries
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
                                         new_run_settings, resume_settings, show_setting, tiny_config)
 from garmentnerf.train.transfer import transfer_garment_state

@@ -19,7 +19,7 @@ differences between the two runs are bridged here:
   docs/quality.md rendered magenta when recoloured blue). A continuation of the same garment keeps the
   colours it learned. Which of the two a file is, the caller says (``same_garment``: the trainer compares
   the garment of the scene recorded in the ``run.json`` beside the file with its own scene's,
-  :func:`~garmentnerf.train.run.run_garment`). Where nobody can say, the file's ``palette.initial`` (the
+  :func:`~garmentnerf.runs.run_garment`). Where nobody can say, the file's ``palette.initial`` (the
   label colours its run started from) is compared with the new scene's, float16 rounding allowed: that
   test takes a file of the same garment whose run started from other colours (the bundled dress, whose
   first weights were made by a script that started both layers at another gold) for another garment's.

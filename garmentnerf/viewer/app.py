@@ -39,7 +39,7 @@ from garmentnerf.demos import DEMO_ROOT
 from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.render.camera_path import Keyframe
-from garmentnerf.train.run import load_run
+from garmentnerf.runs import load_run
 from garmentnerf.viewer import panels
 from garmentnerf.viewer.camera import MouseGestures, OrbitController
 from garmentnerf.viewer.export_jobs import ExportJob, check_size
@@ -88,7 +88,7 @@ class App(Closeable):
         fixed_dt: advance the timeline by this many seconds per frame instead of the measured time.
         playing: start playing.
         sequence: a ready :class:`BodySequence` (skips loading ``motion``).
-        run: a run folder or :class:`~garmentnerf.train.run.LoadedRun` whose neural garment to show
+        run: a run folder or :class:`~garmentnerf.runs.LoadedRun` whose neural garment to show
             (None: body only). ``motion`` None then means the run scene's first training sequence;
             body and shape come from the run.
         watch: show each new checkpoint of the run's folder as it lands (loaded off the UI thread,

@@ -23,15 +23,15 @@ from pathlib import Path
 
 import torch
 
+from garmentnerf.runs import build_model, load_weights
 from garmentnerf.train.checkpoints import latest_checkpoint
-from garmentnerf.train.run import build_model, load_weights
 
 #: Seconds between two looks at the run's checkpoints.
 DEFAULT_POLL_SECONDS = 2.0
 
 
 def load_checkpoint_run(run, weights: str | Path, step: int):
-    """A :class:`~garmentnerf.train.run.LoadedRun` like ``run`` but with a new model holding the
+    """A :class:`~garmentnerf.runs.LoadedRun` like ``run`` but with a new model holding the
     weights file ``weights`` (a checkpoint of the run: the same config; body and projector shared
     with ``run``'s model, which is not touched) at training step ``step``.
 
@@ -49,7 +49,7 @@ class CheckpointWatcher:
     """Loads the newest checkpoint of ``run``'s folder on a background thread (module docstring).
 
     Args:
-        run: the :class:`~garmentnerf.train.run.LoadedRun` shown (its ``step`` is the weights' step).
+        run: the :class:`~garmentnerf.runs.LoadedRun` shown (its ``step`` is the weights' step).
         poll_seconds: time between two looks at the folder.
     Attributes:
         step: the step of the newest weights loaded (``run.step`` until a checkpoint is).

@@ -52,7 +52,7 @@ class Exporter:
     """Runs :class:`ExportJob` s one at a time on its own thread (see the module docstring).
 
     Args:
-        run: a :class:`~garmentnerf.train.run.LoadedRun` for neural jobs (None: body-only jobs only).
+        run: a :class:`~garmentnerf.runs.LoadedRun` for neural jobs (None: body-only jobs only).
     """
 
     def __init__(self, run=None, name: str = "garmentnerf-export") -> None:

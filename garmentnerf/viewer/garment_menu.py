@@ -20,7 +20,7 @@ class GarmentMenu:
     """The installed demos and the loading of the chosen one.
 
     Args:
-        run: the :class:`~garmentnerf.train.run.LoadedRun` shown first (None: the body alone).
+        run: the :class:`~garmentnerf.runs.LoadedRun` shown first (None: the body alone).
         root: where the demos are (default: the package's).
     Attributes:
         current: the demo shown (None: a run that is not a demo, or none).
@@ -45,7 +45,7 @@ class GarmentMenu:
                 if "fg_psnr" in self._figures.get(n, {}) else n for n in names]
 
     def _load(self, name: str) -> tuple[str, Any]:
-        from garmentnerf.train.run import load_run  # lazy: torch and the model stack
+        from garmentnerf.runs import load_run  # lazy: torch and the model stack
 
         return name, load_run(demo_run_dir(name, self.root))
 

@@ -62,7 +62,7 @@ class NeuralView:
 
     Args:
         scene: the window's :class:`~garmentnerf.viewer.scene_gl.SceneRenderer` (its palette layer and body).
-        run: a :class:`~garmentnerf.train.run.LoadedRun`, or None (body only).
+        run: a :class:`~garmentnerf.runs.LoadedRun`, or None (body only).
         motion: the motion spec the worker's session renders (a scene sequence or motion name).
         status: shows one line on the window's status line.
         clock: seconds (the quality controller's time base).

@@ -60,7 +60,7 @@ def render_ahead_benchmark(run, motion, presets, frames: int, gl_context, size: 
     """See the module docstring.
 
     Args:
-        run: a :class:`~garmentnerf.train.run.LoadedRun`; motion: the motion spec its session renders
+        run: a :class:`~garmentnerf.runs.LoadedRun`; motion: the motion spec its session renders
             (None: the run scene's first training sequence).
         presets: :class:`~garmentnerf.render.presets.RenderPreset` rows measured.
         frames: the clip's first ``frames`` frames are played (fewer if the clip is shorter).

@@ -24,7 +24,7 @@ class ThreadSession:
     """The owning thread's headless GL context, its render session and its helper objects.
 
     Args:
-        run: the :class:`~garmentnerf.train.run.LoadedRun` the session renders (None: no session,
+        run: the :class:`~garmentnerf.runs.LoadedRun` the session renders (None: no session,
             only the GL context and helpers, e.g. an exporter of body-only videos).
         session_options: keyword arguments of :class:`~garmentnerf.render.session.RenderSession`
             (``cache_mb``, ``cache_half`` ...).

@@ -159,7 +159,7 @@ class MotionMenu:
 
     Args:
         body: the :class:`~garmentnerf.body.model.BodyModel`; betas: its shape coefficients.
-        run: a :class:`~garmentnerf.train.run.LoadedRun` whose scene sequences come first (None: none).
+        run: a :class:`~garmentnerf.runs.LoadedRun` whose scene sequences come first (None: none).
     """
 
     def __init__(self, body, betas, run=None) -> None:

@@ -359,7 +359,7 @@ class NeuralRenderer:
     while the clip plays.
 
     Args:
-        run: a :class:`~garmentnerf.train.run.LoadedRun`.
+        run: a :class:`~garmentnerf.runs.LoadedRun`.
         sink: called on the worker thread with each :class:`NeuralResult` and its request.
         motion: the session's first motion (None: the run scene's first training sequence).
         clock: seconds, the time base of the requests' playhead clocks.

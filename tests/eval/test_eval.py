@@ -29,7 +29,7 @@ def scene(tmp_path_factory, gl_context):
 
 @pytest.fixture(scope="module")
 def run_dir(scene, tmp_path_factory):
-    from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.runs import create_untrained_run
     from garmentnerf.train.settings import tiny_config
 
     return create_untrained_run(tmp_path_factory.mktemp("eval_run") / "untrained", scene.root, tiny_config(), seed=0)
@@ -37,7 +37,7 @@ def run_dir(scene, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def loaded(run_dir):
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     return load_run(run_dir)
 
@@ -301,7 +301,7 @@ def test_raster_body_composition(run_dir, scene, gl_context, tmp_path, capsys, u
     copy scores exactly what the run without an appearance does."""
     import shutil
 
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     copy = tmp_path / "with_body"
     shutil.copytree(run_dir, copy)

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera
-from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.geometry.winding import point_in_shell, winding_number
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
+from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.samplers import BoxStratifiedSampler, body_aabb
 from garmentnerf.model.shell_sampler import ShellSampler
 from garmentnerf.train.settings import tiny_config as tiny_preset
@@ -424,7 +424,7 @@ def test_a_model_trained_in_the_shell_is_sampled_there_by_every_preset(gl_contex
 
 def test_bench_cli_with_run(tmp_path, tiny_scene):
     from garmentnerf.cli.main import main
-    from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.runs import create_untrained_run
 
     run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config(samples_per_ray=8))
     out_json, out_png = tmp_path / "bench.json", tmp_path / "bench.png"

@@ -88,7 +88,7 @@ def test_get_returns_float32_rebinds_and_half_precision_is_close():
 
 @pytest.fixture(scope="module")
 def run_dir(tiny_scene, tmp_path_factory):
-    from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.runs import create_untrained_run
     from garmentnerf.train.settings import tiny_config
 
     return create_untrained_run(tmp_path_factory.mktemp("run") / "r", tiny_scene.root,
@@ -98,7 +98,7 @@ def run_dir(tiny_scene, tmp_path_factory):
 def test_session_precomputes_and_a_ready_frame_costs_no_frame_work(run_dir, gl_context, monkeypatch):
     from garmentnerf.conventions import orbit_camera
     from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     with RenderSession(load_run(run_dir), gl_context) as session:
         calls = []
@@ -125,7 +125,7 @@ def test_session_precomputes_and_a_ready_frame_costs_no_frame_work(run_dir, gl_c
 
 def test_previewer_worker_precomputes_the_clip_in_the_background(run_dir):
     from garmentnerf.conventions import orbit_camera
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
     from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
 
     results = []

@@ -31,7 +31,7 @@ def scene_dir(request, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def run_dir(scene_dir, tmp_path_factory):
-    from garmentnerf.train.run import create_untrained_run
+    from garmentnerf.runs import create_untrained_run
 
     return create_untrained_run(tmp_path_factory.mktemp("run") / "untrained", scene_dir, tiny_config(), seed=0)
 
@@ -39,7 +39,7 @@ def run_dir(scene_dir, tmp_path_factory):
 @pytest.fixture(scope="module")
 def session(run_dir, gl_context):
     from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     s = RenderSession(load_run(run_dir), gl_context)
     yield s
@@ -119,7 +119,7 @@ def test_a_scene_of_another_body_shape_is_posed_with_that_shape(run_dir, gl_cont
     """Scoring a run on a scene of a held-out body shape: the session poses the scene's shape (what its
     ground truth shows), not the one the run was trained on."""
     from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     run = load_run(run_dir)
     body = run.model.body
@@ -295,7 +295,7 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
     from garmentnerf.viewer.quality import QualityController
     from garmentnerf.viewer.playback_bench import render_ahead_benchmark
     from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
                              log=lambda *a: None, render_ahead=render_ahead_benchmark)

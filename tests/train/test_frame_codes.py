@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.train.run import frame_code_offset, load_run
+from garmentnerf.runs import frame_code_offset, load_run
 from garmentnerf.train.settings import tiny_config
 from train.test_train import assert_same_steps, make_tc, run
 

@@ -11,7 +11,7 @@ from safetensors.torch import save_file
 
 from garmentnerf.cli.train_cmd import read_model_config
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.train.run import build_model
+from garmentnerf.runs import build_model
 
 REPO = Path(__file__).resolve().parents[2]
 RECIPE = REPO / "docs" / "recipes" / "gpu_paper_size.json"

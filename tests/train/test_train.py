@@ -10,8 +10,8 @@ import socket
 import pytest
 import torch
 
+from garmentnerf.runs import build_model, create_untrained_run, load_run, load_weights
 from garmentnerf.train.checkpoints import latest_checkpoint
-from garmentnerf.train.run import build_model, create_untrained_run, load_run, load_weights
 from garmentnerf.train.settings import TrainConfig, tiny_config
 from garmentnerf.train.trainer import Trainer
 

@@ -13,8 +13,8 @@ import torch
 
 from garmentnerf.conventions import project_points
 from garmentnerf.render.screen_rect import PixelRect
+from garmentnerf.runs import load_run
 from garmentnerf.train.frames import SceneFrames, character_window
-from garmentnerf.train.run import load_run
 from garmentnerf.train.settings import TrainConfig, tiny_config
 from garmentnerf.train.trainer import Trainer
 
@@ -219,7 +219,7 @@ def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(t
     read nothing into old ones or the heads), and one step moves the heads' new columns off zero."""
     from safetensors.torch import load_file
 
-    from garmentnerf.train.run import build_model, load_weights
+    from garmentnerf.runs import build_model, load_weights
 
     donor_run = tmp_path / "donor"
     with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:

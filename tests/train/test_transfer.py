@@ -5,7 +5,7 @@ weights in the file's proportions."""
 import pytest
 import torch
 
-from garmentnerf.train.run import build_model, load_weights, save_weights
+from garmentnerf.runs import build_model, load_weights, save_weights
 from garmentnerf.train.settings import tiny_config
 from garmentnerf.train.transfer import palette_channel_sources, transfer_garment_state
 
@@ -114,7 +114,7 @@ def test_the_caller_says_which_garment_a_file_is_over_its_starting_colours():
 
 
 def test_run_garment_reads_the_scene_recorded_beside_the_weights(tiny_scene, tmp_path):
-    from garmentnerf.train.run import create_untrained_run, run_garment
+    from garmentnerf.runs import create_untrained_run, run_garment
 
     run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config())
     assert run_garment(run) == tiny_scene.garment and run_garment(run)["kind"] == "skirt"

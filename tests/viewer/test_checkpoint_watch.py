@@ -15,7 +15,7 @@ def _write_checkpoint(run_dir, model, step: int) -> None:
     """What the trainer writes (:meth:`Trainer.save_checkpoint`): the weights, then the state, each atomically."""
     from garmentnerf.io_utils import write_file_atomic
     from garmentnerf.train.checkpoints import checkpoint_files
-    from garmentnerf.train.run import save_weights
+    from garmentnerf.runs import save_weights
 
     weights, state = checkpoint_files(run_dir, step)
     weights.parent.mkdir(parents=True, exist_ok=True)
@@ -25,7 +25,7 @@ def _write_checkpoint(run_dir, model, step: int) -> None:
 
 def _trained_further(run, seed: int):
     """The run's model with its palette and MLP moved (a stand-in for more training)."""
-    from garmentnerf.train.run import build_model
+    from garmentnerf.runs import build_model
 
     model = build_model(run.config, torch.tensor(run.info["palette_init"]), run.model.body, run.model.projector)
     model.load_state_dict(run.model.state_dict())
@@ -41,7 +41,7 @@ def _trained_further(run, seed: int):
 
 @pytest.fixture
 def run_copy(untrained_run, tmp_path):
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     root = tmp_path / "run"
     shutil.copytree(untrained_run, root)

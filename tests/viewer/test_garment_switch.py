@@ -28,7 +28,7 @@ def two_demos(untrained_run, tmp_path):
 def test_the_window_switches_garment_without_a_restart(xvfb, two_demos, tmp_path):
     from PIL import Image
 
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
     from garmentnerf.viewer.app import App
 
     skirt = load_run(two_demos / "run")
@@ -66,7 +66,7 @@ def test_the_window_switches_garment_without_a_restart(xvfb, two_demos, tmp_path
 
 
 def test_a_garment_that_does_not_fit_the_body_or_motion_is_refused(untrained_run):
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
     from garmentnerf.viewer.garment_menu import check_switch
 
     run = load_run(untrained_run)

@@ -328,7 +328,7 @@ def counted_renders(monkeypatch):
 
 
 def _neural_view(gl_context, run_dir, preset="interactive"):
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
     from garmentnerf.viewer.neural_view import NeuralView
     from garmentnerf.viewer.scene_gl import SceneRenderer
 

@@ -946,7 +946,7 @@ def test_neural_viewer_draws_the_rasterised_body_and_switches_composition(xvfb, 
     import shutil
 
     from garmentnerf.model.body_appearance import BodyAppearance, save_body_appearance
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
     from garmentnerf.viewer.app import App
 
     run_dir = tmp_path / "run"

@@ -94,7 +94,7 @@ def run(untrained_run):  # noqa: F811
     from quality 1 by ~19/255 on average). The app and the headless session share this object."""
     import torch
 
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
 
     loaded = load_run(untrained_run)
     with torch.no_grad():

@@ -105,7 +105,7 @@ def run(untrained_run, tmp_path_factory):  # noqa: F811
     image has structure (as in test_viewer_export.py) and the headless command renders the same model."""
     import shutil
 
-    from garmentnerf.train.run import load_run, save_weights
+    from garmentnerf.runs import load_run, save_weights
 
     folder = tmp_path_factory.mktemp("scaled_run") / "run"
     shutil.copytree(untrained_run, folder)
@@ -207,7 +207,7 @@ def test_playing_along_a_path_renders_each_frame_from_its_own_camera_and_ahead(g
     import time
 
     from garmentnerf.render.session import RenderSession
-    from garmentnerf.train.run import load_run
+    from garmentnerf.runs import load_run
     from garmentnerf.viewer.neural_view import NeuralView
     from garmentnerf.viewer.scene_gl import SceneRenderer
     from garmentnerf.viewer.timeline import Timeline
