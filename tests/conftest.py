@@ -69,7 +69,7 @@ def walk_inputs(gl_context, body, walk_clip):
     """The :class:`~garmentnerf.model.frame_context.FrameInputs` of frame 2 of ``walk_clip`` for the
     tiny preset seen by the default reference cameras."""
     from garmentnerf.data.cameras import reference_cameras
-    from garmentnerf.model.frame_context import FrameInputBuilder
+    from garmentnerf.render.frame_inputs import FrameInputBuilder
     from garmentnerf.train.settings import tiny_config
 
     posed, fps = walk_clip

@@ -18,7 +18,7 @@ SIZE = 128  # a quarter of the model's rays per side: fast on the CPU, enough fo
 
 @pytest.fixture(scope="module", params=DEMO_NAMES)
 def rendered(request, gl_context):
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.render.session import RenderSession
     from garmentnerf.runs import load_run
 

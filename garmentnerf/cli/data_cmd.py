@@ -271,7 +271,8 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_render(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.data.scene import Scene, SceneImages
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.data.scene_images import SceneImages
 
     scene = Scene.load(args.scene)
     sequences = args.sequence or scene.sequence_names()
@@ -291,7 +292,8 @@ def run_render(args: argparse.Namespace) -> int:
 def run_preview(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.data.preview import scene_contact_sheet
-    from garmentnerf.data.scene import Scene, SceneImages
+    from garmentnerf.data.scene import Scene
+    from garmentnerf.data.scene_images import SceneImages
 
     out = refuse_existing(args.out, args.overwrite)
     scene = Scene.load(args.scene)

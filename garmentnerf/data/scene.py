@@ -11,10 +11,12 @@ Where the rest lives:
     * :mod:`garmentnerf.data.scene_schema` -- the format of ``scene.json`` and its validation:
       :meth:`Scene.load` fails with :class:`SceneError`, a one-line message naming the file and
       the field path, e.g. ``scenes/skirt/scene.json: cameras[3].K must be 3x3``.
-    * :mod:`garmentnerf.data.scene_images` -- the ground-truth images (:class:`SceneImages`),
-      rendered on demand and cached under ``cache/`` at the paths :meth:`Scene.image_path` names.
+    * :mod:`garmentnerf.data.scene_images` -- the ground-truth images
+      (:class:`~garmentnerf.data.scene_images.SceneImages`), rendered on demand and cached under
+      ``cache/`` at the paths :meth:`Scene.image_path` names.
 
-Their public names are importable from here too.
+The public names of :mod:`~garmentnerf.data.scene_schema` are importable from here too. Also here:
+:func:`read_garment_arrays` (a sequence's ``garment.npz``, :meth:`Scene.garment_arrays`).
 """
 
 from __future__ import annotations
@@ -32,23 +34,57 @@ import numpy as np
 
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR
 from garmentnerf.data.cameras import CAMERA_SPLITS, NamedCamera, RigLookup, in_splits
+from garmentnerf.data.garment_sequence import load_sequence
 from garmentnerf.data.render_gt import SKIN_TONE, renderer_settings as default_settings
-from garmentnerf.data.scene_images import (FrameGeometry, GarmentArrays, SceneImages, palette_from_images,
-                                           read_garment_arrays)
 from garmentnerf.data.scene_schema import (GARMENT_FILE, GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, MOTION_FILE,
                                            ROTATION_TOLERANCE, SCENE_FILE, SCENE_FORMAT, SCENE_VERSION,
                                            SEQUENCE_SPLITS, SchemaChecker, SceneError, SequenceInfo, parse_scene)
-from garmentnerf.io_utils import FileDigests, atomic_write_path
+from garmentnerf.io_utils import FileDigests, atomic_write_path, npz_member_shape
 from garmentnerf.motion.motion import Motion
 from garmentnerf.version import package_version
 
-__all__ = ["Scene", "CACHE_DIR",
-           # re-exported from scene_schema and scene_images, where they live
+__all__ = ["Scene", "CACHE_DIR", "GarmentArrays", "read_garment_arrays",
+           # re-exported from scene_schema, where they live
            "SceneError", "SequenceInfo", "SCENE_FORMAT", "SCENE_VERSION", "SCENE_FILE", "SEQUENCE_SPLITS",
-           "MOTION_FILE", "GARMENT_FILE", "GARMENT_VERTICES_KEY", "GARMENT_QUANTISED_KEY", "ROTATION_TOLERANCE",
-           "SceneImages", "FrameGeometry", "GarmentArrays", "read_garment_arrays", "palette_from_images"]
+           "MOTION_FILE", "GARMENT_FILE", "GARMENT_VERTICES_KEY", "GARMENT_QUANTISED_KEY", "ROTATION_TOLERANCE"]
 
 CACHE_DIR = "cache"
+
+
+# ---- garment sequences (written by the cloth simulation) ------------------------------------------
+@dataclass
+class GarmentArrays:
+    """A simulated garment as plain arrays: vertices (T, Vg, 3) float32, faces (Fg, 3) int64 and
+    the layer of each vertex (Vg,) int8 (None: one layer)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    layer: np.ndarray | None = None
+
+
+def read_garment_arrays(path: str | Path) -> GarmentArrays:
+    """Read ``garment.npz``: the simulation's compressed format (``vertices_q``) through
+    :mod:`garmentnerf.data.garment_sequence`, else the file's plain ``vertices`` and ``faces``."""
+    path = Path(path)
+    if npz_member_shape(path, GARMENT_QUANTISED_KEY) is not None:
+        seq = load_sequence(path)
+        verts, faces, layer = seq.vertices, seq.faces, seq.layer
+    else:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in (GARMENT_VERTICES_KEY, "faces") if k not in npz.files]
+            if missing:
+                raise SceneError(f"{path}: not a garment sequence (missing {', '.join(missing)})")
+            verts, faces, layer = npz[GARMENT_VERTICES_KEY], npz["faces"], None
+    if hasattr(verts, "detach"):
+        verts = verts.detach().cpu().numpy()
+    if hasattr(faces, "detach"):
+        faces = faces.detach().cpu().numpy()
+    verts = np.asarray(verts, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int64)
+    if verts.ndim != 3 or verts.shape[2] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise SceneError(f"{path}: garment vertices must be (T, Vg, 3) and faces (Fg, 3), got "
+                         f"{verts.shape} and {faces.shape}")
+    return GarmentArrays(verts, faces, layer)
 
 
 @dataclass
@@ -177,6 +213,10 @@ class Scene(RigLookup):
 
     def load_motion(self, sequence: str) -> "Motion":
         return Motion.load(self.motion_path(sequence))
+
+    def garment_arrays(self, sequence: str) -> GarmentArrays:
+        """The simulated garment of ``sequence`` (its ``garment.npz``, :func:`read_garment_arrays`)."""
+        return read_garment_arrays(self.garment_path(sequence))
 
     # ---- cache ----------------------------------------------------------------------------------
     def cache_key(self, sequence: str, camera: str, renderer_settings: dict | None = None) -> str:

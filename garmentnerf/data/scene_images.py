@@ -11,8 +11,7 @@ background, 1 body, 2 garment; a layered garment's layer k is 2 + k, :mod:`~garm
 :meth:`SceneImages.image` returns the *cached* (8-bit quantised) values whether or not it just
 rendered them, so the two paths agree.
 
-Also here: :func:`read_garment_arrays` (a sequence's ``garment.npz``) and
-:func:`palette_from_images` (the palette initialisation from ground truth).
+Also here: :func:`palette_from_images` (the palette initialisation from ground truth).
 """
 
 from __future__ import annotations
@@ -26,52 +25,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 from PIL import Image
 
-from garmentnerf.data.garment_sequence import load_sequence
 from garmentnerf.data.render_gt import LABEL_BODY, LABEL_GARMENT, MAX_GARMENT_LAYERS, GroundTruthRenderer, to_uint8
-from garmentnerf.data.scene_schema import GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, SceneError
+from garmentnerf.data.scene import GarmentArrays, Scene, read_garment_arrays
+from garmentnerf.data.scene_schema import SceneError
 from garmentnerf.gl.context import create_context
-from garmentnerf.io_utils import atomic_write_path, npz_member_shape
+from garmentnerf.io_utils import atomic_write_path
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
-    from garmentnerf.data.scene import Scene
     from garmentnerf.motion.motion import Motion
-
-
-# ---- garment sequences (written by the cloth simulation) ------------------------------------------
-@dataclass
-class GarmentArrays:
-    """A simulated garment as plain arrays: vertices (T, Vg, 3) float32, faces (Fg, 3) int64 and
-    the layer of each vertex (Vg,) int8 (None: one layer)."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    layer: np.ndarray | None = None
-
-
-def read_garment_arrays(path: str | Path) -> GarmentArrays:
-    """Read ``garment.npz``: the simulation's compressed format (``vertices_q``) through
-    :mod:`garmentnerf.data.garment_sequence`, else the file's plain ``vertices`` and ``faces``."""
-    path = Path(path)
-    if npz_member_shape(path, GARMENT_QUANTISED_KEY) is not None:
-        seq = load_sequence(path)
-        verts, faces, layer = seq.vertices, seq.faces, seq.layer
-    else:
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [k for k in (GARMENT_VERTICES_KEY, "faces") if k not in npz.files]
-            if missing:
-                raise SceneError(f"{path}: not a garment sequence (missing {', '.join(missing)})")
-            verts, faces, layer = npz[GARMENT_VERTICES_KEY], npz["faces"], None
-    if hasattr(verts, "detach"):
-        verts = verts.detach().cpu().numpy()
-    if hasattr(faces, "detach"):
-        faces = faces.detach().cpu().numpy()
-    verts = np.asarray(verts, dtype=np.float32)
-    faces = np.asarray(faces, dtype=np.int64)
-    if verts.ndim != 3 or verts.shape[2] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise SceneError(f"{path}: garment vertices must be (T, Vg, 3) and faces (Fg, 3), got "
-                         f"{verts.shape} and {faces.shape}")
-    return GarmentArrays(verts, faces, layer)
 
 
 # ---- images on demand -----------------------------------------------------------------------------
@@ -259,7 +221,7 @@ def palette_from_images(images: Iterable[tuple[np.ndarray, np.ndarray]], erode: 
     every layer's), and for a layered garment (labels beyond 2) also ``"garment_layers"``: one mean
     color per layer, inner first.
     """
-    from scipy.ndimage import binary_erosion  # local: making a scene only; 0.2 s on every import of data.scene
+    from scipy.ndimage import binary_erosion  # local: making a scene only; 0.2 s on every import of data.scene_images
 
     layer_labels = [LABEL_GARMENT + k for k in range(MAX_GARMENT_LAYERS)]
     sums = {label: np.zeros(3) for label in [LABEL_BODY, *layer_labels]}

@@ -33,7 +33,7 @@ How an image is made (identical to training, the viewer and ``garmentnerf render
     quality 1, the pixel density the model was trained with; another preset renders at its own
     quality, and ``quality`` overrides either) and :meth:`NeuralFrame.composite` composes the
     decomposed maps with the run's learned palette over ``cfg.background`` at the evaluation size.
-    Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene.SceneImages`)
+    Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene_images.SceneImages`)
     area-downsampled to the evaluation size when it is smaller and composited over
     ``cfg.background`` with the area-downsampled foreground coverage -- at the model's
     resolution, the trainer's targets (:class:`~garmentnerf.train.frames.SceneFrames`), byte for
@@ -127,7 +127,7 @@ import torch
 from tqdm import tqdm
 
 from garmentnerf.data.render_gt import LABEL_BODY, GroundTruthRenderer, garment_pixels
-from garmentnerf.data.scene import SceneImages
+from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, flat_psnr, interior, is_psnr_metric,
                                       luma_correlation, masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement,
                                       sharpness_ratio, silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)

@@ -5,7 +5,8 @@
   size, one release).
 - :mod:`~garmentnerf.gl.mesh_arrays`: meshes as numpy arrays of checked shapes and indices.
 - :mod:`~garmentnerf.gl.shaders`: loading the GLSL of ``garmentnerf/shaders/``.
-- :mod:`~garmentnerf.gl.uv_raster`: per-vertex attributes baked into UV-space maps (the info maps).
+- :mod:`~garmentnerf.gl.uv_raster`: per-vertex attributes baked into UV-space maps (the info maps;
+  read by :mod:`garmentnerf.model.uv_maps`).
 - :mod:`~garmentnerf.gl.dilation`: gutter filling of UV-space maps.
 - :mod:`~garmentnerf.gl.camera_pass`: the camera-view G-buffer (depth, face, barycentrics, UV) and
   per-pixel depth ranges.

@@ -5,7 +5,7 @@ blending into an RGBA32F target: per pixel-centre ray, the distance of the neare
 face (the face plane faces the camera: near), minus the farthest distance of any face (far).
 A ray that crosses no face is not ``hit``. The raster's near/far planes are fitted to the shell
 (not the camera's), so cameras 1 km away still see it. :func:`inflate_surface` makes the shell
-the shell sampler draws (:mod:`garmentnerf.model.shell_sampler`): the skin pushed out along its
+the shell sampler draws (:mod:`garmentnerf.render.shell_sampler`): the skin pushed out along its
 vertex normals.
 """
 

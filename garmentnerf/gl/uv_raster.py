@@ -7,9 +7,8 @@ Layout of the maps (the contract every user of them relies on)
     memory, so a map can be uploaded with ``ctx.texture`` and sampled with ``texture(tex, uv)`` in a
     shader as is. Shown as an image with row 0 on top it appears upside down; that is intended.
 
-    ``torch.nn.functional.grid_sample(..., align_corners=False)`` reads the same texel for
-    ``grid = uv_to_grid(uv) = 2 * uv - 1`` (grid x follows the columns, grid y the rows);
-    :func:`sample_uv_map` wraps this.
+    The model reads a map at texture coordinates with
+    :func:`garmentnerf.model.uv_maps.sample_uv_map` (``grid_sample`` with ``align_corners=False``).
 
 Rasterisation
     A texel is covered when its centre is inside a UV triangle (GL's fill rule; no conservative
@@ -43,7 +42,6 @@ from typing import NamedTuple
 import moderngl
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from garmentnerf.gl.context import current
 from garmentnerf.gl.mesh_arrays import as_numpy
@@ -57,33 +55,6 @@ MAX_CHANNELS = 4 * MAX_TARGETS
 
 DEFAULT_RESOLUTION = 128
 DEFAULT_DILATION_RADIUS = 4.0
-
-
-def uv_to_grid(uv: torch.Tensor) -> torch.Tensor:
-    """Texture coordinates (N, 2) in [0, 1] (u right, v up) -> ``grid_sample`` coordinates in [-1, 1]
-    for maps made by :class:`UVAttributeRasterizer`, with ``align_corners=False``."""
-    return uv * 2.0 - 1.0
-
-
-def texel_centers_uv(height: int, width: int, dtype=torch.float32, device=None) -> torch.Tensor:
-    """(H, W, 2) texture coordinates (u, v) of every texel centre of a map."""
-    v = (torch.arange(height, dtype=dtype, device=device) + 0.5) / height
-    u = (torch.arange(width, dtype=dtype, device=device) + 0.5) / width
-    vv, uu = torch.meshgrid(v, u, indexing="ij")
-    return torch.stack([uu, vv], dim=-1)
-
-
-def sample_uv_map(values: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Look up a map ``(H, W, C)`` at texture coordinates ``uv (N, 2)`` -> ``(N, C)``.
-
-    Bilinear by default, clamped at the map border (``padding_mode="border"``).
-    """
-    if values.ndim != 3:
-        raise ValueError(f"values must be (H, W, C), got shape {tuple(values.shape)}")
-    image = values.permute(2, 0, 1).unsqueeze(0)  # (1, C, H, W)
-    grid = uv_to_grid(uv.to(values.dtype)).reshape(1, 1, -1, 2)
-    out = F.grid_sample(image, grid, mode=mode, padding_mode="border", align_corners=False)
-    return out[0, :, 0].T
 
 
 class UVRaster(NamedTuple):

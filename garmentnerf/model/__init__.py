@@ -10,13 +10,13 @@ One concept per module:
 - :mod:`~garmentnerf.model.nerf_mlp`: M_NeRF, sample features -> (sigma, zeta).
 - :mod:`~garmentnerf.model.samplers`: the sampler interface (where along each ray to evaluate
   M_NeRF) and the paper's box sampler.
-- :mod:`~garmentnerf.model.shell_sampler`: the sampler that keeps only the inflated-body shell.
 - :mod:`~garmentnerf.model.height_band`: the garment's height band and the sample filter made of it.
 - :mod:`~garmentnerf.model.volume_rendering`: weights and compositing, dense and packed, and the
   segmented renderer with early ray termination.
 - :mod:`~garmentnerf.model.palette`: M_D, the palette and the one composition formula.
 - :mod:`~garmentnerf.model.losses`: the training losses (the NeRF's and G_img's pre-training).
-- :mod:`~garmentnerf.model.frame_context`: a body frame's inputs (GL passes) and features.
+- :mod:`~garmentnerf.model.frame_context`: a body frame's inputs (tensors the GL passes of
+  :mod:`garmentnerf.render.frame_inputs` make) and features.
 - :mod:`~garmentnerf.model.pipeline`: the model, wiring the paper's equations together
   (per frame: :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame`; per view:
   :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.render`, given a sampler and a filter).
@@ -27,7 +27,7 @@ import importlib
 from garmentnerf.model import volume_rendering
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import sample_image_features, select_detail_features
-from garmentnerf.model.frame_context import FrameFeatures, FrameInputBuilder, FrameInputs
+from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.losses import garment_losses, generator_losses, offset_loss, palette_loss, sparsity_loss
 from garmentnerf.model.nerf_mlp import GarmentNeRF, density_activation, positional_encoding, trunc_exp
@@ -41,15 +41,15 @@ __all__ = [
     "ModelConfig", "UNet", "DynamicFeatureEncoder", "DetailEncoder", "ImageGenerator", "NeuralTexture", "freeze",
     "sample_image_features", "select_detail_features", "GarmentNeRF", "density_activation", "positional_encoding",
     "trunc_exp", "Sampler", "BoundSampler", "SampleFilter", "RaySamples", "BoxStratifiedSampler", "body_aabb",
-    "ray_aabb_intersect", "ShellSampler", "HeightRange", "HeightBandFilter", "measure_height_range",
+    "ray_aabb_intersect", "HeightRange", "HeightBandFilter", "measure_height_range",
     "volume_rendering", "PaletteDecoder", "DecomposedMaps", "Palette", "compose", "check_palette",
     "palette_from_labels", "garment_losses", "generator_losses", "sparsity_loss", "offset_loss", "palette_loss",
-    "FrameInputs", "FrameFeatures", "FrameInputBuilder", "GarmentAnimationNeRF", "RenderOutput",
+    "FrameInputs", "FrameFeatures", "GarmentAnimationNeRF", "RenderOutput",
 ]
 
-#: Names of the modules that bring in the body, the geometry and GL (seconds of imports), loaded
-#: on first use so that ``import garmentnerf.model.config`` stays light.
-_LAZY = {"GarmentAnimationNeRF": "pipeline", "RenderOutput": "pipeline", "ShellSampler": "shell_sampler",
+#: Names of the modules that bring in the body and the geometry (seconds of imports), loaded on first
+#: use so that ``import garmentnerf.model.config`` stays light.
+_LAZY = {"GarmentAnimationNeRF": "pipeline", "RenderOutput": "pipeline",
          "HeightRange": "height_band", "HeightBandFilter": "height_band", "measure_height_range": "height_band"}
 
 

@@ -96,7 +96,7 @@ def on_grid(values: torch.Tensor, support: torch.Tensor) -> torch.Tensor:
 
 def garment_texels(uv: torch.Tensor, resolution: int) -> torch.Tensor:
     """(r, r) bool: the texels of an ``r x r`` map that bilinear reads at ``uv`` ((N, 2) atlas
-    coordinates, u right, v up, row 0 at v = 0: :func:`~garmentnerf.gl.uv_raster.sample_uv_map`)
+    coordinates, u right, v up, row 0 at v = 0: :func:`~garmentnerf.model.uv_maps.sample_uv_map`)
     weigh (the four around each point, clamped at the border)."""
     r = int(resolution)
     uv = torch.as_tensor(uv, dtype=torch.float64).reshape(-1, 2)

@@ -27,7 +27,6 @@ import numpy as np
 import torch
 
 from garmentnerf.body.model import BodyModel
-from garmentnerf.data.scene import read_garment_arrays
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 from garmentnerf.io_utils import load_tagged_tensors, save_tagged_tensors
 
@@ -146,10 +145,13 @@ def garment_frame_heights(scene, sequence: str, body, frames=None, betas=None, p
     """Yields ``(frame, posed (V, 3), garment (Vg, 3), BodyPoints)`` for ``frames`` of ``sequence``
     (default: all): the body posed with the scene's shape, the simulated garment's vertices (float32,
     CPU) and their body coordinates, h measured to the posed skin exactly as the model measures its
-    samples (``BodyPoints.face`` holds skin face ids, rows of ``projector.faces``)."""
+    samples (``BodyPoints.face`` holds skin face ids, rows of ``projector.faces``).
+
+    ``scene`` is a :class:`~garmentnerf.data.scene.Scene` (or anything with its ``body``,
+    ``garment_arrays`` and ``load_motion``): the scene's files are read through it."""
     betas = body.betas(scene.body.get("shape", "average")) if betas is None else betas
     projector = BodyPointProjector(body) if projector is None else projector
-    garment = read_garment_arrays(scene.garment_path(sequence))
+    garment = scene.garment_arrays(sequence)
     motion = scene.load_motion(sequence)
     frames = range(garment.vertices.shape[0]) if frames is None else frames
     with torch.no_grad():

@@ -78,7 +78,6 @@ from garmentnerf.body.surface import vertex_normals
 from garmentnerf.conventions import Camera, camera_rays
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 from garmentnerf.geometry.triangles import interpolate
-from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.depth_normals import depth_normals
 from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
@@ -91,7 +90,7 @@ from garmentnerf.model.normal_field import KERNEL_SIGMAS, NormalGrid, blurred_no
 from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
-from garmentnerf.model.uvh_field import UVHField, canonical_positions, face_tangent_frames, local_offset_direction
+from garmentnerf.model.uv_maps import sample_uv_map
 from garmentnerf.model.volume_rendering import render_packed_segmented
 
 #: Default samples per chunk (per-sample work: feature reads, MLP, compositing).
@@ -288,6 +287,8 @@ class GarmentAnimationNeRF(nn.Module):
         if cfg.atlas_feature_channels:
             self.atlas_features = NeuralTexture(cfg.atlas_feature_channels, cfg.atlas_feature_levels,
                                                 cfg.atlas_feature_resolution)
+        if cfg.field == "uvh" or cfg.uvh_canonical_freqs:
+            from garmentnerf.model.uvh_field import UVHField, face_tangent_frames
         self.nerf = UVHField.from_config(cfg) if cfg.field == "uvh" else GarmentNeRF.from_config(cfg)
         self.frame_codes = None  # per-frame residuals of F^s_t (ModelConfig.frame_code_resolution)
         if cfg.frame_code_resolution and cfg.frame_codes:
@@ -516,6 +517,8 @@ class GarmentAnimationNeRF(nn.Module):
     def offset_direction(self, frame: FrameFeatures, points: BodyPoints, positions: torch.Tensor) -> torch.Tensor:
         """(n, 3) the unit offsets ``positions - b_t`` in the tangent frames of the skin faces of
         ``points`` on the frame's posed body (the ``uvh`` field's input; no gradient)."""
+        from garmentnerf.model.uvh_field import face_tangent_frames, local_offset_direction
+
         with torch.no_grad():
             faces = points.face.long().cpu()
             frames = face_tangent_frames(frame.posed_vertices, self.projector.faces[faces], self.projector.uv,
@@ -528,6 +531,8 @@ class GarmentAnimationNeRF(nn.Module):
         (:func:`~garmentnerf.model.uvh_field.canonical_positions`, with ``direction`` the
         :meth:`offset_direction` of ``points``), mapped from the canonical body's box padded by the
         height band to [-1, 1] (the ``uvh`` field's input with ``uvh_canonical_freqs``; CPU, no gradient)."""
+        from garmentnerf.model.uvh_field import canonical_positions
+
         with torch.no_grad():
             faces = points.face.long().cpu()
             length = (positions.detach().to("cpu", torch.float32) - points.closest.cpu().float()).norm(dim=-1)

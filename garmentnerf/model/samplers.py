@@ -14,7 +14,7 @@ The interface (modelled on nerfacc's estimators)
 Samplers
     :class:`BoxStratifiedSampler` is the paper's: S stratified samples between the ray's entry
     into and exit from the axis-aligned box around the posed body, padded by 0.05 m (authors'
-    code). :class:`~garmentnerf.model.shell_sampler.ShellSampler` keeps only the part of each ray
+    code). :class:`~garmentnerf.render.shell_sampler.ShellSampler` keeps only the part of each ray
     inside an inflated-body shell.
 
 Intervals tile the ray's segment inside the box: sample i stands for

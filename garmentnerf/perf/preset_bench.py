@@ -31,7 +31,7 @@ import torch
 
 from garmentnerf.data.cameras import default_rig
 from garmentnerf.data.render_gt import GroundTruthRenderer
-from garmentnerf.data.scene import SceneImages
+from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.eval.metrics import psnr, ssim
 from garmentnerf.gl.context import context_info, create_context
 from garmentnerf.model.pipeline import FRAME_STAGES, RENDER_STAGES

@@ -9,6 +9,10 @@ snapshots and video export, so their images agree.
 * :mod:`~garmentnerf.render.camera_path` -- keyframed camera paths (interpolation, file format).
 * :mod:`~garmentnerf.render.frame_cache` -- the per-frame features of a clip, kept in half
   precision under a memory bound (what the session renders views from).
+* :mod:`~garmentnerf.render.frame_inputs` -- the GL passes that make a body frame's inputs (info
+  maps, reference-camera G-buffers) for the model.
+* :mod:`~garmentnerf.render.shell_sampler` -- the sampler that keeps only the inflated-body shell
+  (its bounds drawn by a GL pass).
 * :mod:`~garmentnerf.render.screen_rect` -- the pixel rectangle a world box covers on screen (the
   part of the image a render needs).
 * :mod:`~garmentnerf.render.cameras` -- turntable/orbit camera sequences, scene cameras by name or

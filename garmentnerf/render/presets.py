@@ -38,7 +38,7 @@ the skipped density is what ``reference`` wrongly draws over the fingers. ``auto
 float16 autocast on CUDA and float32 on the CPU (bfloat16 autocast renders only 4 to 6 % faster on
 the development CPU, whose AMX-BF16 makes the MLP's products 8 times faster: the MLP is a small share
 of a render, the body projection the largest). See
-:mod:`garmentnerf.model.shell_sampler` for the culls.
+:mod:`garmentnerf.render.shell_sampler` for the culls.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from pathlib import Path
 from garmentnerf.model.config import SAMPLERS
 from garmentnerf.model.height_band import SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
-from garmentnerf.model.shell_sampler import ShellSampler
+from garmentnerf.render.shell_sampler import ShellSampler
 
 #: Feature cells around the character's rectangle: the palette decoder's receptive field
 #: (nearest x2 upsampling then 3x3 convolutions: 1.5 feature cells for the default 2 upsamplings,
@@ -81,7 +81,7 @@ class RenderPreset:
     """Samples per ray as a fraction of the model's ``cfg.samples_per_ray`` (at least 4)."""
     sampler: str
     """``box`` (the paper's :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) or
-    ``shell`` (:class:`~garmentnerf.model.shell_sampler.ShellSampler` with the garment's height
+    ``shell`` (:class:`~garmentnerf.render.shell_sampler.ShellSampler` with the garment's height
     band as sample filter)."""
     precision: str = "float32"
     """MLP precision (:data:`~garmentnerf.model.pipeline.PRECISIONS`)."""

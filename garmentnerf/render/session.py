@@ -80,13 +80,13 @@ from garmentnerf.conventions import Camera, camera_rays
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.lifecycle import Closeable
-from garmentnerf.model.frame_context import FrameInputBuilder
 from garmentnerf.model.palette import DecomposedMaps, check_palette
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB, FrameCache
+from garmentnerf.render.frame_inputs import FrameInputBuilder
 from garmentnerf.render.presets import CHARACTER_RECT_MARGIN, get_render_preset, height_range_for_run
 from garmentnerf.render.screen_rect import PixelRect, box_extent, box_rect
 from garmentnerf.runs import frame_code_offset

@@ -24,7 +24,7 @@ import torch
 from tqdm import tqdm
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.data.scene import SceneImages
+from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.model.body_appearance import BodyAppearance
 from garmentnerf.render.body_layer import body_surface

@@ -4,11 +4,11 @@
 
 * :meth:`SceneFrames.inputs` -- the frame's :class:`~garmentnerf.model.frame_context.FrameInputs`
   (info maps and reference-camera G-buffers), built lazily with
-  :class:`~garmentnerf.model.frame_context.FrameInputBuilder` on a GL context and kept on the CPU
+  :class:`~garmentnerf.render.frame_inputs.FrameInputBuilder` on a GL context and kept on the CPU
   (1.4 MB per frame at the bundled model's sizes, about 11 MB at the paper's 512 x 512
   references). Motions are posed once per sequence with the scene's body shape.
 * :meth:`SceneFrames.target` -- the ground-truth image at ``cfg.image_resolution`` squared:
-  the scene's image (:class:`~garmentnerf.data.scene.SceneImages`, rendered and cached on disk on
+  the scene's image (:class:`~garmentnerf.data.scene_images.SceneImages`, rendered and cached on disk on
   first use) area-downsampled, and the target mask. The model's mask ``m`` says where the
   *foreground* (body or garment) covers the pixel -- :func:`~garmentnerf.model.palette.compose`
   puts the background color where it is 0 -- so the target mask is ``labels != 0``,
@@ -41,10 +41,11 @@ import torch.nn.functional as F
 from garmentnerf.body.model import BodyModel
 from garmentnerf.conventions import Camera
 from garmentnerf.data.render_gt import GroundTruthRenderer
-from garmentnerf.data.scene import SceneImages
+from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.gl.context import create_context
 from garmentnerf.lifecycle import Closeable
-from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES, FrameInputBuilder
+from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES
+from garmentnerf.render.frame_inputs import FrameInputBuilder
 from garmentnerf.render.screen_rect import PixelRect, box_rect
 from garmentnerf.train.byte_cache import ByteBoundedLRU
 

@@ -135,7 +135,7 @@ def _direct_psnr(loaded, scene, gl_context, frame: int, camera: str, **render_kw
     ground truth, computed without the evaluation code."""
     from skimage.metrics import peak_signal_noise_ratio
 
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.render.session import RenderSession
 
     with RenderSession(loaded, gl_context, "train") as s:
@@ -165,7 +165,7 @@ def test_quality_renders_at_that_density(loaded, scene, gl_context):
 def test_nearest_view_baseline_matches_skimage(unseen_view_result, scene):
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
 
     b = unseen_view_result["baseline"]
     assert b["method"] == "nearest_view" and b["counts"]["images"] == FRAMES
@@ -205,7 +205,7 @@ def test_foreground_figures_match_a_direct_computation(loaded, scene, gl_context
     from scipy.stats import pearsonr
     from skimage.metrics import peak_signal_noise_ratio
 
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.render.session import RenderSession
 
     with RenderSession(loaded, gl_context, "train") as s:
@@ -346,7 +346,7 @@ def test_cli_eval_gallery(run_dir, scene, tmp_path, capsys):
     ground-truth tile the scene's image."""
     import imageio.v3 as iio
 
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.eval.gallery import CAPTION_PX
 
     out = tmp_path / "gallery.png"

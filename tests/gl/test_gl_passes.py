@@ -14,8 +14,8 @@ from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.gl.context import GLUnavailableError, create_context, make_current
 from garmentnerf.gl.dilation import NearestTexelDilation
 from garmentnerf.gl.shaders import shader_root, shader_source
-from garmentnerf.gl.uv_raster import (UVAttributeRasterizer, sample_uv_map, texel_centers_uv,
-                                      uv_to_grid)
+from garmentnerf.gl.uv_raster import UVAttributeRasterizer
+from garmentnerf.model.uv_maps import sample_uv_map, texel_centers_uv, uv_to_grid
 
 EDGE_BARY = 1e-3  # a ray hit with a barycentric below this is "on an edge": either face may win
 

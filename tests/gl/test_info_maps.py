@@ -9,8 +9,8 @@ import trimesh
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.body.surface import VELOCITY_SCALE, canonical_velocities
-from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.gl.info_maps import InfoMapRenderer
+from garmentnerf.model.uv_maps import sample_uv_map
 
 FPS = 30.0
 
@@ -153,7 +153,7 @@ def test_smoothed_velocities_are_causal_exponential_means():
 def test_frame_inputs_with_smoothed_maps_equal_the_clip_ones(gl_context, body):
     """A frame built alone reaches back far enough for its smoothed maps: it equals the clip's frame."""
     from garmentnerf.model.config import ModelConfig
-    from garmentnerf.model.frame_context import FrameInputBuilder
+    from garmentnerf.render.frame_inputs import FrameInputBuilder
 
     rot, trans = smooth_motion(body, frames=24, seed=4)
     posed = body.pose(rot, trans)

@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from garmentnerf.gl.uv_raster import sample_uv_map
 from garmentnerf.model.frame_codes import FrameCodes, adapt_frame_codes, garment_texels, grow_texels, resample_codes
+from garmentnerf.model.uv_maps import sample_uv_map
 
 
 def test_garment_texels_are_those_a_bilinear_read_weighs():

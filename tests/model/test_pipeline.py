@@ -11,11 +11,11 @@ from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, lo
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import reference_visibility, sample_image_features
-from garmentnerf.model.frame_context import FrameInputBuilder, resolve_reference_cameras
 from garmentnerf.model.palette import compose
 from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnimationNeRF, RenderCancelled,
                                         palette_initial_colors)
 from garmentnerf.model.samplers import ray_aabb_intersect
+from garmentnerf.render.frame_inputs import FrameInputBuilder, resolve_reference_cameras
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}

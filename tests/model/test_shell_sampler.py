@@ -17,7 +17,7 @@ from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.samplers import BoxStratifiedSampler, body_aabb
-from garmentnerf.model.shell_sampler import ShellSampler
+from garmentnerf.render.shell_sampler import ShellSampler
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
@@ -373,7 +373,7 @@ def test_presets_render_through_their_sampling_plans(gl_context, model_and_frame
 
 
 def test_a_model_trained_in_the_shell_is_sampled_there_by_every_preset(gl_context, body, projector, verts):
-    from garmentnerf.model.shell_sampler import SHELL_EXTRA_MARGIN
+    from garmentnerf.render.shell_sampler import SHELL_EXTRA_MARGIN
     from garmentnerf.render.presets import RENDER_PRESETS
 
     S = 16

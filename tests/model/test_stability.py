@@ -13,13 +13,13 @@ from garmentnerf.conventions import Camera, intrinsics_from_fov, look_at, orbit_
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.model import volume_rendering as vr
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.frame_context import FrameInputBuilder
+from garmentnerf.model.height_band import HeightRange
 from garmentnerf.model.palette import check_palette
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
-from garmentnerf.model.height_band import HeightRange
-from garmentnerf.model.shell_sampler import ShellSampler
 from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
+from garmentnerf.render.frame_inputs import FrameInputBuilder
+from garmentnerf.render.shell_sampler import ShellSampler
 from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}

@@ -356,7 +356,7 @@ def test_training_targets_carry_the_garment_share(tiny_scene, gl_context):
     import cv2
     import numpy as np
 
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.train.frames import SceneFrames
 
     cfg = tiny_config()
@@ -380,7 +380,7 @@ def test_a_layered_garment_trains_one_palette_color_per_layer(tmp_path, gl_conte
     import cv2
     import numpy as np
 
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.data.synthetic import make_rigged_scene
     from garmentnerf.train.frames import SceneFrames
 
@@ -548,7 +548,7 @@ def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_
 def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_scene, gl_context, tmp_path):
     from garmentnerf.model.height_band import (SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range,
                                                save_height_range)
-    from garmentnerf.model.shell_sampler import ShellSampler
+    from garmentnerf.render.shell_sampler import ShellSampler
     from garmentnerf.render.session import RenderSession
 
     cfg = tiny_config().replace(sampler="shell", shell_spacing="shell")

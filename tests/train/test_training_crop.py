@@ -45,7 +45,7 @@ def test_character_window_centres_on_the_drawn_point_and_stays_inside():
 
 # ---------------------------------------------------------------------------------------- camera and target
 def test_window_camera_and_target_are_the_scene_pixels(tiny_scene, gl_context):
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
 
     cfg = crop_config(1.0)
     with SceneFrames(tiny_scene, cfg, gl_context) as frames:
@@ -81,7 +81,7 @@ def test_window_camera_and_target_are_the_scene_pixels(tiny_scene, gl_context):
 
 
 def test_half_density_target_is_the_area_downsampled_scene_image(tiny_scene, gl_context):
-    from garmentnerf.data.scene import SceneImages
+    from garmentnerf.data.scene_images import SceneImages
 
     cfg = tiny_config().replace(image_resolution=16, feature_image_resolution=4, training_crop_density=0.5)
     with SceneFrames(tiny_scene, cfg, gl_context) as frames:
