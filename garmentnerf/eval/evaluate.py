@@ -131,8 +131,8 @@ from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, flat_psnr, interior, is_psnr_metric,
                                       luma_correlation, masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement,
                                       sharpness_ratio, silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
-from garmentnerf.eval.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
 from garmentnerf.gl.context import create_context
+from garmentnerf.model.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
 from garmentnerf.render.presets import get_render_preset
 from garmentnerf.render.session import RenderSession, resolve_composition
 from garmentnerf.runs import load_run

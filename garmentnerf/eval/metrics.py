@@ -551,11 +551,11 @@ def evaluate_sequence(pred_frames: Sequence, gt_frames: Sequence, *, frame_indic
             ``background`` (the caller composites; the value is only recorded).
         frame_indices: the frame number of each image (default 0..T-1).
         background: RGB the images were composited on, recorded in ``meta``.
-        perceptual: modules from :mod:`garmentnerf.eval.perceptual` (``STLPIPS``, ``LPIPS``); each
+        perceptual: modules from :mod:`garmentnerf.model.perceptual` (``STLPIPS``, ``LPIPS``); each
             is reported under its ``metric_name``.
         tof: compute tOF (needs at least 6 frames, else it is listed as unavailable).
         unavailable: metric name -> reason, for metrics the caller could not set up (e.g. the
-            reason from :func:`~garmentnerf.eval.perceptual.lpips_available`).
+            reason from :func:`~garmentnerf.model.perceptual.lpips_available`).
     Returns:
         :class:`MetricSummary`.
     """

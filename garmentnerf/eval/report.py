@@ -47,10 +47,10 @@ from typing import Any
 
 from garmentnerf.data.scene import Scene
 from garmentnerf.eval.evaluate import SPLITS, _spread, evaluate_run
-from garmentnerf.eval.perceptual import lpips_available
 from garmentnerf.gl.context import create_context
 from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.perceptual import lpips_available
 from garmentnerf.runs import RUN_FILE, load_run, read_run_info
 from garmentnerf.train.checkpoints import latest_checkpoint
 from garmentnerf.train.settings import MODEL_PRESETS, TrainConfig, model_config_for

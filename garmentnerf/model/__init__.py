@@ -15,6 +15,8 @@ One concept per module:
   segmented renderer with early ray termination.
 - :mod:`~garmentnerf.model.palette`: M_D, the palette and the one composition formula.
 - :mod:`~garmentnerf.model.losses`: the training losses (the NeRF's and G_img's pre-training).
+- :mod:`~garmentnerf.model.perceptual`: the learned perceptual distances (LPIPS, shift-tolerant
+  LPIPS): the perceptual training loss and evaluation metric.
 - :mod:`~garmentnerf.model.frame_context`: a body frame's inputs (tensors the GL passes of
   :mod:`garmentnerf.render.frame_inputs` make) and features.
 - :mod:`~garmentnerf.model.pipeline`: the model, wiring the paper's equations together

@@ -50,9 +50,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from garmentnerf.eval.perceptual import STLPIPS
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.perceptual import STLPIPS
 from garmentnerf.runs import MODEL_FILE, read_run_info, recorded_scene_path
 from garmentnerf.train.settings import TrainConfig, training_precision
 from garmentnerf.train.trainer import Trainer

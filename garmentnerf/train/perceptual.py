@@ -6,7 +6,7 @@ shift-tolerant LPIPS (the only learned perceptual network with weights installab
   mean/std, L1 distance between the relu1_2, relu3_1 and relu5_1 activations (the layers of the
   authors' code), averaged. The path comes from :class:`~garmentnerf.train.trainer.TrainConfig`
   ``vgg19_weights`` or the environment variable :data:`VGG19_WEIGHTS_ENV`.
-* ``stlpips_alex``: :class:`garmentnerf.eval.perceptual.STLPIPS` (``reduction="mean"``).
+* ``stlpips_alex``: :class:`garmentnerf.model.perceptual.STLPIPS` (``reduction="mean"``).
 * ``none``: no perceptual term (``w_perceptual`` = 0, or asked for).
 
 :func:`make_perceptual` returns ``(module or None, name)``; the name goes to the log and to
@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from garmentnerf.eval.perceptual import STLPIPS
+from garmentnerf.model.perceptual import STLPIPS
 
 VGG19_WEIGHTS_ENV = "GARMENTNERF_VGG19"
 #: torchvision VGG19 ``features``: conv layer indices and channel counts ("M" = max-pool).

@@ -17,7 +17,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from garmentnerf.eval import metrics as M
-from garmentnerf.eval import perceptual as P
+from garmentnerf.model import perceptual as P
 
 cv2 = pytest.importorskip("cv2")
 

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from garmentnerf.eval import perceptual as P
+from garmentnerf.model import perceptual as P
 from garmentnerf.train.perceptual import VGG19Loss
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from garmentnerf.cli.main import main
-from garmentnerf.eval.perceptual import stlpips_available
+from garmentnerf.model.perceptual import stlpips_available
 from garmentnerf.perf.train_bench import STAGES
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

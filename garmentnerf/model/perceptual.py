@@ -3,7 +3,9 @@
 Both are defined here in plain torch, because the reference packages cannot be imported beside
 the project's CPU torch wheel (``lpips`` and ``stlpips-pytorch`` import ``torchvision`` at top
 level, ``stlpips-pytorch`` also ``IPython`` and ``torchsummary``). Only their weight files are
-used. Both modules take ``(B, 3, H, W)`` RGB batches and return one distance per image.
+used. Both modules take ``(B, 3, H, W)`` RGB batches and return one distance per image. Training
+(:mod:`garmentnerf.train.perceptual`, the loss) and evaluation (:mod:`garmentnerf.eval.evaluate`, the
+metric) both use them.
 
 LPIPS (Zhang et al. 2018), reported as ``lpips_alex``
     The paper's LPIPS: torchvision's ImageNet AlexNet feature trunk + the v0.1 linear layers.
