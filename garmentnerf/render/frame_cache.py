@@ -14,10 +14,12 @@ Storage
     keep theirs.
 
 Memory bound and order
-    :attr:`budget_bytes` bounds what the stored frames hold (:attr:`nbytes`). The cache knows the
-    playhead: when full, the frame farthest from the playhead goes first, and
-    :meth:`next_to_compute` names the missing frame nearest to the playhead, or None once the
-    budget is spent on frames nearer than any missing one (so a full cache never thrashes).
+    :attr:`budget_bytes` bounds what the stored frames hold (:attr:`nbytes`). The store is a
+    :class:`~garmentnerf.byte_lru.ByteBoundedLRU` whose eviction order is the playhead's
+    (:class:`FarthestFromPlayhead`): when full, the frame farthest from the playhead goes first
+    (of two as far, the later one), and :meth:`next_to_compute` names the missing frame nearest to
+    the playhead, or None once the budget is spent on frames nearer than any missing one (so a full
+    cache never thrashes).
 
 Threads
     One writer (the render worker), any number of readers (the UI asks :meth:`ready_frames` and
@@ -28,10 +30,12 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Callable
 
 import torch
+
+from garmentnerf.byte_lru import ByteBoundedLRU
 
 #: Default memory bound of a session's frame cache (the bundled model's frames take 1.4 MB each,
 #: so its 170-frame demo clip fits in 240 MB).
@@ -41,14 +45,28 @@ DEFAULT_BOUND_FRAMES = 4
 _HALF_FIELDS = ("dynamic_features", "reference_images", "detail_features", "reference_depth")
 
 
-@dataclass
-class _Entry:
-    features: object  # FrameFeatures with half-precision maps and surface=None
-    nbytes: int
-
-
 def _nbytes(t: torch.Tensor | None) -> int:
     return 0 if t is None else t.numel() * t.element_size()
+
+
+def stored_frame_bytes(features) -> int:
+    """Bytes a stored frame (FrameFeatures without its surface) holds: its feature maps and reference
+    depth (at their stored precision), posed vertices, normals, box and blurred normal grid."""
+    size = sum(_nbytes(getattr(features, k)) for k in (*_HALF_FIELDS, "posed_vertices", "vertex_normals", "aabb"))
+    if features.normal_grid is not None:
+        size += _nbytes(features.normal_grid.values)
+    return size
+
+
+class FarthestFromPlayhead:
+    """The frame cache's eviction order: frames farthest from :attr:`frame` (the playhead) first, of
+    two as far the later one first."""
+
+    def __init__(self, frame: int = 0) -> None:
+        self.frame = int(frame)
+
+    def __call__(self, frames: list[int]) -> list[int]:
+        return sorted(frames, key=lambda f: (abs(f - self.frame), f), reverse=True)
 
 
 class FrameCache:
@@ -67,13 +85,10 @@ class FrameCache:
         self._bind = bind
         self.half = bool(half)
         self._lock = threading.Lock()
-        self._entries: dict[int, _Entry] = {}
+        self._playhead = FarthestFromPlayhead()
+        self._frames: ByteBoundedLRU[int, object] = ByteBoundedLRU(0, stored_frame_bytes, self._playhead)
         self._bound: OrderedDict[int, object] = OrderedDict()
         self._bound_frames = max(1, int(bound_frames))
-        self._playhead = 0
-        self._nbytes = 0
-        self._frame_bytes = 1  # size of the last frame stored: what the next one will take
-        self.budget_bytes = 0
         self.set_budget_mb(budget_mb)
 
     # ---- settings -------------------------------------------------------------------------------------
@@ -82,45 +97,49 @@ class FrameCache:
         if not budget_mb >= 0:
             raise ValueError(f"frame cache budget must be >= 0 MiB, got {budget_mb!r}")
         with self._lock:
-            self.budget_bytes = int(budget_mb * 2**20)
-            self._evict()
+            for frame in self._frames.set_budget(int(budget_mb * 2**20)):
+                self._bound.pop(frame, None)
 
     def set_playhead(self, frame: int) -> None:
         with self._lock:
-            self._playhead = int(frame)
+            self._playhead.frame = int(frame)
 
     # ---- state ----------------------------------------------------------------------------------------
+    @property
+    def budget_bytes(self) -> int:
+        """The memory bound in bytes."""
+        return self._frames.budget_bytes
+
     @property
     def nbytes(self) -> int:
         """Bytes the stored frames hold."""
         with self._lock:
-            return self._nbytes
+            return self._frames.nbytes
 
     def ready_frames(self) -> list[int]:
         """Sorted frames whose features are stored."""
         with self._lock:
-            return sorted(self._entries)
+            return sorted(self._frames.keys())
 
     def __contains__(self, frame: int) -> bool:
         with self._lock:
-            return int(frame) in self._entries
+            return int(frame) in self._frames
 
     def __len__(self) -> int:
         with self._lock:
-            return len(self._entries)
+            return len(self._frames)
 
     # ---- use ------------------------------------------------------------------------------------------
     def get(self, frame: int):
         """The stored features of ``frame`` in float32 with a bound surface, or None."""
         frame = int(frame)
         with self._lock:
-            entry = self._entries.get(frame)
+            feats = self._frames.peek(frame)
             surface = self._bound.get(frame)
             if surface is not None:
                 self._bound.move_to_end(frame)
-        if entry is None:
+        if feats is None:
             return None
-        feats = entry.features
         if surface is None:
             surface = self._bind(feats.posed_vertices)
             with self._lock:
@@ -140,56 +159,42 @@ class FrameCache:
         if self.half:
             stored = replace(stored, **{k: None if getattr(stored, k) is None else getattr(stored, k).to(torch.float16)
                                         for k in _HALF_FIELDS})
-        size = sum(_nbytes(getattr(stored, k)) for k in (*_HALF_FIELDS, "posed_vertices", "vertex_normals", "aabb"))
-        if stored.normal_grid is not None:
-            size += _nbytes(stored.normal_grid.values)
         with self._lock:
-            self._frame_bytes = max(size, 1)
-            old = self._entries.pop(frame, None)
-            if old is not None:
-                self._nbytes -= old.nbytes
-            self._entries[frame] = _Entry(stored, size)
-            self._nbytes += size
+            evicted = self._frames.put(frame, stored)
             self._bound[frame] = features.surface
             self._bound.move_to_end(frame)
             while len(self._bound) > self._bound_frames:
                 self._bound.popitem(last=False)
-            self._evict()
-            return frame in self._entries
+            for gone in evicted:
+                self._bound.pop(gone, None)
+            return frame in self._frames
 
     def next_to_compute(self, num_frames: int) -> int | None:
         """The missing frame in ``[0, num_frames)`` nearest to the playhead (ties: the later one,
         playback runs forwards), or None when every frame is stored or the budget is spent on
         nearer frames."""
         with self._lock:
-            head = min(max(self._playhead, 0), max(num_frames - 1, 0))
+            head = min(max(self._playhead.frame, 0), max(num_frames - 1, 0))
             missing = None
             for d in range(num_frames):
                 for f in (head + d, head - d) if d else (head,):
-                    if 0 <= f < num_frames and f not in self._entries:
+                    if 0 <= f < num_frames and f not in self._frames:
                         missing = f
                         break
                 if missing is not None:
                     break
-            if missing is None or self.budget_bytes < self._frame_bytes:
+            frame_bytes = max(self._frames.last_put_nbytes, 1)  # the last frame's size: what the next takes
+            if missing is None or self.budget_bytes < frame_bytes:
                 return None
-            if self._nbytes + self._frame_bytes <= self.budget_bytes:
+            if self._frames.nbytes + frame_bytes <= self.budget_bytes:
                 return missing
-            farthest = max(abs(f - head) for f in self._entries)
+            farthest = max(abs(f - head) for f in self._frames.keys())
             return missing if abs(missing - head) < farthest else None
 
     def clear(self) -> None:
         with self._lock:
-            self._entries.clear()
+            self._frames.clear()
             self._bound.clear()
-            self._nbytes = 0
-
-    def _evict(self) -> None:
-        """Drop the frames farthest from the playhead until the bound holds (lock held)."""
-        while self._nbytes > self.budget_bytes and self._entries:
-            far = max(self._entries, key=lambda f: (abs(f - self._playhead), f))
-            self._nbytes -= self._entries.pop(far).nbytes
-            self._bound.pop(far, None)
 
 
-__all__ = ["FrameCache", "DEFAULT_CACHE_MB", "DEFAULT_BOUND_FRAMES"]
+__all__ = ["FrameCache", "FarthestFromPlayhead", "stored_frame_bytes", "DEFAULT_CACHE_MB", "DEFAULT_BOUND_FRAMES"]

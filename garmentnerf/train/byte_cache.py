@@ -1,9 +1,11 @@
-"""A least-recently-used cache bounded by the bytes of the tensors its values hold.
+"""The trainer's byte-bounded caches: least recently used first, bounded by the bytes of the tensors their values hold.
 
 The trainer keeps three kinds of per-frame data between steps (a frame's inputs, its ground-truth
 targets, its bound body geometry); each grows with the training frames, so each is bounded in
 bytes, not in entries: a four-sequence scene has 680 training frames, and a frame's body geometry
-alone holds 18 MB of tensors (its closest-point search tables are float64).
+alone holds 18 MB of tensors (its closest-point search tables are float64). Each is a
+:class:`~garmentnerf.byte_lru.ByteBoundedLRU` made by :func:`tensor_cache`: when full, the least
+recently used value leaves first.
 
 :func:`tensor_bytes` measures a value: the tensors (and numpy arrays) reachable from it through
 dataclass fields, attributes, ``__slots__`` and containers, each charged the whole memory it keeps
@@ -19,16 +21,15 @@ from __future__ import annotations
 
 import dataclasses
 import types
-from collections import OrderedDict
-from collections.abc import Callable, Hashable, Iterator
-from typing import Generic, TypeVar
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
 
-__all__ = ["ByteBoundedLRU", "tensor_bytes", "tensor_pointers"]
+from garmentnerf.byte_lru import ByteBoundedLRU
 
-V = TypeVar("V")
+__all__ = ["tensor_cache", "tensor_bytes", "tensor_pointers"]
+
 #: Objects not looked into: scalars, strings, and modules and classes (whose attributes are not a value's).
 _LEAVES = (str, bytes, int, float, bool, complex, torch.dtype, torch.device, types.ModuleType, type)
 
@@ -87,75 +88,7 @@ def tensor_bytes(obj, exclude: frozenset[int] = frozenset()) -> int:
     return sum(sizes.values())
 
 
-class ByteBoundedLRU(Generic[V]):
-    """Values by key; when the sizes of the values kept pass ``budget_bytes``, the least recently
-    used go first (a value larger than the budget is not kept at all; a budget of 0 keeps nothing).
-
-    Args:
-        budget_bytes: the bound (>= 0).
-        size_of: ``size_of(value) -> bytes`` (measured once, when the value is put).
-    """
-
-    def __init__(self, budget_bytes: int, size_of: Callable[[V], int] = tensor_bytes) -> None:
-        self._size_of = size_of
-        self._entries: OrderedDict[Hashable, tuple[V, int]] = OrderedDict()
-        self._nbytes = 0
-        self.budget_bytes = 0
-        self.set_budget(budget_bytes)
-
-    def set_budget(self, budget_bytes: int) -> None:
-        """Change the bound (>= 0); the least recently used values leave until it holds."""
-        if not budget_bytes >= 0:
-            raise ValueError(f"cache budget must be >= 0 bytes, got {budget_bytes!r}")
-        self.budget_bytes = int(budget_bytes)
-        self._evict()
-
-    def _evict(self) -> None:
-        while self._nbytes > self.budget_bytes and self._entries:
-            _, (_, old) = self._entries.popitem(last=False)
-            self._nbytes -= old
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes the kept values hold (as ``size_of`` measured them)."""
-        return self._nbytes
-
-    def __len__(self) -> int:
-        return len(self._entries)
-
-    def __contains__(self, key: Hashable) -> bool:
-        return key in self._entries
-
-    def get(self, key: Hashable) -> V | None:
-        """The value of ``key`` (now the most recently used), or None."""
-        entry = self._entries.get(key)
-        if entry is None:
-            return None
-        self._entries.move_to_end(key)
-        return entry[0]
-
-    def put(self, key: Hashable, value: V) -> V:
-        """Keep ``value`` under ``key`` (replacing any), then evict down to the budget; returns ``value``."""
-        self.pop(key)
-        size = int(self._size_of(value))
-        self._entries[key] = (value, size)
-        self._nbytes += size
-        self._evict()
-        return value
-
-    def pop(self, key: Hashable) -> V | None:
-        """Remove ``key`` and return its value (None when absent)."""
-        entry = self._entries.pop(key, None)
-        if entry is None:
-            return None
-        self._nbytes -= entry[1]
-        return entry[0]
-
-    def get_or_make(self, key: Hashable, make: Callable[[], V]) -> V:
-        """The value of ``key``, made by ``make()`` and kept when absent."""
-        value = self.get(key)
-        return self.put(key, make()) if value is None else value
-
-    def clear(self) -> None:
-        self._entries.clear()
-        self._nbytes = 0
+def tensor_cache(budget_bytes: int, size_of: Callable[[object], int] = tensor_bytes) -> ByteBoundedLRU:
+    """A cache of the trainer's per-frame data, bounded to ``budget_bytes``: the least recently used
+    value leaves first; a value's size is ``size_of(value)`` (default :func:`tensor_bytes`)."""
+    return ByteBoundedLRU(budget_bytes, size_of)

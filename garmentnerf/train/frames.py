@@ -24,7 +24,7 @@
   pixels at the crop density, placed on the character by :func:`character_window`;
   :meth:`SceneFrames.target` takes the same window of the ground truth.
 
-Targets and inputs are kept in two byte-bounded LRU caches (:class:`~garmentnerf.train.byte_cache.ByteBoundedLRU`:
+Targets and inputs are kept in two byte-bounded LRU caches (:func:`~garmentnerf.train.byte_cache.tensor_cache`:
 ``cache_bytes`` for the targets, float32 CHW; ``inputs_cache_bytes`` for the inputs); evicted targets
 are read again from the scene's PNG cache, evicted inputs are built again (the same GL passes, so the
 same values).
@@ -39,6 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from garmentnerf.body.model import BodyModel
+from garmentnerf.byte_lru import ByteBoundedLRU
 from garmentnerf.conventions import Camera
 from garmentnerf.data.render_gt import GroundTruthRenderer
 from garmentnerf.data.scene_images import SceneImages
@@ -47,7 +48,7 @@ from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES
 from garmentnerf.render.frame_inputs import FrameInputBuilder
 from garmentnerf.render.screen_rect import PixelRect, box_rect
-from garmentnerf.train.byte_cache import ByteBoundedLRU
+from garmentnerf.train.byte_cache import tensor_cache
 
 __all__ = ["SceneFrames", "SceneFramesFactory", "area_resize", "character_window"]
 
@@ -126,8 +127,8 @@ class SceneFrames(Closeable):
         self.renderer = GroundTruthRenderer(gl_context)
         self.images = SceneImages(scene, renderer=self.renderer, body_model=body)
         self._posed: OrderedDict[str, object] = OrderedDict()
-        self._inputs: ByteBoundedLRU = ByteBoundedLRU(inputs_cache_bytes)
-        self._targets: ByteBoundedLRU = ByteBoundedLRU(cache_bytes)
+        self._inputs: ByteBoundedLRU = tensor_cache(inputs_cache_bytes)
+        self._targets: ByteBoundedLRU = tensor_cache(cache_bytes)
 
     # ---- geometry and inputs --------------------------------------------------------------------------
     def posed(self, sequence: str):

@@ -122,7 +122,7 @@ from garmentnerf.model.occupancy import occupancy_labels, occupancy_loss, occupa
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
-from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_pointers
+from garmentnerf.train.byte_cache import tensor_bytes, tensor_cache, tensor_pointers
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
@@ -424,7 +424,7 @@ class Trainer(Closeable):
         self.shell_band = self._shell_band(resume_info)
         self.sampling = get_render_preset("reference").sampling(self.model, self.shell_band, self.data.frames.ctx)
         #: The frames' body geometry kept between steps, by (sequence, frame).
-        self.geometry_cache = ByteBoundedLRU(tc.geometry_cache_bytes, self._geometry_bytes)
+        self.geometry_cache = tensor_cache(tc.geometry_cache_bytes, self._geometry_bytes)
         self._model_tensors: frozenset[int] | None = None
         # Per training sequence, its simulated garment (vertices (T, Vg, 3)) and the garment topology's
         # projector: the occupancy term's labels (ModelConfig.w_occupancy), loaded on first use.

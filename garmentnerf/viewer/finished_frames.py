@@ -15,9 +15,10 @@ View
 
 Memory bound and order
     :attr:`FinishedFrames.budget_bytes` bounds :attr:`FinishedFrames.nbytes` (the arrays the entries
-    hold). The order is the playhead's: when full, the frame farthest *ahead* of the playhead
-    (counted forwards, round the clip: a frame just behind the playhead is needed last) leaves first,
-    and :meth:`FinishedFrames.worth_rendering` says whether a missing frame would be kept.
+    hold). The store is a :class:`~garmentnerf.byte_lru.ByteBoundedLRU` whose eviction order is the
+    playhead's (:class:`FarthestAheadOfPlayhead`): when full, the frame farthest *ahead* of the
+    playhead (counted forwards, round the clip: a frame just behind the playhead is needed last)
+    leaves first, and :meth:`FinishedFrames.worth_rendering` says whether a missing frame would be kept.
 
 Threads
     The render worker writes, the UI thread reads; every method takes the cache's lock.
@@ -30,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from garmentnerf.byte_lru import ByteBoundedLRU
 
 #: Default memory bound of the render-ahead cache (MiB). The bundled demo's frames at ``full`` in a
 #: 1280 x 800 window take about 5 MB each once cut to the character.
@@ -51,6 +53,20 @@ def result_nbytes(result: Any) -> int:
     return int(sum(np.asarray(a).nbytes for a in arrays if a is not None))
 
 
+class FarthestAheadOfPlayhead:
+    """The render-ahead cache's eviction order: frames farthest ahead of :attr:`frame` (the playhead
+    of the last frame put) in a clip of :attr:`n_frames` (at least the largest frame kept + 1),
+    counted forwards round the clip, first; of two as far, the later one first."""
+
+    def __init__(self, frame: int = 0, n_frames: int = 1) -> None:
+        self.frame = int(frame)
+        self.n_frames = int(n_frames)
+
+    def __call__(self, frames: list[int]) -> list[int]:
+        n = max(self.n_frames, max(frames, default=0) + 1)
+        return sorted(frames, key=lambda f: (_ahead(f, self.frame, n), f), reverse=True)
+
+
 class FinishedFrames:
     """See the module docstring.
 
@@ -61,11 +77,8 @@ class FinishedFrames:
     def __init__(self, budget_mb: float = DEFAULT_FINISHED_MB) -> None:
         self._lock = threading.Lock()
         self._view: Any = None
-        self._entries: dict[int, tuple[Any, int]] = {}
-        self._nbytes = 0
-        self._frame_bytes = 1  # the last frame's size: what the next will take
-        self._playhead = (0, 1)  # (frame, n_frames) of the last put: the eviction order
-        self.budget_bytes = 0
+        self._playhead = FarthestAheadOfPlayhead()
+        self._frames: ByteBoundedLRU[int, Any] = ByteBoundedLRU(0, result_nbytes, self._playhead)
         self.invalidations = 0
         self.set_budget_mb(budget_mb)
 
@@ -75,8 +88,7 @@ class FinishedFrames:
         if not budget_mb >= 0:
             raise ValueError(f"render-ahead budget must be >= 0 MiB, got {budget_mb!r}")
         with self._lock:
-            self.budget_bytes = int(budget_mb * 2**20)
-            self._evict()
+            self._frames.set_budget(int(budget_mb * 2**20))
 
     def set_view(self, key: Any) -> bool:
         """The view now shown; returns True when it differs from the cached one (whose frames are
@@ -85,13 +97,17 @@ class FinishedFrames:
             if key == self._view:
                 return False
             self._view = key
-            if self._entries:
+            if len(self._frames):
                 self.invalidations += 1
-            self._entries.clear()
-            self._nbytes = 0
+            self._frames.clear()
             return True
 
     # ---- state ------------------------------------------------------------------------------------
+    @property
+    def budget_bytes(self) -> int:
+        """The memory bound in bytes."""
+        return self._frames.budget_bytes
+
     @property
     def view(self) -> Any:
         with self._lock:
@@ -100,20 +116,19 @@ class FinishedFrames:
     @property
     def nbytes(self) -> int:
         with self._lock:
-            return self._nbytes
+            return self._frames.nbytes
 
     def frames(self, key: Any) -> set[int]:
         """The frames rendered for view ``key`` (empty for another view)."""
         with self._lock:
-            return set(self._entries) if key == self._view else set()
+            return set(self._frames.keys()) if key == self._view else set()
 
     def get(self, key: Any, frame: int) -> Any:
         """The finished frame ``frame`` of view ``key``, or None."""
         with self._lock:
             if key != self._view:
                 return None
-            entry = self._entries.get(int(frame))
-            return None if entry is None else entry[0]
+            return self._frames.peek(int(frame))
 
     def latest_behind(self, key: Any, frame: int, n_frames: int, loop: bool) -> Any:
         """The finished frame of view ``key`` nearest behind ``frame`` or on it (looping: within half
@@ -124,7 +139,7 @@ class FinishedFrames:
             if key != self._view:
                 return None
             best, best_d = None, None
-            for f, entry in self._entries.items():
+            for f, result in self._frames.items():
                 d = int(frame) - f
                 if loop:
                     d %= n_frames
@@ -133,7 +148,7 @@ class FinishedFrames:
                 elif d < 0:
                     continue
                 if best_d is None or d < best_d:
-                    best, best_d = entry[0], d
+                    best, best_d = result, d
             return best
 
     # ---- use --------------------------------------------------------------------------------------
@@ -142,45 +157,30 @@ class FinishedFrames:
         being at ``playhead_frame`` of a clip of ``n_frames``; evicts the frames farthest ahead until
         the bound holds. Returns whether it was kept (not for another view, nor when it is itself
         the farthest ahead of a full cache)."""
-        size = result_nbytes(result)
         frame = int(frame)
         with self._lock:
             if key != self._view:
                 return False
-            self._frame_bytes = max(size, 1)
-            self._playhead = (int(playhead_frame), int(n_frames))
-            old = self._entries.pop(frame, None)
-            if old is not None:
-                self._nbytes -= old[1]
-            self._entries[frame] = (result, size)
-            self._nbytes += size
-            self._evict()
-            return frame in self._entries
+            self._playhead.frame, self._playhead.n_frames = int(playhead_frame), int(n_frames)
+            self._frames.put(frame, result)
+            return frame in self._frames
 
     def worth_rendering(self, frame: int, playhead_frame: int, n_frames: int) -> bool:
         """Whether a missing ``frame`` would be kept: the cache has room for a frame of the last
         size, or ``frame`` is nearer ahead of the playhead than the farthest one stored (so a full
         cache never thrashes)."""
         with self._lock:
-            if self.budget_bytes < self._frame_bytes:
+            frame_bytes = max(self._frames.last_put_nbytes, 1)  # the last frame's size: what the next takes
+            if self.budget_bytes < frame_bytes:
                 return False
-            if self._nbytes + self._frame_bytes <= self.budget_bytes or not self._entries:
+            if self._frames.nbytes + frame_bytes <= self.budget_bytes or not len(self._frames):
                 return True
-            farthest = max(_ahead(f, playhead_frame, n_frames) for f in self._entries)
+            farthest = max(_ahead(f, playhead_frame, n_frames) for f in self._frames.keys())
             return _ahead(frame, playhead_frame, n_frames) < farthest
 
     def clear(self) -> None:
         with self._lock:
-            self._entries.clear()
-            self._nbytes = 0
-
-    def _evict(self) -> None:
-        """Drop the frames farthest ahead of the playhead until the bound holds (lock held)."""
-        head, n = self._playhead
-        n = max(n, max(self._entries, default=0) + 1)
-        while self._nbytes > self.budget_bytes and self._entries:
-            far = max(self._entries, key=lambda f: (_ahead(f, head, n), f))
-            self._nbytes -= self._entries.pop(far)[1]
+            self._frames.clear()
 
 
-__all__ = ["FinishedFrames", "DEFAULT_FINISHED_MB", "result_nbytes"]
+__all__ = ["FinishedFrames", "FarthestAheadOfPlayhead", "DEFAULT_FINISHED_MB", "result_nbytes"]

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from garmentnerf.model.frame_context import FrameFeatures
-from garmentnerf.render.frame_cache import FrameCache
+from garmentnerf.render.frame_cache import FarthestFromPlayhead, FrameCache
 
 
 def fake_features(seed: int, size: int = 32) -> FrameFeatures:
@@ -58,6 +58,11 @@ def test_memory_bound_and_playhead_order():
     assert len(cache) == 0 and cache.next_to_compute(20) is None  # nothing fits: no endless precompute
     with pytest.raises(ValueError):
         cache.set_budget_mb(-1)
+
+
+def test_the_eviction_order_is_farthest_from_the_playhead_later_first():
+    assert FarthestFromPlayhead(10)([9, 10, 11, 12, 8, 3]) == [3, 12, 8, 11, 9, 10]
+    assert FarthestFromPlayhead(0)([]) == []
 
 
 def test_get_returns_float32_rebinds_and_half_precision_is_close():

@@ -1,5 +1,6 @@
-"""The byte-bounded LRU of the trainer's per-frame caches: sizes against hand-counted tensors,
-eviction order and bound."""
+"""The trainer's per-frame caches (garmentnerf.train.byte_cache): sizes against hand-counted tensors,
+and the caches as the trainer configures them (least recently used first, sized by tensor memory;
+the cache itself is tested in tests/test_byte_lru.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.train.byte_cache import ByteBoundedLRU, tensor_bytes, tensor_pointers
+from garmentnerf.train.byte_cache import tensor_bytes, tensor_cache, tensor_pointers
 
 
 @dataclass
@@ -56,34 +57,25 @@ def test_a_view_is_charged_the_buffer_it_keeps_alive():
     assert tensor_bytes(_Frame(grid[3:5, ::2].T)) == 10 * 8 * 8  # a view of a view: the outermost base
 
 
-def test_lru_evicts_the_least_recently_used_down_to_its_budget():
-    cache = ByteBoundedLRU(3 * 400, size_of=tensor_bytes)
-    value = {k: torch.zeros(100) for k in "abcd"}  # 400 bytes each
+def test_tensor_cache_keeps_the_most_recently_used_by_what_their_tensors_hold():
+    cache = tensor_cache(3 * 400)
+    clip = torch.zeros(4, 100)
+    value = {k: torch.zeros(100) for k in "abc"}  # 400 bytes each
     for k in "abc":
         cache.put(k, value[k])
-    assert cache.nbytes == 1200 and len(cache) == 3
-    assert cache.get("a") is value["a"]  # a is now the most recent
-    cache.put("d", value["d"])
-    assert "b" not in cache and all(k in cache for k in "acd") and cache.nbytes == 1200
-    cache.put("a", torch.zeros(200))  # replaced: 800 bytes, so c goes
-    assert "c" not in cache and cache.nbytes == 400 + 800
-    cache.set_budget(900)
-    assert list(k for k in "abcd" if k in cache) == ["a"] and cache.nbytes == 800
-    made = []
-    assert cache.get_or_make("e", lambda: made.append(1) or torch.zeros(10)) is not None
-    assert cache.get_or_make("e", lambda: made.append(1) or torch.zeros(10)) is not None and made == [1]
-    assert cache.pop("e") is not None and cache.pop("e") is None and cache.nbytes == 800
-
-
-def test_a_value_over_the_budget_is_not_kept():
-    cache = ByteBoundedLRU(100)
-    assert cache.put("big", torch.zeros(100)) is not None
+    assert cache.nbytes == 1200 and cache.get("a") is value["a"]
+    cache.put("row", _Frame(clip[0]))  # a row of a clip costs the clip: 1600 bytes, over the bound alone
     assert len(cache) == 0 and cache.nbytes == 0
-    empty = ByteBoundedLRU(0)
-    empty.put("x", torch.zeros(1))
-    assert len(empty) == 0
+    cache.put("d", torch.zeros(100))
+    cache.put("e", torch.zeros(200))
+    assert list(cache.keys()) == ["d", "e"] and cache.nbytes == 1200
+    cache.put("f", torch.zeros(1))  # the least recently used goes first
+    assert list(cache.keys()) == ["e", "f"]
+    counted = tensor_cache(1000, size_of=lambda value: 999)
+    counted.put("x", torch.zeros(1000))
+    assert counted.nbytes == 999
     with pytest.raises(ValueError, match="budget"):
-        ByteBoundedLRU(-1)
+        tensor_cache(-1)
 
 
 def test_train_cache_gib_shares_its_total_as_the_defaults_do():

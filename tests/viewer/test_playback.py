@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from garmentnerf.viewer.finished_frames import FinishedFrames, result_nbytes
+from garmentnerf.viewer.finished_frames import FarthestAheadOfPlayhead, FinishedFrames, result_nbytes
 from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, frames_ahead, frames_behind,
                                          next_unrendered, predict_target_frame, render_superseded, replaces_shown,
                                          wrap_position)
@@ -164,6 +164,12 @@ def test_finished_frames_respect_their_memory_bound_and_keep_the_frames_just_ahe
     assert cache.nbytes <= cache.budget_bytes and len(cache.frames("v")) == 1
     cache.set_budget_mb(0.0)
     assert cache.frames("v") == set() and not cache.worth_rendering(3, 0, 10)
+
+
+def test_the_eviction_order_is_farthest_ahead_of_the_playhead_round_the_clip():
+    assert FarthestAheadOfPlayhead(5, 10)([4, 5, 6, 9]) == [4, 9, 6, 5]  # 4 is the last frame reached again
+    # a frame past the clip's end (a longer clip's) counts the clip as long as it needs
+    assert FarthestAheadOfPlayhead(1, 3)([0, 1, 2, 5]) == [0, 5, 2, 1]
 
 
 def test_finished_frames_hold_one_view():
