@@ -10,15 +10,22 @@ import torch
 from safetensors.torch import load_file
 
 from garmentnerf.cli.main import main
-from garmentnerf.demos import (DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo,
-                               pack_weights)
+from garmentnerf.demos import (
+    DEFAULT_DEMO,
+    DEMO_NAMES,
+    demo,
+    demo_run_dir,
+    installed_demos,
+    pack_demo,
+    pack_weights,
+)
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.train.run import create_untrained_run, load_run
-from garmentnerf.train.settings import tiny_config
 
 
 @pytest.fixture(scope="module")
 def untrained_run(tiny_scene, tmp_path_factory):
-    run_dir = create_untrained_run(tmp_path_factory.mktemp("demo_run") / "run", tiny_scene.root, tiny_config(), seed=1)
+    run_dir = create_untrained_run(tmp_path_factory.mktemp("demo_run") / "run", tiny_scene.root, ModelConfig.tiny(), seed=1)
     (run_dir / "TRAINING.md").write_text("how it was trained\n")
     (run_dir / "eval_unseen_view.json").write_text(json.dumps({
         "means": {"fg_psnr": 23.5, "garment_psnr": 21.25, "silhouette_iou": 0.95}, "margin_db": {"fg_psnr": 8.5}}))

@@ -23,8 +23,8 @@ Resolution (``resolution``)
     that a model's blur shows: the model renders at its trained pixel density and its maps are
     resampled (bilinear) to that size, as the previewer shows them. ``model``: the camera resized
     to the pixel density the model was trained at (:func:`eval_size`: longer side
-    ``cfg.image_resolution``, the other side proportional, for whole-frame training; the scene's
-    size times ``cfg.training_crop_density`` for character windows), the size of the trainer's
+    ``cfg.decoder.image_resolution``, the other side proportional, for whole-frame training; the scene's
+    size times ``cfg.schedule.training_crop_density`` for character windows), the size of the trainer's
     targets.
 
 How an image is made (identical to training, the viewer and ``garmentnerf render``)
@@ -32,10 +32,10 @@ How an image is made (identical to training, the viewer and ``garmentnerf render
     the evaluation camera with a render preset (default ``reference``: the paper's sampling at
     quality 1, the pixel density the model was trained with; another preset renders at its own
     quality, and ``quality`` overrides either) and :meth:`NeuralFrame.composite` composes the
-    decomposed maps with the run's learned palette over ``cfg.background`` at the evaluation size.
+    decomposed maps with the run's learned palette over the model's black background at the evaluation size.
     Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene.SceneImages`)
     area-downsampled to the evaluation size when it is smaller and composited over
-    ``cfg.background`` with the area-downsampled foreground coverage -- at the model's
+    the black background with the area-downsampled foreground coverage -- at the model's
     resolution, the trainer's targets (:class:`~garmentnerf.train.frames.SceneFrames`), byte for
     byte. Its labels (0 background, 1 body, 2 garment) are nearest-resampled.
 
@@ -133,6 +133,7 @@ from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float,
                                       sharpness_ratio, silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
 from garmentnerf.eval.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
 from garmentnerf.gl.context import create_context
+from garmentnerf.model.config import BACKGROUND
 from garmentnerf.render.presets import get_render_preset
 from garmentnerf.render.session import RenderSession, resolve_composition
 from garmentnerf.train.frames import area_resize
@@ -350,7 +351,7 @@ def eval_size(config, camera, resolution: str = "model") -> tuple[int, int]:
     """(w, h) of the evaluation images: the (scene) camera's own size for ``native``; for ``model``
     its size at the density the model was trained at
     (:meth:`~garmentnerf.model.config.ModelConfig.training_scale`: the longer side
-    ``config.image_resolution`` for whole-frame training), aspect kept."""
+    ``config.decoder.image_resolution`` for whole-frame training), aspect kept."""
     if resolution == "native":
         return int(camera.width), int(camera.height)
     W, H = int(camera.width), int(camera.height)
@@ -614,7 +615,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
     composition = resolve_composition(composition, run)
     scene_obj, cfg = run.scene, run.config
     sel = select_views(run, scene_obj, split, frames, cameras)
-    background = tuple(float(c) for c in cfg.background)
+    background = BACKGROUND
     perceptual, unavailable = perceptual_metrics(lpips_backbone)
     nearest = {c: dict(zip(("camera", "angle_deg"), nearest_camera(scene_obj, c, sel["train_cameras"])))
                for c in sel["cameras"]} if baseline else {}

@@ -162,9 +162,9 @@ def _expected(cfg, iterations: int | None, generator_iterations: int | None):
     if generator_iterations:
         changes["generator_iterations"] = int(generator_iterations)
     cfg = cfg.replace(**changes) if changes else cfg
-    gen = cfg.generator_iterations if generator_iterations is None else int(generator_iterations)
-    gen = gen if cfg.use_detail_feature else 0
-    return cfg, gen, gen + cfg.iterations
+    gen = cfg.schedule.generator_iterations if generator_iterations is None else int(generator_iterations)
+    gen = gen if cfg.encoder.detail_feature else 0
+    return cfg, gen, gen + cfg.schedule.iterations
 
 
 def train_variant(scene_path, run_dir, cfg, cameras=None, *, iterations: int | None = None,
@@ -498,9 +498,9 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     runs_dir = Path(runs_dir) if runs_dir is not None else out.with_name(out.stem + "_runs")
     base_cfg = model_config_for(preset)
     splits = _chosen_splits(scene_obj, splits)
-    variant_list = default_variants(scene_obj, base_cfg.history, variants, tuple(views), tuple(histories))
+    variant_list = default_variants(scene_obj, base_cfg.encoder.history, variants, tuple(views), tuple(histories))
     _, gen_full, _ = _expected(base_cfg, iterations, generator_iterations)
-    n_iter = iterations if iterations is not None else base_cfg.iterations
+    n_iter = iterations if iterations is not None else base_cfg.schedule.iterations
     # an evaluation is reused only for the same frame selection and the same metric set
     request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0]),
                "resolution": REPORT_RESOLUTION}
@@ -512,7 +512,7 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     finally:
         ctx.release()
     meta = {"scene": str(scene_path), "preset": preset, "iterations": n_iter, "generator_iterations": gen_full,
-            "seed": seed, "history": base_cfg.history, "train_cameras": len(scene_obj.camera_names("train")),
+            "seed": seed, "history": base_cfg.encoder.history, "train_cameras": len(scene_obj.camera_names("train")),
             "runs_dir": str(runs_dir), "seconds": time.perf_counter() - t0, "status": status}
     text = render_markdown(meta, variant_list, results, baseline, list(splits))
     with atomic_write_path(out, overwrite=overwrite) as tmp:

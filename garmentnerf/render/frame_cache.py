@@ -141,8 +141,6 @@ class FrameCache:
             stored = replace(stored, **{k: None if getattr(stored, k) is None else getattr(stored, k).to(torch.float16)
                                         for k in _HALF_FIELDS})
         size = sum(_nbytes(getattr(stored, k)) for k in (*_HALF_FIELDS, "posed_vertices", "vertex_normals", "aabb"))
-        if stored.normal_grid is not None:
-            size += _nbytes(stored.normal_grid.values)
         with self._lock:
             self._frame_bytes = max(size, 1)
             old = self._entries.pop(frame, None)

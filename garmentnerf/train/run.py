@@ -246,7 +246,7 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
     Args:
         may_be_missing: state-dict key prefixes the file may lack; those parameters keep their
             values in ``model`` (for a branch added to a trained model that starts as a no-op,
-            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.zero_start_prefixes`).
+            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.frame_code_prefixes`).
         may_grow: state-dict key prefixes whose tensors may be smaller in the file than in
             ``model`` (a wider MLP started from a narrower one's weights,
             :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.growable_prefixes`): each is
@@ -451,7 +451,7 @@ def _scene_digest(scene: Scene) -> str:
 
 def frame_code_record(scene: Scene, offsets: dict[str, int]) -> dict:
     """What a run with per-frame codes records in ``run.json`` (``frame_codes``): its scene's digest and
-    the index of each training sequence's first code (``ModelConfig.frame_code_resolution``)."""
+    the index of each training sequence's first code (``FrameCodeConfig``)."""
     return {"scene": _scene_digest(scene), "offsets": {k: int(v) for k, v in offsets.items()}}
 
 

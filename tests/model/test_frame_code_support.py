@@ -11,7 +11,13 @@ import torch.nn.functional as F
 from scipy import ndimage
 
 from garmentnerf.gl.uv_raster import sample_uv_map
-from garmentnerf.model.frame_codes import FrameCodes, adapt_frame_codes, garment_texels, grow_texels, resample_codes
+from garmentnerf.model.frame_codes import (
+    FrameCodes,
+    adapt_frame_codes,
+    garment_texels,
+    grow_texels,
+    resample_codes,
+)
 
 
 def test_garment_texels_are_those_a_bilinear_read_weighs():

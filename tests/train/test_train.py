@@ -10,17 +10,22 @@ import socket
 import pytest
 import torch
 
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.train.checkpoints import latest_checkpoint
-from garmentnerf.train.run import build_model, create_untrained_run, load_run, load_weights
-from garmentnerf.train.settings import TrainConfig, tiny_config
+from garmentnerf.train.run import (
+    build_model,
+    create_untrained_run,
+    load_run,
+    load_weights,
+)
+from garmentnerf.train.settings import TrainConfig
 from garmentnerf.train.trainer import Trainer
-
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # bit-equal resumes need one thread
 
 
 def make_tc(scene, out, **kw) -> TrainConfig:
-    base = dict(scene=scene.root, out=out, model_config=tiny_config(), iterations=3, generator_iterations=2,
+    base = dict(scene=scene.root, out=out, model_config=ModelConfig.tiny(), iterations=3, generator_iterations=2,
                 perceptual="none", progress=False, log_every=1, image_every=2, ckpt_every=100)
     base.update(kw)
     return TrainConfig(**base)
@@ -59,7 +64,7 @@ def test_rigged_scene(tiny_scene):
 # ---------------------------------------------------------------------------------------- training
 def test_overfit_one_frame(tiny_scene, gl_context, tmp_path):
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=30, generator_iterations=0, frames=(1,),
-                 cameras=("cam00",), model_config=tiny_config().replace(lr=2e-3, lr_final=1e-3))
+                 cameras=("cam00",), model_config=ModelConfig.tiny().updated({"schedule.lr": 2e-3, "schedule.lr_final": 1e-3}))
     result, _ = run(tc, gl_context)
     totals = [h["total"] for h in result.history]
     assert len(totals) == 30 and all(h["stage"] == "nerf" for h in result.history)
@@ -96,7 +101,7 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
     # Checkpoint round trip: the newest checkpoint and model.safetensors hold the final weights.
     step, weights, _ = latest_checkpoint(tmp_path / "b")
     assert step == 5
-    model = build_model(tiny_config())
+    model = build_model(ModelConfig.tiny())
     load_weights(weights, model)
     for key, value in model.state_dict().items():
         assert torch.equal(value, rest_state[key].cpu()), key
@@ -113,14 +118,14 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
 
 
 def test_a_batch_is_the_mean_loss_of_its_images_drawn_in_the_single_image_order(tiny_scene, gl_context, tmp_path):
-    """cfg.batch_size 2: step s trains on the (frame, camera) pairs that single-image steps 2s and
+    """cfg.schedule.batch_size 2: step s trains on the (frame, camera) pairs that single-image steps 2s and
     2s + 1 would draw (so an epoch still visits every pair once), and the gradients accumulated
     image by image equal those of the two images' mean loss backpropagated as one graph."""
     from garmentnerf.train.trainer import _seed_of
 
     single = make_tc(tiny_scene, tmp_path / "single", generator_iterations=0)
     batched = make_tc(tiny_scene, tmp_path / "batched", generator_iterations=0,
-                      model_config=tiny_config().replace(batch_size=2))
+                      model_config=ModelConfig.tiny().updated({"schedule.batch_size": 2}))
     with Trainer(single, gl_context, log=lambda m: None) as tr:
         n = len(tr.pairs)
         order = [tr._pick(tr.pairs, s, 2) for s in range(2 * n)]
@@ -154,7 +159,7 @@ def test_views_per_step_renders_one_frame_from_several_cameras_through_one_encod
     import garmentnerf.train.trainer as trainer_module
     from garmentnerf.train.trainer import _seed_of
 
-    cfg = tiny_config().replace(views_per_step=2, w_occupancy=0.1, occupancy_points=256)
+    cfg = ModelConfig.tiny().replace(views_per_step=2, w_occupancy=0.1, occupancy_points=256)
     tc = make_tc(tiny_scene, tmp_path / "views", generator_iterations=0, model_config=cfg)
     per_view, prepared, rendered = [], [], []
     losses = trainer_module.garment_losses
@@ -193,14 +198,14 @@ def test_encoder_lr_scale_gives_the_unets_their_own_rate():
     moves every weight by the rate (m / sqrt(v) = sign(g)), moves theirs 10 times as far."""
     from garmentnerf.train.trainer import param_groups
 
-    model = build_model(tiny_config())
+    model = build_model(ModelConfig.tiny())
     model.set_image_generator_frozen(True)
     params = [p for mod in model.trainable_modules().values() for p in mod.parameters() if p.requires_grad]
     unets = {id(p) for p in [*model.encoder.parameters(), *model.detail_encoder.parameters()]}
     assert unets and len(unets) < len(params)
-    plain = param_groups(model, params, tiny_config())
+    plain = param_groups(model, params, ModelConfig.tiny())
     assert [g["lr_scale"] for g in plain] == [1.0] and len(plain[0]["params"]) == len(params)
-    groups = param_groups(model, params, tiny_config().replace(encoder_lr_scale=10.0))
+    groups = param_groups(model, params, ModelConfig.tiny().replace(encoder_lr_scale=10.0))
     assert [g["lr_scale"] for g in groups] == [1.0, 10.0]
     assert {id(p) for p in groups[1]["params"]} == unets
     assert not unets & {id(p) for p in groups[0]["params"]}
@@ -229,7 +234,7 @@ def test_refuses_non_empty_run_dir(tiny_scene, gl_context, tmp_path):
 
 # ---------------------------------------------------------------------------------------- run folder
 def test_run_folder_errors(tiny_scene, tmp_path):
-    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, tiny_config(), seed=3)
+    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, ModelConfig.tiny(), seed=3)
     info = json.loads((run_dir / "run.json").read_text())
     assert info["format"] == "garmentnerf-run" and info["version"] == 1 and info["step"] == 0
     assert not os.path.isabs(info["scene"])
@@ -252,16 +257,16 @@ def test_run_folder_errors(tiny_scene, tmp_path):
 def test_mismatched_weights_and_checkpoints_are_rejected(tiny_scene, gl_context, tmp_path, capsys):
     from garmentnerf.cli.main import main
 
-    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, tiny_config(), seed=3)
-    wider = build_model(tiny_config().replace(mlp_width=48))
+    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, ModelConfig.tiny(), seed=3)
+    wider = build_model(ModelConfig.tiny().updated({"nerf.mlp_width": 48}))
     with pytest.raises(ValueError, match=r"model\.safetensors: .* has shape .*the model config expects"):
         load_weights(run_dir / "model.safetensors", wider)
-    no_detail = build_model(tiny_config().replace(use_detail_feature=False))
+    no_detail = build_model(ModelConfig.tiny().updated({"encoder.detail_feature": False}))
     with pytest.raises(ValueError, match=r"weights do not match the model config \((missing|unexpected)"):
         load_weights(run_dir / "model.safetensors", no_detail)
     # a run whose run.json was edited to another size: one line naming the file, exit 2
     info = json.loads((run_dir / "run.json").read_text())
-    info["model_config"]["mlp_width"] = 48
+    info["model_config"]["nerf"]["mlp_width"] = 48
     (run_dir / "run.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="has shape"):
         load_run(run_dir)
@@ -329,7 +334,7 @@ def _ddp_worker(rank: int, world: int, port: int, scene_root: str, out: str, res
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
-    tc = TrainConfig(scene=scene_root, out=out, model_config=tiny_config(), iterations=2, generator_iterations=1,
+    tc = TrainConfig(scene=scene_root, out=out, model_config=ModelConfig.tiny(), iterations=2, generator_iterations=1,
                      perceptual="none", progress=False, ckpt_every=100)
     with Trainer(tc, log=lambda m: None) as tr:
         picks = [tr._pick(tr.pairs, s, 2) for s in range(1, 3)]
@@ -359,12 +364,12 @@ def test_training_targets_carry_the_garment_share(tiny_scene, gl_context):
     from garmentnerf.data.scene import SceneImages
     from garmentnerf.train.frames import SceneFrames
 
-    cfg = tiny_config()
+    cfg = ModelConfig.tiny()
     with SceneFrames(tiny_scene, cfg, gl_context) as frames:
         image, mask, garment = frames.target("train", "cam01", 1)
     with SceneImages(tiny_scene) as images:
         _, labels = images.image("train", "cam01", 1)
-    R = cfg.image_resolution
+    R = cfg.decoder.image_resolution
     want_garment = cv2.resize((labels == 2).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
     want_mask = cv2.resize((labels != 0).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
     assert garment.shape == mask.shape == (1, R, R) and garment.max() > 0.5
@@ -387,13 +392,13 @@ def test_a_layered_garment_trains_one_palette_color_per_layer(tmp_path, gl_conte
     scene = make_rigged_scene(tmp_path / "dress", garment="dress", motion="walk", frames=2, views=3, size=64,
                               held_out_views=1, gl_context=gl_context)
     assert len(scene.palette_init["garment_layers"]) == 2
-    cfg = tiny_config().replace(palette_size=3, w_segmentation=1.0, segmentation_start=0)
+    cfg = ModelConfig.tiny().updated({"decoder.palette_size": 3, "loss.segmentation": 1.0, "loss.segmentation_start": 0})
     with SceneFrames(scene, cfg, gl_context) as frames:
         _, mask, layers = frames.target("train", "cam00", 1)
     with SceneImages(scene) as images:
         _, labels = images.image("train", "cam00", 1)
     assert (labels == 2).sum() > 20 and (labels == 3).sum() > 20
-    R = cfg.image_resolution
+    R = cfg.decoder.image_resolution
     assert layers.shape == (2, R, R)
     for k in range(2):
         want = cv2.resize((labels == 2 + k).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
@@ -409,8 +414,7 @@ def test_a_layered_garment_trains_one_palette_color_per_layer(tmp_path, gl_conte
 
 def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_path):
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=20, generator_iterations=0, frames=(1,),
-                 cameras=("cam00",), model_config=tiny_config().replace(lr=1e-2, lr_final=5e-3, w_segmentation=1.0,
-                                                                        segmentation_start=3))
+                 cameras=("cam00",), model_config=ModelConfig.tiny().updated({"schedule.lr": 1e-2, "schedule.lr_final": 5e-3, "loss.segmentation": 1.0, "loss.segmentation_start": 3}))
     result, _ = run(tc, gl_context)
     assert all("segmentation" not in h for h in result.history[:3])  # not before segmentation_start
     seg = [h["segmentation"] for h in result.history[3:]]
@@ -421,13 +425,17 @@ def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_pat
 
 def test_occupancy_term_teaches_the_density_where_the_garment_is(tiny_scene, gl_context, tmp_path):
     import numpy as np
+    from garmentnerf.model.occupancy import (
+        occupancy_iou,
+        occupancy_labels,
+        occupancy_points,
+    )
 
     from garmentnerf.data.scene import read_garment_arrays
     from garmentnerf.geometry.projection import SurfaceProjector
-    from garmentnerf.model.occupancy import occupancy_iou, occupancy_labels, occupancy_points
     from garmentnerf.model.samplers import padded_box
 
-    cfg = tiny_config().replace(lr=1e-2, lr_final=5e-3, w_occupancy=1.0, occupancy_points=2048)
+    cfg = ModelConfig.tiny().replace(lr=1e-2, lr_final=5e-3, w_occupancy=1.0, occupancy_points=2048)
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=25, generator_iterations=0, frames=(1,), model_config=cfg)
     arrays = read_garment_arrays(tiny_scene.garment_path("train"))
     projector = SurfaceProjector(arrays.faces, arrays.vertices.shape[1])
@@ -458,7 +466,7 @@ def test_geometry_warm_up_trains_the_occupancy_alone_then_renders_and_resumes_ex
                                                                                          tmp_path, monkeypatch):
     from garmentnerf.model.pipeline import GarmentAnimationNeRF
 
-    cfg = tiny_config().replace(iterations=5, geometry_iterations=3, w_occupancy=0.5, occupancy_points=1024)
+    cfg = ModelConfig.tiny().replace(iterations=5, geometry_iterations=3, w_occupancy=0.5, occupancy_points=1024)
     renders = []
     original_render = GarmentAnimationNeRF.render
 
@@ -486,7 +494,7 @@ def test_geometry_warm_up_trains_the_occupancy_alone_then_renders_and_resumes_ex
 
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "run"
-    base = tiny_config().replace(w_segmentation=0.0, segmentation_start=0)
+    base = ModelConfig.tiny().updated({"loss.segmentation": 0.0, "loss.segmentation_start": 0})
     first, _ = run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, stop_after=2, model_config=base),
                    gl_context)
     assert first.step == 2 and all("segmentation" not in h for h in first.history)
@@ -494,11 +502,11 @@ def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, 
                           loss_weights={"w_segmentation": 0.25}), gl_context)
     assert [h["step"] for h in rest.history] == [3, 4]
     for h in rest.history:  # the new term is in the objective with its new weight
-        weighted = sum(getattr(base.replace(w_segmentation=0.25), f"w_{k}") * v
+        weighted = sum(getattr(base.updated({"loss.segmentation": 0.25}), f"w_{k}") * v
                        for k, v in h.items() if k not in ("step", "stage", "total", "psnr"))
         assert h["total"] == pytest.approx(weighted, rel=1e-5)
     info = json.loads((out / "run.json").read_text())
-    assert info["model_config"]["w_segmentation"] == 0.25
+    assert info["model_config"]["loss"]["segmentation"] == 0.25
     assert info["loss_weight_changes"] == [{"step": 2, "w_segmentation": [0.0, 0.25]}]
     with pytest.raises(ValueError, match="unknown loss weight 'w_bogus'"):
         make_tc(tiny_scene, out, resume=True, loss_weights={"w_bogus": 1.0}).validate()
@@ -546,12 +554,17 @@ def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_
 
 
 def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_scene, gl_context, tmp_path):
-    from garmentnerf.model.height_band import (SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range,
-                                               save_height_range)
+    from garmentnerf.model.height_band import (
+        SHELL_BAND_FILE,
+        HeightRange,
+        load_height_range,
+        measure_height_range,
+        save_height_range,
+    )
     from garmentnerf.model.shell_sampler import ShellSampler
     from garmentnerf.render.session import RenderSession
 
-    cfg = tiny_config().replace(sampler="shell", shell_spacing="shell")
+    cfg = ModelConfig.tiny().replace(sampler="shell", shell_spacing="shell")
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=3, generator_iterations=0, model_config=cfg)
     placed = []
     with Trainer(tc, gl_context, log=lambda m: None) as tr:
@@ -585,19 +598,19 @@ def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_s
 
 
 @pytest.mark.parametrize("option, module, channels", [
-    ("world_normals", "encoder", lambda cfg: cfg.encoder_in_channels),  # E sees the world normal map
-    ("shading_normals", "decoder", lambda cfg: cfg.feature_image_channels),  # M_D sees the rendered normal
-    ("depth_normals", "decoder", lambda cfg: cfg.feature_image_channels),  # M_D sees the depth's normal
+    ("world_normals", "encoder", lambda cfg: cfg.encoder.in_channels),  # E sees the world normal map
+    ("shading_normals", "decoder", lambda cfg: cfg.nerf.zeta_channels),  # M_D sees the rendered normal
+    ("depth_normals", "decoder", lambda cfg: cfg.nerf.zeta_channels),  # M_D sees the depth's normal
 ])
 def test_a_run_with_normals_trains_saves_and_loads_with_the_wider_first_conv(tiny_scene, gl_context, tmp_path,
                                                                             option, module, channels):
     """``world_normals`` / ``shading_normals`` / ``depth_normals``: E / the decoder takes 3 more input
     channels; a run trains, saves and loads with them."""
-    cfg = tiny_config().replace(**{option: True})
+    cfg = ModelConfig.tiny().replace(**{option: True})
     result, state = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
                         gl_context)
     first_conv = [v for k, v in state.items() if k.startswith(module + ".") and v.ndim == 4][0]
-    assert first_conv.shape[1] == channels(cfg) == channels(tiny_config()) + 3
+    assert first_conv.shape[1] == channels(cfg) == channels(ModelConfig.tiny()) + 3
     assert all(math.isfinite(h["total"]) for h in result.history)
     loaded = load_run(tmp_path / "r")
     assert getattr(loaded.config, option)
@@ -610,14 +623,14 @@ def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_co
     setting and its loaded model samples that way. ``w_distortion`` adds its term to every step."""
     from garmentnerf.model.importance_sampler import ImportanceSampler
 
-    cfg = tiny_config().replace(importance_samples=6, w_distortion=0.1)
+    cfg = ModelConfig.tiny().replace(importance_samples=6, w_distortion=0.1)
     result, _ = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
                     gl_context)
     assert all(math.isfinite(h["total"]) for h in result.history)
     assert all(0 < h["distortion"] < 2.0 for h in result.history)  # metres: under the box's size
     loaded = load_run(tmp_path / "r")
     assert loaded.config.importance_samples == 6
-    assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
+    assert isinstance(loaded.model.box_sampler(loaded.config.sampler.samples_per_ray), ImportanceSampler)
 
 
 

@@ -109,12 +109,12 @@ def test_training_bench_cold_builds_each_frame_in_its_first_step(tiny_run, tmp_p
 
 
 def test_training_bench_times_another_recipe_in_turn(tiny_run, tiny_scene, tmp_path, capsys):
-    from garmentnerf.train.settings import tiny_config
+    from garmentnerf.model.config import ModelConfig
 
     heavy = tmp_path / "heavy"
     config = tmp_path / "heavy.json"
-    cfg = tiny_config()
-    config.write_text(json.dumps(cfg.replace(samples_per_ray=16 * cfg.samples_per_ray, w_occupancy=1.0).to_dict()))
+    cfg = ModelConfig.tiny()
+    config.write_text(json.dumps(cfg.replace(samples_per_ray=16 * cfg.sampler.samples_per_ray, w_occupancy=1.0).to_dict()))
     assert main(["train", "--scene", str(tiny_scene.root), "--out", str(heavy), "--model-config", str(config),
                  "--perceptual", "none", "--no-progress", "--threads", "1", "--iterations", "2",
                  "--generator-iterations", "1", "--image-every", "0"]) == 0
@@ -144,11 +144,11 @@ def test_training_bench_counts_a_frame_rendered_from_several_views_once(tiny_sce
     """A recipe with ``views_per_step`` 2: the frame's stages (its encoders) are counted once per step,
     not once per view, so the stages still partition the step with no negative remainder, and the row
     gives the seconds per view beside the seconds per step."""
-    from garmentnerf.train.settings import tiny_config
+    from garmentnerf.model.config import ModelConfig
 
     run = tmp_path / "views"
     config = tmp_path / "views.json"
-    config.write_text(json.dumps(tiny_config().replace(views_per_step=2).to_dict()))
+    config.write_text(json.dumps(ModelConfig.tiny().replace(views_per_step=2).to_dict()))
     assert main(["train", "--scene", str(tiny_scene.root), "--out", str(run), "--model-config", str(config),
                  "--perceptual", "none", "--no-progress", "--threads", "1", "--iterations", "2",
                  "--generator-iterations", "1", "--image-every", "0"]) == 0
