@@ -83,7 +83,7 @@ def register(sub) -> None:
                         "('garmentnerf body fit-appearance'), so the network learns the garment and its "
                         "visibility; copied into the run folder (a new run only)")
     p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
+                   help="override a loss weight of the config (repeatable), e.g. segmentation=0.5 (a field of the model config's loss); with "
                         "--resume it applies from the resumed step on and is recorded in run.json")
     p.add_argument("--precision", default=None, choices=("auto", "float32", "bfloat16"),  # TRAINING_PRECISIONS
                    help="NeRF MLP precision in the NeRF steps (default auto: bfloat16 where the machine multiplies "

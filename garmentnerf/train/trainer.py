@@ -450,10 +450,10 @@ class Trainer(Closeable):
                                    for k, (a, b) in setting_changes.items()))
             if weight_changes:
                 old = ModelConfig.from_dict(dict(resume_info["model_config"]))
-                record = {"step": self.step, **{k: [getattr(old, k), v] for k, v in weight_changes.items()}}
+                record = {"step": self.step, **{k: [getattr(old.loss, k), v] for k, v in weight_changes.items()}}
                 self.loss_weight_changes.append(record)
                 self.log("loss weights from step " + str(self.step) + ": " +
-                         ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
+                         ", ".join(f"{k} {getattr(old.loss, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_weights is not None:
             file_garment = run_garment(Path(tc.init_weights).parent)
             same_garment = None if file_garment is None else file_garment == dict(self.scene.garment)

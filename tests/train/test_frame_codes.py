@@ -18,8 +18,8 @@ from garmentnerf.train.run import frame_code_offset, load_run
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def codes_config(**kw):
-    return ModelConfig.tiny().replace(**{"frame_code_resolution": 4, "frame_code_lr_scale": 20.0, **kw})
+def codes_config(changes: dict | None = None) -> ModelConfig:
+    return ModelConfig.tiny().updated({"frame_codes.resolution": 4, "frame_codes.lr_scale": 20.0, **(changes or {})})
 
 
 def test_a_run_trains_one_code_per_training_frame_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
@@ -38,7 +38,7 @@ def test_a_run_trains_one_code_per_training_frame_and_resumes_exactly(tiny_scene
     assert record["offsets"] == {"train": 0} and len(record["scene"]) == 16
     with Trainer(make_tc(tiny_scene, tmp_path / "g", generator_iterations=0, model_config=cfg), gl_context,
                  log=lambda m: None) as tr:
-        groups = param_groups(tr.model, list(tr.model.parameters()), tr.cfg)
+        groups = param_groups(tr.model, list(tr.model.parameters()), tr.cfg.frame_codes.lr_scale)
         scaled = [g for g in groups if any(p is tr.model.frame_codes.codes for p in g["params"])]
         assert len(scaled) == 1 and scaled[0]["lr_scale"] == 20.0 and len(scaled[0]["params"]) == 1
         assert tr.code_index("train", 2) == 2 and tr.code_index("test", 0) is None
@@ -105,41 +105,6 @@ def test_codes_start_from_weights_trained_without_them(tiny_scene, gl_context, t
                                 init_weights=tmp_path / "plain" / "model.safetensors"), gl_context)
         both[name] = result.history[0]
     assert both["codes"]["total"] == pytest.approx(both["again"]["total"], abs=1e-6)
-
-
-def test_code_dropout_trains_only_the_kept_codes_and_resumes_exactly(tiny_scene, gl_context, tmp_path, monkeypatch):
-    """``frame_code_dropout``: some steps render their frame with E alone. A frame's code moves from zero
-    exactly when at least one of its visits kept it; an interrupted run drops the same steps."""
-    from garmentnerf.model.pipeline import GarmentAnimationNeRF
-
-    cfg = codes_config(iterations=8, frame_code_dropout=0.5)
-    visits = []  # (frame, code) of every image rendered
-    prepare = GarmentAnimationNeRF.prepare_frame
-
-    def recording(self, inputs, geometry=None, code=None):
-        visits.append((int(inputs.frame), code))
-        return prepare(self, inputs, geometry, code=code)
-
-    monkeypatch.setattr(GarmentAnimationNeRF, "prepare_frame", recording)
-    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=8,
-                                   model_config=cfg), gl_context)
-    assert len(visits) == 8
-    dropped = [code is None for _, code in visits]
-    assert any(dropped) and not all(dropped)
-    assert all(code in (None, frame) for frame, code in visits)  # the "train" sequence's codes start at 0
-    kept_frames = {frame for frame, code in visits if code is not None}
-    moved = set(np.flatnonzero(full_state["frame_codes.codes"].flatten(1).abs().amax(dim=1).numpy() > 0).tolist())
-    assert moved == kept_frames
-    first = list(visits)
-    visits.clear()
-    run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=8, model_config=cfg, stop_after=3),
-        gl_context)
-    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=8),
-                           gl_context)
-    assert visits == first
-    assert_same_steps(full.history[3:], rest.history, full_state, rest_state)
-    with pytest.raises(ValueError, match="frame_code_dropout"):
-        codes_config(frame_code_dropout=1.0)
 
 
 def test_a_codes_stage_holds_every_other_weight_exactly_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
@@ -229,7 +194,7 @@ def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resu
     assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
     for i in range(tiny_scene.num_frames("train")):
         assert torch.count_nonzero(loaded.model.frame_codes.dense(i)[:, ~support]) == 0
-    with pytest.raises(ValueError, match="frame_code_support_margin needs per-frame codes"):
+    with pytest.raises(ValueError, match="frame_codes.support_margin needs codes"):
         ModelConfig.tiny().updated({"frame_codes.support_margin": 0})
-    with pytest.raises(ValueError, match="frame_code_support_margin must be -1"):
+    with pytest.raises(ValueError, match="frame_codes.support_margin must be -1"):
         codes_config({"frame_codes.support_margin": -2})

@@ -179,41 +179,6 @@ def test_init_weights_starts_the_nerf_stage_from_every_weight(tiny_scene, gl_con
         _tc(tiny_scene, tmp_path / "x", training_crop_density=-1.0).validate()
 
 
-def test_init_weights_without_the_atlas_branch_adds_it_as_a_no_op(tiny_scene, gl_context, tmp_path):
-    """A config with ``atlas_feature_channels`` fine-tunes weights trained without it: the branch
-    starts at its initialisation (its MLP weights zero) and learns at ``atlas_feature_lr_scale``."""
-    from safetensors.torch import load_file
-
-    donor_run = tmp_path / "donor"
-    with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:
-        tr.train()
-    donor = load_file(str(donor_run / "model.safetensors"))
-    cfg = ModelConfig.tiny().replace(atlas_feature_channels=2, atlas_feature_resolution=16, atlas_feature_lr_scale=5.0)
-    messages = []
-    tc = _tc(tiny_scene, tmp_path / "atlas", model_config=cfg, init_weights=donor_run / "model.safetensors",
-             iterations=1)
-    with Trainer(tc, gl_context, log=messages.append) as tr:
-        state = tr.model.state_dict()
-        assert all(torch.equal(state[k], v) for k, v in donor.items())
-        assert not state["nerf.atlas_input.weight"].any()
-        new = [k for k in state if k not in donor]
-        assert new and all(k.startswith(("atlas_features.", "nerf.atlas_input.")) for k in new)
-        assert any("in this config" in m and "nerf.atlas_input.weight" in m for m in messages)
-        result = tr.train()
-        scales = sorted(g["lr_scale"] for g in tr.optimizer.param_groups)
-        lrs = sorted(g["lr"] for g in tr.optimizer.param_groups)
-        branch = {id(p) for g in tr.optimizer.param_groups if g["lr_scale"] == 5.0 for p in g["params"]}
-        assert branch == {id(p) for name, p in tr.model.named_parameters() if name.startswith(tuple(new))}
-    assert result.finished and scales == [1.0, 5.0] and lrs[1] == pytest.approx(5.0 * lrs[0])
-    trained = load_file(str(tmp_path / "atlas" / "model.safetensors"))
-    assert trained["nerf.atlas_input.weight"].abs().sum() > 0  # one step moved the branch off zero
-    # weights missing anything else still fail, naming the file
-    with pytest.raises(ValueError, match="donor.*missing"):
-        with Trainer(_tc(tiny_scene, tmp_path / "wider", model_config=ModelConfig.tiny().updated({"nerf.mlp_depth": 3}),
-                         init_weights=donor_run / "model.safetensors"), gl_context, log=lambda m: None):
-            pass
-
-
 def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(tiny_scene, gl_context, tmp_path):
     """A config with a wider NeRF MLP fine-tunes a narrower one's weights: every other weight is
     the donor's, the MLP's density and zeta equal the donor MLP's on random samples (new units
@@ -266,29 +231,6 @@ def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(t
             pass
 
 
-def test_atlas_branch_resumes_exactly(tiny_scene, gl_context, tmp_path):
-    """Stopped and resumed, a run with the atlas branch ends with the uninterrupted run's weights:
-    the optimiser's two parameter groups and their learning-rate scales come back from the checkpoint."""
-    from safetensors.torch import load_file
-
-    cfg = ModelConfig.tiny().replace(atlas_feature_channels=2, atlas_feature_resolution=16, atlas_feature_lr_scale=5.0)
-    with Trainer(_tc(tiny_scene, tmp_path / "whole", model_config=cfg, iterations=3), gl_context,
-                 log=lambda m: None) as tr:
-        tr.train()
-    with Trainer(_tc(tiny_scene, tmp_path / "split", model_config=cfg, iterations=3, stop_after=2, ckpt_every=1),
-                 gl_context, log=lambda m: None) as tr:
-        assert not tr.train().finished
-    with Trainer(_tc(tiny_scene, tmp_path / "split", model_config=None, iterations=None, generator_iterations=None,
-                     resume=True), gl_context, log=lambda m: None) as tr:
-        assert tr.train().finished
-        assert sorted(g["lr_scale"] for g in tr.optimizer.param_groups) == [1.0, 5.0]
-    whole = load_file(str(tmp_path / "whole" / "model.safetensors"))
-    split = load_file(str(tmp_path / "split" / "model.safetensors"))
-    assert whole.keys() == split.keys() and any(k.startswith("atlas_features.") for k in whole)
-    for key, value in whole.items():
-        torch.testing.assert_close(split[key], value, atol=1e-6, rtol=0, msg=key)
-
-
 def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_path, capsys):
     from garmentnerf.cli.main import main
 
@@ -300,13 +242,14 @@ def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_p
     first = tmp_path / "first"
     assert main(["train", "--out", str(first), "--model-config", str(config_file), "--iterations", "1", *common]) == 0
     recorded = json.loads((first / "run.json").read_text())["model_config"]
-    assert recorded == {**cfg.to_dict(), "iterations": 1, "generator_iterations": 1}
+    assert recorded == cfg.updated({"schedule.iterations": 1, "schedule.generator_iterations": 1}).to_dict()
     # the same recipe again from the run's run.json, fine-tuning the first run's weights
     second = tmp_path / "second"
     assert main(["train", "--out", str(second), "--model-config", str(first / "run.json"), "--iterations", "2",
                  "--init-weights", str(first / "model.safetensors"), *common]) == 0
     again = json.loads((second / "run.json").read_text())
-    assert again["model_config"] == {**recorded, "iterations": 2} and again["step"] == 3
+    assert again["model_config"] == ModelConfig.from_dict(recorded).updated({"schedule.iterations": 2}).to_dict()
+    assert again["step"] == 3
     capsys.readouterr()
     bad = tmp_path / "bad.json"
     bad.write_text('{"image_resolution": 32, "no_such_field": 1}')
