@@ -777,9 +777,11 @@ def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: floa
     if out is not None:
         cfg = run.config
         out["palette"] = run.palette().cpu().tolist()
-        out["model_config"] = {k: v for k, v in cfg.to_dict().items()
-                               if k in ("image_resolution", "history", "use_detail_feature",
-                                        "use_dynamic_feature", "iterations")}
+        out["model_config"] = {"decoder.image_resolution": cfg.decoder.image_resolution,
+                               "encoder.history": cfg.encoder.history,
+                               "encoder.detail_feature": cfg.encoder.detail_feature,
+                               "encoder.dynamic_feature": cfg.encoder.dynamic_feature,
+                               "schedule.iterations": cfg.schedule.iterations}
     if base_scores is not None:
         b = result_of(base_scores, "nearest_view")
         b["nearest_camera"] = {c: v["camera"] for c, v in nearest.items()}

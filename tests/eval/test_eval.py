@@ -413,7 +413,7 @@ def test_render_markdown_shape():
         return {"means": {"psnr": p, "ssim": 0.9, "stlpips_alex": 0.1, "tof": 0.5}, "sequences": {"train": [0, 1]},
                 "cameras": ["c"], "unavailable": {"lpips_alex": "no weights"}, "step": 2}
 
-    variants = [Variant("full"), Variant("no_detail", {"use_detail_feature": False}), Variant("k0", {"history": 0}),
+    variants = [Variant("full"), Variant("no_detail", {"encoder.detail_feature": False}), Variant("k0", {"encoder.history": 0}),
                 Variant("views_4", views=4, cameras=("a", "b", "c", "d")), Variant("views_16", views=16, note="few")]
     results = {v.name: {"seen": res(20.0 + i), "unseen_view": res(18.0 + i)} for i, v in enumerate(variants[:4])}
     meta = {"scene": "s", "preset": "tiny", "iterations": 2, "generator_iterations": 1, "seed": 0, "history": 2,
