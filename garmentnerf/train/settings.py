@@ -19,7 +19,7 @@ from garmentnerf.train.run import recorded_scene_path
 
 __all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
            "TRAINING_PRECISIONS", "tiny_config", "model_config_for", "loss_weight_names", "training_precision",
-           "new_run_settings", "resume_settings", "show_setting"]
+           "new_run_settings", "resume_settings", "show_setting", "parse_frames"]
 
 MODEL_PRESETS = ("paper", "cpu_small", "tiny")
 
@@ -42,6 +42,30 @@ def tiny_config() -> ModelConfig:
         encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
         generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
         decoder_width=16, decoder_min_width=8, decoder_extra_layers=0, iterations=200, generator_iterations=50)
+
+
+def parse_frames(text: str, what: str = "--frames") -> tuple[int, ...]:
+    """The frame indices of a range in Python slice syntax (``A:B``, ``A:B:S``, or one frame ``A``);
+    ValueError naming ``what`` when ``text`` is not one or selects no frame."""
+    parts = text.split(":")
+    try:
+        nums = [int(x) if x.strip() else None for x in parts]
+    except ValueError:
+        raise ValueError(f"{what} must be A:B (integers), got {text!r}") from None
+    if len(nums) == 1:
+        if nums[0] is None:
+            raise ValueError(f"{what} must be A:B, got {text!r}")
+        return (nums[0],)
+    if len(nums) not in (2, 3):
+        raise ValueError(f"{what} must be A:B, got {text!r}")
+    start, stop = nums[0] or 0, nums[1]
+    if stop is None:
+        raise ValueError(f"{what} needs an end (A:B)")
+    step = nums[2] if len(nums) == 3 and nums[2] else 1
+    out = tuple(range(start, stop, step))
+    if not out:
+        raise ValueError(f"{what} {text} selects no frame")
+    return out
 
 
 def loss_weight_names() -> tuple[str, ...]:
