@@ -562,8 +562,9 @@ def recipe_model_config(base: str | ModelConfig, overrides: Mapping[str, object]
             raise ValueError(f"'{key}' is not a model config field" + (f" (did you mean '{close[0]}'?)" if close else ""))
         want, got = _kind_of(current[key]), _kind_of(value)
         if want != "other" and got != want and not (want == "number" and got == "int"):
-            raise ValueError(f"{key}: must be {want.replace('number', 'a number').replace('int', 'an integer')}"
-                             f"{'' if want in ('int', 'number') else ' value'}, got {json.dumps(_plain(value))}")
+            wanted = {"bool": "true or false", "int": "an integer", "number": "a number", "str": "a string",
+                      "list": "a list"}[want]
+            raise ValueError(f"{key}: must be {wanted}, got {json.dumps(_plain(value))}")
     try:
         return ModelConfig.from_dict({**current, **_plain(overrides)})
     except (TypeError, ValueError) as exc:

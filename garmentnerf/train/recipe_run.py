@@ -57,8 +57,8 @@ from garmentnerf.train.recipe import (DEMO_SCENE_PREFIX, RECIPE_FILE, Recipe, Re
                                       first_difference, load_recipe_json, parse_recipe, previous_train_stage,
                                       stage_model_configs)
 
-__all__ = ["LOG_FILE", "STAGES_DIR", "SCENES_DIR", "DATA_DIR", "RecipeOptions", "run_recipe", "stage_folder",
-           "read_log", "make_sequence_scene", "copy_scene"]
+__all__ = ["LOG_FILE", "STAGES_DIR", "SCENES_DIR", "DATA_DIR", "RecipeOptions", "run_recipe", "check_scenes",
+           "base_scene", "stage_folder", "read_log", "make_sequence_scene", "copy_scene"]
 
 LOG_FILE = "recipe_log.json"
 LOG_FORMAT = "garmentnerf-recipe-log"
@@ -161,6 +161,71 @@ def _say(message: str) -> None:
     print(f"garmentnerf train: {message}", file=sys.stderr, flush=True)
 
 
+def base_scene(base: str | None, key: str, scene: Path | None, recipe_file: str) -> Path:
+    """The folder of the scene ``base`` names (None: the --scene ``scene``; ``demo:<garment>``: a bundled
+    demo's), checked to hold a scene; ``key`` says what needs it (for messages)."""
+    if base is None:
+        if scene is None:
+            raise ValueError(f"{recipe_file}: {key} trains on the --scene: give --scene DIR")
+        path = scene
+    else:
+        from garmentnerf.demos import demo
+
+        garment = base[len(DEMO_SCENE_PREFIX):]
+        path = demo(garment).scene_dir
+        if path is None:
+            raise FileNotFoundError(f"{recipe_file}: {key}: the {garment} demo is not installed")
+    if not (path / "scene.json").is_file():
+        raise FileNotFoundError(f"{path / 'scene.json'}: missing ({key} needs a scene folder)")
+    return path
+
+
+def check_scenes(recipe: Recipe, recipe_file: str, scene: Path | None) -> None:
+    """Refuse, before anything runs, a scene that is missing, a sequence to add that its scene has
+    already or whose garment is not the scene's, and a sequence a stage trains on that its scene lacks
+    (``scene``: the --scene)."""
+    from garmentnerf.data.garments import GARMENT_KINDS
+    from garmentnerf.data.scene import Scene
+
+    loaded: dict[Path, Scene] = {}
+
+    def load(path: Path) -> Scene:
+        if path not in loaded:
+            loaded[path] = Scene.load(path)
+        return loaded[path]
+
+    names: dict[str | None, tuple[Path, set[str]]] = {}
+    for i, rs in enumerate(recipe.scenes):
+        base = base_scene(rs.base, f"scenes[{i}]", scene, recipe_file)
+        loaded_base = load(base)
+        kind = loaded_base.garment.get("kind")
+        for j, extra in enumerate(rs.sequences):
+            key = f"scenes[{i}].sequences[{j}]"
+            if extra.name in loaded_base.sequences:
+                raise RecipeError(f"{recipe_file}: {key}.name: '{extra.name}' is a sequence of "
+                                  f"{loaded_base.scene_file} already (name the new one otherwise)")
+            garment = extra.garment or kind
+            if garment != kind:
+                raise RecipeError(f"{recipe_file}: {key}.garment: a {garment} cannot train {loaded_base.scene_file}, "
+                                  f"whose garment is a {kind}")
+            if garment not in GARMENT_KINDS:
+                raise RecipeError(f"{recipe_file}: {key}: 'garmentnerf data make' simulates "
+                                  f"{', '.join(GARMENT_KINDS)}, not the scene's {kind} ({loaded_base.scene_file})")
+        names[rs.name] = (base, set(loaded_base.sequence_names("train")) | {e.name for e in rs.sequences})
+    for i, stage in enumerate(recipe.stages):
+        if not stage.trains:
+            continue
+        key = f"stages[{i}] ({stage.name})"
+        if stage.scene not in names:
+            base = base_scene(stage.scene, key, scene, recipe_file)
+            names[stage.scene] = (base, set(load(base).sequence_names("train")))
+        path, available = names[stage.scene]
+        missing = [s for s in stage.sequences or () if s not in available]
+        if missing:
+            raise RecipeError(f"{recipe_file}: {key}.sequences: {path / 'scene.json'} has no training sequence "
+                              f"{', '.join(repr(m) for m in missing)} (it has {', '.join(sorted(available)) or 'none'})")
+
+
 def run_recipe(recipe: Recipe, recipe_file, out, scene=None, *, resume: bool = False,
                options: RecipeOptions = RecipeOptions(), say: Callable[[str], None] = _say,
                make_sequence: Callable = make_sequence_scene) -> int:
@@ -190,7 +255,7 @@ def run_recipe(recipe: Recipe, recipe_file, out, scene=None, *, resume: bool = F
                              f"choose another --out")
         log = _new_log(recipe, str(recipe_file), scene_path, out)
     runner = _Runner(recipe, str(recipe_file), out, scene_path, options, say, make_sequence, log)
-    runner.preflight()
+    check_scenes(recipe, str(recipe_file), scene_path)
     if not resume:
         out.mkdir(parents=True, exist_ok=True)
         write_file_atomic(out / RECIPE_FILE, (json.dumps(recipe.to_json(), indent=1) + "\n").encode("utf-8"))
@@ -231,72 +296,11 @@ class _Runner:
         self.configs = stage_model_configs(recipe, recipe_file)
 
     # ---- scenes --------------------------------------------------------------------------------------------
-    def base_scene(self, base: str | None, key: str) -> Path:
-        """The folder of a scene named ``base`` (None: the --scene; ``demo:<garment>``), checked to be one."""
-        if base is None:
-            if self.scene is None:
-                raise ValueError(f"{self.recipe_file}: {key} trains on the --scene: give --scene DIR")
-            path = self.scene
-        else:
-            from garmentnerf.demos import demo
-
-            garment = base[len(DEMO_SCENE_PREFIX):]
-            path = demo(garment).scene_dir
-            if path is None:
-                raise FileNotFoundError(f"{self.recipe_file}: {key}: the {garment} demo is not installed")
-        if not (path / "scene.json").is_file():
-            raise FileNotFoundError(f"{path / 'scene.json'}: missing ({key} needs a scene folder)")
-        return path
-
-    def preflight(self) -> None:
-        """Refuse, before anything runs, a scene that is missing or lacks a sequence a stage trains on."""
-        from garmentnerf.data.garments import GARMENT_KINDS
-        from garmentnerf.data.scene import Scene
-
-        loaded: dict[Path, Scene] = {}
-
-        def load(path: Path) -> Scene:
-            if path not in loaded:
-                loaded[path] = Scene.load(path)
-            return loaded[path]
-
-        names: dict[str | None, tuple[Path, set[str]]] = {}
-        for i, rs in enumerate(self.recipe.scenes):
-            base = self.base_scene(rs.base, f"scenes[{i}]")
-            scene = load(base)
-            kind = scene.garment.get("kind")
-            for j, extra in enumerate(rs.sequences):
-                key = f"scenes[{i}].sequences[{j}]"
-                if extra.name in scene.sequences:
-                    raise RecipeError(f"{self.recipe_file}: {key}.name: '{extra.name}' is a sequence of "
-                                      f"{scene.scene_file} already (name the new one otherwise)")
-                garment = extra.garment or kind
-                if garment != kind:
-                    raise RecipeError(f"{self.recipe_file}: {key}.garment: a {garment} cannot train "
-                                      f"{scene.scene_file}, whose garment is a {kind}")
-                if garment not in GARMENT_KINDS:
-                    raise RecipeError(f"{self.recipe_file}: {key}: 'garmentnerf data make' simulates "
-                                      f"{', '.join(GARMENT_KINDS)}, not the scene's {kind} ({scene.scene_file})")
-            names[rs.name] = (base, set(scene.sequence_names("train")) | {e.name for e in rs.sequences})
-        for i, stage in enumerate(self.recipe.stages):
-            if not stage.trains:
-                continue
-            key = f"stages[{i}] ({stage.name})"
-            if stage.scene not in names:
-                base = self.base_scene(stage.scene, key)
-                names[stage.scene] = (base, set(load(base).sequence_names("train")))
-            path, available = names[stage.scene]
-            missing = [s for s in stage.sequences or () if s not in available]
-            if missing:
-                raise RecipeError(f"{self.recipe_file}: {key}.sequences: {path / 'scene.json'} has no training "
-                                  f"sequence {', '.join(repr(m) for m in missing)} (it has "
-                                  f"{', '.join(sorted(available)) or 'none'})")
-
     def stage_scene(self, stage: Stage) -> Path:
         """The scene folder ``stage`` trains on (a recipe scene made first if it is not yet)."""
         rs = self.recipe.scene_named(stage.scene) if stage.scene is not None else None
         if rs is None:
-            return self.base_scene(stage.scene, f"stage {stage.name}")
+            return base_scene(stage.scene, f"stage {stage.name}", self.scene, self.recipe_file)
         return self.recipe_scene(rs)
 
     def recipe_scene(self, rs: RecipeScene) -> Path:
@@ -307,7 +311,7 @@ class _Runner:
 
         folder = self.out / SCENES_DIR / rs.name
         if not (folder / "scene.json").is_file():
-            copy_scene(self.base_scene(rs.base, f"scene {rs.name}"), folder)
+            copy_scene(base_scene(rs.base, f"scene {rs.name}", self.scene, self.recipe_file), folder)
         scene = Scene.load(folder)
         record = self.log["scenes"].setdefault(rs.name, {"folder": f"{SCENES_DIR}/{rs.name}", "sequences": {}})
         for extra in rs.sequences:
