@@ -597,8 +597,12 @@ def first_difference(a, b, where: str = "") -> str | None:
             if found:
                 return found
         return None
-    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
-        return next((d for i, (x, y) in enumerate(zip(a, b)) if (d := first_difference(x, y, f"{where}[{i}]"))), None)
+    if isinstance(a, list) and isinstance(b, list):
+        found = next((d for i, (x, y) in enumerate(zip(a, b)) if (d := first_difference(x, y, f"{where}[{i}]"))),
+                     None)
+        return found or (None if len(a) == len(b) else f"{where} ({len(a)} against {len(b)} entries)")
     if a == b and isinstance(a, bool) == isinstance(b, bool):
         return None
-    return f"{where or 'the recipe'} ({json.dumps(a)} against {json.dumps(b)})"
+    shown = [json.dumps(v) if not isinstance(v, (dict, list)) else ("an object" if isinstance(v, dict) else "a list")
+             for v in (a, b)]
+    return f"{where or 'the recipe'} ({shown[0]} against {shown[1]})"

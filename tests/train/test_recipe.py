@@ -218,6 +218,37 @@ def test_a_recipe_scene_is_made_once_and_its_stage_trains_on_it(tiny_scene, gl_c
     assert log["scenes"]["more"]["sequences"]["extra"]["finished"]
 
 
+def test_ctrl_c_in_a_stage_stops_the_recipe_with_its_checkpoint(tiny_scene, tmp_path, capsys, monkeypatch,
+                                                               one_torch_thread):
+    """Ctrl-C (or SIGTERM) in a stage: its checkpoint is written, the recipe stops with status 130 and says
+    how to continue; the resume finishes it."""
+    from garmentnerf.train.trainer import Trainer
+
+    recipe = json.loads(json.dumps(TINY))
+    recipe["stages"] = [recipe["stages"][0]]
+    file = write_recipe(tmp_path / "one.json", recipe)
+    out = tmp_path / "R"
+    step = Trainer._nerf_step
+
+    def interrupted(self, number, index, gen):
+        if number == 3:
+            raise KeyboardInterrupt
+        return step(self, number, index, gen)
+
+    monkeypatch.setattr(Trainer, "_nerf_step", interrupted)
+    assert main(recipe_argv(file, out, tiny_scene.root)) == 130
+    err = capsys.readouterr().err
+    assert "interrupted: checkpoint of step 3 written" in err
+    assert f"interrupted in stage 1/1 a; continue the recipe with 'garmentnerf train --out {out} --resume'" in err
+    log = json.loads((out / "recipe_log.json").read_text())
+    assert log["stages"][0]["finished"] is None and log["stages"][0]["sittings"][0]["to_step"] == 3
+    assert not (out / "run.json").exists()  # nothing published before the last stage ends
+    monkeypatch.setattr(Trainer, "_nerf_step", step)
+    assert main(["train", "--out", str(out), "--resume", *FAST]) == 0
+    assert "resuming at step 3" in capsys.readouterr().err
+    assert load_run(out).step == 5
+
+
 # ---------------------------------------------------------------------------------------- refusals
 BAD = [
     (lambda r: r["stages"][0].update(bogus=1), "stages[0].bogus: unknown key"),
