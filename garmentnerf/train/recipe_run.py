@@ -30,7 +30,8 @@ first checkpoint) and a fit stage start again. The recipe must be the one ``R/re
                                                                          "started", "finished", "cpu_minutes"}}}},
      "stages": [{"name", "kind", "folder": "stages/<NN>-<name>", "started", "finished" (UTC times or null),
                  "step" (global step reached), "end_step" (where the stage ends), "steps" (steps trained
-                 here), "cpu_minutes", "sittings": [{"started", "from_step", "to_step", "cpu_minutes"}],
+                 here), "cpu_minutes", "sittings": [{"started", "from_step", "to_step", "cpu_minutes",
+                 "threads", "device"}],
                  "fit": {the fit's summary} (fit stages)}],
      "published": {"stage", "time"} | null}
 
@@ -166,7 +167,7 @@ def base_scene(base: str | None, key: str, scene: Path | None, recipe_file: str)
     demo's), checked to hold a scene; ``key`` says what needs it (for messages)."""
     if base is None:
         if scene is None:
-            raise ValueError(f"{recipe_file}: {key} trains on the --scene: give --scene DIR")
+            raise ValueError(f"{recipe_file}: {key} uses the --scene: give --scene DIR")
         path = scene
     else:
         from garmentnerf.demos import demo
@@ -421,6 +422,8 @@ class _Runner:
 
     def train(self, index: int, stage: Stage, record: dict) -> bool:
         """Run (or resume) train stage ``stage``; False when it was interrupted."""
+        import torch
+
         from garmentnerf.train.checkpoints import checkpoints
         from garmentnerf.train.run import RUN_FILE
         from garmentnerf.train.trainer import Trainer
@@ -443,7 +446,7 @@ class _Runner:
 
         with Trainer(tc) as trainer:
             end = trainer.total_steps if stage.stop_after is None else min(trainer.total_steps, stage.stop_after)
-            sitting["from_step"] = trainer.step
+            sitting.update(from_step=trainer.step, threads=torch.get_num_threads(), device=str(trainer.device))
             record["end_step"] = end
             note(trainer)
 

@@ -301,6 +301,19 @@ def test_flags_the_recipe_sets_are_refused_with_it(tiny_scene, tmp_path, capsys,
     assert f"--recipe and {flags[0]}: the recipe sets each stage's" in one_error_line(capsys)
 
 
+def test_a_new_recipe_run_needs_its_scene_and_a_resume_its_folder(tmp_path, capsys):
+    file = write_recipe(tmp_path / "tiny.json", TINY)
+    assert main(recipe_argv(file, tmp_path / "R", None)) == 2
+    assert one_error_line(capsys).endswith(f"{file}: stages[0] (a) uses the --scene: give --scene DIR")
+    assert main(recipe_argv(file, tmp_path / "R", tmp_path / "nowhere")) == 2
+    assert "nowhere/scene.json: missing" in one_error_line(capsys)
+    assert main(recipe_argv(file, tmp_path / "R", None, "--resume")) == 2
+    assert "recipe.json: missing; --resume with --recipe continues a folder made by" in one_error_line(capsys)
+    assert main(recipe_argv(tmp_path / "none.json", tmp_path / "R", None)) == 2
+    assert "none.json: no such recipe file" in one_error_line(capsys)
+    assert not (tmp_path / "R").exists()
+
+
 def test_model_configs_come_from_the_preset_or_the_previous_stage():
     recipe = parse_recipe(TINY, "tiny.json")
     configs = stage_model_configs(recipe)
