@@ -9,6 +9,8 @@
 - :mod:`~garmentnerf.train.frames`: per-frame inputs and ground-truth targets, cached in memory.
 - :mod:`~garmentnerf.train.perceptual`: the perceptual loss network (VGG19 or shift-tolerant LPIPS).
 - :mod:`~garmentnerf.train.distributed`: data-parallel training over ``torch.distributed``.
+- :mod:`~garmentnerf.train.recipe`: a recipe file (a model's stages as data) and its model configs.
+- :mod:`~garmentnerf.train.recipe_run`: running a recipe's stages in order into one folder, resumable.
 """
 
 from garmentnerf.train.run import LoadedRun, create_untrained_run, load_run, save_run_model
