@@ -38,7 +38,7 @@ DEMO_NAMES = ("skirt", "tshirt", "dress")
 DEFAULT_DEMO = "skirt"
 #: Run folder of each demo, relative to :data:`DEMO_ROOT`.
 _RUN_FOLDERS = {"skirt": "run", "tshirt": "run_tshirt", "dress": "run_dress"}
-#: Largest weights file a demo may ship (issue 29: at most 25 MB per garment).
+#: Largest weights file a demo may ship (the demo budget: at most 25 MB per garment).
 MAX_DEMO_WEIGHTS_BYTES = 25 * 1024 * 1024
 #: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``), per split.
 EVAL_FILES = {"seen": "eval_seen.json", "unseen_view": "eval_unseen_view.json",

@@ -351,8 +351,8 @@ class ModelConfig:
         About 1 s a step on the development CPU. A few thousand steps are about 1 % of the paper's
         schedule, so the density moves fast (``trunc_exp``, scale 10, bias -3, a body prior) and the
         learning rate is doubled. The radiance is grey, so it cannot absorb the garment's hue, and the
-        blend weights are supervised by the labels from step 550 (``docs/lab/``, "the cpu_small
-        preset").
+        blend weights are supervised by the labels from step 550 (``docs/lab/bundles.md``, "The base model
+        (B0)").
         """
         return cls().updated({
             "encoder.reference_resolution": 128, "encoder.width_scale": 0.5, "encoder.neural_texture_resolution": 256,

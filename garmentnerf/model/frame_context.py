@@ -205,7 +205,7 @@ def frame_vertices(posed: "PosedBody", frame: int) -> torch.Tensor:
     as long as the frame's inputs live (28 MB for the demo's 170 frames, against the frame's 165 kB).
     The trainer keeps frames long after the clip they were built from is gone, and with several
     sequences each frame kept a different posing of its clip: training on four sequences grew by
-    about 13 MB per new frame until it was killed (``docs/quality.md``, "The trainer's memory,
+    about 13 MB per new frame until it was killed (``docs/lab/ledger.md``, "The trainer's memory,
     found and fixed")."""
     return posed.vertices[frame].detach().to("cpu", torch.float32).clone(memory_format=torch.contiguous_format)
 

@@ -89,7 +89,7 @@ def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, targe
         garment, half body asks for w_G = 0.5. For P = 2 it is ``|w_G - g*/m*|``. Every color is
         held, the body's too: a head that cannot tell two layers apart gains nothing by moving a
         layer pixel's weight to the body (with the layers alone held, it would: the dress's first
-        model leaked a quarter of its garment weight to the body that way, docs/lab/).
+        model leaked a quarter of its garment weight to the body that way, docs/lab/ledger.md).
     """
     B, P, H, W = weights.shape
     K = target_garment.shape[1]

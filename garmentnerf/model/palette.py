@@ -277,7 +277,7 @@ class DecomposedMaps:
         Why area: the antialiased bilinear filter spreads an output pixel over twice its width, a
         blur the truth does not have. The bundled skirt rendered at its trained density and shown at
         half (24 unseen views) scores 0.15 dB more foreground and 2.4 more body averaged by area
-        than by that filter (``docs/quality.md``, "Rendering above the trained density, and shown
+        than by that filter (``docs/lab/ledger.md``, "Rendering above the trained density, and shown
         smaller than rendered")."""
         if (int(width), int(height)) == self.size:
             return self

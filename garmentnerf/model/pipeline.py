@@ -82,7 +82,7 @@ from garmentnerf.model.volume_rendering import render_packed_segmented
 DEFAULT_CHUNK_POINTS = 16384
 #: Samples projected onto the body per call: a render's samples are projected before the march,
 #: this many at a time (the exact search pays a fixed cost per call and walks longer Morton runs in
-#: a larger set: 1.2 against 1.7 us per sample in the 16k chunks, docs/lab/, "The projection's walk").
+#: a larger set: 1.2 against 1.7 us per sample in the 16k chunks, docs/lab/ledger.md, "The projection's walk").
 PROJECTION_CHUNK_POINTS = 1 << 17
 
 #: Stages of :meth:`GarmentAnimationNeRF.prepare_frame` / the GL builder, in pipeline order.

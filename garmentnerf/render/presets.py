@@ -61,7 +61,7 @@ CHARACTER_RECT_MARGIN = 2
 #: where under the skin its density may go (the body is drawn opaque over it), and where the cloth lies
 #: on the skin it may put the garment's opacity there: the bundled t-shirt renders its chest at 5 to 7 cm
 #: under the skin, so with the data's 5 cm (:data:`~garmentnerf.model.height_band.HEIGHT_MARGIN_IN`) the
-#: culled presets cut it away and the chest showed holes (docs/quality.md, "Holes in the t-shirt's
+#: culled presets cut it away and the chest showed holes (docs/lab/ledger.md, "Holes in the t-shirt's
 #: chest"). 10 cm closes them for 2 to 8 % more samples.
 BOX_TRAINED_MARGIN_IN = 0.10
 

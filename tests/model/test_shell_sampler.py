@@ -421,7 +421,7 @@ def test_bench_cli_with_run(tmp_path, tiny_scene):
     assert pb["precomputed"] == len(pb["frames"]) == 3 and pb["precompute_ms_per_frame"] > 0  # the tiny clip
     assert set(pb["presets"]) == set(names) and all(r["fps"] > 0 for r in pb["presets"].values())
     assert pb["scrub_ready_ms"] > 0 and pb["scrub_cold_ms"] is None  # every frame of the clip was ready
-    ahead = pb["render_ahead"]  # issue 28: per preset, the clip rendered ahead by the previewer's worker
+    ahead = pb["render_ahead"]  # per preset, the clip rendered ahead by the previewer's worker
     assert set(ahead["presets"]) == set(names) and 0 < pb["completed_share"] <= 1
     for row in ahead["presets"].values():
         assert {"seconds_for_clip", "fps_after", "max_lag_frames"} <= set(row) and row["seconds_for_clip"] > 0

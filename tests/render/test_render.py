@@ -305,7 +305,7 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
     bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
                              log=lambda *a: None, render_ahead=render_ahead_benchmark)
     row = next(r for r in bench["presets"] if r["preset"] == "interactive")
-    # render-ahead (issue 28): the previewer's worker rendered the tiny clip's 3 frames once each for
+    # render-ahead: the previewer's worker rendered the tiny clip's 3 frames once each for
     # the still camera while it played (none abandoned), then played them back at the clip's rate
     ahead = bench["playback"]["render_ahead"]
     assert ahead["frames"] == 3 and ahead["camera"] == [1280, 800] and set(ahead["presets"]) == {"reference",

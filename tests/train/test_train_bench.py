@@ -1,6 +1,5 @@
 """``garmentnerf bench --run DIR --training``: seconds per NeRF step per MLP precision, side by side;
-the step by stage, and ``--before``, the step as it was before issue 27 (geometry rebuilt every
-step, the perceptual target backpropagated) taking turns with today's."""
+the step by stage, and other runs' recipes taking turns with it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Watching a run while it trains (issue 28): a checkpoint written atomically beside a running
+"""Watching a run while it trains: a checkpoint written atomically beside a running
 watcher is loaded off the UI thread into a new model, and the neural view renders with it."""
 
 from __future__ import annotations

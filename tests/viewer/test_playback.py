@@ -1,4 +1,4 @@
-"""Playback you can watch (issue 28): which frame the worker renders while the clip plays, the
+"""Playback you can watch: which frame the worker renders while the clip plays, the
 render-ahead cache of finished frames, and the worker's standing requests.
 
 Pure scheduling first (analytic cases), then the cache and the palette layer's partial upload,
