@@ -1,7 +1,8 @@
 """The bundled demos: one trained run per garment of the paper's Table 1, chosen by name.
 
 Each demo is a run folder under ``garmentnerf/assets/demo/`` (``run.json``, ``model.safetensors``,
-``body_appearance.safetensors``, ``TRAINING.md`` and the ``eval_*.json`` its figures come from)
+``body_appearance.safetensors``, ``TRAINING.md``, the ``recipe.json`` that trains it again
+(``garmentnerf train --recipe``) and the ``eval_*.json`` its figures come from)
 whose ``run.json`` points at the garment's scene beside it (``../<garment>``: the simulated
 sequences; the ground-truth images are rendered into the scene's ``cache/`` on first use).
 
@@ -37,7 +38,7 @@ DEMO_NAMES = ("skirt", "tshirt", "dress")
 DEFAULT_DEMO = "skirt"
 #: Run folder of each demo, relative to :data:`DEMO_ROOT`.
 _RUN_FOLDERS = {"skirt": "run", "tshirt": "run_tshirt", "dress": "run_dress"}
-#: Largest weights file a demo may ship (issue 29: at most 25 MB per garment).
+#: Largest weights file a demo may ship (the demo budget: at most 25 MB per garment).
 MAX_DEMO_WEIGHTS_BYTES = 25 * 1024 * 1024
 #: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``), per split.
 EVAL_FILES = {"seen": "eval_seen.json", "unseen_view": "eval_unseen_view.json",
@@ -144,7 +145,8 @@ def demo_of_run(run_dir, root: Path = DEMO_ROOT) -> str | None:
 
 def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False) -> Demo:
     """Make the trained run ``run_dir`` demo ``name`` under ``root``: its weights cast to float16
-    (:func:`pack_weights`), its body appearance, ``TRAINING.md`` and ``eval_*.json`` if present,
+    (:func:`pack_weights`), its body appearance, ``TRAINING.md``, ``recipe.json`` (a ``train --recipe``
+    folder's: the recipe as run) and ``eval_*.json`` if present,
     ``run.json`` pointing at ``../<name>``, and that scene folder holding the run scene's
     ``scene.json`` and ``sequences/`` (not its rendered ``cache/`` or simulator ``sim/``).
 
@@ -177,7 +179,7 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
         if weights > MAX_DEMO_WEIGHTS_BYTES:
             raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
                              f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
-        extras = ["body_appearance.safetensors", "TRAINING.md", *sorted(p.name for p in run_dir.glob("eval_*.json"))]
+        extras = ["body_appearance.safetensors", "TRAINING.md", "recipe.json", *sorted(p.name for p in run_dir.glob("eval_*.json"))]
         for extra in extras:
             if (run_dir / extra).is_file():
                 shutil.copy2(run_dir / extra, run_out / extra)

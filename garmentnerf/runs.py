@@ -66,7 +66,18 @@ RUN_VERSION = 1
 RUN_FILE = "run.json"
 MODEL_FILE = "model.safetensors"
 
-__all__ = ["LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run",
+def run_train_cameras(run, scene) -> list[str]:
+    """The cameras the run was trained on (``run.json`` ``train.cameras``), else the scene's train split."""
+    recorded = ((getattr(run, "info", None) or {}).get("train") or {}).get("cameras")
+    names = set(scene.camera_names())
+    if recorded:
+        cams = [c for c in recorded if c in names]
+        if cams:
+            return cams
+    return scene.camera_names("train")
+
+
+__all__ = ["run_train_cameras", "LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run",
            "read_run_info", "recorded_scene_path", "run_garment", "build_model", "save_weights", "load_weights",
            "grow_linear_tensor", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE", "MODEL_FILE"]
 
@@ -204,7 +215,7 @@ def load_weights(path, model: torch.nn.Module, may_be_missing: tuple[str, ...] =
     Args:
         may_be_missing: state-dict key prefixes the file may lack; those parameters keep their
             values in ``model`` (for a branch added to a trained model that starts as a no-op,
-            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.zero_start_prefixes`).
+            :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.frame_code_prefixes`).
         may_grow: state-dict key prefixes whose tensors may be smaller in the file than in
             ``model`` (a wider MLP started from a narrower one's weights,
             :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.growable_prefixes`): each is

@@ -69,9 +69,9 @@ def walk_inputs(gl_context, body, walk_clip):
     """The :class:`~garmentnerf.model.frame_context.FrameInputs` of frame 2 of ``walk_clip`` for the
     tiny preset seen by the default reference cameras."""
     from garmentnerf.data.cameras import reference_cameras
+    from garmentnerf.model.config import ModelConfig
     from garmentnerf.render.frame_inputs import FrameInputBuilder
-    from garmentnerf.train.settings import tiny_config
 
     posed, fps = walk_clip
-    with FrameInputBuilder(gl_context, body, reference_cameras(), tiny_config()) as builder:
+    with FrameInputBuilder(gl_context, body, reference_cameras(), ModelConfig.tiny()) as builder:
         yield builder.build(posed, 2, fps)

@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from garmentnerf.cli.main import main
-from garmentnerf.train.settings import tiny_config
+from garmentnerf.model.config import ModelConfig
 
 CASES = [
     # --- render -------------------------------------------------------------------------------------
@@ -107,7 +107,7 @@ def world(tmp_path_factory, tiny_scene):
     root = tmp_path_factory.mktemp("world")
     scene = root / "scene"
     shutil.copytree(tiny_scene.root, scene)
-    cfg = tiny_config().replace(samples_per_ray=4)
+    cfg = ModelConfig.tiny().updated({"sampler.samples_per_ray": 4})
     run = create_untrained_run(root / "run", scene, cfg, seed=0)
     # a run whose scene folder has gone away
     orphan = root / "orphan"

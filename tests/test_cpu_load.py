@@ -12,8 +12,15 @@ from pathlib import Path
 
 import pytest
 
-from garmentnerf.cpu_load import (BUSY_CORES, BusyWatch, CpuReading, OtherProcessesLoad, busy_machine_warning,
-                                  cores_used_by_others, read_cpu)
+from garmentnerf.cpu_load import (
+    BUSY_CORES,
+    BusyWatch,
+    CpuReading,
+    OtherProcessesLoad,
+    busy_machine_warning,
+    cores_used_by_others,
+    read_cpu,
+)
 
 LINUX = Path("/proc/stat").is_file()
 

@@ -10,16 +10,24 @@ import torch
 from safetensors.torch import load_file
 
 from garmentnerf.cli.main import main
-from garmentnerf.demos import (DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo,
-                               pack_weights)
+from garmentnerf.demos import (
+    DEFAULT_DEMO,
+    DEMO_NAMES,
+    demo,
+    demo_run_dir,
+    installed_demos,
+    pack_demo,
+    pack_weights,
+)
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.runs import create_untrained_run, load_run
-from garmentnerf.train.settings import tiny_config
 
 
 @pytest.fixture(scope="module")
 def untrained_run(tiny_scene, tmp_path_factory):
-    run_dir = create_untrained_run(tmp_path_factory.mktemp("demo_run") / "run", tiny_scene.root, tiny_config(), seed=1)
+    run_dir = create_untrained_run(tmp_path_factory.mktemp("demo_run") / "run", tiny_scene.root, ModelConfig.tiny(), seed=1)
     (run_dir / "TRAINING.md").write_text("how it was trained\n")
+    (run_dir / "recipe.json").write_text("{}\n")
     (run_dir / "eval_unseen_view.json").write_text(json.dumps({
         "means": {"fg_psnr": 23.5, "garment_psnr": 21.25, "silhouette_iou": 0.95}, "margin_db": {"fg_psnr": 8.5}}))
     return run_dir
@@ -57,6 +65,7 @@ def test_pack_makes_a_loadable_demo_in_float16_beside_its_scene(untrained_run, t
         assert weights[key].dtype == (torch.float16 if value.dtype == torch.float32 else value.dtype)
         np.testing.assert_array_equal(weights[key].numpy(), value.numpy().astype(weights[key].numpy().dtype))
     assert (packed.run_dir / "TRAINING.md").read_text() == "how it was trained\n"
+    assert (packed.run_dir / "recipe.json").read_text() == "{}\n"  # a recipe folder's: trains the demo again
     assert packed.size_bytes() == files_size(packed.run_dir) + files_size(root / "tshirt")
     assert packed.figures() == {"unseen_view": {"fg_psnr": 23.5, "garment_psnr": 21.25, "silhouette_iou": 0.95,
                                                 "fg_margin_db": 8.5}}

@@ -13,13 +13,18 @@ from collections import OrderedDict
 
 import numpy as np
 import pytest
+from support.smpl_models import make_model, write_chumpy_pkl, write_npz
+from support.zju_capture import write_capture
 
 from garmentnerf.body.asset import BodyAssetError
 from garmentnerf.body.smpl import SMPL_PARENTS, load_smpl_asset
 from garmentnerf.data.zju import CaptureError, CaptureScene
-from garmentnerf.safe_pickle import RefusedGlobal, StandIn, load_npy_restricted, load_restricted
-from support.smpl_models import make_model, write_chumpy_pkl, write_npz
-from support.zju_capture import write_capture
+from garmentnerf.safe_pickle import (
+    RefusedGlobal,
+    StandIn,
+    load_npy_restricted,
+    load_restricted,
+)
 
 
 def _payloads(marker):

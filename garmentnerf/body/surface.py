@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 
 import torch
 
@@ -80,43 +79,6 @@ def canonical_frame_velocities(vertices: torch.Tensor, vertex_linear: torch.Tens
     disp = torch.zeros_like(vertices)
     disp[1:] = vertices[1:] - vertices[:-1]  # disp[s] = x(s) - x(s-1); zero at s = 0
     return solve3x3(vertex_linear, disp) * (fps * VELOCITY_SCALE)
-
-
-def smoothing_window(time_constant: float, fps: float) -> int:
-    """Frames an exponential smoothing of ``time_constant`` seconds reaches back (three time constants,
-    at least 1): what :func:`smoothed_velocities` averages over."""
-    return max(1, math.ceil(3.0 * float(time_constant) * float(fps) - 1e-9))  # 3 x 0.2 s x 30 fps: 18, not 19
-
-
-def smoothed_velocities(velocities: torch.Tensor, fps: float, time_constants) -> torch.Tensor:
-    """Causal exponentially weighted means of per-frame velocities, one per time constant.
-
-    For time constant tau (seconds) the slot at frame t is ``sum_i w_i v(t - i) / sum_i w_i`` over
-    i = 0 .. :func:`smoothing_window` - 1, ``w_i = exp(-i / (tau fps))``, with frames before the start
-    counting as zero (the first frame held still, as :func:`canonical_velocities`). A long time constant
-    says where the body has been going for the last second: what a skirt's swing follows, which two
-    frames of velocity do not tell.
-
-    Args:
-        velocities: (T, V, 3) per-frame velocities (:func:`canonical_frame_velocities`).
-        fps: frames per second.
-        time_constants: m time constants in seconds.
-    Returns:
-        (T, V, 3 m): slot j in channels [3 j, 3 j + 3).
-    """
-    T = velocities.shape[0]
-    slots = []
-    for tau in time_constants:
-        window = smoothing_window(tau, fps)
-        weights = torch.exp(-torch.arange(window, dtype=velocities.dtype) / (float(tau) * float(fps)))
-        weights = weights / weights.sum()
-        acc = torch.zeros_like(velocities)
-        for i in range(min(window, T)):
-            acc[i:] += weights[i] * velocities[: T - i]
-        slots.append(acc)
-    if not slots:
-        return velocities.new_zeros(T, velocities.shape[1], 0)
-    return torch.cat(slots, dim=-1)
 
 
 def solve3x3(matrices: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:

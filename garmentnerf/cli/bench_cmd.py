@@ -12,8 +12,7 @@ prints ``--run``'s speed-up over it per preset with the PSNR difference (e.g. a 
 against the one it replaces, kept outside the repo).
 
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
-side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`);
-``--before`` adds each precision's step as it was before issue 27 beside it; ``--against RUN``
+side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`); ``--against RUN``
 times other runs' recipes taking turns with it (recipes compared in one run).
 
 Every mode ends with what other processes took of the machine while it ran
@@ -72,10 +71,6 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=8, help="with --training: steps per round and precision (default: 8)")
     p.add_argument("--rounds", type=int, default=3, help="with --training: rounds, the precisions taking turns "
                                                          "(default: 3)")
-    p.add_argument("--before", action="store_true",
-                   help="with --training: also time each precision's step as before issue 27 (body geometry and "
-                        "encoders rebuilt every step, Adam not fused, the perceptual loss backpropagated into its target, "
-                        "its first convolution and blur run one after the other), taking turns with the others")
     p.add_argument("--cold", action="store_true",
                    help="with --training: time each step with its frame's inputs, body geometry and frozen encoders "
                         "made in it (a run's first visit to each frame) instead of from the trainer's caches (a long "
@@ -84,12 +79,6 @@ def register(sub) -> None:
                    help="with --run: also measure this run folder's model (repeatable), taking turns with --run's, and "
                         "print --run's speed-up over it: each render preset (its PSNR beside), or with --training each "
                         "one's step over --run's")
-    p.add_argument("--occupancy", type=int, default=None, metavar="STEPS",
-                   help="with --run: train the run's recipe from scratch on the occupancy term alone (the geometry "
-                        "warm-up, nothing rendered) for STEPS steps and print how its density fits the simulated "
-                        "garments of training frames and held-out motions as it learns")
-    p.add_argument("--eval-every", type=int, default=100, metavar="N",
-                   help="with --occupancy: steps between evaluations (default: 100)")
     p.set_defaults(func=run_bench)
 
 
@@ -118,41 +107,27 @@ def _run_training_bench(args: argparse.Namespace) -> dict:
         raise ValueError(f"--precisions {args.precisions}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
     if args.steps < 3 or args.rounds < 1:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
-    results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds, before=args.before,
+    results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds,
                                  against=args.against, cold=args.cold, log=print)
     machine = results["machine"]
     print(f"machine: {machine['processor']}, torch threads {machine['torch_threads']}, AMX-BF16 {machine['amx_bf16']}; "
           f"{results['steps_timed']} steps timed per precision, frames "
           f"{'cached' if results['frames_cached'] else 'prepared in the step (--cold)'}")
     columns = [(row["precision"], row) for row in results["precisions"]]
-    columns += [(f"{row['precision']} before", row) for row in results.get("before", [])]
     columns += [(f"{Path(a['run']).name} {row['precision']}", row) for a in results.get("against", [])
                 for row in a["precisions"]]
     print(f"{'s/step by stage (median)':24s}" + "".join(f" {label:>16s}" for label, _ in columns))
     for stage in results["stages"]:
         print(f"  {stage:22s}" + "".join(f" {row['stages_s'][stage]:16.3f}" for _, row in columns))
     print(f"  {'step':22s}" + "".join(f" {row['s_per_step']:16.3f}" for _, row in columns))
-    if any(row["views_per_step"] > 1 for _, row in columns):
-        print(f"  {'views per step':22s}" + "".join(f" {row['views_per_step']:16d}" for _, row in columns))
-        print(f"  {'s per view':22s}" + "".join(f" {row['s_per_view']:16.3f}" for _, row in columns))
     for row in results["precisions"]:
         print(f"  {row['precision']:10s} {row['s_per_step']:7.3f} s/step   "
               f"{results['speedup_vs_first'][row['precision']]:5.2f}x")
-    for row in results.get("before", []):
-        print(f"  {row['precision']:10s} {results['speedup_vs_before'][row['precision']]:5.2f}x faster than before "
-              f"issue 27 ({row['s_per_step']:.3f} s/step)")
     for a in results.get("against", []):
         for row in a["precisions"]:
             print(f"  {row['precision']:10s} {results['speedup_vs_against'][a['run']][row['precision']]:5.2f}x faster "
                   f"than {a['run']}'s recipe ({row['s_per_step']:.3f} s/step)")
     return results
-
-
-def _run_occupancy_probe(args: argparse.Namespace) -> dict:
-    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.perf.occupancy_probe import occupancy_probe
-
-    return occupancy_probe(args.run, steps=args.occupancy, eval_every=args.eval_every, log=print)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -165,23 +140,15 @@ def run_bench(args: argparse.Namespace) -> int:
         raise ValueError("--plot needs --run")
     if getattr(args, "training", False) and (not getattr(args, "run", None) or getattr(args, "plot", None)):
         raise ValueError("--training needs --run (and draws no --plot)")
-    if getattr(args, "against", None) and (not getattr(args, "run", None) or getattr(args, "occupancy", None) is not None):
-        raise ValueError("--against needs --run (and no --occupancy)")
+    if getattr(args, "against", None) and not getattr(args, "run", None):
+        raise ValueError("--against needs --run")
     for run in getattr(args, "against", None) or []:
         if not (Path(run) / "run.json").is_file():
             raise ValueError(f"--against {run}: not a run folder (no run.json)")
-    occupancy = getattr(args, "occupancy", None)
-    if occupancy is not None:
-        if not getattr(args, "run", None) or getattr(args, "training", False) or getattr(args, "plot", None):
-            raise ValueError("--occupancy needs --run (and neither --training nor --plot)")
-        if occupancy < 1 or args.eval_every < 1:
-            raise ValueError(f"--occupancy and --eval-every must be at least 1, got {occupancy} and {args.eval_every}")
     for flag, path in (("--json", args.json), ("--plot", getattr(args, "plot", None))):
         if path:
             check_output_file(path, flag, args.overwrite)
-    if occupancy is not None:
-        mode = _run_occupancy_probe
-    elif getattr(args, "training", False):
+    if getattr(args, "training", False):
         mode = _run_training_bench
     elif getattr(args, "run", None):
         mode = _run_presets
@@ -246,11 +213,4 @@ def _run_foundation(args: argparse.Namespace) -> dict:
         value = results[key]
         text = f"{value:,.0f}" if unit == "points/s" else f"{value:8.2f}"
         print(f"  {label:48s} {text:>12s} {unit}")
-    fields = results["fields"]
-    print(f"  per projected sample, chunks of {fields['samples']:,} (render: no autograd; train: forward + backward):")
-    for name in ("paper", "uvh"):
-        row = fields[name]
-        print(f"    field {name:6s} render {row['render_us_per_sample']:6.2f} us ({row['render_samples_per_s']:>10,.0f}/s)"
-              f"   train {row['train_us_per_sample']:6.2f} us ({row['train_samples_per_s']:>10,.0f}/s)"
-              f"   {row['parameters']:,} parameters")
     return results

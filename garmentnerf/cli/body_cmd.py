@@ -109,12 +109,8 @@ def run_bake(args: argparse.Namespace) -> int:
 
 def run_fit_appearance(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.eval.evaluate import run_train_cameras
-    from garmentnerf.gl.context import create_context
-    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, save_body_appearance
-    from garmentnerf.train.body_appearance import collect_body_samples, fit_body_appearance
-    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
-    from garmentnerf.runs import load_run
+    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
+    from garmentnerf.train.body_appearance import fit_run_appearance
 
     if args.frame_stride < 1:
         raise ValueError(f"--frame-stride must be at least 1, got {args.frame_stride}")
@@ -129,20 +125,8 @@ def run_fit_appearance(args: argparse.Namespace) -> int:
                             "--out", args.overwrite)
     if args.scene is not None and not (Path(args.scene) / "scene.json").is_file():
         raise FileNotFoundError(f"--scene {args.scene}: no scene.json")
-    run = load_run(run_dir, scene=args.scene)
-    if run.scene is None:
-        raise ValueError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
-                         f"pass --scene DIR")
-    ctx = create_context(headless=True)
-    try:
-        samples = collect_body_samples(run.scene, run.model.body, run_train_cameras(run, run.scene), ctx,
-                                       frame_stride=args.frame_stride, progress=not args.no_progress)
-    finally:
-        ctx.release()
-    prior = {} if args.albedo_prior is None else {"albedo_prior": args.albedo_prior}
-    appearance, summary = fit_body_appearance(samples, run.palette()[-1], steps=args.steps,
-                                              progress=not args.no_progress, **prior)
-    save_body_appearance(out, appearance)
+    summary = fit_run_appearance(run_dir, out, scene=args.scene, frame_stride=args.frame_stride, steps=args.steps,
+                                 albedo_prior=args.albedo_prior, progress=not args.no_progress)
     print(f"wrote {out}: {summary['views']} training views, {summary['samples']} body pixels, "
           f"PSNR over them {summary['psnr']:.2f} dB (palette colour alone: {summary['psnr_start']:.2f} dB), "
           f"{summary['seconds']:.0f} s")

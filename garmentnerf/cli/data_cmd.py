@@ -87,9 +87,9 @@ def register(sub) -> None:
     reach.add_argument("--sequence", action="append", default=None,
                        help="sequence to measure (repeatable; default: all)")
     reach.add_argument("--padding", type=float, default=None,
-                       help="box padding, m (default: ModelConfig.bbox_padding of cpu_small)")
+                       help="box padding, m (default: the model's, 0.05)")
     reach.add_argument("--prior-width", type=float, default=None,
-                       help="body prior width, m (default: ModelConfig.body_prior_width of cpu_small)")
+                       help="body prior width, m (default: the model's, 0.15)")
     reach.add_argument("--json", default=None, help="also write the figures to this JSON file")
     reach.add_argument("--overwrite", action="store_true", help="replace --json if it exists")
     reach.set_defaults(func=run_reach)
@@ -208,13 +208,12 @@ def run_reach(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.body.model import BodyModel
     from garmentnerf.data.scene import Scene
-    from garmentnerf.model.config import ModelConfig
+    from garmentnerf.model.config import BBOX_PADDING, BODY_PRIOR_WIDTH
     from garmentnerf.model.garment_reach import garment_reach
 
     out = check_output_file(args.json, "--json", args.overwrite) if args.json else None
-    recipe = ModelConfig.cpu_small()
-    padding = recipe.bbox_padding if args.padding is None else args.padding
-    width = recipe.body_prior_width if args.prior_width is None else args.prior_width
+    padding = BBOX_PADDING if args.padding is None else args.padding
+    width = BODY_PRIOR_WIDTH if args.prior_width is None else args.prior_width
     if not padding >= 0:
         raise ValueError(f"--padding must be >= 0, got {args.padding}")
     if not width > 0:

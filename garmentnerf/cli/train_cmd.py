@@ -18,7 +18,20 @@ def register(sub) -> None:
                                    "run.json + model.safetensors, checkpoints/, tb/ (TensorBoard). Ctrl-C saves "
                                    "a checkpoint (so does kill); --resume continues exactly, with the run's own "
                                    "settings from run.json. Under torchrun every process trains on its share "
-                                   "of the views (gradients averaged).")
+                                   "of the views (gradients averaged). With --recipe, a recipe's stages (a "
+                                   "demo's: its TRAINING.md) run in order into --out, each an ordinary run in "
+                                   "--out/stages/, the last one published in --out itself.")
+    p.add_argument("--recipe", default=None, metavar="FILE",
+                   help="run a recipe's stages in order (garmentnerf/train/recipe.py): a recipe JSON file, or a "
+                        "demo's name (skirt, tshirt, dress) for its shipped recipe. Each stage trains into "
+                        "--out/stages/<NN>-<name>/ (fit stages write a body appearance there), the last train "
+                        "stage is published into --out (run.json, model.safetensors, body_appearance.safetensors), "
+                        "--out/recipe.json records the recipe and --out/recipe_log.json what ran. The recipe sets "
+                        "what each stage trains: --preset, --model-config, --iterations, --generator-iterations, "
+                        "--seed, --stop-after, --frames, --init-generator, --init-weights, "
+                        "--training-crop-density, --body-appearance, --loss-weight and --precision are refused "
+                        "with it; --device, --threads, --cache-gib, --perceptual, --vgg19-weights, --log-every, "
+                        "--image-every, --ckpt-every and --no-progress apply to every stage")
     p.add_argument("--scene", default=None, metavar="DIR",
                    help="scene folder (required for a new run; on --resume default: the run's scene)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder, e.g. runs/skirt (must be empty "
@@ -43,7 +56,10 @@ def register(sub) -> None:
                         "--init-generator, --init-weights or --training-crop-density that differ from the run's "
                         "are refused; --stop-after, --ckpt-every, --log-every, --image-every, --perceptual, "
                         "--vgg19-weights, --loss-weight and --scene apply from the resumed step on and are "
-                        "recorded in run.json's overrides")
+                        "recorded in run.json's overrides. With --recipe (or alone, on a folder --recipe made): "
+                        "continue the recipe: finished stages are skipped, the interrupted one resumes from its "
+                        "newest checkpoint, a recipe other than the folder's recipe.json is refused; re-running "
+                        "without --resume is refused (the folder is not empty)")
     p.add_argument("--seed", type=int, default=None,
                    help="random seed (default: 0; on --resume: the run's, another one is refused)")
     p.add_argument("--stop-after", type=int, default=None, metavar="STEP",
@@ -83,7 +99,7 @@ def register(sub) -> None:
                         "('garmentnerf body fit-appearance'), so the network learns the garment and its "
                         "visibility; copied into the run folder (a new run only)")
     p.add_argument("--loss-weight", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a loss weight of the config (repeatable), e.g. w_segmentation=0.5; with "
+                   help="override a loss weight of the config (repeatable), e.g. segmentation=0.5 (a field of the model config's loss); with "
                         "--resume it applies from the resumed step on and is recorded in run.json")
     p.add_argument("--precision", default=None, choices=("auto", "float32", "bfloat16"),  # TRAINING_PRECISIONS
                    help="NeRF MLP precision in the NeRF steps (default auto: bfloat16 where the machine multiplies "
@@ -99,25 +115,10 @@ def register(sub) -> None:
 
 
 def _frames(text: str | None, scene_path) -> tuple[int, ...] | None:
-    if text is None:
-        return None
-    parts = text.split(":")
-    try:
-        nums = [int(x) if x.strip() else None for x in parts]
-    except ValueError:
-        raise ValueError(f"--frames must be A:B (integers), got {text!r}") from None
-    if len(nums) == 1:
-        return (nums[0],)
-    if len(nums) not in (2, 3):
-        raise ValueError(f"--frames must be A:B, got {text!r}")
-    start, stop = nums[0] or 0, nums[1]
-    if stop is None:
-        raise ValueError("--frames needs an end (A:B)")
-    step = nums[2] if len(nums) == 3 and nums[2] else 1
-    out = tuple(range(start, stop, step))
-    if not out:
-        raise ValueError(f"--frames {text} selects no frame")
-    return out
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
+    from garmentnerf.train.settings import parse_frames
+
+    return None if text is None else parse_frames(text, "--frames")
 
 
 def _loss_weights(items: list[str]) -> dict[str, float] | None:
@@ -139,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
 
     parse_device(args.device)
     check_output_dir(args.out)
+    if args.recipe is not None or (args.resume and is_recipe_folder(args.out)):
+        return run_recipe_command(args)
     if args.threads is not None and args.threads < 1:
         raise ValueError(f"--threads must be at least 1, got {args.threads}")
     caches = {}
@@ -178,6 +181,64 @@ def run(args: argparse.Namespace) -> int:
     with interrupting(signal.SIGTERM), Trainer(tc) as trainer:
         result = trainer.train()
     return 130 if result.interrupted else 0
+
+
+#: The flags that say what a run trains, which a recipe sets per stage: refused with --recipe.
+RECIPE_EXCLUDES = ("preset", "model_config", "iterations", "generator_iterations", "seed", "stop_after", "frames",
+                   "init_generator", "init_weights", "training_crop_density", "body_appearance", "loss_weight",
+                   "precision")
+
+
+def is_recipe_folder(out) -> bool:
+    """Whether ``out`` is a folder ``train --recipe`` made (its ``recipe.json``, no checkpoints of its own)."""
+    out = Path(out)
+    return (out / "recipe.json").is_file() and (out / "recipe_log.json").is_file() and not (out / "checkpoints").exists()
+
+
+def recipe_path(text: str) -> Path:
+    """The recipe file ``--recipe`` names: a file, or a demo's name (its shipped ``recipe.json``)."""
+    from garmentnerf.demos import DEMO_NAMES, demo
+
+    path = Path(text)
+    if not path.exists() and text in DEMO_NAMES:
+        return demo(text).run_dir / "recipe.json"
+    return path
+
+
+def run_recipe_command(args: argparse.Namespace) -> int:
+    """``train --recipe``: the recipe's stages in order into ``--out`` (:mod:`garmentnerf.train.recipe_run`)."""
+    for name in RECIPE_EXCLUDES:
+        value = getattr(args, name)
+        if value is not None and value != []:
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(f"--recipe and {flag}: the recipe sets each stage's {name.replace('_', ' ')} "
+                             f"(leave {flag} out, or write it into the recipe)")
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
+    from garmentnerf.train.recipe import read_recipe
+    from garmentnerf.train.recipe_run import RecipeOptions, run_recipe
+
+    if args.recipe is not None:
+        file = recipe_path(args.recipe)
+    else:  # --resume of a recipe folder without --recipe: the recipe it was started with
+        file = Path(args.out) / "recipe.json"
+    recipe = read_recipe(file)
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads must be at least 1, got {args.threads}")
+    caches = {}
+    if args.cache_gib is not None:
+        if not (math.isfinite(args.cache_gib) and args.cache_gib > 0):
+            raise ValueError(f"--cache-gib must be a positive number of GiB, got {args.cache_gib:g}")
+        caches = cache_bounds(args.cache_gib)
+    for flag, value, least in (("--log-every", args.log_every, 1), ("--ckpt-every", args.ckpt_every, 1),
+                               ("--image-every", args.image_every, 0)):
+        if value is not None and value < least:
+            raise ValueError(f"{flag} must be at least {least}, got {value}")
+    options = RecipeOptions(device=args.device, threads=args.threads, progress=not args.no_progress,
+                            perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, log_every=args.log_every,
+                            image_every=args.image_every, ckpt_every=args.ckpt_every, caches=caches)
+    # `kill` (SIGTERM) saves the running stage's checkpoint like Ctrl-C does
+    with interrupting(signal.SIGTERM):
+        return run_recipe(recipe, file, args.out, args.scene, resume=args.resume, options=options)
 
 
 def cache_bounds(gib: float) -> dict[str, int]:

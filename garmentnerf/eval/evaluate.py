@@ -23,8 +23,8 @@ Resolution (``resolution``)
     that a model's blur shows: the model renders at its trained pixel density and its maps are
     resampled (bilinear) to that size, as the previewer shows them. ``model``: the camera resized
     to the pixel density the model was trained at (:func:`eval_size`: longer side
-    ``cfg.image_resolution``, the other side proportional, for whole-frame training; the scene's
-    size times ``cfg.training_crop_density`` for character windows), the size of the trainer's
+    ``cfg.decoder.image_resolution``, the other side proportional, for whole-frame training; the scene's
+    size times ``cfg.schedule.training_crop_density`` for character windows), the size of the trainer's
     targets.
 
 How an image is made (identical to training, the viewer and ``garmentnerf render``)
@@ -32,10 +32,10 @@ How an image is made (identical to training, the viewer and ``garmentnerf render
     the evaluation camera with a render preset (default ``reference``: the paper's sampling at
     quality 1, the pixel density the model was trained with; another preset renders at its own
     quality, and ``quality`` overrides either) and :meth:`NeuralFrame.composite` composes the
-    decomposed maps with the run's learned palette over ``cfg.background`` at the evaluation size.
+    decomposed maps with the run's learned palette over the model's black background at the evaluation size.
     Ground truth: the scene's cached 8-bit image (:class:`~garmentnerf.data.scene_images.SceneImages`)
     area-downsampled to the evaluation size when it is smaller and composited over
-    ``cfg.background`` with the area-downsampled foreground coverage -- at the model's
+    the black background with the area-downsampled foreground coverage -- at the model's
     resolution, the trainer's targets (:class:`~garmentnerf.train.frames.SceneFrames`), byte for
     byte. Its labels (0 background, 1 body, 2 garment) are nearest-resampled.
 
@@ -132,10 +132,11 @@ from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float,
                                       luma_correlation, masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement,
                                       sharpness_ratio, silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
 from garmentnerf.gl.context import create_context
+from garmentnerf.model.config import BACKGROUND
 from garmentnerf.model.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
 from garmentnerf.render.presets import get_render_preset
 from garmentnerf.render.session import RenderSession, resolve_composition
-from garmentnerf.runs import load_run
+from garmentnerf.runs import load_run, run_train_cameras
 from garmentnerf.train.frames import area_resize
 
 if TYPE_CHECKING:
@@ -245,17 +246,6 @@ def _middle_window(n: int, count: int | None) -> list[int]:
     return list(range(start, start + count))
 
 
-def run_train_cameras(run, scene) -> list[str]:
-    """The cameras the run was trained on (``run.json`` ``train.cameras``), else the scene's train split."""
-    recorded = ((getattr(run, "info", None) or {}).get("train") or {}).get("cameras")
-    names = set(scene.camera_names())
-    if recorded:
-        cams = [c for c in recorded if c in names]
-        if cams:
-            return cams
-    return scene.camera_names("train")
-
-
 def select_views(run, scene, split: str, frames=None, cameras=None) -> dict[str, Any]:
     """What an evaluation of ``split`` covers (see the module docstring for the defaults).
 
@@ -350,7 +340,7 @@ def eval_size(config, camera, resolution: str = "model") -> tuple[int, int]:
     """(w, h) of the evaluation images: the (scene) camera's own size for ``native``; for ``model``
     its size at the density the model was trained at
     (:meth:`~garmentnerf.model.config.ModelConfig.training_scale`: the longer side
-    ``config.image_resolution`` for whole-frame training), aspect kept."""
+    ``config.decoder.image_resolution`` for whole-frame training), aspect kept."""
     if resolution == "native":
         return int(camera.width), int(camera.height)
     W, H = int(camera.width), int(camera.height)
@@ -614,7 +604,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
     composition = resolve_composition(composition, run)
     scene_obj, cfg = run.scene, run.config
     sel = select_views(run, scene_obj, split, frames, cameras)
-    background = tuple(float(c) for c in cfg.background)
+    background = BACKGROUND
     perceptual, unavailable = perceptual_metrics(lpips_backbone)
     nearest = {c: dict(zip(("camera", "angle_deg"), nearest_camera(scene_obj, c, sel["train_cameras"])))
                for c in sel["cameras"]} if baseline else {}
@@ -776,9 +766,11 @@ def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: floa
     if out is not None:
         cfg = run.config
         out["palette"] = run.palette().cpu().tolist()
-        out["model_config"] = {k: v for k, v in cfg.to_dict().items()
-                               if k in ("image_resolution", "history", "use_detail_feature",
-                                        "use_dynamic_feature", "iterations")}
+        out["model_config"] = {"decoder.image_resolution": cfg.decoder.image_resolution,
+                               "encoder.history": cfg.encoder.history,
+                               "encoder.detail_feature": cfg.encoder.detail_feature,
+                               "encoder.dynamic_feature": cfg.encoder.dynamic_feature,
+                               "schedule.iterations": cfg.schedule.iterations}
     if base_scores is not None:
         b = result_of(base_scores, "nearest_view")
         b["nearest_camera"] = {c: v["camera"] for c, v in nearest.items()}

@@ -3,10 +3,10 @@
 Variants (:func:`default_variants`; each is one training run of the same preset, seed and schedule)
     ``full``          the model as configured (detail + dynamic features, k = the preset's history,
                       every training camera of the scene);
-    ``no_detail``     ``use_detail_feature=False`` (no G_img / G_en; no G_img pre-training);
-    ``no_dynamic``    ``use_dynamic_feature=False`` (no E);
+    ``no_detail``     ``encoder.detail_feature=False`` (no G_img / G_en; no G_img pre-training);
+    ``no_dynamic``    ``encoder.dynamic_feature=False`` (no E);
     ``no_features``   both off (the paper's first row of its feature table);
-    ``k0``, ``k1``... ``history=k`` for each asked k other than the preset's (that one is ``full``);
+    ``k0``, ``k1``... ``encoder.history=k`` for each asked k other than the preset's (that one is ``full``);
     ``views_N``       trained on N of the scene's training cameras, evenly spread over them. N equal
                       to the scene's count is ``full``; N larger than it is skipped (noted in the
                       report).
@@ -101,12 +101,12 @@ def default_variants(scene, base_history: int, names: list[str] | None = None,
         views, histories: the N of ``views_N`` and the k of ``k<k>``.
     """
     train_cams = scene.camera_names("train")
-    out = [Variant("full"), Variant("no_detail", {"use_detail_feature": False}),
-           Variant("no_dynamic", {"use_dynamic_feature": False}),
-           Variant("no_features", {"use_detail_feature": False, "use_dynamic_feature": False})]
+    out = [Variant("full"), Variant("no_detail", {"encoder.detail_feature": False}),
+           Variant("no_dynamic", {"encoder.dynamic_feature": False}),
+           Variant("no_features", {"encoder.detail_feature": False, "encoder.dynamic_feature": False})]
     for k in histories:
         if int(k) != int(base_history):
-            out.append(Variant(f"k{int(k)}", {"history": int(k)}))
+            out.append(Variant(f"k{int(k)}", {"encoder.history": int(k)}))
     for n in views:
         n = int(n)
         if n < 1:
@@ -136,7 +136,7 @@ def _parse_variant(name: str, train_cams: list[str], base_history: int) -> Varia
     m = re.fullmatch(r"k(\d+)", name)
     if m:
         k = int(m.group(1))
-        return Variant("full") if k == base_history else Variant(name, {"history": k})
+        return Variant("full") if k == base_history else Variant(name, {"encoder.history": k})
     m = re.fullmatch(r"views_(\d+)", name)
     if m:
         n = int(m.group(1))
@@ -158,13 +158,13 @@ def _expected(cfg, iterations: int | None, generator_iterations: int | None):
     """(model config as the trainer records it, G_img steps, total steps)."""
     changes = {}
     if iterations is not None:
-        changes["iterations"] = int(iterations)
+        changes["schedule.iterations"] = int(iterations)
     if generator_iterations:
-        changes["generator_iterations"] = int(generator_iterations)
-    cfg = cfg.replace(**changes) if changes else cfg
-    gen = cfg.generator_iterations if generator_iterations is None else int(generator_iterations)
-    gen = gen if cfg.use_detail_feature else 0
-    return cfg, gen, gen + cfg.iterations
+        changes["schedule.generator_iterations"] = int(generator_iterations)
+    cfg = cfg.updated(changes) if changes else cfg
+    gen = cfg.schedule.generator_iterations if generator_iterations is None else int(generator_iterations)
+    gen = gen if cfg.encoder.detail_feature else 0
+    return cfg, gen, gen + cfg.schedule.iterations
 
 
 def train_variant(scene_path, run_dir, cfg, cameras=None, *, iterations: int | None = None,
@@ -396,8 +396,8 @@ def _md_history(meta: dict, variants: list[Variant], results: dict[str, dict[str
                 perceptual: tuple[str, str]) -> list[str]:
     """The history-frames table (paper Table 4): the evaluated ``k<N>`` variants and ``full``
     (at the preset's k), by k."""
-    rows = [(v.changes["history"], [str(v.changes["history"])], results[v.name]) for v in variants
-            if v.name in results and "history" in v.changes and len(v.changes) == 1]
+    rows = [(v.changes["encoder.history"], [str(v.changes["encoder.history"])], results[v.name]) for v in variants
+            if v.name in results and "encoder.history" in v.changes and len(v.changes) == 1]
     return _md_sorted_table("## History frames k (paper Table 4)", "k", rows, meta["history"], results, splits,
                             perceptual)
 
@@ -498,9 +498,9 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     runs_dir = Path(runs_dir) if runs_dir is not None else out.with_name(out.stem + "_runs")
     base_cfg = model_config_for(preset)
     splits = _chosen_splits(scene_obj, splits)
-    variant_list = default_variants(scene_obj, base_cfg.history, variants, tuple(views), tuple(histories))
+    variant_list = default_variants(scene_obj, base_cfg.encoder.history, variants, tuple(views), tuple(histories))
     _, gen_full, _ = _expected(base_cfg, iterations, generator_iterations)
-    n_iter = iterations if iterations is not None else base_cfg.iterations
+    n_iter = iterations if iterations is not None else base_cfg.schedule.iterations
     # an evaluation is reused only for the same frame selection and the same metric set
     request = {"frames": None if frames is None else str(frames), "lpips": bool(lpips_available()[0]),
                "resolution": REPORT_RESOLUTION}
@@ -512,7 +512,7 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     finally:
         ctx.release()
     meta = {"scene": str(scene_path), "preset": preset, "iterations": n_iter, "generator_iterations": gen_full,
-            "seed": seed, "history": base_cfg.history, "train_cameras": len(scene_obj.camera_names("train")),
+            "seed": seed, "history": base_cfg.encoder.history, "train_cameras": len(scene_obj.camera_names("train")),
             "runs_dir": str(runs_dir), "seconds": time.perf_counter() - t0, "status": status}
     text = render_markdown(meta, variant_list, results, baseline, list(splits))
     with atomic_write_path(out, overwrite=overwrite) as tmp:
@@ -607,7 +607,7 @@ class _ReportJob:
     def train(self, v: Variant) -> str:
         """Train (or resume, or reuse) one variant's run; returns its :func:`train_variant` status."""
         run_dir = self.runs_dir / v.name
-        cfg = self.base_cfg.replace(**v.changes) if v.changes else self.base_cfg
+        cfg = self.base_cfg.updated(v.changes) if v.changes else self.base_cfg
         self.say(f"{v.name}: training into {run_dir}")
         result = train_variant(self.scene_path, run_dir, cfg, v.cameras, iterations=self.iterations,
                                generator_iterations=self.generator_iterations, perceptual=self.perceptual,

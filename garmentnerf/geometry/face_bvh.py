@@ -30,7 +30,7 @@ On the bundled body walking (``garmentnerf bench``'s 262,144 points within 15 cm
 walk tests 65 bounds and 23.2 faces per point, against 101 and 15.7 with the normal-aligned
 cylinders, leaves of one or two faces and walks from the root this replaced (and 128 and 18.9
 with the cylinders alone), for the same answers; the projection is about 1.4 times faster
-(docs/quality.md, "The projection's bound" and "The projection's walk").
+(docs/lab/ledger.md, "The projection's bound" and "The projection's walk").
 
 Search
 ------

@@ -15,8 +15,7 @@ import numpy as np
 import torch
 
 from garmentnerf.body.model import BodyModel, PosedBody
-from garmentnerf.body.surface import (canonical_frame_velocities, canonical_velocities, root_relative_normals,
-                                     smoothed_velocities, smoothing_window, vertex_normals)
+from garmentnerf.body.surface import canonical_velocities, root_relative_normals, vertex_normals
 from garmentnerf.gl.uv_raster import UVAttributeRasterizer
 
 
@@ -26,21 +25,18 @@ class InfoMaps:
 
     Attributes:
         normal: (H, W, 3) root-relative unit normals.
-        velocity: (H, W, 3 k + 3 m) canonical-frame velocity history, then its m smoothed means
-            (units: :data:`~garmentnerf.body.surface.VELOCITY_SCALE`).
+        velocity: (H, W, 3 k) canonical-frame velocity history (units:
+            :data:`~garmentnerf.body.surface.VELOCITY_SCALE`).
         mask: (H, W) bool, texels covered by the atlas.
-        world_normal: (H, W, 3) unit normals in world space (the frame of the scene's lights), or None.
     """
 
     normal: torch.Tensor
     velocity: torch.Tensor
     mask: torch.Tensor
-    world_normal: torch.Tensor | None = None
 
     def stacked(self) -> torch.Tensor:
-        """(3 + 3 k + 3 m [+ 3], H, W) channels-first input of the dynamic feature encoder."""
-        parts = [self.normal, self.velocity] + ([self.world_normal] if self.world_normal is not None else [])
-        return torch.cat(parts, dim=-1).permute(2, 0, 1).contiguous()
+        """(3 + 3 k, H, W) channels-first input of the dynamic feature encoder."""
+        return torch.cat([self.normal, self.velocity], dim=-1).permute(2, 0, 1).contiguous()
 
 
 def uv_vertex_to_vertex(faces: np.ndarray, uv_faces: np.ndarray, num_uv: int) -> np.ndarray:
@@ -66,21 +62,14 @@ class InfoMapRenderer:
         body: the body model (must have a UV atlas).
         resolution: map size (paper: 128).
         history: k, velocity slots (paper: 2).
-        velocity_smoothing: m time constants (seconds) of smoothed velocity slots after the k
-            (:func:`~garmentnerf.body.surface.smoothed_velocities`; not in the paper, which has none).
-        world_normals: also the normals in world space, last (not in the paper, whose normals are
-            root-relative: those cannot say which side of the body faces the scene's lights).
     """
 
-    def __init__(self, ctx: moderngl.Context, body: BodyModel, resolution: int = 128, history: int = 2,
-                 velocity_smoothing=(), world_normals: bool = False):
+    def __init__(self, ctx: moderngl.Context, body: BodyModel, resolution: int = 128, history: int = 2):
         if not body.has_uv:
             raise ValueError(f"body model '{body.name}' has no UV atlas; info maps need one "
                              "(for SMPL pass the UV .obj file distributed with it)")
         self.body = body
         self.history = history
-        self.velocity_smoothing = tuple(float(t) for t in velocity_smoothing)
-        self.world_normals = bool(world_normals)
         self.root = int(np.flatnonzero(body.asset.parents < 0)[0])
         self.uv_to_vertex = torch.as_tensor(uv_vertex_to_vertex(body.asset.faces, body.asset.uv_faces, body.asset.uv.shape[0]))
         self.rasterizer = UVAttributeRasterizer(ctx, body.asset.uv, body.asset.uv_faces, resolution)
@@ -90,25 +79,16 @@ class InfoMapRenderer:
         return self.rasterizer.mask
 
     def frames_back(self, fps: float) -> int:
-        """Frames before frame t that frame t's maps depend on: k for the velocity history, more for
-        a smoothed slot (:func:`~garmentnerf.body.surface.smoothing_window`)."""
-        back = [self.history] + [smoothing_window(t, fps) for t in self.velocity_smoothing]
-        return max(back)
+        """Frames before frame t that frame t's maps depend on: k, the velocity history."""
+        return self.history
 
     def vertex_attributes(self, posed: PosedBody, fps: float) -> torch.Tensor:
-        """(T, V, 3 + 3 k + 3 m [+ 3]) per-vertex [root-relative normal, canonical velocities, their smoothed
-        means, the world-space normal if ``world_normals``]."""
+        """(T, V, 3 + 3 k) per-vertex [root-relative normal, canonical velocities]."""
         world = vertex_normals(posed.vertices, self.body.faces)
         parts = [root_relative_normals(world, posed.joint_transforms[:, self.root, :, :3])]
-        if self.history > 0 or self.velocity_smoothing:
-            linear = self.body.vertex_transforms(posed.joint_transforms)[..., :3]
         if self.history > 0:
+            linear = self.body.vertex_transforms(posed.joint_transforms)[..., :3]
             parts.append(canonical_velocities(posed.vertices, linear, fps, self.history))
-        if self.velocity_smoothing:
-            velocity = canonical_frame_velocities(posed.vertices, linear, fps)
-            parts.append(smoothed_velocities(velocity, fps, self.velocity_smoothing))
-        if self.world_normals:
-            parts.append(world)
         return torch.cat(parts, dim=-1)
 
     def render_attributes(self, attributes: torch.Tensor) -> InfoMaps:
@@ -118,9 +98,7 @@ class InfoMapRenderer:
         def unit(n):  # interpolation shortens them
             return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
 
-        end = raster.values.shape[-1] - (3 if self.world_normals else 0)
-        world = unit(raster.values[..., end:]) if self.world_normals else None
-        return InfoMaps(unit(raster.values[..., :3]), raster.values[..., 3:end], raster.mask, world)
+        return InfoMaps(unit(raster.values[..., :3]), raster.values[..., 3:], raster.mask)
 
     def render_clip(self, posed: PosedBody, fps: float) -> list[InfoMaps]:
         """Maps for every frame of ``posed`` (frame 0 has no history: see canonical_velocities)."""

@@ -2,12 +2,13 @@
 
 One concept per module:
 
-- :mod:`~garmentnerf.model.config`: :class:`ModelConfig`, every size, switch and weight.
+- :mod:`~garmentnerf.model.config`: :class:`ModelConfig`, the components' configs.
 - :mod:`~garmentnerf.model.unet`: the U-Net of E (dynamic features) and G_en (detail features).
 - :mod:`~garmentnerf.model.image_generator`: G_img, neural texture + generator (frozen after
   pre-training).
 - :mod:`~garmentnerf.model.detail_features`: reading f^d from the front/back detail maps.
-- :mod:`~garmentnerf.model.nerf_mlp`: M_NeRF, sample features -> (sigma, zeta).
+- :mod:`~garmentnerf.model.field`: the field interface (body points -> sigma, zeta).
+- :mod:`~garmentnerf.model.nerf_mlp`: M_NeRF, the paper's field.
 - :mod:`~garmentnerf.model.samplers`: the sampler interface (where along each ray to evaluate
   M_NeRF) and the paper's box sampler.
 - :mod:`~garmentnerf.model.height_band`: the garment's height band and the sample filter made of it.
@@ -32,7 +33,8 @@ from garmentnerf.model.detail_features import sample_image_features, select_deta
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.losses import garment_losses, generator_losses, offset_loss, palette_loss, sparsity_loss
-from garmentnerf.model.nerf_mlp import GarmentNeRF, density_activation, positional_encoding, trunc_exp
+from garmentnerf.model.field import Field
+from garmentnerf.model.nerf_mlp import GarmentNeRF, density_activation, trunc_exp
 from garmentnerf.model.palette import (DecomposedMaps, Palette, PaletteDecoder, check_palette, compose,
                                        palette_from_labels)
 from garmentnerf.model.samplers import (BoxStratifiedSampler, BoundSampler, RaySamples, SampleFilter, Sampler,
@@ -41,7 +43,7 @@ from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder, UNet
 
 __all__ = [
     "ModelConfig", "UNet", "DynamicFeatureEncoder", "DetailEncoder", "ImageGenerator", "NeuralTexture", "freeze",
-    "sample_image_features", "select_detail_features", "GarmentNeRF", "density_activation", "positional_encoding",
+    "sample_image_features", "select_detail_features", "Field", "GarmentNeRF", "density_activation",
     "trunc_exp", "Sampler", "BoundSampler", "SampleFilter", "RaySamples", "BoxStratifiedSampler", "body_aabb",
     "ray_aabb_intersect", "HeightRange", "HeightBandFilter", "measure_height_range",
     "volume_rendering", "PaletteDecoder", "DecomposedMaps", "Palette", "compose", "check_palette",

@@ -3,27 +3,19 @@
 :func:`read_detail_features` is the whole selection (the pipeline only calls it): a sample's body
 point b_t is projected into each reference camera (:func:`garmentnerf.conventions.project_points`)
 and the map is read there (:func:`sample_image_features`); the two reads are merged by
-:func:`select_detail_features` per ``cfg.detail_selection``:
+:func:`select_detail_features`: the front read where b_t is visible from the front reference
+camera (:func:`reference_visibility`), else the back read (seen by neither: back, as the authors'
+code). Visible means: b_t projects inside the reference image, in front of the camera, and its
+camera depth z is at most ``tolerance + z / f_x`` (default 2 cm plus one pixel's footprint at that
+depth) behind the reference pass's depth at the pixel it falls in. The footprint term keeps
+surfaces seen obliquely visible at any reference resolution; the 2 cm is below the thickness of
+the torso and limbs (a finger is thinner: its back counts as visible, which is harmless). Measured
+on the bundled body's torso (walk clip, reference views of 32 to 512 px): 98.5 % of front-facing
+points (normal y < -0.9) pick the front map and 3 % of the back-facing ones -- all of those under
+the chin, where the front camera does see them -- while the neck points that the chin hides pick
+the back map. (The authors' code blends the two reads by the body normal instead.)
 
-``"visibility"`` (paper, the default)
-    The front read where b_t is visible from the front reference camera
-    (:func:`reference_visibility`), else the back read (seen by neither: back, as the authors'
-    code). Visible means: b_t projects inside the reference image, in front of the camera, and
-    its camera depth z is at most ``tolerance + z / f_x`` (default 2 cm plus one pixel's
-    footprint at that depth) behind the reference pass's depth at the pixel it falls in. The
-    footprint term keeps surfaces seen obliquely visible at any reference resolution; the 2 cm is
-    below the thickness of the torso and limbs (a finger is thinner: its back counts as visible,
-    which is harmless). Measured on the bundled body's torso (walk clip, reference views of 32 to
-    512 px): 98.5 % of front-facing points (normal y < -0.9) pick the front map and 3 % of the
-    back-facing ones -- all of those under the chin, where the front camera does see them --
-    while the neck points that the chin hides pick the back map.
-``"soft_normal"`` (authors' code)
-    ``w = (cos + 1) / 2`` per camera, cos between the interpolated posed vertex normal at b_t and
-    the direction from b_t to that camera; the pair (w_fr, w_ba) L2-normalised (so
-    w_fr^2 + w_ba^2 = 1, not w_fr + w_ba = 1: their choice, kept for comparability) and the reads
-    blended with it (:func:`soft_normal_weights`).
-
-Both modes read the maps *bilinearly* (the authors' code reads the nearest pixel): features then
+The maps are read *bilinearly* (the authors' code reads the nearest pixel): features then
 vary continuously with the sample and give gradients to G_en at every read. The body geometry
 (b_t, its projections, the visibility) carries no gradient: it is an input.
 """
@@ -60,37 +52,10 @@ def sample_image_features(feature_map: torch.Tensor, pixels: torch.Tensor, mode:
     return out[0, :, 0].T
 
 
-def soft_normal_weights(cos_front: torch.Tensor, cos_back: torch.Tensor) -> torch.Tensor:
-    """(N, 2) the ``soft_normal`` blend weights of the front and back reads: ``(cos + 1) / 2`` per
-    reference camera, normalised to unit L2 norm (the authors' code); ``cos_*`` (N,)."""
-    return F.normalize(torch.stack([cos_front, cos_back], dim=-1).add(1.0).mul(0.5), p=2, dim=-1)
-
-
-def select_detail_features(front: torch.Tensor, back: torch.Tensor, mode: str = "visibility", *,
-                           front_visible: torch.Tensor | None = None, cos_front: torch.Tensor | None = None,
-                           cos_back: torch.Tensor | None = None) -> torch.Tensor:
-    """Merge the front and back detail reads of N samples.
-
-    Args:
-        front, back: (N, D) reads of F^d(c^fr) and F^d(c^ba).
-        mode: ``"visibility"`` (needs ``front_visible``) or ``"soft_normal"`` (needs ``cos_front``
-            and ``cos_back``).
-        front_visible: (N,) bool, b_t visible from the front reference camera.
-        cos_front, cos_back: (N,) cosine between the body normal at b_t and the direction to each
-            reference camera.
-    Returns:
-        (N, D) f^d.
-    """
-    if mode == "visibility":
-        if front_visible is None:
-            raise ValueError("detail selection 'visibility' needs front_visible")
-        return torch.where(front_visible.unsqueeze(-1), front, back)
-    if mode == "soft_normal":
-        if cos_front is None or cos_back is None:
-            raise ValueError("detail selection 'soft_normal' needs cos_front and cos_back")
-        w = soft_normal_weights(cos_front, cos_back)
-        return w[:, :1] * front + w[:, 1:] * back
-    raise ValueError(f"unknown detail selection {mode!r} (known: 'visibility', 'soft_normal')")
+def select_detail_features(front: torch.Tensor, back: torch.Tensor, front_visible: torch.Tensor) -> torch.Tensor:
+    """f^d (N, D) of N samples: their front read ``front (N, D)`` where ``front_visible (N,)`` (bool), else
+    their back read ``back (N, D)``."""
+    return torch.where(front_visible.unsqueeze(-1), front, back)
 
 
 def reference_visibility(points: torch.Tensor, camera: Camera, depth: torch.Tensor,
@@ -121,8 +86,7 @@ def reference_visibility(points: torch.Tensor, camera: Camera, depth: torch.Tens
 
 
 def read_detail_features(detail_maps: torch.Tensor, reference_cameras: Sequence[Camera],
-                         reference_depth: torch.Tensor, closest: torch.Tensor, mode: str = "visibility",
-                         normal: torch.Tensor | None = None,
+                         reference_depth: torch.Tensor, closest: torch.Tensor,
                          tolerance: float = DEFAULT_VISIBILITY_TOLERANCE) -> tuple[torch.Tensor, torch.Tensor]:
     """f^d of surface points b_t: both reads and their selection (see the module docstring).
 
@@ -131,12 +95,9 @@ def read_detail_features(detail_maps: torch.Tensor, reference_cameras: Sequence[
         reference_cameras: (front, back), at the resolution of ``reference_depth``.
         reference_depth: (2, S, S) the body's depth pass at each reference camera.
         closest: (n, 3) b_t.
-        mode: ``"visibility"`` or ``"soft_normal"``.
-        normal: (n, 3) unit body normal at b_t (``soft_normal`` only).
         tolerance: metres, see :func:`reference_visibility`.
     Returns:
-        (n, C_d) features on the maps' device and (n,) the front weight: 1/0 (front/back chosen)
-        in ``visibility`` mode, the front blend weight in ``soft_normal`` mode.
+        (n, C_d) features on the maps' device and (n,) bool, whether the front read was chosen.
     """
     dev = detail_maps.device
     points = closest.detach().to("cpu", torch.float32)
@@ -144,21 +105,9 @@ def read_detail_features(detail_maps: torch.Tensor, reference_cameras: Sequence[
     for i, cam in enumerate(reference_cameras):
         pix, _ = project_points(cam, points)
         reads.append(sample_image_features(detail_maps[i], pix.to(dev)))
-    if mode == "visibility":
-        visible = reference_visibility(closest, reference_cameras[0], reference_depth[0], tolerance).to(dev)
-        return select_detail_features(reads[0], reads[1], "visibility", front_visible=visible), visible.float()
-    if mode != "soft_normal":
-        raise ValueError(f"unknown detail selection {mode!r} (known: 'visibility', 'soft_normal')")
-    if normal is None:
-        raise ValueError("detail selection 'soft_normal' needs the normal at b_t")
-    cos = []
-    for cam in reference_cameras:
-        centre = torch.as_tensor(cam.center, dtype=torch.float32)
-        to_cam = F.normalize(centre - points, dim=-1)
-        cos.append((normal.cpu().float() * to_cam).sum(-1).to(dev))
-    feats = select_detail_features(reads[0], reads[1], "soft_normal", cos_front=cos[0], cos_back=cos[1])
-    return feats, soft_normal_weights(cos[0], cos[1])[:, 0]
+    visible = reference_visibility(closest, reference_cameras[0], reference_depth[0], tolerance).to(dev)
+    return select_detail_features(reads[0], reads[1], visible), visible
 
 
-__all__ = ["sample_image_features", "soft_normal_weights", "select_detail_features", "reference_visibility",
-           "read_detail_features", "DEFAULT_VISIBILITY_TOLERANCE"]
+__all__ = ["sample_image_features", "select_detail_features", "reference_visibility", "read_detail_features",
+           "DEFAULT_VISIBILITY_TOLERANCE"]

@@ -1,10 +1,10 @@
-"""Per-frame codes (``ModelConfig.frame_code_resolution``): a learned residual of E's output per
+"""Per-frame codes (:class:`~garmentnerf.model.config.FrameCodeConfig`): a learned residual of E's output per
 training frame, dense or held only where the garment reads it.
 
 A code is ``C x r x r`` texels of the body's UV atlas, upsampled bilinearly to E's resolution and
 added to F^s_t. The garment reads F^s_t only at the atlas coordinates of its samples' closest body
 points, a part of the atlas (about a third for the bundled dress at 128 x 128), so a *sparse* code
-(``ModelConfig.frame_code_support_margin`` >= 0) keeps values only on a fixed set of texels, its
+(``FrameCodeConfig.support_margin`` >= 0) keeps values only on a fixed set of texels, its
 **support**, and is zero elsewhere: codes as fine as E's own output then fit a demo's size budget.
 The support is the bilinear footprint of the garment's closest body points over the training frames
 (:func:`garment_texels`), grown by a margin (:func:`grow_texels`); it is data, not configuration, so
@@ -51,7 +51,7 @@ class FrameCodes(nn.Module):
         """Hold the codes on ``support`` ((r, r) bool), every code zero (sparse codes only; before
         an optimiser is made, which would keep the old tensor)."""
         if not self.sparse:
-            raise ValueError("dense per-frame codes have no support (ModelConfig.frame_code_support_margin)")
+            raise ValueError("dense per-frame codes have no support (FrameCodeConfig.support_margin)")
         support = torch.as_tensor(support, dtype=torch.bool)
         if tuple(support.shape) != (self.resolution, self.resolution):
             raise ValueError(f"a support of shape {tuple(support.shape)} for codes of {self.resolution} x "

@@ -21,7 +21,7 @@ machines) without an OpenGL context, e.g. from cached inputs.
 
 Reference cameras
     Front first, then back (paper: the front and back reference views; the scene rig's
-    ``ref_front`` / ``ref_back``, :data:`REFERENCE_CAMERA_NAMES`), at ``cfg.reference_resolution``
+    ``ref_front`` / ``ref_back``, :data:`REFERENCE_CAMERA_NAMES`), at ``cfg.encoder.reference_resolution``
     squared.
 """
 
@@ -38,7 +38,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import PosedBody
     from garmentnerf.geometry.body_points import BoundBody
     from garmentnerf.model.config import ModelConfig
-    from garmentnerf.model.normal_field import NormalGrid
 
 #: Names of the reference cameras in a scene rig, in the order the model uses them.
 REFERENCE_CAMERA_NAMES = ("ref_front", "ref_back")
@@ -81,17 +80,16 @@ class FrameInputs:
             raise ValueError(f"posed_vertices must be (V, 3), got {tuple(self.posed_vertices.shape)}")
         if num_vertices is not None and V != num_vertices:
             raise ValueError(f"posed_vertices has {V} rows, the body model has {num_vertices} vertices")
-        R, C = cfg.info_map_resolution, cfg.encoder_in_channels
+        R, C = cfg.encoder.info_map_resolution, cfg.encoder.in_channels
         if tuple(self.info_maps.shape) != (C, R, R):
-            raise ValueError(f"info_maps must be ({C}, {R}, {R}) for history={cfg.history}, "
-                             f"velocity_smoothing={list(cfg.velocity_smoothing)}, world_normals={cfg.world_normals} and "
+            raise ValueError(f"info_maps must be ({C}, {R}, {R}) for history={cfg.encoder.history} and "
                              f"info_map_resolution={R}, got {tuple(self.info_maps.shape)}")
-        S = cfg.reference_resolution
+        S = cfg.encoder.reference_resolution
         if len(self.reference_cameras) != 2:
             raise ValueError(f"need 2 reference cameras (front, back), got {len(self.reference_cameras)}")
         for cam in self.reference_cameras:
             if (cam.width, cam.height) != (S, S):
-                raise ValueError(f"reference cameras must be {S}x{S} (cfg.reference_resolution), "
+                raise ValueError(f"reference cameras must be {S}x{S} (cfg.encoder.reference_resolution), "
                                  f"got {cam.width}x{cam.height}")
         for name, shape in (("reference_uv", (2, S, S, 2)), ("reference_mask", (2, S, S)),
                             ("reference_depth", (2, S, S)), ("reference_face", (2, S, S))):
@@ -126,8 +124,6 @@ class FrameFeatures:
         timings: ms per stage of making it: those of the :class:`FrameInputs` (GL passes) plus
             ``surface`` (binding the projection), ``reference_images`` (G_img), ``encoders``
             (E and G_en).
-        normal_grid: the blurred body normals the shading reads
-            (:class:`~garmentnerf.model.normal_field.NormalGrid`; ``shading_normal_blur`` > 0), or None.
         encoder_output: (C_s, R, R) E's output before the per-frame code, kept only while no
             parameter of E trains (then it is the same every time the frame is prepared, and
             :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame` reuses it from
@@ -145,7 +141,6 @@ class FrameFeatures:
     reference_depth: torch.Tensor
     frame: int | None = None
     timings: dict[str, float] = field(default_factory=dict)
-    normal_grid: "NormalGrid | None" = None
     encoder_output: torch.Tensor | None = None
 
     def detach(self) -> "FrameFeatures":
@@ -164,7 +159,7 @@ def frame_vertices(posed: "PosedBody", frame: int) -> torch.Tensor:
     as long as the frame's inputs live (28 MB for the demo's 170 frames, against the frame's 165 kB).
     The trainer keeps frames long after the clip they were built from is gone, and with several
     sequences each frame kept a different posing of its clip: training on four sequences grew by
-    about 13 MB per new frame until it was killed (``docs/quality.md``, "The trainer's memory,
+    about 13 MB per new frame until it was killed (``docs/lab/ledger.md``, "The trainer's memory,
     found and fixed")."""
     return posed.vertices[frame].detach().to("cpu", torch.float32).clone(memory_format=torch.contiguous_format)
 

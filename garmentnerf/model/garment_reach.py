@@ -1,6 +1,6 @@
 """How far a scene's garment reaches from the body, against where the model can put it.
 
-The model samples each frame inside the body's bounding box grown by ``ModelConfig.bbox_padding``
+The model samples each frame inside the body's bounding box grown by :data:`~garmentnerf.model.config.BBOX_PADDING`
 (:func:`~garmentnerf.model.samplers.padded_box`): garment outside that box can never be rendered.
 And the field's density starts from a body prior (``body_prior_strength``, ``body_prior_width`` w:
 :func:`~garmentnerf.model.nerf_mlp.body_density_prior`) that is negative beyond h = w and at its floor

@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.model.config import NEURAL_TEXTURE_CHANNELS, NEURAL_TEXTURE_LEVELS, UNET_BASE_WIDTH, UNET_DEPTH
 from garmentnerf.model.unet import UNet
 
 
@@ -90,8 +91,8 @@ class ImageGenerator(nn.Module):
 
     @classmethod
     def from_config(cls, cfg) -> "ImageGenerator":
-        return cls(cfg.neural_texture_channels, cfg.neural_texture_levels, cfg.neural_texture_resolution,
-                   cfg.encoder_base_width, cfg.encoder_depth, cfg.generator_width_scale)
+        return cls(NEURAL_TEXTURE_CHANNELS, NEURAL_TEXTURE_LEVELS, cfg.encoder.neural_texture_resolution,
+                   UNET_BASE_WIDTH, UNET_DEPTH, cfg.encoder.width_scale)
 
     def neural_image(self, uv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Q_t ``(B, C, H, W)`` from uv (B, H, W, 2) and mask (B, H, W)."""

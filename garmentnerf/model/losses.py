@@ -13,14 +13,12 @@ Normalisation: L1 terms are means over all elements; L_sp and L_off are per-pixe
 (summed over palette colors and channels) averaged over pixels, as in PaletteNeRF whose weights
 the paper adopts; L_p is the sum over the palette's 3P values.
 
-Four optional terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns
-on the first two, see :class:`~garmentnerf.model.config.ModelConfig`): ``opacity`` holds the feature rays'
+Two terms are not in the paper (weight 0 gives its objective; the cpu_small preset turns both
+on, see :class:`~garmentnerf.model.config.LossConfig`): ``opacity`` holds the feature rays'
 opacity to the ground-truth mask, ``segmentation`` holds the garment blend weight to the label
-maps' garment share, ``plane_tv`` smooths the ``uvh`` field's learned tri-plane
-(:func:`plane_total_variation`), ``occupancy`` holds the field's density to the simulated garment
-(:mod:`garmentnerf.model.occupancy`).
+maps' garment share.
 
-G_img's pre-training (DNG's recipe, without its adversarial terms): ``w_image L1 + w_perceptual
+G_img's pre-training (DNG's recipe, without its adversarial terms): ``image L1 + perceptual
 perceptual`` between the generated and the ground-truth reference images.
 
 The perceptual network is not defined here: pass any ``callable(pred, target) -> scalar`` (for
@@ -35,7 +33,7 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-from garmentnerf.model.occupancy import occupancy_loss
+from garmentnerf.model.config import LossConfig
 from garmentnerf.model.palette import DecomposedMaps
 
 
@@ -74,15 +72,6 @@ def opacity_loss(opacity: torch.Tensor, target_mask: torch.Tensor) -> torch.Tens
     return (opacity - target).abs().mean()
 
 
-def plane_total_variation(planes) -> torch.Tensor:
-    """K-Planes' total variation of feature planes, each (1, C, H, W): the mean squared difference
-    of neighbouring texels along each of the two axes, the two means added, averaged over the planes.
-    A ramp of slope s per texel along one axis gives s^2; a constant plane gives 0."""
-    per_plane = [(p[..., 1:, :] - p[..., :-1, :]).square().mean() + (p[..., :, 1:] - p[..., :, :-1]).square().mean()
-                 for p in planes]
-    return torch.stack(per_plane).mean()
-
-
 def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, target_mask: torch.Tensor,
                       eps: float = 1e-3) -> torch.Tensor:
     """Total-variation distance between each foreground pixel's blend weights and its label shares.
@@ -100,7 +89,7 @@ def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, targe
         garment, half body asks for w_G = 0.5. For P = 2 it is ``|w_G - g*/m*|``. Every color is
         held, the body's too: a head that cannot tell two layers apart gains nothing by moving a
         layer pixel's weight to the body (with the layers alone held, it would: the dress's first
-        model leaked a quarter of its garment weight to the body that way, docs/quality.md).
+        model leaked a quarter of its garment weight to the body that way, docs/lab/ledger.md).
     """
     B, P, H, W = weights.shape
     K = target_garment.shape[1]
@@ -114,12 +103,10 @@ def segmentation_loss(weights: torch.Tensor, target_garment: torch.Tensor, targe
 
 
 def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: DecomposedMaps,
-                   target_mask: torch.Tensor, palette: torch.Tensor, palette_initial: torch.Tensor, cfg,
-                   perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                   target_mask: torch.Tensor, palette: torch.Tensor, palette_initial: torch.Tensor,
+                   weights: LossConfig, perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
                    opacity: torch.Tensor | None = None,
-                   target_garment: torch.Tensor | None = None,
-                   planes=None, occupancy: tuple[torch.Tensor, torch.Tensor] | None = None,
-                   distortion: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                   target_garment: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """All loss terms of one batch.
 
     Args:
@@ -129,26 +116,18 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         target_mask: (B, 1, H, W) or (B, H, W) ground-truth mask of body + garment in {0, 1}.
         palette: (P, 3) the palette *parameter* (unclamped, so L_p can pull it back into range).
         palette_initial: (P, 3) p*.
-        cfg: anything with the weights ``w_image, w_mask, w_perceptual, w_sparsity, w_offset,
-            w_palette`` (a :class:`~garmentnerf.model.config.ModelConfig`).
+        weights: the terms' weights.
         perceptual: optional ``(pred, target) -> scalar``; its term is left out when None. It sees both
-            images area-averaged by ``cfg.perceptual_downsample`` (when present and > 1).
-        opacity: optional (B, h, w) accumulated opacity of the feature rays; with ``cfg.w_opacity``
+            images area-averaged by ``weights.perceptual_downsample`` (when > 1).
+        opacity: optional (B, h, w) accumulated opacity of the feature rays; with ``weights.opacity``
             > 0 it is held to the target mask area-averaged to (h, w) (:func:`opacity_loss`).
         target_garment: optional (B, K, H, W) or (B, H, W) ground-truth coverage of the garment (K = 1)
-            or of each of its layers; with ``cfg.w_segmentation`` > 0 the garment blend weights are held to it
-            (:func:`segmentation_loss`), through the weight head alone when
-            ``cfg.segmentation_head_only`` and the maps carry ``weights_head_only``.
-        planes: optional feature planes (each (1, C, H, W)); with ``cfg.w_plane_tv`` > 0 their
-            :func:`plane_total_variation` is a term.
-        occupancy: optional ``(sigma (N,), occupied (N,))``, the field's density at points of the frame and
-            their labels; with ``cfg.w_occupancy`` > 0 their
-            :func:`~garmentnerf.model.occupancy.occupancy_loss` (interval ``cfg.occupancy_step``) is a term.
-        distortion: optional (B, h, w) per-ray distortion of the feature rays; with ``cfg.w_distortion`` > 0
-            its mean is a term.
+            or of each of its layers; with ``weights.segmentation`` > 0 the garment blend weights are held
+            to it (:func:`segmentation_loss`), through the weight head alone when
+            ``weights.segmentation_head_only`` and the maps carry ``weights_head_only``.
     Returns:
-        dict of the unweighted terms ``image, [image_l2,] mask, [perceptual,] sparsity, offset, palette,
-        [opacity,] [segmentation,] [plane_tv,] [occupancy,] [distortion]`` and ``total``, the weighted sum.
+        dict of the unweighted terms ``image, mask, [perceptual,] sparsity, offset, palette, [opacity,]
+        [segmentation]`` and ``total``, the weighted sum.
     """
     if target_mask.ndim == 3:
         target_mask = target_mask.unsqueeze(1)
@@ -156,11 +135,8 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
         "image": l1(image, target_image),
         "mask": l1(maps.mask, target_mask.to(maps.mask.dtype)),
     }
-    w_image_l2 = float(getattr(cfg, "w_image_l2", 0.0))
-    if w_image_l2 > 0:
-        terms["image_l2"] = F.mse_loss(image, target_image)
     if perceptual is not None:
-        factor = int(getattr(cfg, "perceptual_downsample", 1))
+        factor = int(weights.perceptual_downsample)
         if factor > 1:
             terms["perceptual"] = perceptual(F.avg_pool2d(image, factor), F.avg_pool2d(target_image, factor))
         else:
@@ -168,35 +144,20 @@ def garment_losses(image: torch.Tensor, target_image: torch.Tensor, maps: Decomp
     terms["sparsity"] = sparsity_loss(maps.weights)
     terms["offset"] = offset_loss(maps.offsets)
     terms["palette"] = palette_loss(palette, palette_initial)
-    w_opacity = float(getattr(cfg, "w_opacity", 0.0))
-    if opacity is not None and w_opacity > 0:
+    if opacity is not None and weights.opacity > 0:
         terms["opacity"] = opacity_loss(opacity, target_mask)
-    w_segmentation = float(getattr(cfg, "w_segmentation", 0.0))
-    if target_garment is not None and w_segmentation > 0:
+    if target_garment is not None and weights.segmentation > 0:
         if target_garment.ndim == 3:
             target_garment = target_garment.unsqueeze(1)
-        head_only = getattr(cfg, "segmentation_head_only", True) and maps.weights_head_only is not None
+        head_only = weights.segmentation_head_only and maps.weights_head_only is not None
         supervised = maps.weights_head_only if head_only else maps.weights
         terms["segmentation"] = segmentation_loss(supervised, target_garment.to(maps.weights.dtype),
                                                   target_mask.to(maps.weights.dtype))
-    w_plane_tv = float(getattr(cfg, "w_plane_tv", 0.0))
-    if planes is not None and w_plane_tv > 0:
-        terms["plane_tv"] = plane_total_variation(planes)
-    w_occupancy = float(getattr(cfg, "w_occupancy", 0.0))
-    if occupancy is not None and w_occupancy > 0:
-        terms["occupancy"] = occupancy_loss(occupancy[0], occupancy[1], cfg.occupancy_step)
-    w_distortion = float(getattr(cfg, "w_distortion", 0.0))
-    if distortion is not None and w_distortion > 0:
-        terms["distortion"] = distortion.mean()
-    weights = {"image": cfg.w_image, "image_l2": w_image_l2, "mask": cfg.w_mask, "perceptual": cfg.w_perceptual,
-               "sparsity": cfg.w_sparsity, "offset": cfg.w_offset, "palette": cfg.w_palette, "opacity": w_opacity,
-               "segmentation": w_segmentation, "plane_tv": w_plane_tv,
-               "occupancy": w_occupancy, "distortion": w_distortion}
-    terms["total"] = sum(weights[name] * value for name, value in terms.items())
+    terms["total"] = sum(getattr(weights, name) * value for name, value in terms.items())
     return terms
 
 
-def generator_losses(pred: torch.Tensor, target: torch.Tensor, cfg,
+def generator_losses(pred: torch.Tensor, target: torch.Tensor, weights: LossConfig,
                      perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
                      ) -> dict[str, torch.Tensor]:
     """The loss terms of one G_img pre-training step.
@@ -204,16 +165,15 @@ def generator_losses(pred: torch.Tensor, target: torch.Tensor, cfg,
     Args:
         pred: (B, 3, H, W) G_img's reference images (front and back: B = 2).
         target: (B, 3, H, W) the ground-truth reference images.
-        cfg: anything with ``w_image`` and ``w_perceptual`` (a
-            :class:`~garmentnerf.model.config.ModelConfig`).
+        weights: the terms' weights (``image`` and ``perceptual``).
         perceptual: optional ``(pred, target) -> scalar``; its term is left out when None.
     Returns:
         dict of the unweighted terms ``image, [perceptual]`` and ``total``, the weighted sum.
     """
     terms = {"image": l1(pred, target)}
-    total = cfg.w_image * terms["image"]
+    total = weights.image * terms["image"]
     if perceptual is not None:
         terms["perceptual"] = perceptual(pred, target)
-        total = total + cfg.w_perceptual * terms["perceptual"]
+        total = total + weights.perceptual * terms["perceptual"]
     terms["total"] = total
     return terms

@@ -22,22 +22,24 @@ Precision
     head, since sigma is an exponential of its output. Both are small layers (20 inputs; one
     output), so this costs almost nothing of the speed-up.
 
-Atlas feature f^a (optional, ``atlas_dim > 0``)
-    A learned texture's read at the sample's atlas UV (``ModelConfig.atlas_feature_channels``).
-    It enters the first hidden layer through its own weights, ``atlas_input``, added to the first
-    layer's pre-activation and initialised to zero: a network built with it computes exactly what
-    the same network without it computes, so the branch can be added to a trained model and
-    fine-tuned from that model's output (:func:`garmentnerf.train.run.load_weights` with
-    ``may_be_missing``).
+The field interface
+    :class:`GarmentNeRF` is the model's :class:`~garmentnerf.model.field.Field`: :meth:`GarmentNeRF.evaluate`
+    reads a sample's f^s and f^d at its body point and runs the MLP; ``forward`` is the MLP alone.
 """
 
 from __future__ import annotations
 
-import math
+from contextlib import AbstractContextManager
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from garmentnerf.geometry.triangles import interpolate
+from garmentnerf.model.uv_maps import sample_uv_map
+from garmentnerf.model.config import BODY_PRIOR_WIDTH, DETAIL_FEATURE_DIM, DYNAMIC_FEATURE_DIM
+from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
+from garmentnerf.model.field import Field, StageClock
 
 #: trunc_exp clamps its input's gradient here (torch-ngp's value); exp(15) ~ 3.3e6 per metre.
 TRUNC_EXP_MAX = 15.0
@@ -83,30 +85,21 @@ def body_density_prior(distance: torch.Tensor, strength: float, width: float) ->
     return strength * (1.0 - distance.clamp_min(0.0) / width).clamp(-1.0, 1.0)
 
 
-def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
-    """NeRF encoding ``[x, sin(2^l pi x), cos(2^l pi x)]_{l < L}``: (N, D) -> (N, D (1 + 2 L))."""
-    if num_freqs == 0:
-        return x
-    freqs = (2.0 ** torch.arange(num_freqs, dtype=x.dtype, device=x.device)) * math.pi
-    angles = (x.unsqueeze(-1) * freqs).flatten(-2)  # (N, D L)
-    return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
-
-
 def field_heads(field: nn.Module, hidden: torch.Tensor, distance: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """sigma (N,) and zeta (N, C) from a field's last hidden layer (N, W): the density head in
     float32 (see "Precision"), the body prior of h ``distance (N,)`` added, the activation; the
     appearance head as is. ``field`` holds ``density_head``, ``appearance_head`` and the density
-    settings (:class:`GarmentNeRF`, :class:`~garmentnerf.model.uvh_field.UVHField`)."""
+    settings (:class:`GarmentNeRF`)."""
     with torch.autocast(hidden.device.type, enabled=False):
         raw = field.density_head(hidden.float()).squeeze(-1)
     if field.body_prior_strength:
-        raw = raw + body_density_prior(distance, field.body_prior_strength, field.body_prior_width)
+        raw = raw + body_density_prior(distance, field.body_prior_strength, BODY_PRIOR_WIDTH)
     sigma = density_activation(raw, field.density_kind, field.density_bias, field.density_scale)
     return sigma, field.appearance_head(hidden)
 
 
-class GarmentNeRF(nn.Module):
-    """The NeRF MLP.
+class GarmentNeRF(Field):
+    """M_NeRF, the paper's field: an MLP on ``[b_o, h, f^d, f^s]``.
 
     Args:
         detail_dim: width of f^d (0: the detail-feature ablation).
@@ -115,51 +108,59 @@ class GarmentNeRF(nn.Module):
         depth, width: hidden Linear + ReLU layers (paper: 6 x 256).
         density_activation: ``"softplus"`` or ``"trunc_exp"``.
         density_bias: added to the raw density before the activation.
-        positional_encoding_freqs: frequencies applied to b_o (paper: 0).
-        atlas_dim: width of f^a (0: none, the paper's inputs).
+        density_scale: multiplies the activated density.
+        body_prior_strength: the raw density offset of :func:`body_density_prior` (0: none).
+        shading_normals: :meth:`evaluate` appends the skin's world normal at each sample's body point
+            to zeta (``NerfConfig.shading_normals``).
+        skin_faces: (F, 3) the body's skin triangles, for those normals.
+        visibility_tolerance: metres, see
+            :func:`~garmentnerf.model.detail_features.reference_visibility`.
     """
 
-    #: Parameters that start at zero so that adding them leaves the network's output unchanged.
-    ZERO_START = ("atlas_input.",)
     #: Parameters whose width follows ``width``: a wider MLP can start from a narrower one's weights.
-    GROWABLE = ("trunk.", "density_head.", "appearance_head.", "atlas_input.")
+    GROWABLE = ("trunk.", "density_head.", "appearance_head.")
 
-    def __init__(self, detail_dim: int = 8, dynamic_dim: int = 8, appearance_dim: int = 128, depth: int = 6,
-                 width: int = 256, density_activation: str = "softplus", density_bias: float = -1.0,
-                 positional_encoding_freqs: int = 0, density_scale: float = 1.0,
-                 body_prior_strength: float = 0.0, body_prior_width: float = 0.15, atlas_dim: int = 0):
+    def __init__(self, detail_dim: int = DETAIL_FEATURE_DIM, dynamic_dim: int = DYNAMIC_FEATURE_DIM,
+                 appearance_dim: int = 128, depth: int = 6, width: int = 256, density_activation: str = "softplus",
+                 density_bias: float = -1.0, density_scale: float = 1.0, body_prior_strength: float = 0.0, *,
+                 shading_normals: bool = False, skin_faces: torch.Tensor | None = None,
+                 visibility_tolerance: float = DEFAULT_VISIBILITY_TOLERANCE):
         super().__init__()
         if density_activation not in ("softplus", "trunc_exp"):
             raise ValueError(f"unknown density activation {density_activation!r}")
+        if shading_normals and skin_faces is None:
+            raise ValueError("shading_normals needs the skin's faces")
+        if not visibility_tolerance >= 0:
+            raise ValueError(f"visibility_tolerance must be >= 0, got {visibility_tolerance}")
         self.detail_dim = detail_dim
         self.dynamic_dim = dynamic_dim
         self.appearance_dim = appearance_dim
+        self.zeta_channels = appearance_dim + 3 * int(shading_normals)
         self.density_kind = density_activation
         self.density_bias = density_bias
         self.density_scale = float(density_scale)
         self.body_prior_strength = float(body_prior_strength)
-        self.body_prior_width = float(body_prior_width)
-        self.num_freqs = positional_encoding_freqs
-        self.atlas_dim = atlas_dim
-        self.input_dim = 3 * (1 + 2 * positional_encoding_freqs) + 1 + detail_dim + dynamic_dim
+        self.shading_normals = bool(shading_normals)
+        self.skin_faces = None if skin_faces is None else skin_faces.detach().cpu()  # not a parameter
+        self.visibility_tolerance = float(visibility_tolerance)
+        self.input_dim = 4 + detail_dim + dynamic_dim
         layers: list[nn.Module] = []
         for i in range(depth):
             layers += [nn.Linear(self.input_dim if i == 0 else width, width), nn.ReLU(inplace=True)]
         self.trunk = nn.Sequential(*layers)
-        self.atlas_input = None
-        if atlas_dim:
-            self.atlas_input = nn.Linear(atlas_dim, width, bias=False)
-            nn.init.zeros_(self.atlas_input.weight)
         self.density_head = nn.Linear(width, 1)
         self.appearance_head = nn.Linear(width, appearance_dim)
 
     @classmethod
-    def from_config(cls, cfg) -> "GarmentNeRF":
-        return cls(cfg.detail_feature_dim if cfg.use_detail_feature else 0,
-                   cfg.dynamic_feature_dim if cfg.use_dynamic_feature else 0,
-                   cfg.appearance_dim, cfg.mlp_depth, cfg.mlp_width, cfg.density_activation, cfg.density_bias,
-                   cfg.positional_encoding_freqs, cfg.density_scale, cfg.body_prior_strength,
-                   cfg.body_prior_width, cfg.atlas_feature_channels)
+    def from_config(cls, cfg, skin_faces: torch.Tensor | None = None,
+                    visibility_tolerance: float = DEFAULT_VISIBILITY_TOLERANCE) -> "GarmentNeRF":
+        """M_NeRF of a :class:`~garmentnerf.model.config.ModelConfig`."""
+        nerf = cfg.nerf
+        return cls(DETAIL_FEATURE_DIM if cfg.encoder.detail_feature else 0,
+                   DYNAMIC_FEATURE_DIM if cfg.encoder.dynamic_feature else 0,
+                   nerf.appearance_dim, nerf.mlp_depth, nerf.mlp_width, nerf.density_activation, nerf.density_bias,
+                   nerf.density_scale, nerf.body_prior_strength, shading_normals=nerf.shading_normals,
+                   skin_faces=skin_faces, visibility_tolerance=visibility_tolerance)
 
     def _check(self, name: str, value: torch.Tensor | None, dim: int, n: int) -> None:
         if dim == 0:
@@ -172,16 +173,14 @@ class GarmentNeRF(nn.Module):
             raise ValueError(f"{name} feature must be ({n}, {dim}), got {tuple(value.shape)}")
 
     def forward(self, canonical: torch.Tensor, distance: torch.Tensor, detail: torch.Tensor | None = None,
-                dynamic: torch.Tensor | None = None, atlas: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Evaluate N samples.
+                dynamic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The MLP on N samples.
 
         Args:
             canonical: (N, 3) b_o, the projected point on the canonical body.
             distance: (N,) h, signed distance to the posed body (positive outside).
             detail: (N, detail_dim) f^d, or None when built with detail_dim = 0.
             dynamic: (N, dynamic_dim) f^s, or None when built with dynamic_dim = 0.
-            atlas: (N, atlas_dim) f^a, or None when built with atlas_dim = 0.
         Returns:
             sigma (N,) density >= 0 in 1/metre, zeta (N, appearance_dim).
         """
@@ -191,12 +190,33 @@ class GarmentNeRF(nn.Module):
                              f"and {tuple(distance.shape)}")
         self._check("detail", detail, self.detail_dim, n)
         self._check("dynamic", dynamic, self.dynamic_dim, n)
-        self._check("atlas", atlas, self.atlas_dim, n)
-        parts = [positional_encoding(canonical, self.num_freqs), distance.unsqueeze(-1)]
+        parts = [canonical, distance.unsqueeze(-1)]
         parts += [f for f in (detail, dynamic) if f is not None]
         # Under autocast only the hidden layers run in the lower precision: see "Precision" above.
         with torch.autocast(canonical.device.type, enabled=False):
             first = self.trunk[0](torch.cat(parts, dim=-1).float())
-            if atlas is not None:
-                first = first + self.atlas_input(atlas.float())
         return field_heads(self, self.trunk[1:](first), distance)
+
+    def evaluate(self, frame, points, *, clock: StageClock, autocast: AbstractContextManager
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`Field.evaluate <garmentnerf.model.field.Field.evaluate>`: f^d read from the reference
+        detail maps where b_t is seen (:func:`~garmentnerf.model.detail_features.read_detail_features`),
+        f^s from F^s_t at the atlas UV, then the MLP; with ``shading_normals`` the skin's posed normal at b_t
+        appended to zeta."""
+        dev = self.density_head.weight.device
+        with clock("features"):
+            detail = dynamic = None
+            if self.detail_dim:
+                detail, _ = read_detail_features(frame.detail_features, frame.reference_cameras,
+                                                 frame.reference_depth, points.closest, self.visibility_tolerance)
+            if self.dynamic_dim:
+                dynamic = sample_uv_map(frame.dynamic_features.permute(1, 2, 0), points.uv.to(dev))
+        with clock("mlp"), autocast:
+            sigma, zeta = self(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic)
+        sigma, zeta = sigma.float(), zeta.float()
+        if self.shading_normals:
+            with clock("features"):
+                normal = F.normalize(interpolate(frame.vertex_normals, self.skin_faces, points.face, points.bary),
+                                     dim=-1)
+                zeta = torch.cat([zeta, normal.to(dev, zeta.dtype)], dim=-1)
+        return sigma, zeta

@@ -51,6 +51,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.model.config import BLEND_WEIGHT_FLOOR, OFFSET_SCALE
+
 #: Makes softplus(0 + shift) = 1: the untrained radiance is 1, so the image starts at the palette.
 _SOFTPLUS_ONE = math.log(math.e - 1.0)
 
@@ -275,7 +277,7 @@ class DecomposedMaps:
         Why area: the antialiased bilinear filter spreads an output pixel over twice its width, a
         blur the truth does not have. The bundled skirt rendered at its trained density and shown at
         half (24 unseen views) scores 0.15 dB more foreground and 2.4 more body averaged by area
-        than by that filter (``docs/quality.md``, "Rendering above the trained density, and shown
+        than by that filter (``docs/lab/ledger.md``, "Rendering above the trained density, and shown
         smaller than rendered")."""
         if (int(width), int(height)) == self.size:
             return self
@@ -303,14 +305,13 @@ class DecomposedMaps:
 class PaletteDecoder(nn.Module):
     """M_D: feature image ``(B, C, h, w)`` -> :class:`DecomposedMaps` at ``(h, w) * 2**upsample_steps``.
 
-    Layers: ``low_layers`` conv3x3 + LeakyReLU(0.2) of width ``width`` at the feature image's own
-    resolution (not in the paper; 0 by default), then [nearest x2 -> conv3x3 -> LeakyReLU(0.2)] x
+    Layers: [nearest x2 -> conv3x3 -> LeakyReLU(0.2)] x
     upsample_steps (widths ``width``, ``width/2``, ... floored at ``min_width``), then
     ``extra_layers`` conv3x3 + LeakyReLU at full resolution, then a conv3x3 to the raw heads.
 
     Heads:
-        radiance: softplus shifted so raw 0 -> 1 (default; can exceed 1 where the pixel is
-            brighter than its palette color) or sigmoid.
+        radiance: softplus shifted so raw 0 -> 1 (it can exceed 1 where the pixel is brighter
+            than its palette color, which a sigmoid could not).
         offsets: ``offset_scale * tanh``.
         weights: ``softplus + weight_floor``, normalised to sum 1 over the palette.
         mask: sigmoid.
@@ -318,9 +319,8 @@ class PaletteDecoder(nn.Module):
     Args:
         in_channels: C (paper: 128).
         palette_size: P (paper: 2).
-        width, min_width, upsample_steps, extra_layers, low_layers: the conv stack.
+        width, min_width, upsample_steps, extra_layers: the conv stack.
         radiance_channels: 3 (paper) or 1.
-        radiance_activation: ``"softplus"`` or ``"sigmoid"``.
         offset_scale, weight_floor: see the heads.
         head_only_weights: in training, also return the weights through the weight head alone
             (``DecomposedMaps.weights_head_only``, for the label supervision of the weights).
@@ -328,25 +328,19 @@ class PaletteDecoder(nn.Module):
 
     def __init__(self, in_channels: int = 128, palette_size: int = 2, width: int = 64, min_width: int = 32,
                  upsample_steps: int = 2, extra_layers: int = 2, radiance_channels: int = 3,
-                 radiance_activation: str = "softplus", offset_scale: float = 0.5, weight_floor: float = 0.05,
-                 head_only_weights: bool = False, low_layers: int = 0):
+                 offset_scale: float = OFFSET_SCALE, weight_floor: float = BLEND_WEIGHT_FLOOR,
+                 head_only_weights: bool = False):
         super().__init__()
-        if radiance_activation not in ("softplus", "sigmoid"):
-            raise ValueError(f"unknown radiance activation {radiance_activation!r}")
         if radiance_channels not in (1, 3):
             raise ValueError(f"radiance_channels must be 1 or 3, got {radiance_channels}")
         self.palette_size = palette_size
         self.radiance_channels = radiance_channels
-        self.radiance_activation = radiance_activation
         self.offset_scale = offset_scale
         self.weight_floor = weight_floor
         self.head_only_weights = bool(head_only_weights)
         self.upsample_steps = upsample_steps
         layers: list[nn.Module] = []
         c = in_channels
-        for _ in range(low_layers):
-            layers += [nn.Conv2d(c, width, 3, padding=1), nn.LeakyReLU(0.2, inplace=True)]
-            c = width
         for step in range(upsample_steps):
             out = max(width // 2 ** step, min_width)
             layers += [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(c, out, 3, padding=1),
@@ -359,11 +353,9 @@ class PaletteDecoder(nn.Module):
 
     @classmethod
     def from_config(cls, cfg) -> "PaletteDecoder":
-        return cls(cfg.feature_image_channels, cfg.palette_size, cfg.decoder_width, cfg.decoder_min_width,
-                   cfg.decoder_upsample_steps, cfg.decoder_extra_layers, cfg.radiance_channels,
-                   cfg.radiance_activation, cfg.offset_scale, cfg.blend_weight_floor,
-                   head_only_weights=cfg.w_segmentation > 0 and cfg.segmentation_head_only,
-                   low_layers=cfg.decoder_low_layers)
+        return cls(cfg.nerf.zeta_channels, cfg.decoder.palette_size, cfg.decoder.width, cfg.decoder.min_width,
+                   cfg.decoder.upsample_steps, cfg.decoder.extra_layers, cfg.decoder.radiance_channels,
+                   head_only_weights=cfg.loss.segmentation > 0 and cfg.loss.segmentation_head_only)
 
     def forward(self, features: torch.Tensor) -> DecomposedMaps:
         """(B, C, h, w) -> maps at (B, ., 4h, 4w) for two upsampling steps."""
@@ -373,10 +365,7 @@ class PaletteDecoder(nn.Module):
         P, Cr = self.palette_size, self.radiance_channels
         rows = palette_head_rows(Cr, P)
         r_raw, o_raw, w_raw, m_raw = torch.split(raw, [len(r) for r in rows.values()], dim=1)
-        if self.radiance_activation == "softplus":
-            radiance = F.softplus(r_raw + _SOFTPLUS_ONE)
-        else:
-            radiance = torch.sigmoid(r_raw)
+        radiance = F.softplus(r_raw + _SOFTPLUS_ONE)
         offsets = self.offset_scale * torch.tanh(o_raw).view(B, P, 3, H, W)
         head_only = None
         if self.head_only_weights and self.training and torch.is_grad_enabled():

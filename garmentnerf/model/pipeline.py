@@ -11,29 +11,19 @@ Two levels, so that a viewer can cache what the camera does not change:
    :class:`~garmentnerf.model.frame_context.FrameInputBuilder`, outside this ``nn.Module``.
 2. :meth:`GarmentAnimationNeRF.render` ``(FrameFeatures, camera) -> RenderOutput`` -- per view:
    rays through the pixel centres of the *feature image* (the camera
-   :meth:`~garmentnerf.conventions.Camera.resized` to ``cfg.feature_image_resolution``); the
+   :meth:`~garmentnerf.conventions.Camera.resized` to ``cfg.decoder.feature_image_resolution``); the
    sampler passed in (:class:`~garmentnerf.model.samplers.Sampler`, bound to the frame and the
    feature camera; default the paper's
    :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) places packed samples: rays it
    gives no segment get no sample at all. Per sample: the closest skin point b_t, its signed
    distance h, the canonical point b_o and its atlas UV; a sample filter passed in (e.g. the
-   garment's height band) may drop the sample here; f^s = F^s_t read bilinearly at
-   the UV; f^d = F^d_t read bilinearly where b_t projects into each reference camera, front or
-   back chosen per ``cfg.detail_selection``; with ``cfg.atlas_feature_channels``, f^a = the
-   learned atlas feature texture read at the UV; M_NeRF -> (sigma, zeta) (with ``cfg.field =
-   "uvh"`` the field of :mod:`~garmentnerf.model.uvh_field` instead: E's per-frame UV-h volume and
-   a learned tri-plane read at (u, v, h), the offset direction in the skin face's frame, f^d and
-   a small MLP); packed volume rendering,
-   segment by segment with optional early ray termination
-   (:func:`~garmentnerf.model.volume_rendering.render_packed_segmented`) -> F^zeta (C_zeta, h, w);
-   M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at ``2**decoder_upsample_steps``
-   times the feature size. :attr:`RenderOutput.image` composes them with the palette when asked
+   garment's height band) may drop the sample here; the field
+   (:class:`~garmentnerf.model.field.Field`, the paper's M_NeRF) -> (sigma, zeta) from the body
+   points and the frame's features; packed volume rendering, segment by segment with optional
+   early ray termination (:func:`~garmentnerf.model.volume_rendering.render_packed_segmented`) ->
+   F^zeta (C_zeta, h, w); M_D -> :class:`~garmentnerf.model.palette.DecomposedMaps` at
+   ``2**cfg.decoder.upsample_steps`` times the feature size. :attr:`RenderOutput.image` composes them with the palette when asked
    for (training); a viewer composes them itself, once, at its output size.
-
-Detail-feature selection (``cfg.detail_selection``)
-    ``"visibility"`` (paper, the default) or ``"soft_normal"`` (authors' code): the reads, the
-    visibility test and the blend are :func:`~garmentnerf.model.detail_features.read_detail_features`
-    (whose module says how each mode chooses).
 
 Gradients
     Flow into E, G_en, M_NeRF, M_D and the palette. The body geometry of a sample (b_t, h, b_o,
@@ -71,33 +61,28 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.conventions import Camera, camera_rays
+from garmentnerf.conventions import Camera
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
-from garmentnerf.geometry.triangles import interpolate
-from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.depth_normals import depth_normals
-from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
+from garmentnerf.model.config import BACKGROUND, BBOX_PADDING, DYNAMIC_FEATURE_DIM, ModelConfig
+from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE
+from garmentnerf.model.field import Field
 from garmentnerf.model.frame_codes import FrameCodes
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
-from garmentnerf.model.importance_sampler import ImportanceSampler
-from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
+from garmentnerf.model.image_generator import ImageGenerator, freeze
 from garmentnerf.model.nerf_mlp import GarmentNeRF
-from garmentnerf.model.normal_field import KERNEL_SIGMAS, NormalGrid, blurred_normal_grid, read_normal_grid
 from garmentnerf.model.palette import DecomposedMaps, Palette, PaletteDecoder, check_palette
 from garmentnerf.model.samplers import BoxStratifiedSampler, SampleFilter, Sampler, body_aabb
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder
-from garmentnerf.model.uv_maps import sample_uv_map
 from garmentnerf.model.volume_rendering import render_packed_segmented
 
 #: Default samples per chunk (per-sample work: feature reads, MLP, compositing).
 DEFAULT_CHUNK_POINTS = 16384
 #: Samples projected onto the body per call: a render's samples are projected before the march,
 #: this many at a time (the exact search pays a fixed cost per call and walks longer Morton runs in
-#: a larger set: 1.2 against 1.7 us per sample in the 16k chunks, docs/quality.md, "The projection's walk").
+#: a larger set: 1.2 against 1.7 us per sample in the 16k chunks, docs/lab/ledger.md, "The projection's walk").
 PROJECTION_CHUNK_POINTS = 1 << 17
 
 #: Stages of :meth:`GarmentAnimationNeRF.prepare_frame` / the GL builder, in pipeline order.
@@ -124,7 +109,7 @@ class RenderOutput:
 
     Attributes:
         maps: the decoder's :class:`DecomposedMaps` (batch of 1) at the feature size times
-            ``2**decoder_upsample_steps``; with :func:`compose` and any palette they give the
+            ``2**cfg.decoder.upsample_steps``; with :func:`compose` and any palette they give the
             image (:attr:`image`, :meth:`recolor`) without re-rendering.
         opacity: (h, w) accumulated opacity per feature-image ray (0 for rays not rendered).
         depth: (h, w) opacity-normalised expected depth along each ray (metres; 0 where opacity 0).
@@ -137,8 +122,6 @@ class RenderOutput:
         samples_placed: samples the sampler placed.
         points_projected: samples projected on the body (those early termination did not skip).
         rays_terminated: rays stopped by early termination with samples left.
-        distortion: (h, w) each ray's distortion (:func:`~garmentnerf.model.volume_rendering.distortion_packed`)
-            in training with ``cfg.w_distortion`` > 0, else None.
     """
 
     maps: DecomposedMaps
@@ -154,7 +137,6 @@ class RenderOutput:
     samples_placed: int = 0
     points_projected: int = 0
     rays_terminated: int = 0
-    distortion: torch.Tensor | None = None
 
     @functools.cached_property
     def image(self) -> torch.Tensor:
@@ -253,7 +235,7 @@ class GarmentAnimationNeRF(nn.Module):
     """E, G_img, G_en, M_NeRF, M_D and the palette, with the per-frame and per-view passes.
 
     Args:
-        cfg: sizes, switches (ablations, detail selection) and the sampler settings.
+        cfg: the components' sizes and switches.
         body: the body model (its topology and template; the skin shell is used for projection).
         palette_init: see :func:`palette_initial_colors` (a scene's ``palette_init``).
         freeze_image_generator: start with G_img frozen (its pre-training is a separate stage).
@@ -264,7 +246,8 @@ class GarmentAnimationNeRF(nn.Module):
             building it takes about 0.4 s for the bundled body).
 
     Submodules (None when ablated): ``encoder`` (E), ``image_generator`` (G_img),
-    ``detail_encoder`` (G_en), ``nerf`` (M_NeRF), ``decoder`` (M_D), ``palette``.
+    ``detail_encoder`` (G_en), ``nerf`` (the :class:`~garmentnerf.model.field.Field`: M_NeRF),
+    ``frame_codes``, ``decoder`` (M_D), ``palette``.
     """
 
     def __init__(self, cfg: ModelConfig, body, palette_init=None, *,
@@ -272,43 +255,26 @@ class GarmentAnimationNeRF(nn.Module):
                  chunk_points: int = DEFAULT_CHUNK_POINTS, projector: BodyPointProjector | None = None):
         super().__init__()
         cfg.validate()
-        if cfg.use_dynamic_feature and not body.has_uv:
+        if cfg.encoder.dynamic_feature and not body.has_uv:
             raise ValueError(f"body model '{body.name}' has no UV atlas; the dynamic feature needs one")
         if chunk_points < 1:
             raise ValueError(f"chunk_points must be >= 1, got {chunk_points}")
-        if not visibility_tolerance >= 0:
-            raise ValueError(f"visibility_tolerance must be >= 0, got {visibility_tolerance}")
         self.cfg = cfg
         self.body = body
-        self.encoder = DynamicFeatureEncoder.from_config(cfg) if cfg.use_dynamic_feature else None
-        self.image_generator = ImageGenerator.from_config(cfg) if cfg.use_detail_feature else None
-        self.detail_encoder = DetailEncoder.from_config(cfg) if cfg.use_detail_feature else None
-        self.atlas_features = None
-        if cfg.atlas_feature_channels:
-            self.atlas_features = NeuralTexture(cfg.atlas_feature_channels, cfg.atlas_feature_levels,
-                                                cfg.atlas_feature_resolution)
-        if cfg.field == "uvh" or cfg.uvh_canonical_freqs:
-            from garmentnerf.model.uvh_field import UVHField, face_tangent_frames
-        self.nerf = UVHField.from_config(cfg) if cfg.field == "uvh" else GarmentNeRF.from_config(cfg)
-        self.frame_codes = None  # per-frame residuals of F^s_t (ModelConfig.frame_code_resolution)
-        if cfg.frame_code_resolution and cfg.frame_codes:
-            self.frame_codes = FrameCodes(cfg.frame_codes, cfg.dynamic_encoder_channels, cfg.frame_code_resolution,
-                                          sparse=cfg.frame_code_support_margin >= 0)
-        self.decoder = PaletteDecoder.from_config(cfg)
-        self.palette = Palette(palette_initial_colors(palette_init, cfg.palette_size))
-        self.visibility_tolerance = float(visibility_tolerance)
+        self.encoder = DynamicFeatureEncoder.from_config(cfg) if cfg.encoder.dynamic_feature else None
+        self.image_generator = ImageGenerator.from_config(cfg) if cfg.encoder.detail_feature else None
+        self.detail_encoder = DetailEncoder.from_config(cfg) if cfg.encoder.detail_feature else None
         self.chunk_points = int(chunk_points)
         self.projector = projector if projector is not None else BodyPointProjector(body)
         self._faces = body.faces.detach().cpu()
-        # the canonical skin's tangent frames (F_skin, 3, 3) and the box the canonical positions are
-        # mapped from (the body padded by the height band): ModelConfig.uvh_canonical_freqs
-        self._canonical_frames = self._canonical_box = None
-        if cfg.uvh_canonical_freqs:
-            canonical = self.projector.canonical_vertices.detach().to("cpu", torch.float32)
-            self._canonical_frames = face_tangent_frames(canonical, self.projector.faces, self.projector.uv,
-                                                         self.projector.uv_faces)
-            pad = max(abs(h) for h in cfg.uvh_height_range)
-            self._canonical_box = (canonical.min(dim=0).values - pad, canonical.max(dim=0).values + pad)
+        # the one place a field is chosen: the paper's M_NeRF
+        self.nerf: Field = GarmentNeRF.from_config(cfg, self.projector.faces, visibility_tolerance)
+        self.frame_codes = None  # per-frame residuals of F^s_t (FrameCodeConfig)
+        if cfg.frame_codes.enabled:
+            self.frame_codes = FrameCodes(cfg.frame_codes.count, DYNAMIC_FEATURE_DIM, cfg.frame_codes.resolution,
+                                          sparse=cfg.frame_codes.support_margin >= 0)
+        self.decoder = PaletteDecoder.from_config(cfg)
+        self.palette = Palette(palette_initial_colors(palette_init, cfg.decoder.palette_size))
         self._image_generator_frozen = False
         if self.image_generator is not None and freeze_image_generator:
             self.set_image_generator_frozen(True)
@@ -344,41 +310,29 @@ class GarmentAnimationNeRF(nn.Module):
 
     def trainable_modules(self) -> dict[str, nn.Module]:
         """The modules the NeRF training updates: ``encoder``, ``detail_encoder``, ``nerf``,
-        ``decoder``, ``palette``, ``atlas_features``, ``frame_codes`` (those the config has), plus
-        ``image_generator`` when unfrozen."""
+        ``decoder``, ``palette``, ``frame_codes`` (those the config has), plus ``image_generator`` when
+        unfrozen."""
         mods = {"encoder": self.encoder, "detail_encoder": self.detail_encoder, "nerf": self.nerf,
-                "decoder": self.decoder, "palette": self.palette, "atlas_features": self.atlas_features,
-                "frame_codes": self.frame_codes}
+                "decoder": self.decoder, "palette": self.palette, "frame_codes": self.frame_codes}
         if not self._image_generator_frozen:
             mods["image_generator"] = self.image_generator
         return {k: m for k, m in mods.items() if m is not None}
 
-    def zero_start_prefixes(self) -> tuple[str, ...]:
-        """State-dict prefixes of the parameters that may be missing from weights trained without
-        them: the atlas branch, whose MLP weights start at zero, so the model computes what the
-        weights' own model computes until training moves them."""
-        if self.atlas_features is None:
-            return ()
-        return ("atlas_features.",) + tuple("nerf." + p for p in GarmentNeRF.ZERO_START)
-
     def growable_prefixes(self) -> tuple[str, ...]:
         """State-dict prefixes of the parameters that may come from a narrower MLP's weights (the
-        NeRF MLP's layers, grown with :func:`~garmentnerf.train.run.grow_linear_tensor`; none for
-        the ``uvh`` field)."""
-        if self.cfg.field == "uvh":
-            return ()
-        return tuple("nerf." + p for p in GarmentNeRF.GROWABLE)
+        NeRF MLP's layers, grown with :func:`~garmentnerf.train.run.grow_linear_tensor`)."""
+        return tuple("nerf." + p for p in getattr(self.nerf, "GROWABLE", ()))
 
     def frame_code_prefixes(self) -> tuple[str, ...]:
         """State-dict prefixes of the per-frame codes (none without them): zero at the start, so they
         may be missing from weights trained without them (the model then computes what those weights'
-        own model computes), and they learn at ``cfg.frame_code_lr_scale`` times the rate."""
+        own model computes), and they learn at ``cfg.frame_codes.lr_scale`` times the rate."""
         return ("frame_codes.",) if self.frame_codes is not None else ()
 
     def frame_code(self, index: int, resolution: int) -> torch.Tensor:
         """(C_s, R, R) the per-frame code ``index`` upsampled bilinearly to E's output resolution R."""
         if self.frame_codes is None:
-            raise ValueError("this model has no per-frame codes (ModelConfig.frame_code_resolution)")
+            raise ValueError("this model has no per-frame codes (FrameCodeConfig.resolution)")
         return self.frame_codes(index, resolution)
 
     def adopt_state_shapes(self, state: dict[str, torch.Tensor]) -> None:
@@ -387,15 +341,6 @@ class GarmentAnimationNeRF(nn.Module):
         <garmentnerf.model.frame_codes.FrameCodes.adopt_state>`)."""
         if self.frame_codes is not None:
             self.frame_codes.adopt_state(state, "frame_codes.")
-
-    def grid_prefixes(self) -> tuple[str, ...]:
-        """State-dict prefixes of the feature grids that learn at ``cfg.uvh_plane_lr_scale`` times the
-        rate (the ``uvh`` field's tri-plane)."""
-        return ("nerf.planes.",) if self.cfg.field == "uvh" else ()
-
-    def atlas_feature(self, uv: torch.Tensor) -> torch.Tensor:
-        """f^a ``(N, atlas_feature_channels)``: the atlas feature texture read at atlas UVs (N, 2)."""
-        return self.atlas_features(uv.view(1, 1, -1, 2))[0, :, 0].T
 
     # ------------------------------------------------------------------ per frame
     def prepare_frame(self, inputs: FrameInputs, geometry: FrameFeatures | None = None,
@@ -407,7 +352,7 @@ class GarmentAnimationNeRF(nn.Module):
         ``torch.no_grad()`` for viewing.
 
         ``geometry``: features prepared earlier for the same frame (the same inputs; only their
-        ``posed_vertices``, ``vertex_normals``, ``surface``, ``aabb``, ``normal_grid`` and, as below,
+        ``posed_vertices``, ``vertex_normals``, ``surface``, ``aabb`` and, as below,
         ``encoder_output`` and ``detail_features`` are read), whose body geometry is then reused
         instead of rebuilt: binding the body (its search tree) and its normals
         cost more than the encoders, and a trainer meets each frame many times. ValueError when
@@ -433,16 +378,14 @@ class GarmentAnimationNeRF(nn.Module):
                 normals = vertex_normals(verts, self._faces)
                 surface = self.bind_body(verts)
                 aabb = body_aabb(verts)
-                normal_grid = self._normal_grid(verts)
             elif torch.equal(geometry.posed_vertices, verts):
                 verts, normals, surface, aabb = (geometry.posed_vertices, geometry.vertex_normals, geometry.surface,
                                                  geometry.aabb)
-                normal_grid = geometry.normal_grid if geometry.normal_grid is not None else self._normal_grid(verts)
             else:
                 raise ValueError(f"geometry of frame {geometry.frame} is not that of the posed body of frame "
                                  f"{inputs.frame}")
         dynamic = reference_images = detail = encoder_output = None
-        if cfg.use_dynamic_feature:
+        if cfg.encoder.dynamic_feature:
             with sw("encoders"):
                 frozen = not _trains(self.encoder)
                 if frozen and geometry is not None and geometry.encoder_output is not None:
@@ -453,7 +396,7 @@ class GarmentAnimationNeRF(nn.Module):
                     encoder_output = dynamic.detach()
                 if code is not None:
                     dynamic = dynamic + self.frame_code(code, dynamic.shape[-1])
-        if cfg.use_detail_feature:
+        if cfg.encoder.detail_feature:
             with sw("reference_images"):
                 if inputs.reference_images is not None:
                     reference_images = inputs.reference_images.to(dev, torch.float32)
@@ -471,7 +414,7 @@ class GarmentAnimationNeRF(nn.Module):
                     detail = self.detail_encoder(reference_images)
         return FrameFeatures(verts, normals, surface, aabb, dynamic, reference_images, detail,
                              tuple(inputs.reference_cameras), inputs.reference_depth.detach().cpu(), inputs.frame,
-                             timings, normal_grid, encoder_output)
+                             timings, encoder_output)
 
     def reusable_frame(self, features: FrameFeatures) -> FrameFeatures:
         """What of a frame's ``features`` a later :meth:`prepare_frame` of the same frame reuses when given
@@ -483,13 +426,6 @@ class GarmentAnimationNeRF(nn.Module):
                          and not _trains(self.detail_encoder))
         return replace(features, dynamic_features=None, reference_images=None, timings={},
                        detail_features=detail if frozen_detail else None)
-
-    def _normal_grid(self, posed_vertices: torch.Tensor) -> NormalGrid | None:
-        """The frame's blurred body normals (``shading_normal_blur`` > 0), else None."""
-        blur = self.cfg.shading_normal_blur
-        if not (self.cfg.shading_normals and blur > 0):
-            return None
-        return blurred_normal_grid(posed_vertices, self._faces, blur, reach=KERNEL_SIGMAS * blur)
 
     def bind_body(self, posed_vertices: torch.Tensor):
         """The body posed as ``posed_vertices (V, 3)`` bound for closest-point queries on the
@@ -508,67 +444,19 @@ class GarmentAnimationNeRF(nn.Module):
         return BodyPoints(points.face, points.bary, points.closest.float(), points.signed_distance.float(),
                           points.canonical.float(), points.uv.float())
 
-    def surface_normals(self, frame: FrameFeatures, points: BodyPoints) -> torch.Tensor:
-        """(n, 3) unit posed normals at the surface points b_t of ``points``, interpolated from the
-        frame's vertex normals (the ``soft_normal`` detail selection)."""
-        normal = interpolate(frame.vertex_normals, self.projector.faces, points.face, points.bary)
-        return F.normalize(normal, dim=-1)
-
-    def offset_direction(self, frame: FrameFeatures, points: BodyPoints, positions: torch.Tensor) -> torch.Tensor:
-        """(n, 3) the unit offsets ``positions - b_t`` in the tangent frames of the skin faces of
-        ``points`` on the frame's posed body (the ``uvh`` field's input; no gradient)."""
-        from garmentnerf.model.uvh_field import face_tangent_frames, local_offset_direction
-
-        with torch.no_grad():
-            faces = points.face.long().cpu()
-            frames = face_tangent_frames(frame.posed_vertices, self.projector.faces[faces], self.projector.uv,
-                                         self.projector.uv_faces[faces])
-            return local_offset_direction(positions.detach().to("cpu", torch.float32), points.closest.cpu().float(),
-                                          frames)
-
-    def canonical_inputs(self, points: BodyPoints, positions: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
-        """(n, 3) the samples ``positions`` carried to the canonical body
-        (:func:`~garmentnerf.model.uvh_field.canonical_positions`, with ``direction`` the
-        :meth:`offset_direction` of ``points``), mapped from the canonical body's box padded by the
-        height band to [-1, 1] (the ``uvh`` field's input with ``uvh_canonical_freqs``; CPU, no gradient)."""
-        from garmentnerf.model.uvh_field import canonical_positions
-
-        with torch.no_grad():
-            faces = points.face.long().cpu()
-            length = (positions.detach().to("cpu", torch.float32) - points.closest.cpu().float()).norm(dim=-1)
-            x_c = canonical_positions(points.canonical.cpu().float(), length, direction.cpu().float(),
-                                      self._canonical_frames[faces])
-            lo, hi = self._canonical_box
-            return (x_c - lo) * (2.0 / (hi - lo)) - 1.0
-
-    def detail_features(self, frame: FrameFeatures, closest: torch.Tensor,
-                        normal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """f^d of surface points b_t ``(n, 3)``.
-
-        Returns:
-            (n, C_d) features and (n,) the front weight: 1/0 (front/back chosen) in
-            ``visibility`` mode, the front blend weight in ``soft_normal`` mode.
-        """
-        if frame.detail_features is None:
-            raise ValueError("this model was built without the detail feature")
-        return read_detail_features(frame.detail_features, frame.reference_cameras, frame.reference_depth, closest,
-                                    self.cfg.detail_selection, normal, self.visibility_tolerance)
-
     def evaluate_samples(self, frame: FrameFeatures, positions: torch.Tensor, *,
                          sample_filter: SampleFilter | None = None, precision: str = "float32",
                          timings: dict | None = None,
                          points: BodyPoints | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
-        """M_NeRF at world ``positions (n, 3)`` of ``frame``: body projection, the sample filter,
-        f^s and f^d, the MLP. ``points``: the positions' :meth:`sample_geometry`, when the caller has
-        it already (not projected again).
+        """The field at world ``positions (n, 3)`` of ``frame``: body projection, the sample filter, the
+        field (:meth:`Field.evaluate <garmentnerf.model.field.Field.evaluate>`). ``points``: the
+        positions' :meth:`sample_geometry`, when the caller has it already (not projected again).
 
         Returns:
-            sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops; C is
-            ``cfg.zeta_channels``: with ``shading_normals`` the last 3 are the world-space
-            body normal at the closest point, or the blurred one with ``shading_normal_blur``), and how
-            many samples the MLP evaluated.
+            sigma (n,), zeta (n, C) on the model's device (0 for the samples the filter drops; C is the
+            field's ``zeta_channels``), and how many samples the field evaluated.
         """
-        cfg, dev = self.cfg, self.device
+        dev = self.device
         sw = _Stopwatch({} if timings is None else timings, dev)
         n = positions.shape[0]
         with sw("projection"):
@@ -578,68 +466,18 @@ class GarmentAnimationNeRF(nn.Module):
                 kept = sample_filter.keep(points).nonzero().squeeze(1)
                 points = points.select(kept)
         if len(points) == 0:
-            return torch.zeros(n, device=dev), torch.zeros(n, cfg.zeta_channels, device=dev), 0
-        kept_positions = positions if kept is None else positions[kept.to(positions.device)]
-        soft_normal = cfg.use_detail_feature and cfg.detail_selection == "soft_normal"
-        with sw("features"):
-            dynamic = detail = None
-            # the skin's normal at the closest points: the soft detail selection's and the shading's
-            skin_normal = self.surface_normals(frame, points) if soft_normal or cfg.shading_normals else None
-            if cfg.use_detail_feature:
-                detail, _ = self.detail_features(frame, points.closest, skin_normal if soft_normal else None)
-            if cfg.field == "uvh":
-                direction = self.offset_direction(frame, points, kept_positions)
-                canonical = (self.canonical_inputs(points, kept_positions, direction).to(dev)
-                             if cfg.uvh_canonical_freqs else None)
-                direction = direction.to(dev)
-            else:
-                if cfg.use_dynamic_feature:
-                    fmap = frame.dynamic_features.permute(1, 2, 0)  # (R, R, C) view
-                    dynamic = sample_uv_map(fmap, points.uv.to(dev))
-                atlas = self.atlas_feature(points.uv.to(dev)) if self.atlas_features is not None else None
-        with sw("mlp"), _autocast(precision, dev):
-            if cfg.field == "uvh":
-                sigma, zeta = self.nerf(frame.dynamic_features, points.uv.to(dev), points.signed_distance.to(dev),
-                                        direction, detail, canonical)
-            else:
-                sigma, zeta = self.nerf(points.canonical.to(dev), points.signed_distance.to(dev), detail, dynamic,
-                                        atlas)
-        sigma, zeta = sigma.float(), zeta.float()
-        if cfg.shading_normals:
-            with sw("features"):
-                shading = skin_normal
-                if frame.normal_grid is not None:
-                    shading = read_normal_grid(frame.normal_grid, kept_positions.detach().to(skin_normal.device),
-                                               skin_normal)
-                zeta = torch.cat([zeta, shading.to(dev, zeta.dtype)], dim=-1)
+            return torch.zeros(n, device=dev), torch.zeros(n, self.nerf.zeta_channels, device=dev), 0
+        sigma, zeta = self.nerf.evaluate(frame, points, clock=sw, autocast=_autocast(precision, dev))
         if kept is not None and kept.shape[0] < n:
             rows = kept.to(dev)
             sigma = torch.zeros(n, device=dev).index_copy(0, rows, sigma)
             zeta = torch.zeros(n, zeta.shape[-1], device=dev).index_copy(0, rows, zeta)
         return sigma, zeta, len(points)
 
-    def density(self, frame: FrameFeatures, positions: torch.Tensor, *, precision: str = "float32",
-                chunk_points: int | None = None) -> torch.Tensor:
-        """sigma (n,) of ``frame`` at world ``positions (n, 3)``, without gradient, ``chunk_points`` at a time
-        (the importance sampler's coarse pass)."""
-        chunk = self.chunk_points if chunk_points is None else int(chunk_points)
-        with torch.no_grad():
-            parts = [self.evaluate_samples(frame, positions[c0:c0 + chunk], precision=precision)[0]
-                     for c0 in range(0, positions.shape[0], chunk)]
-        return torch.cat(parts) if parts else torch.zeros(0, device=self.device)
-
-    def box_sampler(self, samples_per_ray: int, precision: str = "float32"):
-        """The box sampler this model is rendered with at ``samples_per_ray`` stratified samples: the paper's
-        :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`, or with ``cfg.importance_samples`` the
-        :class:`~garmentnerf.model.importance_sampler.ImportanceSampler` over it (its fine samples scaled
-        with ``samples_per_ray`` as the coarse ones are)."""
-        cfg = self.cfg
-        box = BoxStratifiedSampler(samples_per_ray, cfg.bbox_padding)
-        if not cfg.importance_samples:
-            return box
-        fine = max(1, round(cfg.importance_samples * samples_per_ray / cfg.samples_per_ray))
-        return ImportanceSampler(box, functools.partial(self.density, precision=precision), fine,
-                                 cfg.importance_uniform_mix)
+    def box_sampler(self, samples_per_ray: int) -> BoxStratifiedSampler:
+        """The paper's box sampler at ``samples_per_ray`` stratified samples, what this model is rendered
+        with by default."""
+        return BoxStratifiedSampler(samples_per_ray, BBOX_PADDING)
 
     # ------------------------------------------------------------------ per view
     def _ray_subset(self, rays, n_pixels: int, shape: tuple[int, int]) -> torch.Tensor | None:
@@ -678,24 +516,22 @@ class GarmentAnimationNeRF(nn.Module):
                         chunk_points: int | None = None, timings: dict | None = None) -> dict:
         """The volume-rendering half of :meth:`render`: F^zeta, opacity, depth (no decoding).
 
-        Returns a dict with ``feature_image (C, h, w)`` (the rendered zeta, then with ``depth_normals``
-        the rendered surface's normals), ``opacity (h, w)``, ``depth (h, w)``, ``distortion (h, w)`` (in
-        training with ``cfg.w_distortion``, else None) and
-        the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
+        Returns a dict with ``feature_image (C, h, w)`` (the rendered zeta), ``opacity (h, w)``,
+        ``depth (h, w)`` and the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
         ``points_projected``, ``rays_terminated``; stage times are added to ``timings`` when
         given. See :meth:`render` for the arguments.
         """
         cfg = self.cfg
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-        fw, fh = feature_size if feature_size is not None else (cfg.feature_image_resolution,) * 2
+        fw, fh = feature_size if feature_size is not None else (cfg.decoder.feature_image_resolution,) * 2
         training = self.training if training is None else training
         chunk = self.chunk_points if chunk_points is None else int(chunk_points)
-        sampler = self.box_sampler(cfg.samples_per_ray) if sampler is None else sampler
+        sampler = self.box_sampler(cfg.sampler.samples_per_ray) if sampler is None else sampler
         dev = self.device
         timings = {} if timings is None else timings
         sw = _Stopwatch(timings, dev)
-        C = cfg.zeta_channels
+        C = self.nerf.zeta_channels
         n_pixels = fw * fh
 
         with sw("rays"):
@@ -729,10 +565,8 @@ class GarmentAnimationNeRF(nn.Module):
         field_keys = ("projection", "features", "mlp")
         field_before = sum(timings.get(k, 0.0) for k in field_keys)
         t0 = time.perf_counter()
-        with_distortion = bool(training and cfg.w_distortion > 0)
         march = render_packed_segmented(field, samples.t_starts, samples.t_ends, samples.ray_ids, n_rays, C,
-                                        chunk_points=chunk, termination_eps=float(termination_eps), device=dev,
-                                        with_distortion=with_distortion)
+                                        chunk_points=chunk, termination_eps=float(termination_eps), device=dev)
         march_ms = (time.perf_counter() - t0) * 1e3
         field_ms = sum(timings.get(k, 0.0) for k in field_keys) - field_before
         timings["compositing"] = timings.get("compositing", 0.0) + max(0.0, march_ms - field_ms)
@@ -745,26 +579,15 @@ class GarmentAnimationNeRF(nn.Module):
                 feat = feat.new_zeros(n_pixels, C).index_copy(0, idx, feat)
                 opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
-            distortion = None
-            if with_distortion:
-                distortion = march.distortion
-                if subset is not None:
-                    distortion = distortion.new_zeros(n_pixels).index_copy(0, idx, distortion)
-                distortion = distortion.reshape(fh, fw)
             feature_image = feat.T.reshape(C, fh, fw)
-            if cfg.depth_normals:
-                origins, directions = camera_rays(camera.resized(fw, fh), depth.dtype, depth.device)
-                normals = depth_normals(depth.detach().reshape(fh, fw), opacity.detach().reshape(fh, fw),
-                                        origins, directions)
-                feature_image = torch.cat([feature_image, normals.to(feature_image.dtype)])
         hit = samples.hit.cpu()  # rays given a segment: exactly those with samples
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
                 "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
                 "samples_placed": int(samples.ray_ids.shape[0]), "points_projected": march.samples_evaluated,
-                "rays_terminated": int((march.terminated & hit).sum()), "distortion": distortion}
+                "rays_terminated": int((march.terminated & hit).sum())}
 
     def decode(self, feature_image: torch.Tensor, timings: dict | None = None) -> DecomposedMaps:
-        """M_D: F^zeta ``(C, h, w)`` -> the decomposed maps (batch of 1) at ``2**decoder_upsample_steps``
+        """M_D: F^zeta ``(C, h, w)`` -> the decomposed maps (batch of 1) at ``2**cfg.decoder.upsample_steps``
         times the size. Composition with a palette is the caller's (:meth:`DecomposedMaps.compose`)."""
         timings = {} if timings is None else timings
         with _Stopwatch(timings, self.device)("decoder"):
@@ -780,20 +603,19 @@ class GarmentAnimationNeRF(nn.Module):
         Args:
             frame: from :meth:`prepare_frame`.
             camera: the target view, any resolution: rays go through the pixel centres of the
-                camera resized to ``feature_size`` (default ``cfg.feature_image_resolution``
-                squared), so the maps are ``2**decoder_upsample_steps`` times that.
+                camera resized to ``feature_size`` (default ``cfg.decoder.feature_image_resolution``
+                squared), so the maps are ``2**cfg.decoder.upsample_steps`` times that.
             rays: None (all), or a subset of the feature-image rays: (M,) unique row-major pixel
                 indices or an (h, w) bool mask; the others get zero features and opacity.
             sampler: where samples go (:class:`~garmentnerf.model.samplers.Sampler`); default
-                :meth:`box_sampler` at ``cfg.samples_per_ray``: the paper's box sampler, or with
-                ``cfg.importance_samples`` the importance sampler over it.
+                :meth:`box_sampler` at ``cfg.sampler.samples_per_ray``: the paper's box sampler.
             sample_filter: drops projected samples before the MLP (e.g. the garment's height
                 band, :class:`~garmentnerf.model.height_band.HeightBandFilter`); None keeps all.
             termination_eps: a ray stops once its transmittance falls below this (0: never; see
                 :func:`~garmentnerf.model.volume_rendering.render_packed_segmented`).
             precision: MLP precision, one of :data:`PRECISIONS`.
             palette: (P, 3) in [0, 1] for :attr:`RenderOutput.image` (default: the learned palette).
-            background: RGB in [0, 1] (default ``cfg.background``).
+            background: RGB in [0, 1] (default :data:`~garmentnerf.model.config.BACKGROUND`).
             feature_size: (w, h) rays per side.
             training: jittered (training-mode) samples; default ``self.training``.
             generator: random source of the jitter.
@@ -813,10 +635,10 @@ class GarmentAnimationNeRF(nn.Module):
         all_timings.update({k: timings.get(k, 0.0) for k in RENDER_STAGES})
         all_timings["render_total"] = render_total
         pal = self.palette() if palette is None else palette.to(self.device)
-        bg = tuple(float(c) for c in (self.cfg.background if background is None else background))
+        bg = tuple(float(c) for c in (BACKGROUND if background is None else background))
         return RenderOutput(maps, out["opacity"], out["depth"], out["feature_image"], pal, bg,
                             out["points_evaluated"], out["rays_evaluated"], out["rays_total"], all_timings,
-                            out["samples_placed"], out["points_projected"], out["rays_terminated"], out["distortion"])
+                            out["samples_placed"], out["points_projected"], out["rays_terminated"])
 
     def forward(self, frame: FrameInputs | FrameFeatures, camera: Camera, **kwargs) -> RenderOutput:
         """:meth:`render`, preparing the frame first when given :class:`FrameInputs`."""

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 import torch
 
 from garmentnerf.conventions import Camera, camera_rays
+from garmentnerf.model.config import BBOX_PADDING
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.geometry.body_points import BodyPoints
@@ -234,7 +235,7 @@ class BoxStratifiedSampler:
 
     @classmethod
     def from_config(cls, cfg) -> "BoxStratifiedSampler":
-        return cls(cfg.samples_per_ray, cfg.bbox_padding)
+        return cls(cfg.sampler.samples_per_ray, BBOX_PADDING)
 
     def padded_box(self, aabb: torch.Tensor) -> torch.Tensor:
         """(2, 3) the body box ``aabb`` grown by :attr:`padding` on every side."""

@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from garmentnerf.model.config import DETAIL_FEATURE_DIM, DYNAMIC_FEATURE_DIM, UNET_BASE_WIDTH, UNET_DEPTH
+
 #: pix2pix's slope; the paper only says "leakyReLU".
 LEAKY_SLOPE = 0.2
 
@@ -91,8 +93,7 @@ class UNet(nn.Module):
 
 class DynamicFeatureEncoder(UNet):
     """E: info maps [N_t, V_t] ``(B, 3 (k + 1), R, R)`` -> dynamic feature map F^s_t ``(B, 8, R, R)``
-    (the ``uvh`` field: ``(B, 8 K, R, R)``, K slices along h; ``ModelConfig.dynamic_encoder_channels``;
-    more input channels with ``velocity_smoothing`` and ``world_normals``: ``ModelConfig.encoder_in_channels``)."""
+    (``EncoderConfig.in_channels`` inputs)."""
 
     def __init__(self, in_channels: int = 9, out_channels: int = 8, base_width: int = 32, depth: int = 4,
                  width_scale: float = 1.0):
@@ -100,8 +101,7 @@ class DynamicFeatureEncoder(UNet):
 
     @classmethod
     def from_config(cls, cfg) -> "DynamicFeatureEncoder":
-        return cls(cfg.encoder_in_channels, cfg.dynamic_encoder_channels, cfg.encoder_base_width, cfg.encoder_depth,
-                   cfg.encoder_width_scale)
+        return cls(cfg.encoder.in_channels, DYNAMIC_FEATURE_DIM, UNET_BASE_WIDTH, UNET_DEPTH, cfg.encoder.width_scale)
 
 
 class DetailEncoder(UNet):
@@ -112,4 +112,4 @@ class DetailEncoder(UNet):
 
     @classmethod
     def from_config(cls, cfg) -> "DetailEncoder":
-        return cls(cfg.detail_feature_dim, cfg.encoder_base_width, cfg.encoder_depth, cfg.encoder_width_scale)
+        return cls(DETAIL_FEATURE_DIM, UNET_BASE_WIDTH, UNET_DEPTH, cfg.encoder.width_scale)

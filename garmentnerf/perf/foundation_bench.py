@@ -21,7 +21,6 @@ from garmentnerf.gl.context import context_info, create_context
 from garmentnerf.gl.info_maps import InfoMapRenderer
 from garmentnerf.model.body_appearance import BodyAppearance
 from garmentnerf.motion.library import load_motion
-from garmentnerf.perf.field_bench import field_benchmark
 from garmentnerf.perf.projection_bench import near_surface_points
 from garmentnerf.perf.timing import median_ms
 from garmentnerf.render.body_layer import render_body_layer
@@ -83,6 +82,4 @@ def foundation_benchmark(runs: int = 20, clip_frames: int = 30, projection_point
     results["projection_us_per_point"] = proj_ms * 1e3 / projection_points
     results["projection_points_per_s"] = projection_points / (proj_ms / 1e3)
     ctx.release()
-    # What a projected sample then costs in each field (ModelConfig.field), side by side.
-    results["fields"] = field_benchmark(rounds=max(3, runs // 4))
     return results

@@ -141,9 +141,10 @@ def preset_benchmark(run_dir, presets=None, frames: int = 2, views: int = 2, rep
                    "created": time.strftime("%Y-%m-%d %H:%M:%S"),
                    "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), **context_info(ctx)},
                    "torch_threads": torch.get_num_threads(),
-                   "model": {k: getattr(cfg, k) for k in ("image_resolution", "feature_image_resolution",
-                                                             "samples_per_ray", "mlp_depth", "mlp_width",
-                                                             "appearance_dim")},
+                   "model": {"image_resolution": cfg.decoder.image_resolution,
+                             "feature_image_resolution": cfg.decoder.feature_image_resolution,
+                             "samples_per_ray": cfg.sampler.samples_per_ray, "mlp_depth": cfg.nerf.mlp_depth,
+                             "mlp_width": cfg.nerf.mlp_width, "appearance_dim": cfg.nerf.appearance_dim},
                    "motion": session.motion.name, "sequence": session.sequence, "frames": main.frame_ids,
                    "cameras": [c.name for c in main.cams], "camera_split": main.split,
                    "ground_truth": main.images is not None, "height_range": session.height_range.to_dict(),
@@ -190,8 +191,8 @@ class _MeasuredRun:
             if run.scene is not None and seq is not None:
                 images = SceneImages(run.scene, renderer=GroundTruthRenderer(ctx), body_model=session.body)
             cfg, band = run.config, session.height_range
-            log(f"run {path}: step {run.step}, {cfg.feature_image_resolution}^2 rays x {cfg.samples_per_ray} samples, "
-                f"MLP {cfg.mlp_depth}x{cfg.mlp_width}; motion {session.motion.name} frames {frame_ids}; "
+            log(f"run {path}: step {run.step}, {cfg.decoder.feature_image_resolution}^2 rays x {cfg.sampler.samples_per_ray} samples, "
+                f"MLP {cfg.nerf.mlp_depth}x{cfg.nerf.mlp_width}; motion {session.motion.name} frames {frame_ids}; "
                 f"{len(cams)} '{split}' views; height band [{band.h_min:.3f}, {band.h_max:.3f}] m ({band.source})")
             frame_timings = _frame_stage_timings(session, frame_ids)
             gts = {} if images is None else {(f, c.name): images.image(seq, c.name, f)[0]
@@ -225,7 +226,7 @@ def _measured_views(run, views: int) -> tuple[str, list]:
         split = "unseen_view" if run.scene.camera_names("unseen_view") else "train"
         return split, _pick(run.scene.cameras(split), views)
 
-    size = run.config.image_resolution
+    size = run.config.decoder.image_resolution
     return "orbit", _pick(default_rig(width=size, height_px=size, references=False), views)
 
 

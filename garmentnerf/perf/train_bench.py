@@ -21,22 +21,13 @@ Stages (:data:`STAGES`, seconds per step, the median of each over the timed step
     G_img; E and G_en); ``rays`` ... ``decoder``: the render's
     (:data:`~garmentnerf.model.pipeline.RENDER_STAGES`); ``body_layer``: the body rasterised and
     composed under the garment (runs with a body appearance only); ``perceptual``: the perceptual
-    loss's forward; ``occupancy``: the occupancy term's forward (its points, their projections and the
-    field at them; runs with ``w_occupancy`` > 0 only); ``forward_other``: the rest of the forward
+    loss's forward; ``forward_other``: the rest of the forward
     (data, other loss terms, palette composition); ``perceptual_backward``: from the gradient reaching
     the perceptual loss's output to its input's (module backward hooks); ``backward_other``: the rest of
     ``backward()``;
     ``optimizer``: the rest of the step (gradient clipping, Adam, bookkeeping). They add up to the
     step. The trainer is instrumented from outside (wrapped methods, module hooks): no timing
     code in the training loop.
-
-``before=True`` adds, per precision, a trainer timed as the step was before issue 27: body
-geometry and the encoders rebuilt at every step (a geometry cache of 0 bytes; the frame's inputs
-cached, as they were), Adam's update one operation at a time (not fused), shift-tolerant LPIPS's first
-convolution and blur run one after the other (``STLPIPS(fused=False)``) and the perceptual loss's target
-tracked by autograd (handed over as a tensor that requires grad, so its features are
-backpropagated as in the concatenated batch of old); it takes its turn with the others, so the
-speed-up is a ratio measured in one run.
 """
 
 from __future__ import annotations
@@ -57,17 +48,15 @@ from garmentnerf.runs import MODEL_FILE, read_run_info, recorded_scene_path
 from garmentnerf.train.settings import TrainConfig, training_precision
 from garmentnerf.train.trainer import Trainer
 
-__all__ = ["training_benchmark", "run_recipe", "STAGES"]
+__all__ = ["training_benchmark", "training_inputs", "STAGES"]
 
 #: The stages of a NeRF step timed by :func:`training_benchmark`, in step order.
 STAGES = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp", "compositing",
-          "decoder", "body_layer", "perceptual", "occupancy", "forward_other", "perceptual_backward",
+          "decoder", "body_layer", "perceptual", "forward_other", "perceptual_backward",
           "backward_other", "optimizer")
 #: :class:`~garmentnerf.model.pipeline.RenderOutput` timings (ms) that a step pays.
 _RENDER_TIMINGS = ("surface", "reference_images", "encoders", "rays", "projection", "features", "mlp",
                    "compositing", "decoder")
-#: Those of them that are the frame's (:meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame`).
-_FRAME_TIMINGS = ("surface", "reference_images", "encoders")
 
 
 class _StageClock:
@@ -84,20 +73,12 @@ class _StageClock:
         self._wrap(trainer, "_backward_batch", "backward_batch")
         self._wrap(trainer, "_nerf_step", "nerf_step")
         self._wrap(trainer, "_with_body", "body_layer")
-        self._wrap(trainer, "_occupancy", "occupancy")
         render = trainer.model.render
-        # the step's frame features whose own stages are counted (held, so that no id is reused within a step)
-        self._frames_counted: list = []
 
         def timed_render(feats, *args, **kwargs):
             out = render(feats, *args, **kwargs)
-            # a frame rendered from several views (``views_per_step``) was prepared once: its stages count once
-            first_view = not any(f is feats for f in self._frames_counted)
-            if first_view:
-                self._frames_counted.append(feats)
             for k in _RENDER_TIMINGS:
-                if first_view or k not in _FRAME_TIMINGS:
-                    self._add(k, out.timings.get(k, 0.0) / 1e3)
+                self._add(k, out.timings.get(k, 0.0) / 1e3)
             return out
 
         trainer.model.render = timed_render
@@ -133,31 +114,17 @@ class _StageClock:
         """The stage seconds of the step that ends now (the remainders computed as described)."""
         now = time.perf_counter()
         c, self.current = self.current, {}
-        self._frames_counted.clear()
         step, self._t_step = now - self._t_step, now
         forward, batch = c.pop("nerf_step", 0.0), c.pop("backward_batch", 0.0)
         stages = {k: c.get(k, 0.0) for k in STAGES}
-        stages["forward_other"] = forward - sum(c.get(k, 0.0) for k in (*_RENDER_TIMINGS, "body_layer", "perceptual",
-                                                                          "occupancy"))
+        stages["forward_other"] = forward - sum(c.get(k, 0.0) for k in (*_RENDER_TIMINGS, "body_layer", "perceptual"))
         stages["backward_other"] = batch - forward - stages["perceptual_backward"]
         stages["optimizer"] = step - batch
         return stages
 
 
-def _as_before(trainer) -> None:
-    """Make ``trainer`` step as before issue 27 (see the module docstring)."""
-    trainer.geometry_cache.set_budget(0)
-    for group in trainer.optimizer.param_groups:  # Adam one operation at a time over each tensor
-        group["fused"] = False
-    if isinstance(trainer.perceptual, STLPIPS):  # the first convolution and its blur one by one
-        trainer.perceptual = STLPIPS(trainer.perceptual.variant, reduction=trainer.perceptual.reduction,
-                                     weights_path=trainer.perceptual.weights_path, fused=False).to(trainer.device)
-    if trainer.perceptual is not None:
-        trainer.perceptual.register_forward_pre_hook(lambda m, args: (args[0], args[1].detach().requires_grad_(True)))
-
-
 def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: int = 8, rounds: int = 3,
-                       before: bool = False, against=(), cold: bool = False, log=None) -> dict:
+                       against=(), cold: bool = False, log=None) -> dict:
     """Median seconds per NeRF step of the run in ``run_dir`` for each of ``precisions``, whole and
     by stage.
 
@@ -168,7 +135,6 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
             is resolved first, as a run would).
         steps: steps per round and trainer (at least 3: the first and last of a round are not timed).
         rounds: rounds; the trainers alternate within each.
-        before: also time each precision's step as it was before issue 27 (module docstring).
         against: other run folders whose recipes are timed the same way, at the same precisions,
             taking their turns with ``run_dir``'s (recipes compared in one run: e.g. a new recipe
             against the bundled model's).
@@ -177,40 +143,32 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
         log: called with one line per finished round (None: silent).
     Returns:
         ``{"run", "steps_timed", "machine", "stages", "precisions": [row], "speedup_vs_first"}``,
-        a row ``{"precision", "s_per_step", "views_per_step", "s_per_view", "s_per_step_all", "stages_s",
-        "stages_s_all"}`` (``s_per_view``: a step's seconds over the camera views it renders per image,
-        ``ModelConfig.views_per_step``)
-        (``stages_s``: the median seconds per step of each of ``stages``; ``stages_s_all``: each
+        a row ``{"precision", "s_per_step", "s_per_step_all", "stages_s", "stages_s_all"}`` (``stages_s``: the median seconds per step of each of ``stages``; ``stages_s_all``: each
         timed step's, in the order of ``s_per_step_all``); ``speedup_vs_first`` is the first
-        precision's seconds per step over each one's. With ``before``, also ``"before": [row]``
-        and ``"speedup_vs_before"``: each precision's seconds per step before over now. With
-        ``against``, also ``"against": [{"run", "precisions": [row]}]`` and
+        precision's seconds per step over each one's. With ``against``, also ``"against": [{"run", "precisions": [row]}]`` and
         ``"speedup_vs_against"``: ``{run: {precision: its seconds per step over run_dir's}}``.
     """
     if steps < 3 or rounds < 1:
         raise ValueError(f"steps must be >= 3 and rounds >= 1, got {steps} and {rounds}")
     runs = [Path(run_dir), *(Path(r) for r in against)]
-    infos = [run_recipe(r) for r in runs]
+    infos = [training_inputs(r) for r in runs]
     resolved = list(dict.fromkeys(training_precision(p, "cpu") for p in precisions))
-    # A variant: (index of the run in ``runs``, precision, timed as before issue 27).
-    variants = [(0, p, old) for p in resolved for old in ((True, False) if before else (False,))]
-    variants += [(i, p, False) for i in range(1, len(runs)) for p in resolved]
+    # A variant: (index of the run in ``runs``, precision).
+    variants = [(i, p) for i in range(len(runs)) for p in resolved]
     intervals = {v: [] for v in variants}
     stages = {v: [] for v in variants}
     with tempfile.TemporaryDirectory(prefix="garmentnerf-train-bench-") as tmp:
         trainers, clocks = {}, {}
         try:
             for v in variants:
-                i, p, old = v
+                i, p = v
                 scene, cfg, appearance, generator_iterations = infos[i]
-                tc = TrainConfig(scene=scene, out=Path(tmp) / f"{i}-{p}{'-before' if old else ''}",
-                                 model_config=cfg.replace(iterations=steps * rounds),
+                tc = TrainConfig(scene=scene, out=Path(tmp) / f"{i}-{p}",
+                                 model_config=cfg.updated({"schedule.iterations": steps * rounds}),
                                  init_weights=runs[i] / MODEL_FILE, precision=p, progress=False,
                                  body_appearance=appearance, generator_iterations=generator_iterations,
                                  log_every=10 ** 9, image_every=0, ckpt_every=10 ** 9, keep_checkpoints=1)
                 trainer = trainers[v] = Trainer(tc, log=lambda message: None)
-                if old:
-                    _as_before(trainer)
                 clocks[v] = _StageClock(trainer)
             for r in range(rounds):
                 for v, trainer in trainers.items():
@@ -236,14 +194,12 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
                 trainer.close()
 
     def row(v) -> dict:
-        views = infos[v[0]][1].views_per_step
-        return {"precision": v[1], "s_per_step": float(np.median(intervals[v])), "views_per_step": views,
-                "s_per_view": float(np.median(intervals[v])) / views,
+        return {"precision": v[1], "s_per_step": float(np.median(intervals[v])),
                 "s_per_step_all": [float(x) for x in intervals[v]],
                 "stages_s": {k: float(np.median([lap[k] for lap in stages[v]])) for k in STAGES},
                 "stages_s_all": [{k: float(lap[k]) for k in STAGES} for lap in stages[v]]}
 
-    rows = [row((0, p, False)) for p in resolved]
+    rows = [row((0, p)) for p in resolved]
     first = rows[0]["s_per_step"]
     results = {"run": str(run_dir), "steps_timed": len(intervals[variants[0]]), "frames_cached": not cold,
                "machine": {"torch_threads": torch.get_num_threads(),
@@ -251,12 +207,8 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
                            "amx_bf16": bool(torch.cpu.get_capabilities().get("amx_bf16", False))},
                "stages": list(STAGES), "precisions": rows,
                "speedup_vs_first": {r["precision"]: first / r["s_per_step"] for r in rows}}
-    if before:
-        results["before"] = [row((0, p, True)) for p in resolved]
-        results["speedup_vs_before"] = {b["precision"]: b["s_per_step"] / r["s_per_step"]
-                                        for b, r in zip(results["before"], rows)}
     if len(runs) > 1:
-        results["against"] = [{"run": str(runs[i]), "precisions": [row((i, p, False)) for p in resolved]}
+        results["against"] = [{"run": str(runs[i]), "precisions": [row((i, p)) for p in resolved]}
                               for i in range(1, len(runs))]
         results["speedup_vs_against"] = {
             a["run"]: {o["precision"]: o["s_per_step"] / r["s_per_step"] for o, r in zip(a["precisions"], rows)}
@@ -264,7 +216,7 @@ def training_benchmark(run_dir, precisions=("float32", "bfloat16"), *, steps: in
     return results
 
 
-def run_recipe(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
+def training_inputs(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
     """(scene folder, model config, body appearance file or None, G_img steps) of a run folder."""
     info = read_run_info(run_dir)
     scene = recorded_scene_path(run_dir, info)
@@ -273,10 +225,9 @@ def run_recipe(run_dir: Path) -> tuple[Path, ModelConfig, Path | None, int]:
     cfg = ModelConfig.from_dict(dict(info["model_config"]))
     appearance = run_dir / BODY_APPEARANCE_FILE
     return (scene, cfg, appearance if appearance.is_file() else None,
-            int(info.get("generator_iterations", cfg.generator_iterations)))
+            int(info.get("generator_iterations", cfg.schedule.generator_iterations)))
 
 
 def _label(variant, runs) -> str:
-    i, precision, old = variant
-    label = f"{precision} before" if old else precision
-    return label if i == 0 else f"{runs[i].name} {label}"
+    i, precision = variant
+    return precision if i == 0 else f"{runs[i].name} {precision}"

@@ -51,11 +51,8 @@ def _nbytes(t: torch.Tensor | None) -> int:
 
 def stored_frame_bytes(features) -> int:
     """Bytes a stored frame (FrameFeatures without its surface) holds: its feature maps and reference
-    depth (at their stored precision), posed vertices, normals, box and blurred normal grid."""
-    size = sum(_nbytes(getattr(features, k)) for k in (*_HALF_FIELDS, "posed_vertices", "vertex_normals", "aabb"))
-    if features.normal_grid is not None:
-        size += _nbytes(features.normal_grid.values)
-    return size
+    depth (at their stored precision), posed vertices, normals and box."""
+    return sum(_nbytes(getattr(features, k)) for k in (*_HALF_FIELDS, "posed_vertices", "vertex_normals", "aabb"))
 
 
 class FarthestFromPlayhead:

@@ -8,7 +8,7 @@ their tensors.
 Reference cameras
     Front first, then back (paper: the front and back reference views; the scene rig's
     ``ref_front`` / ``ref_back``, :func:`garmentnerf.data.cameras.reference_cameras`). They are
-    resized to ``cfg.reference_resolution`` squared (:meth:`Camera.resized`: the same view, so a
+    resized to ``cfg.encoder.reference_resolution`` squared (:meth:`Camera.resized`: the same view, so a
     non-square scene camera gets non-square pixels, consistently for the pass and for
     :func:`~garmentnerf.conventions.project_points`).
 """
@@ -86,11 +86,10 @@ class FrameInputBuilder:
         self.ctx = ctx
         self.body = body
         self.cfg = cfg
-        S = cfg.reference_resolution
+        S = cfg.encoder.reference_resolution
         front, back = resolve_reference_cameras(references)
         self.reference_cameras: tuple[Camera, Camera] = (front.resized(S, S), back.resized(S, S))
-        self.info_map_renderer = InfoMapRenderer(ctx, body, cfg.info_map_resolution, cfg.history,
-                                                 cfg.velocity_smoothing, cfg.world_normals)
+        self.info_map_renderer = InfoMapRenderer(ctx, body, cfg.encoder.info_map_resolution, cfg.encoder.history)
         self.camera_pass = CameraPass(ctx)
         self._faces = body.faces.cpu()
         self._uv = body.uv.cpu()
@@ -116,8 +115,8 @@ class FrameInputBuilder:
     def build(self, posed: "PosedBody", frame: int, fps: float) -> FrameInputs:
         """Inputs of frame ``frame`` of a posed clip.
 
-        Only frames ``frame - k .. frame`` are used (the velocity history; further back for smoothed
-        velocity maps, :meth:`InfoMapRenderer.frames_back`); the result equals the
+        Only frames ``frame - k .. frame`` are used (the velocity history,
+        :meth:`InfoMapRenderer.frames_back`); the result equals the
         corresponding frame of :meth:`build_clip` (frames before the clip's start count as the
         first frame held still, as in :func:`garmentnerf.body.surface.canonical_velocities`).
         """

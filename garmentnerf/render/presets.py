@@ -18,17 +18,12 @@ preset           resolution  samples/ray  sampler                               
 ``interactive``  0.5         0.5 x S      shell + band + occlusion + stop (1e-2)       auto
 ===============  ==========  ===========  ===========================================  =========
 
-A model trained with importance sampling (``cfg.importance_samples``) is sampled in the box by every
-preset, each sample count (coarse and fine) scaled by the preset's factor: the fine pass tiles the coarse
-pass's segment, which the shell's culls would break. Its presets keep their resolution, precision and early
-termination.
-
 The culled presets also render only the character's screen rectangle
 (:attr:`RenderPreset.character_rect`): rays and the decoder run where the sampling box projects.
 
-S is the model's ``cfg.samples_per_ray`` (the sampling it was trained with; the paper: 64), at
+S is the model's ``cfg.sampler.samples_per_ray`` (the sampling it was trained with; the paper: 64), at
 least 4. The resolution scale multiplies the pixel density the model was trained at
-(``cfg.image_resolution`` across the larger image side; ``RenderSession`` calls it ``quality``):
+(``cfg.decoder.image_resolution`` across the larger image side; ``RenderSession`` calls it ``quality``):
 the number of rays goes with its square. ``full`` keeps the reference's samples exactly (the box
 bins of the same S) and only skips those outside the garment's band or behind the skin, so it
 differs from ``reference`` only by density the model put there (and by at most 1e-4 of
@@ -46,10 +41,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from garmentnerf.model.config import SAMPLERS
+from garmentnerf.model.config import BBOX_PADDING
 from garmentnerf.model.height_band import SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
 from garmentnerf.render.shell_sampler import ShellSampler
+
+#: Where a preset's samples go: the padded body box (the paper's) or the garment's shell.
+SAMPLERS = ("box", "shell")
 
 #: Feature cells around the character's rectangle: the palette decoder's receptive field
 #: (nearest x2 upsampling then 3x3 convolutions: 1.5 feature cells for the default 2 upsamplings,
@@ -63,7 +61,7 @@ CHARACTER_RECT_MARGIN = 2
 #: where under the skin its density may go (the body is drawn opaque over it), and where the cloth lies
 #: on the skin it may put the garment's opacity there: the bundled t-shirt renders its chest at 5 to 7 cm
 #: under the skin, so with the data's 5 cm (:data:`~garmentnerf.model.height_band.HEIGHT_MARGIN_IN`) the
-#: culled presets cut it away and the chest showed holes (docs/quality.md, "Holes in the t-shirt's
+#: culled presets cut it away and the chest showed holes (docs/lab/ledger.md, "Holes in the t-shirt's
 #: chest"). 10 cm closes them for 2 to 8 % more samples.
 BOX_TRAINED_MARGIN_IN = 0.10
 
@@ -75,10 +73,10 @@ class RenderPreset:
     name: str
     """Key in :data:`RENDER_PRESETS`."""
     resolution_scale: float
-    """Rendered pixels per pixel of the training density (``cfg.image_resolution`` across the
+    """Rendered pixels per pixel of the training density (``cfg.decoder.image_resolution`` across the
     larger image side); the rays go with its square."""
     samples_scale: float
-    """Samples per ray as a fraction of the model's ``cfg.samples_per_ray`` (at least 4)."""
+    """Samples per ray as a fraction of the model's ``cfg.sampler.samples_per_ray`` (at least 4)."""
     sampler: str
     """``box`` (the paper's :class:`~garmentnerf.model.samplers.BoxStratifiedSampler`) or
     ``shell`` (:class:`~garmentnerf.render.shell_sampler.ShellSampler` with the garment's height
@@ -113,39 +111,26 @@ class RenderPreset:
             raise ValueError(f"preset {self.name}: termination_eps must be in [0, 1), got {self.termination_eps}")
 
     def samples_per_ray(self, cfg) -> int:
-        return max(4, int(round(cfg.samples_per_ray * self.samples_scale)))
+        return max(4, int(round(cfg.sampler.samples_per_ray * self.samples_scale)))
 
-    def uses_shell(self, cfg) -> bool:
-        """Whether this preset samples in the shell for a model of config ``cfg``: a shell preset
-        does, and every preset of a model trained in the shell (``cfg.sampler``); no preset of a model
-        trained with ``cfg.importance_samples``, which samples in the box (coarse, then fine)."""
-        if cfg.importance_samples:  # the fine pass needs the coarse pass to tile each ray's segment
-            return False
-        return self.sampler == "shell" or cfg.sampler == "shell"
+    def uses_shell(self) -> bool:
+        """Whether this preset samples in the garment's shell (else in the padded body box)."""
+        return self.sampler == "shell"
 
     def sampling(self, model, height_range: HeightRange | None = None, gl_context=None) -> "SamplingPlan":
         """The render arguments of this preset for ``model`` (a loaded
         :class:`~garmentnerf.model.pipeline.GarmentAnimationNeRF`; its weights are untouched).
 
-        A model trained in the shell (``cfg.sampler == "shell"``) is sampled in the shell, with the
-        skin occlusion and the band, by every preset, spaced as it was trained
-        (``cfg.shell_spacing``); the ``reference`` preset then reproduces its training sampling.
-
         Args:
             height_range: the garment's band (shell sampling; default :meth:`HeightRange.default`).
             gl_context: moderngl context of the shell raster (None: a headless one of its own).
         """
-        cfg = model.cfg
-        n = self.samples_per_ray(cfg)
-        if not self.uses_shell(cfg):
-            return SamplingPlan(self, model.box_sampler(n, self.precision), None, self.termination_eps,
-                                self.precision)
+        n = self.samples_per_ray(model.cfg)
+        if not self.uses_shell():
+            return SamplingPlan(self, model.box_sampler(n), None, self.termination_eps, self.precision)
         band = height_range if height_range is not None else HeightRange.default()
         faces = model.projector.faces
-        trained_in_shell = cfg.sampler == "shell"
-        sampler = ShellSampler(n, faces, band, padding=cfg.bbox_padding, gl_context=gl_context,
-                               spacing=cfg.shell_spacing if trained_in_shell else "box",
-                               occlusion=self.occlusion or trained_in_shell)
+        sampler = ShellSampler(n, faces, band, padding=BBOX_PADDING, gl_context=gl_context, occlusion=self.occlusion)
         return SamplingPlan(self, sampler, band.sample_filter(faces), self.termination_eps, self.precision)
 
     def to_dict(self) -> dict:

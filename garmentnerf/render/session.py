@@ -39,7 +39,7 @@ Resolution
     view's rays, and a distant one costs little (capped at one rendered pixel per output pixel, or
     the frame density when that is higher). The ``reference`` preset, and any view where the box's
     projection is unbounded, use the frame: ``scale = quality * S / max(W, H)`` with ``S`` the
-    longer side of a training camera at the trained density (``cfg.image_resolution`` for
+    longer side of a training camera at the trained density (``cfg.decoder.image_resolution`` for
     whole-frame training). The rendered size is padded to a multiple of the decoder's upsampling
     factor (:func:`padded_render_camera`) and the maps cropped back
     (:meth:`~garmentnerf.model.palette.DecomposedMaps.cropped`). The :class:`NeuralFrame` keeps
@@ -80,6 +80,7 @@ from garmentnerf.conventions import Camera, camera_rays
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.lifecycle import Closeable
+from garmentnerf.model.config import BBOX_PADDING
 from garmentnerf.model.palette import DecomposedMaps, check_palette
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.motion.library import load_motion
@@ -360,7 +361,7 @@ class RenderSession(Closeable):
         if plan is None or plan.preset != preset:
             if plan is not None:
                 plan.release()
-            band = self.height_range if preset.uses_shell(self.model.cfg) else None
+            band = self.height_range if preset.uses_shell() else None
             plan = preset.sampling(self.model, band, self.gl_ctx)
             self._plans[preset.name] = plan
         return plan
@@ -373,7 +374,7 @@ class RenderSession(Closeable):
         if not (np.isfinite(quality) and quality > 0):
             raise ValueError(f"quality must be a number > 0, got {quality!r}")
         views = self.training_views
-        trained_side = max(views[0].width, views[0].height) if views else self.config.image_resolution
+        trained_side = max(views[0].width, views[0].height) if views else self.config.decoder.image_resolution
         frame_scale = float(quality) * trained_side / max(camera.width, camera.height)
         if features is None or not views:
             return frame_scale
@@ -398,9 +399,9 @@ class RenderSession(Closeable):
         return [self.config.training_camera(self.scene.camera(n).camera) for n in names]
 
     def sampling_box(self, features) -> torch.Tensor:
-        """(2, 3) float64 the frame's sampling box: the body box padded by ``cfg.bbox_padding``, as
+        """(2, 3) float64 the frame's sampling box: the body box padded by :data:`~garmentnerf.model.config.BBOX_PADDING`, as
         both samplers pad it; no sample of the frame lies outside it."""
-        return padded_box(features.aabb.detach().to("cpu", torch.float64), self.config.bbox_padding)
+        return padded_box(features.aabb.detach().to("cpu", torch.float64), BBOX_PADDING)
 
     def render(self, frame: int, camera: Camera, quality: float | None = None, *, preset=DEFAULT_PRESET,
                scale: float | None = None, should_cancel: Callable[[], bool] | None = None,
@@ -426,7 +427,7 @@ class RenderSession(Closeable):
         s = self.render_scale(camera, quality, character) if scale is None else float(scale)
         if not s > 0:
             raise ValueError(f"scale must be > 0, got {scale!r}")
-        up = 2 ** self.config.decoder_upsample_steps
+        up = 2 ** self.config.decoder.upsample_steps
         padded, (fw, fh), (wr, hr) = padded_render_camera(camera, s, up)
         rect = PixelRect(0, 0, padded.width, padded.height)
         if plan.preset.character_rect:
@@ -478,7 +479,7 @@ class RenderSession(Closeable):
 
     def character_rect(self, features, camera: Camera, cell: int) -> PixelRect:
         """The cell-aligned rectangle of ``camera`` (a multiple of ``cell`` on both sides) in which
-        the frame's sampling box (the body box padded by ``cfg.bbox_padding``, as both samplers pad
+        the frame's sampling box (the body box padded by :data:`~garmentnerf.model.config.BBOX_PADDING`, as both samplers pad
         it) can be seen, grown by :data:`~garmentnerf.render.presets.CHARACTER_RECT_MARGIN` cells; one
         cell in the corner when the box is out of view (nothing to render)."""
         rect = box_rect(camera, self.sampling_box(features), cell=cell, margin_cells=CHARACTER_RECT_MARGIN)

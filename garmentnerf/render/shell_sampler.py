@@ -24,17 +24,15 @@ filter (:class:`~garmentnerf.model.height_band.HeightBandFilter`) and early term
 argument of the volume rendering
 (:func:`~garmentnerf.model.volume_rendering.render_packed_segmented`).
 
-Sample placement (``spacing``)
-    ``"box"`` (default): the padded body box of the paper's sampler is cut into S equal bins
-    exactly as :class:`~garmentnerf.model.samplers.BoxStratifiedSampler` does, and only the
-    bins that overlap the ray's shell segment are kept. In eval mode the samples *are* the
+Sample placement
+    The padded body box of the paper's sampler is cut into S equal bins exactly as
+    :class:`~garmentnerf.model.samplers.BoxStratifiedSampler` does, and only the bins that
+    overlap the ray's shell segment are kept. In eval mode the samples *are* the
     reference sampler's samples (same positions, same intervals), a subset of them: with
     zero density outside the shell and the band, the culled render equals the reference render
     up to float rounding. In training mode each kept sample is drawn uniformly in its bin and
     stands for its bin (a valid stratified estimate; the reference's intervals meet halfway
     between jittered neighbours instead).
-    ``"shell"``: S stratified samples between the ray's shell near and far (finer steps for the
-    same S, different quadrature from the reference).
 """
 
 from __future__ import annotations
@@ -46,9 +44,8 @@ import torch
 from garmentnerf.conventions import Camera
 from garmentnerf.geometry.winding import point_in_shell
 from garmentnerf.gl.shell_raster import ShellBounds, ShellRaster, inflate_surface
-from garmentnerf.model.config import SHELL_SPACINGS as SPACINGS
 from garmentnerf.model.height_band import HeightRange
-from garmentnerf.model.samplers import RaySamples, padded_box, pixel_rays, ray_aabb_intersect, stratified_intervals
+from garmentnerf.model.samplers import RaySamples, padded_box, pixel_rays, ray_aabb_intersect
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.model.frame_context import FrameFeatures
@@ -61,26 +58,23 @@ class ShellSampler:
     """Samples only inside the inflated body shell (see the module docstring).
 
     Args:
-        num_samples: S, bins of the padded box (``spacing="box"``) or samples per shell segment.
+        num_samples: S, bins of the padded box.
         faces: (F, 3) the skin faces to inflate (the model's ``projector.faces``).
         height_range: the band the garment occupies (default :meth:`HeightRange.default`); it sets
             the default shell margin and occlusion margin.
         shell_margin: inflation in metres, a scalar or (V,) per skin vertex (default
             :meth:`HeightRange.shell_margins` with ``SHELL_EXTRA_MARGIN``).
         padding: the box padding of the reference sampler (paper code: 0.05).
-        spacing: ``"box"`` or ``"shell"``.
         gl_context: moderngl context of the shell raster (None: a headless one of its own).
         occlusion: cut every ray ``occlusion_margin`` behind its first skin crossing.
         occlusion_margin: metres (default ``max(0, -height_range.h_min)``).
     """
 
     def __init__(self, num_samples: int, faces: torch.Tensor, height_range: HeightRange | None = None, *,
-                 shell_margin: float | torch.Tensor | None = None, padding: float = 0.05, spacing: str = "box",
+                 shell_margin: float | torch.Tensor | None = None, padding: float = 0.05,
                  gl_context=None, occlusion: bool = False, occlusion_margin: float | None = None):
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
-        if spacing not in SPACINGS:
-            raise ValueError(f"spacing must be one of {SPACINGS}, got {spacing!r}")
         if padding < 0:
             raise ValueError(f"padding must be >= 0, got {padding}")
         self.num_samples = int(num_samples)
@@ -97,7 +91,6 @@ class ShellSampler:
                                  else max(0.0, -self.height_range.h_min))
         if self.occlusion_margin < 0:
             raise ValueError(f"occlusion_margin must be >= 0, got {occlusion_margin}")
-        self.spacing = spacing
         self.raster = ShellRaster(gl_context)
         self._shell: tuple[torch.Tensor, torch.Tensor] | None = None  # (inflated, skin) of the last frame
         self._shell_source: torch.Tensor | None = None  # the posed vertices it was made from (held: ids stay unique)
@@ -155,40 +148,33 @@ class BoundShellSampler:
         near, far, hit = (b.near.reshape(-1)[idx].to(dev, dt), b.far.reshape(-1)[idx].to(dev, dt),
                           b.hit.reshape(-1)[idx].to(dev))
         S = sampler.num_samples
-        if sampler.spacing == "shell":
-            ok = hit & (far > near)
-            rays = ok.nonzero().squeeze(1)
-            t, ts, te = stratified_intervals(near[rays], far[rays], S, training, generator)
-            ray_ids = rays.repeat_interleave(S)
-            t, ts, te = t.reshape(-1), ts.reshape(-1), te.reshape(-1)
+        L = tb1 - tb0
+        bw = L / S
+        safe = torch.where(bw > 0, bw, torch.ones_like(bw))
+        first = torch.floor((torch.maximum(near, tb0) - tb0) / safe).clamp(0, S - 1)
+        last = (torch.ceil((torch.minimum(far, tb1) - tb0) / safe) - 1).clamp(0, S - 1)
+        ok = box_hit & hit & (far > tb0) & (near < tb1) & (last >= first)
+        first = first.long()
+        counts = torch.where(ok, last.long() - first + 1, torch.zeros_like(first))
+        ray_ids = torch.repeat_interleave(torch.arange(R, device=dev), counts)
+        starts = torch.cumsum(counts, 0) - counts
+        i = (torch.arange(ray_ids.shape[0], device=dev) - starts[ray_ids] + first[ray_ids]).to(dt)
+        t0, Lr = tb0[ray_ids], L[ray_ids]
+        # The reference sampler's formulas (samplers.stratified_intervals), bin for bin.
+        if training:
+            u = i + torch.rand(i.shape, dtype=dt, device=dev, generator=generator)
+            t = t0 + Lr * (u / S)
+            ts = t0 + Lr * (i / S)
+            te = torch.where(i == S - 1, tb1[ray_ids], t0 + Lr * ((i + 1) / S))
         else:
-            L = tb1 - tb0
-            bw = L / S
-            safe = torch.where(bw > 0, bw, torch.ones_like(bw))
-            first = torch.floor((torch.maximum(near, tb0) - tb0) / safe).clamp(0, S - 1)
-            last = (torch.ceil((torch.minimum(far, tb1) - tb0) / safe) - 1).clamp(0, S - 1)
-            ok = box_hit & hit & (far > tb0) & (near < tb1) & (last >= first)
-            first = first.long()
-            counts = torch.where(ok, last.long() - first + 1, torch.zeros_like(first))
-            ray_ids = torch.repeat_interleave(torch.arange(R, device=dev), counts)
-            starts = torch.cumsum(counts, 0) - counts
-            i = (torch.arange(ray_ids.shape[0], device=dev) - starts[ray_ids] + first[ray_ids]).to(dt)
-            t0, Lr = tb0[ray_ids], L[ray_ids]
-            # The reference sampler's formulas (samplers.stratified_intervals), bin for bin.
-            if training:
-                u = i + torch.rand(i.shape, dtype=dt, device=dev, generator=generator)
-                t = t0 + Lr * (u / S)
-                ts = t0 + Lr * (i / S)
-                te = torch.where(i == S - 1, tb1[ray_ids], t0 + Lr * ((i + 1) / S))
-            else:
-                t = t0 + Lr * ((i + 0.5) / S)
-                t_prev = t0 + Lr * ((i - 0.5) / S)
-                t_next = t0 + Lr * ((i + 1.5) / S)
-                ts = torch.where(i == 0, t0, (t_prev + t) * 0.5)
-                te = torch.where(i == S - 1, tb1[ray_ids], (t + t_next) * 0.5)
+            t = t0 + Lr * ((i + 0.5) / S)
+            t_prev = t0 + Lr * ((i - 0.5) / S)
+            t_next = t0 + Lr * ((i + 1.5) / S)
+            ts = torch.where(i == 0, t0, (t_prev + t) * 0.5)
+            te = torch.where(i == S - 1, tb1[ray_ids], (t + t_next) * 0.5)
         positions = origins[ray_ids] + t.unsqueeze(-1) * directions[ray_ids]
         zero = torch.zeros_like(near)
         return RaySamples(positions, ts, te, ray_ids, R, torch.where(ok, near, zero), torch.where(ok, far, zero), ok)
 
 
-__all__ = ["ShellSampler", "BoundShellSampler", "SHELL_EXTRA_MARGIN", "SPACINGS"]
+__all__ = ["ShellSampler", "BoundShellSampler", "SHELL_EXTRA_MARGIN"]

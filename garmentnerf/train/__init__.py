@@ -9,4 +9,6 @@
 - :mod:`~garmentnerf.train.frames`: per-frame inputs and ground-truth targets, cached in memory.
 - :mod:`~garmentnerf.train.perceptual`: the perceptual loss network (VGG19 or shift-tolerant LPIPS).
 - :mod:`~garmentnerf.train.distributed`: data-parallel training over ``torch.distributed``.
+- :mod:`~garmentnerf.train.recipe`: a recipe file (a model's stages as data) and its model configs.
+- :mod:`~garmentnerf.train.recipe_run`: running a recipe's stages in order into one folder, resumable.
 """

@@ -13,6 +13,7 @@ run's learned one and stays fixed, so recolouring the body tints the fitted text
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -162,4 +163,43 @@ def fit_body_appearance(samples: BodySamples, body_color: torch.Tensor, *, steps
     return model, summary
 
 
-__all__ = ["BodySamples", "collect_body_samples", "fit_body_appearance", "interior_body_pixels"]
+def fit_run_appearance(run_dir, out, *, scene=None, frame_stride: int = 5, steps: int = 3000,
+                       albedo_prior: float | None = None, progress: bool = True) -> dict:
+    """Fit the body appearance of the run in ``run_dir`` (what ``garmentnerf body fit-appearance``
+    does): samples from its training cameras at every ``frame_stride``-th frame of its scene's (or
+    ``scene``'s) training sequences, fitted for ``steps`` steps under the run's learned body colour
+    (``albedo_prior`` None: :data:`ALBEDO_PRIOR`), and written atomically to ``out``.
+
+    Returns:
+        the fit's summary (:func:`fit_body_appearance`).
+    Raises:
+        ValueError: the run's scene is missing (pass ``scene``), or an impossible setting.
+    """
+    # lazy: the evaluation and GL stacks are only needed here
+    from garmentnerf.gl.context import create_context
+    from garmentnerf.model.body_appearance import save_body_appearance
+    from garmentnerf.runs import load_run, run_train_cameras
+
+    if frame_stride < 1:
+        raise ValueError(f"--frame-stride must be at least 1, got {frame_stride}")
+    if steps < 1:
+        raise ValueError(f"--steps must be at least 1, got {steps}")
+    if albedo_prior is not None and not (math.isfinite(albedo_prior) and albedo_prior >= 0):
+        raise ValueError(f"--albedo-prior must be a number >= 0, got {albedo_prior}")
+    run = load_run(run_dir, scene=scene)
+    if run.scene is None:
+        raise ValueError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
+                         f"pass --scene DIR")
+    ctx = create_context(headless=True)
+    try:
+        samples = collect_body_samples(run.scene, run.model.body, run_train_cameras(run, run.scene), ctx,
+                                       frame_stride=frame_stride, progress=progress)
+    finally:
+        ctx.release()
+    prior = {} if albedo_prior is None else {"albedo_prior": albedo_prior}
+    appearance, summary = fit_body_appearance(samples, run.palette()[-1], steps=steps, progress=progress, **prior)
+    save_body_appearance(out, appearance)
+    return summary
+
+
+__all__ = ["BodySamples", "collect_body_samples", "fit_body_appearance", "fit_run_appearance", "interior_body_pixels"]

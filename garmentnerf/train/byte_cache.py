@@ -11,7 +11,7 @@ recently used value leaves first.
 dataclass fields, attributes, ``__slots__`` and containers, each charged the whole memory it keeps
 alive -- a tensor its storage, a numpy array its outermost base array -- each storage once. A view
 is charged its base's size: a frame's row of a (T, V, 3) clip keeps the whole clip in memory, and
-the caches once held such rows at 1/170 of what they cost (``docs/quality.md``, "The trainer's
+the caches once held such rows at 1/170 of what they cost (``docs/lab/ledger.md``, "The trainer's
 memory, found and fixed"). Tensors shared with something long-lived (the model's topology tables,
 which every frame's bound body points at) are passed as ``exclude`` (:func:`tensor_pointers` of the
 long-lived thing) so that they are not charged to every frame.

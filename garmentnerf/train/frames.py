@@ -7,20 +7,20 @@
   :class:`~garmentnerf.render.frame_inputs.FrameInputBuilder` on a GL context and kept on the CPU
   (1.4 MB per frame at the bundled model's sizes, about 11 MB at the paper's 512 x 512
   references). Motions are posed once per sequence with the scene's body shape.
-* :meth:`SceneFrames.target` -- the ground-truth image at ``cfg.image_resolution`` squared:
+* :meth:`SceneFrames.target` -- the ground-truth image at ``cfg.decoder.image_resolution`` squared:
   the scene's image (:class:`~garmentnerf.data.scene_images.SceneImages`, rendered and cached on disk on
   first use) area-downsampled, and the target mask. The model's mask ``m`` says where the
   *foreground* (body or garment) covers the pixel -- :func:`~garmentnerf.model.palette.compose`
   puts the background color where it is 0 -- so the target mask is ``labels != 0``,
   area-downsampled to a coverage in [0, 1]. The ground truth is rendered on black (premultiplied
-  by coverage), so the target image is ``rgb + (1 - mask) * cfg.background``: the same
+  by coverage), so the target image is ``rgb + (1 - mask) * BACKGROUND``: the same
   compositing as the model's.
 * :meth:`SceneFrames.reference_targets` -- the ground-truth front/back reference images at
-  ``cfg.reference_resolution`` (G_img's pre-training targets), composited the same way.
+  ``cfg.encoder.reference_resolution`` (G_img's pre-training targets), composited the same way.
 * :meth:`SceneFrames.camera` -- a scene camera resized to the training image size (the model
   resizes it again to the feature-image size for its rays).
 * :meth:`SceneFrames.training_view` -- what one step renders of a camera: the whole camera at
-  ``cfg.image_resolution`` squared, or (``cfg.training_crop_density`` > 0) a window of that many
+  ``cfg.decoder.image_resolution`` squared, or (``cfg.schedule.training_crop_density`` > 0) a window of that many
   pixels at the crop density, placed on the character by :func:`character_window`;
   :meth:`SceneFrames.target` takes the same window of the ground truth.
 
@@ -45,6 +45,7 @@ from garmentnerf.data.render_gt import GroundTruthRenderer
 from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.gl.context import create_context
 from garmentnerf.lifecycle import Closeable
+from garmentnerf.model.config import BACKGROUND
 from garmentnerf.model.frame_context import REFERENCE_CAMERA_NAMES
 from garmentnerf.render.frame_inputs import FrameInputBuilder
 from garmentnerf.render.screen_rect import PixelRect, box_rect
@@ -158,8 +159,8 @@ class SceneFrames(Closeable):
     # ---- cameras and targets ----------------------------------------------------------------------------
     def camera(self, name: str) -> Camera:
         """The scene camera at the density the model trains at (:meth:`ModelConfig.training_camera`):
-        ``cfg.image_resolution`` squared for whole-frame training, else the scene's image scaled by
-        ``cfg.training_crop_density`` (of which each step renders a window)."""
+        ``cfg.decoder.image_resolution`` squared for whole-frame training, else the scene's image scaled by
+        ``cfg.schedule.training_crop_density`` (of which each step renders a window)."""
         return self.cfg.training_camera(self.scene.camera(name).camera)
 
     def training_view(self, name: str, box: torch.Tensor, generator: torch.Generator | None = None
@@ -173,11 +174,11 @@ class SceneFrames(Closeable):
             generator: draws the centre (the step's generator, so a resume repeats it).
         """
         camera = self.camera(name)
-        if self.cfg.training_crop_density <= 0:
+        if self.cfg.schedule.training_crop_density <= 0:
             return camera, None
         where = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
         rect = box_rect(camera, box)
-        window = character_window(rect, (camera.width, camera.height), self.cfg.image_resolution, where)
+        window = character_window(rect, (camera.width, camera.height), self.cfg.decoder.image_resolution, where)
         return camera.cropped(window.x0, window.y0, window.width, window.height), window
 
     def _composite(self, sequence: str, camera: str, frame: int, size: int | tuple[int, int]
@@ -185,8 +186,8 @@ class SceneFrames(Closeable):
         rgb, labels = self.images.image(sequence, camera, frame)
         image = area_resize(rgb, size)
         mask = area_resize((labels != 0).astype(np.float32), size)
-        garment = area_resize(garment_shares(labels, self.cfg.palette_size - 1, self.cfg.garment_label), size)
-        bg = torch.tensor(self.cfg.background, dtype=torch.float32).view(3, 1, 1)
+        garment = area_resize(garment_shares(labels, self.cfg.decoder.palette_size - 1), size)
+        bg = torch.tensor(BACKGROUND, dtype=torch.float32).view(3, 1, 1)
         if bool((bg != 0).any()):
             image = image + (1.0 - mask) * bg
         return image.clamp(0.0, 1.0), mask, garment
@@ -194,7 +195,7 @@ class SceneFrames(Closeable):
     def target(self, sequence: str, camera: str, frame: int, window: PixelRect | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Ground truth of a view at the training density (:meth:`camera`'s size), or of the
-        ``window`` of it a step renders: image (3, h, w) in [0, 1] on ``cfg.background``, mask
+        ``window`` of it a step renders: image (3, h, w) in [0, 1] on :data:`~garmentnerf.model.config.BACKGROUND`, mask
         (1, h, w) foreground coverage in [0, 1] and garment (K, h, w) garment coverage in [0, 1], K the
         palette's garment colors (:func:`garment_shares`) (CPU)."""
         frame = self.scene.check_frame(sequence, frame)
@@ -208,9 +209,9 @@ class SceneFrames(Closeable):
         return tuple(t[:, rows, cols] for t in whole)
 
     def reference_targets(self, sequence: str, frame: int) -> torch.Tensor:
-        """(2, 3, S, S) ground-truth front and back reference images at ``cfg.reference_resolution``."""
+        """(2, 3, S, S) ground-truth front and back reference images at ``cfg.encoder.reference_resolution``."""
         frame = self.scene.check_frame(sequence, frame)
-        S = self.cfg.reference_resolution
+        S = self.cfg.encoder.reference_resolution
 
         def make():
             return (torch.stack([self._composite(sequence, name, frame, S)[0] for name in REFERENCE_CAMERA_NAMES]),)

@@ -13,13 +13,13 @@ from types import MappingProxyType
 
 import torch
 
-from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.config import LossConfig, ModelConfig
 from garmentnerf.model.pipeline import bfloat16_is_fast
 from garmentnerf.runs import recorded_scene_path
 
 __all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
-           "TRAINING_PRECISIONS", "tiny_config", "model_config_for", "loss_weight_names", "training_precision",
-           "new_run_settings", "resume_settings", "show_setting"]
+           "TRAINING_PRECISIONS", "model_config_for", "training_precision",
+           "new_run_settings", "resume_settings", "show_setting", "parse_frames"]
 
 MODEL_PRESETS = ("paper", "cpu_small", "tiny")
 
@@ -35,18 +35,28 @@ TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 OVERRIDABLE_SETTINGS = ("log_every", "image_every", "ckpt_every", "keep_checkpoints", "perceptual", "vgg19_weights")
 
 
-def tiny_config() -> ModelConfig:
-    """A model small enough for tests and smoke runs (64 x 64 images, seconds per dozen steps)."""
-    return ModelConfig.cpu_small().replace(
-        image_resolution=64, feature_image_resolution=16, reference_resolution=32, info_map_resolution=32,
-        encoder_depth=3, encoder_width_scale=0.25, neural_texture_resolution=32, neural_texture_levels=2,
-        generator_width_scale=0.25, appearance_dim=16, mlp_depth=2, mlp_width=32, samples_per_ray=8,
-        decoder_width=16, decoder_min_width=8, decoder_extra_layers=0, iterations=200, generator_iterations=50)
-
-
-def loss_weight_names() -> tuple[str, ...]:
-    """The :class:`ModelConfig` fields that weight a loss term (``w_image``, ``w_mask``, ...)."""
-    return tuple(f.name for f in dataclasses.fields(ModelConfig) if f.name.startswith("w_"))
+def parse_frames(text: str, what: str = "--frames") -> tuple[int, ...]:
+    """The frame indices of a range in Python slice syntax (``A:B``, ``A:B:S``, or one frame ``A``);
+    ValueError naming ``what`` when ``text`` is not one or selects no frame."""
+    parts = text.split(":")
+    try:
+        nums = [int(x) if x.strip() else None for x in parts]
+    except ValueError:
+        raise ValueError(f"{what} must be A:B (integers), got {text!r}") from None
+    if len(nums) == 1:
+        if nums[0] is None:
+            raise ValueError(f"{what} must be A:B, got {text!r}")
+        return (nums[0],)
+    if len(nums) not in (2, 3):
+        raise ValueError(f"{what} must be A:B, got {text!r}")
+    start, stop = nums[0] or 0, nums[1]
+    if stop is None:
+        raise ValueError(f"{what} needs an end (A:B)")
+    step = nums[2] if len(nums) == 3 and nums[2] else 1
+    out = tuple(range(start, stop, step))
+    if not out:
+        raise ValueError(f"{what} {text} selects no frame")
+    return out
 
 
 def model_config_for(preset: str) -> ModelConfig:
@@ -56,7 +66,7 @@ def model_config_for(preset: str) -> ModelConfig:
     if preset == "cpu_small":
         return ModelConfig.cpu_small()
     if preset == "tiny":
-        return tiny_config()
+        return ModelConfig.tiny()
     raise ValueError(f"unknown preset '{preset}' (known: {', '.join(MODEL_PRESETS)})")
 
 
@@ -90,9 +100,9 @@ class TrainConfig:
     seed: int | None = None
     """*run*; seeds the initialisation, the (frame, camera) order and the ray jitter (default 0)."""
     iterations: int | None = None
-    """*run*; overrides ``cfg.iterations`` (NeRF steps; the lr decay spans them)."""
+    """*run*; overrides ``cfg.schedule.iterations`` (NeRF steps; the lr decay spans them)."""
     generator_iterations: int | None = None
-    """*run*; overrides ``cfg.generator_iterations`` (G_img pre-training steps)."""
+    """*run*; overrides ``cfg.schedule.generator_iterations`` (G_img pre-training steps)."""
     stop_after: int | None = None
     """Stop (writing a checkpoint) once this global step is reached, without changing the schedule (resume
     later to continue); None: train to the end. Not inherited by a resume (given on one, it is recorded in
@@ -157,7 +167,8 @@ class TrainConfig:
     records what ``auto`` chose, so a resume on another machine trains on as the run began; a run.json from
     before this setting means float32."""
     loss_weights: dict[str, float] | None = None
-    """Overrides of the config's loss weights, ``{"w_segmentation": 0.5}``. On a resume they apply from the
+    """Overrides of the config's loss weights (:class:`~garmentnerf.model.config.LossConfig`),
+    ``{"segmentation": 0.5}``. On a resume they apply from the
     resumed step on (a curriculum: e.g. add a term once the geometry is there); each change is logged and kept
     in ``run.json``'s ``loss_weight_changes`` so the run's recipe stays on record."""
 
@@ -165,7 +176,7 @@ class TrainConfig:
         """Raise ValueError naming the first impossible setting (None fields are not checked)."""
         if self.preset is not None and self.preset not in MODEL_PRESETS:
             raise ValueError(f"unknown preset '{self.preset}' (known: {', '.join(MODEL_PRESETS)})")
-        known = loss_weight_names()
+        known = LossConfig.weight_names()
         for name, value in (self.loss_weights or {}).items():
             if name not in known:
                 raise ValueError(f"unknown loss weight '{name}' (known: {', '.join(known)})")
@@ -206,8 +217,12 @@ class TrainConfig:
 def _architecture(cfg: ModelConfig) -> dict:
     """``cfg`` without what a run may set apart from its preset (iterations, loss weights, the
     training crop)."""
-    names = {"iterations", "generator_iterations", "training_crop_density", *loss_weight_names()}
-    return {k: v for k, v in cfg.to_dict().items() if k not in names}
+    out = cfg.to_dict()
+    for name in ("iterations", "generator_iterations", "training_crop_density"):
+        out["schedule"].pop(name)
+    for name in LossConfig.weight_names():
+        out["loss"].pop(name)
+    return out
 
 
 def _preset_of(cfg: ModelConfig) -> str | None:
@@ -272,8 +287,8 @@ def resume_settings(tc: TrainConfig, info: dict, cfg: ModelConfig, run_dir: Path
     else:  # a custom config, or a run.json written by an older resume that recorded its default preset
         run_values["preset"] = _preset_of(cfg)
     # what the run trains for, when run.json recorded None (the preset's value)
-    effective = {"iterations": cfg.iterations,
-                 "generator_iterations": info.get("generator_iterations", cfg.generator_iterations)}
+    effective = {"iterations": cfg.schedule.iterations,
+                 "generator_iterations": info.get("generator_iterations", cfg.schedule.generator_iterations)}
     values = {}
     for name in RUN_SETTINGS:
         given, run_value = getattr(tc, name), run_values[name]

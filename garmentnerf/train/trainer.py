@@ -1,32 +1,28 @@
 """Two-stage training of the Garment Animation NeRF on a scene (paper Sec. 4.4; numbers in
 ``implementation-notes.md`` Sec. 1.8).
 
-Stage 1 -- G_img pre-training (``cfg.generator_iterations`` steps; skipped when the detail
+Stage 1 -- G_img pre-training (``cfg.schedule.generator_iterations`` steps; skipped when the detail
     feature is ablated). The neural texture and G_img learn to reproduce the ground-truth front
     and back reference images (the scene's ``ref_front`` / ``ref_back`` cameras) of the training
-    frames from the body's UVs seen by those cameras: ``cfg.batch_size`` frames (each both
-    references, DNG's batch of 2) per step, ``w_image * L1 + w_perceptual * perceptual``, Adam
-    at ``cfg.generator_lr``.
+    frames from the body's UVs seen by those cameras: ``cfg.schedule.batch_size`` frames (each both
+    references, DNG's batch of 2) per step, ``loss.image * L1 + loss.perceptual * perceptual``, Adam
+    at :data:`~garmentnerf.model.config.GENERATOR_LR`.
     Then G_img is frozen (:meth:`GarmentAnimationNeRF.set_image_generator_frozen`) and its
     reference images are computed once per frame and cached (it no longer changes).
     Left out from DNG: the SPADE temporal conditioning and the adversarial losses (see
     :mod:`garmentnerf.model.image_generator`).
-Stage 2 -- the NeRF (``cfg.iterations`` steps). E, G_en, M_NeRF, M_D and the palette, with
+Stage 2 -- the NeRF (``cfg.schedule.iterations`` steps). E, G_en, M_NeRF, M_D and the palette, with
     :func:`garmentnerf.model.losses.garment_losses` (weights from the config: L1 image + L1
-    mask 1, perceptual 0.1, sparsity 2e-4, offsets 0.03, palette 1e-3). ``cfg.batch_size`` (frame,
+    mask 1, perceptual 0.1, sparsity 2e-4, offsets 0.03, palette 1e-3). ``cfg.schedule.batch_size`` (frame,
     training camera) pairs per step (paper: 1), each rendered as the full feature image
-    (``cfg.feature_image_resolution`` squared rays, decoded to ``cfg.image_resolution``): what the
+    (``cfg.decoder.feature_image_resolution`` squared rays, decoded to ``cfg.decoder.image_resolution``): what the
     pipeline renders. The image is the
-    whole camera, or with ``cfg.training_crop_density`` a window of the camera at that density
-    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). With
-    ``cfg.views_per_step`` > 1 each pair's frame is also rendered from that many - 1 other training
-    cameras, its encoders run once for all of them, and the image terms are their mean. The
-    samples go where the ``reference`` render preset puts them for this model: the paper's box, or
-    with ``cfg.sampler == "shell"`` the garment's shell (its band measured on the training garments
-    and kept in the run folder, :data:`~garmentnerf.model.height_band.SHELL_BAND_FILE`). Adam with
-    ``lr`` decaying exponentially to ``lr_final`` over ``cfg.iterations``
+    whole camera, or with ``cfg.schedule.training_crop_density`` a window of the camera at that density
+    placed on the character (:meth:`~garmentnerf.train.frames.SceneFrames.training_view`). The
+    samples go where the ``reference`` render preset puts them: the paper's box. Adam with
+    ``lr`` decaying exponentially to ``lr_final`` over ``cfg.schedule.iterations``
     (``lr_n = lr * (lr_final / lr) ** (n / iterations)``), gradients clipped by value
-    (``cfg.grad_clip_value``).
+    (:data:`~garmentnerf.model.config.GRAD_CLIP_VALUE`).
 
 Steps are counted globally: ``[0, G)`` stage 1, ``[G, G + N)`` stage 2; checkpoints and
 ``run.json`` ``step`` use that count.
@@ -97,7 +93,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -107,18 +103,15 @@ from tqdm import tqdm
 
 from garmentnerf.cpu_load import BusyWatch, OtherProcessesLoad
 from garmentnerf.data.scene import Scene, read_garment_arrays
-from garmentnerf.geometry.projection import SurfaceProjector
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance, save_body_appearance
-from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.config import BBOX_PADDING, GENERATOR_LR, GRAD_CLIP_VALUE, ModelConfig
 from garmentnerf.model.frame_codes import adapt_frame_codes, garment_texels, grow_texels
 from garmentnerf.model.frame_context import frame_vertices
-from garmentnerf.model.height_band import SHELL_BAND_FILE, load_height_range, measure_height_range, save_height_range
 from garmentnerf.model.losses import garment_losses, generator_losses
-from garmentnerf.model.occupancy import occupancy_labels, occupancy_loss, occupancy_points
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
@@ -133,12 +126,12 @@ from garmentnerf.runs import (RUN_FILE, body_info_from_scene, build_model, frame
                               read_run_info, recorded_scene_path, run_garment, save_run_model, save_weights)
 from garmentnerf.train.run import CHECKPOINT_DIR, TB_DIR, load_module_weights, remove_run_temporaries
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
-                                        new_run_settings, resume_settings, show_setting, tiny_config)
+                                        new_run_settings, resume_settings, show_setting)
 from garmentnerf.train.transfer import transfer_garment_state
 
 # The settings and checkpoint names are defined in :mod:`.settings` and :mod:`.checkpoints`; they
 # stay importable from here, where callers have always found them.
-__all__ = ["Trainer", "TrainResult", "train", "TrainConfig", "MODEL_PRESETS", "model_config_for", "tiny_config",
+__all__ = ["Trainer", "TrainResult", "train", "TrainConfig", "MODEL_PRESETS", "model_config_for",
            "latest_checkpoint", "checkpoints", "CheckpointWriteError", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS"]
 
 @dataclass
@@ -159,26 +152,14 @@ def _seed_of(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0] >> 1)
 
 
-def param_groups(model, params: list[torch.nn.Parameter], cfg: ModelConfig) -> list[dict]:
-    """Adam parameter groups of ``params``, each with an ``lr_scale`` the schedule multiplies:
-    the atlas branch (``model.zero_start_prefixes()``: its texture and the MLP's weights on f^a) at
-    ``cfg.atlas_feature_lr_scale``; the U-Nets E and G_en at ``cfg.encoder_lr_scale`` when it is not
-    1 (at 1 they stay in the main group, so an optimiser state saved before the setting loads);
-    the ``uvh`` field's tri-plane (``model.grid_prefixes()``) at ``cfg.uvh_plane_lr_scale``; the
-    per-frame codes at ``cfg.frame_code_lr_scale``; everything else at 1. Groups left empty are dropped."""
-    def ids_under(prefixes: tuple[str, ...]) -> set[int]:
-        return {id(p) for name, p in model.named_parameters() if name.startswith(prefixes)} if prefixes else set()
-
-    atlas_ids = ids_under(model.zero_start_prefixes())
-    encoder_ids = ids_under(("encoder.", "detail_encoder.")) if cfg.encoder_lr_scale != 1.0 else set()
-    grid_ids = ids_under(model.grid_prefixes())
-    code_ids = ids_under(model.frame_code_prefixes())
-    scaled = atlas_ids | encoder_ids | grid_ids | code_ids
-    groups = [{"params": [p for p in params if id(p) not in scaled], "lr_scale": 1.0},
-              {"params": [p for p in params if id(p) in atlas_ids], "lr_scale": float(cfg.atlas_feature_lr_scale)},
-              {"params": [p for p in params if id(p) in encoder_ids], "lr_scale": float(cfg.encoder_lr_scale)},
-              {"params": [p for p in params if id(p) in grid_ids], "lr_scale": float(cfg.uvh_plane_lr_scale)},
-              {"params": [p for p in params if id(p) in code_ids], "lr_scale": float(cfg.frame_code_lr_scale)}]
+def param_groups(model, params: list[torch.nn.Parameter], code_lr_scale: float) -> list[dict]:
+    """Adam parameter groups of ``params``, each with an ``lr_scale`` the schedule multiplies: the
+    per-frame codes (``model.frame_code_prefixes()``) at ``code_lr_scale``, everything else at 1.
+    Groups left empty are dropped."""
+    prefixes = model.frame_code_prefixes()
+    code_ids = {id(p) for name, p in model.named_parameters() if name.startswith(prefixes)} if prefixes else set()
+    groups = [{"params": [p for p in params if id(p) not in code_ids], "lr_scale": 1.0},
+              {"params": [p for p in params if id(p) in code_ids], "lr_scale": float(code_lr_scale)}]
     return [g for g in groups if g["params"]]
 
 
@@ -189,7 +170,7 @@ def trained_parameter_ids(model, prefixes: tuple[str, ...]) -> set[int]:
     for prefix in prefixes:
         if not any(name.startswith(prefix) for name, _ in named):
             tops = sorted({name.split(".")[0] + "." for name, _ in named})
-            raise ValueError(f"model_config.trained_parameters: no parameter of the model starts with '{prefix}' "
+            raise ValueError(f"model_config.schedule.trained_parameters: no parameter of the model starts with '{prefix}' "
                              f"(its parameters start with {', '.join(tops)})")
     return {id(p) for name, p in named if name.startswith(prefixes)}
 
@@ -251,7 +232,7 @@ class Trainer(Closeable):
         self._start_position(ckpts, resume_info, setting_changes, weight_changes)
         self.dist.barrier()
         self.log(f"{len(self.frames_list)} frames x {len(self.cameras)} cameras, {self.generator_iterations} G_img + "
-                 f"{self.cfg.iterations} NeRF steps, perceptual: {self.perceptual_name}, device: {self.device}, "
+                 f"{self.cfg.schedule.iterations} NeRF steps, perceptual: {self.perceptual_name}, device: {self.device}, "
                  f"MLP precision: {self.tc.precision}"
                  + (f", {self.dist.world} processes" if self.dist.active else "")
                  + (f", resuming at step {self.step}" if ckpts else ""))
@@ -327,26 +308,25 @@ class Trainer(Closeable):
         tc = self.tc
         changes = {}
         if tc.iterations is not None:
-            changes["iterations"] = int(tc.iterations)
+            changes["schedule.iterations"] = int(tc.iterations)
         if tc.generator_iterations:
-            # 0 (skip pre-training) is allowed here although ModelConfig wants > 0: kept apart.
-            changes["generator_iterations"] = int(tc.generator_iterations)
-        if tc.training_crop_density is not None and float(tc.training_crop_density) != cfg.training_crop_density:
+            changes["schedule.generator_iterations"] = int(tc.generator_iterations)
+        if tc.training_crop_density is not None and float(tc.training_crop_density) != cfg.schedule.training_crop_density:
             if resume_info is not None:
                 raise ValueError(f"--training-crop-density {tc.training_crop_density:g}: the run in {self.out} was "
-                                 f"trained with {cfg.training_crop_density:g}; --resume continues a run as it is")
-            changes["training_crop_density"] = float(tc.training_crop_density)
-        weight_changes = {k: float(v) for k, v in (tc.loss_weights or {}).items() if getattr(cfg, k) != float(v)}
-        changes.update(weight_changes)
-        cfg = cfg.replace(**changes) if changes else cfg
+                                 f"trained with {cfg.schedule.training_crop_density:g}; --resume continues a run as it is")
+            changes["schedule.training_crop_density"] = float(tc.training_crop_density)
+        weight_changes = {k: float(v) for k, v in (tc.loss_weights or {}).items() if getattr(cfg.loss, k) != float(v)}
+        changes.update({f"loss.{k}": v for k, v in weight_changes.items()})
+        cfg = cfg.updated(changes) if changes else cfg
         self.cfg = cfg
         self.loss_weight_changes = list((resume_info or {}).get("loss_weight_changes", []))
         self.overrides = list((resume_info or {}).get("overrides", []))
-        gen_iters = cfg.generator_iterations if tc.generator_iterations is None else int(tc.generator_iterations)
+        gen_iters = cfg.schedule.generator_iterations if tc.generator_iterations is None else int(tc.generator_iterations)
         if resume_info is not None and tc.generator_iterations is None:
             gen_iters = int(resume_info.get("generator_iterations", gen_iters))
-        self.generator_iterations = gen_iters if cfg.use_detail_feature else 0
-        self.total_steps = self.generator_iterations + cfg.iterations
+        self.generator_iterations = gen_iters if cfg.encoder.detail_feature else 0
+        self.total_steps = self.generator_iterations + cfg.schedule.iterations
         if self.scene.palette_init is None:
             self.log(f"{self.scene.scene_file}: no palette_init; the palette starts at mid grey")
         return weight_changes
@@ -380,20 +360,20 @@ class Trainer(Closeable):
         self._settle_frame_codes(seqs)
 
     def _settle_frame_codes(self, seqs: list[str]) -> None:
-        """The per-frame codes (``ModelConfig.frame_code_resolution``): one per frame of the training
+        """The per-frame codes (``FrameCodeConfig``): one per frame of the training
         sequences ``seqs`` (all their frames, so that a code's index is its sequence's offset plus the
         frame), their count set in ``self.cfg`` on a new run and checked on a resume."""
         self.code_offsets: dict[str, int] = {}
-        if not self.cfg.frame_code_resolution:
+        if not self.cfg.frame_codes.resolution:
             return
         count = 0
         for s in seqs:
             self.code_offsets[s] = count
             count += self.scene.num_frames(s)
-        if self.cfg.frame_codes == 0:
-            self.cfg = replace(self.cfg, frame_codes=count)
-        elif self.cfg.frame_codes != count:
-            raise ValueError(f"{self.out}: the run has {self.cfg.frame_codes} per-frame codes, its training "
+        if self.cfg.frame_codes.count == 0:
+            self.cfg = self.cfg.updated({"frame_codes.count": count})
+        elif self.cfg.frame_codes.count != count:
+            raise ValueError(f"{self.out}: the run has {self.cfg.frame_codes.count} per-frame codes, its training "
                              f"sequences ({', '.join(seqs)}) have {count} frames")
 
     def code_index(self, seq: str, frame: int) -> int | None:
@@ -411,7 +391,7 @@ class Trainer(Closeable):
         self.model = build_model(cfg, self.scene.palette_init).to(self.device)
         self.dist.broadcast_module(self.model)
 
-        self.perceptual, self.perceptual_name = make_perceptual(tc.perceptual, tc.vgg19_weights, cfg.w_perceptual)
+        self.perceptual, self.perceptual_name = make_perceptual(tc.perceptual, tc.vgg19_weights, cfg.loss.perceptual)
         if self.perceptual is not None:
             self.perceptual = self.perceptual.to(self.device)
         if resume_info is not None and resume_info.get("perceptual") not in (None, self.perceptual_name):
@@ -421,14 +401,10 @@ class Trainer(Closeable):
                                        tc.inputs_cache_bytes)
         self.body_appearance = self._body_appearance(resume_info)
         self._body_pass = None  # the BodyLayerPass of the body layer, made on first use
-        self.shell_band = self._shell_band(resume_info)
-        self.sampling = get_render_preset("reference").sampling(self.model, self.shell_band, self.data.frames.ctx)
+        self.sampling = get_render_preset("reference").sampling(self.model, None, self.data.frames.ctx)
         #: The frames' body geometry kept between steps, by (sequence, frame).
         self.geometry_cache = tensor_cache(tc.geometry_cache_bytes, self._geometry_bytes)
         self._model_tensors: frozenset[int] | None = None
-        # Per training sequence, its simulated garment (vertices (T, Vg, 3)) and the garment topology's
-        # projector: the occupancy term's labels (ModelConfig.w_occupancy), loaded on first use.
-        self._garments: dict[str, tuple[np.ndarray, SurfaceProjector]] = {}
         self.step = 0
         self.optimizer = None
         self.stage = None
@@ -473,16 +449,16 @@ class Trainer(Closeable):
                                    for k, (a, b) in setting_changes.items()))
             if weight_changes:
                 old = ModelConfig.from_dict(dict(resume_info["model_config"]))
-                record = {"step": self.step, **{k: [getattr(old, k), v] for k, v in weight_changes.items()}}
+                record = {"step": self.step, **{k: [getattr(old.loss, k), v] for k, v in weight_changes.items()}}
                 self.loss_weight_changes.append(record)
                 self.log("loss weights from step " + str(self.step) + ": " +
-                         ", ".join(f"{k} {getattr(old, k):g} -> {v:g}" for k, v in weight_changes.items()))
+                         ", ".join(f"{k} {getattr(old.loss, k):g} -> {v:g}" for k, v in weight_changes.items()))
         elif tc.init_weights is not None:
             file_garment = run_garment(Path(tc.init_weights).parent)
             same_garment = None if file_garment is None else file_garment == dict(self.scene.garment)
             garment_state = functools.partial(transfer_garment_state, same_garment=same_garment)
             new = load_weights(tc.init_weights, self.model,
-                               self.model.zero_start_prefixes() + self.model.frame_code_prefixes(),
+                               self.model.frame_code_prefixes(),
                                self.model.growable_prefixes(),
                                adapt=lambda state, own: garment_state(state, own) + adapt_frame_codes(state, own))
             if tc.init_generator is not None:
@@ -520,30 +496,30 @@ class Trainer(Closeable):
         if stage == "generator":
             m.set_image_generator_frozen(False)
             params = [p for p in m.image_generator.parameters()]
-            lr = self.cfg.generator_lr
+            lr = GENERATOR_LR
         else:
             m.set_image_generator_frozen(True)
             params = [p for mod in m.trainable_modules().values() for p in mod.parameters() if p.requires_grad]
-            if self.cfg.trained_parameters:
-                trained = trained_parameter_ids(m, self.cfg.trained_parameters)
+            if self.cfg.schedule.trained_parameters:
+                trained = trained_parameter_ids(m, self.cfg.schedule.trained_parameters)
                 for p in params:
                     p.requires_grad_(id(p) in trained)
                 params = [p for p in params if id(p) in trained]
-            lr = self.cfg.lr
+            lr = self.cfg.schedule.lr
         m.train()
         self.params = params
         # fused: one pass over each tensor instead of one per operation (the same update up to rounding),
         # 14 times faster on the CPU for the 5.6 M values of the bundled skirt's per-frame codes
-        self.optimizer = torch.optim.Adam(param_groups(m, params, self.cfg), lr=lr, fused=True)
+        self.optimizer = torch.optim.Adam(param_groups(m, params, self.cfg.frame_codes.lr_scale), lr=lr, fused=True)
         self.stage = stage
 
     def lr_at(self, step: int) -> float:
         """Learning rate of global step ``step``."""
         cfg = self.cfg
         if step < self.generator_iterations:
-            return cfg.generator_lr
+            return GENERATOR_LR
         n = step - self.generator_iterations
-        return cfg.lr * (cfg.lr_final / cfg.lr) ** (n / max(1, cfg.iterations))
+        return cfg.schedule.lr * (cfg.schedule.lr_final / cfg.schedule.lr) ** (n / max(1, cfg.schedule.iterations))
 
     # ---- checkpoints -------------------------------------------------------------------------------
     def _run_extra(self) -> dict:
@@ -582,7 +558,6 @@ class Trainer(Closeable):
             write_file_atomic(state_file, buffer.getvalue())
             complete, writing = True, self.out
             self._save_body_appearance()
-            self._save_shell_band()
             save_run_model(self.out, self.model, self.cfg, self.scene_path, step, self._run_extra())
         except BaseException as exc:
             if not complete:  # no half checkpoint: weights without their state would never be resumed
@@ -599,7 +574,7 @@ class Trainer(Closeable):
         return state_file
 
     def _find_code_support(self) -> None:
-        """A new run's sparse per-frame codes (``ModelConfig.frame_code_support_margin``) take their
+        """A new run's sparse per-frame codes (``FrameCodeConfig.support_margin``) take their
         support: the texels the garment's closest body points read over the training frames."""
         codes = self.model.frame_codes
         if codes is None or not codes.sparse:
@@ -612,7 +587,7 @@ class Trainer(Closeable):
                 points = torch.from_numpy(np.ascontiguousarray(vertices[frame], dtype=np.float32))
                 uv = self.model.projector.project(points, frame_vertices(posed, frame)).uv
                 hit |= garment_texels(uv, codes.resolution)
-        margin = self.cfg.frame_code_support_margin
+        margin = self.cfg.frame_codes.support_margin
         support = grow_texels(hit, margin)
         codes.set_support(support)
         self.log(f"per-frame codes held on {int(support.sum())} of {support.numel()} texels "
@@ -662,9 +637,9 @@ class Trainer(Closeable):
 
     # ---- steps -------------------------------------------------------------------------------------
     def _pick(self, items: list, step: int, salt: int, index: int = 0):
-        """Image ``index`` (of ``cfg.batch_size``) of this rank's share of step ``step``."""
+        """Image ``index`` (of ``cfg.schedule.batch_size``) of this rank's share of step ``step``."""
         n = len(items)
-        g = (step * self.dist.world + self.dist.rank) * self.cfg.batch_size + index
+        g = (step * self.dist.world + self.dist.rank) * self.cfg.schedule.batch_size + index
         epoch, pos = divmod(g, n)
         perm = np.random.default_rng(_seed_of(self.tc.seed, salt, epoch)).permutation(n)
         return items[int(perm[pos])]
@@ -675,30 +650,19 @@ class Trainer(Closeable):
         target = self.data.frames.reference_targets(seq, frame).to(self.device)
         pred = self.model.image_generator(inputs.reference_uv.to(self.device, torch.float32),
                                           inputs.reference_mask.to(self.device))
-        terms = generator_losses(pred, target, self.cfg, self.perceptual)
+        terms = generator_losses(pred, target, self.cfg.loss, self.perceptual)
         return terms, {"pred": pred, "target": target}
 
     def _nerf_inputs(self, seq: str, frame: int):
         frames = self.data.frames
         inputs = frames.inputs(seq, frame)
-        if self.cfg.use_detail_feature and inputs.reference_images is None:
+        if self.cfg.encoder.detail_feature and inputs.reference_images is None:
             with torch.no_grad():
                 imgs = self.model.image_generator(inputs.reference_uv.to(self.device, torch.float32),
                                                   inputs.reference_mask.to(self.device))
             frames.set_reference_images(seq, frame, imgs)
             inputs = frames.inputs(seq, frame)
         return inputs
-
-    def _step_code(self, seq: str, frame: int, step: int, index: int) -> int | None:
-        """The per-frame code image ``index`` of step ``step`` renders frame (``seq``, ``frame``) with:
-        :meth:`code_index`, or None on the steps ``cfg.frame_code_dropout`` drops it from (drawn from
-        ``(seed, step, rank, index)``, so a resumed run drops the same ones)."""
-        code = self.code_index(seq, frame)
-        p = self.cfg.frame_code_dropout
-        if code is None or p <= 0:
-            return code
-        draw = np.random.default_rng(_seed_of(self.tc.seed, 3, step, self.dist.rank, index)).random()
-        return None if draw < p else code
 
     def _prepared_frame(self, seq: str, frame: int, code: int | None):
         """The frame's features for this step's graph (with per-frame code ``code``, or None), its body
@@ -723,7 +687,7 @@ class Trainer(Closeable):
         frames = set()
         with torch.no_grad():
             for step in range(max(self.step, self.generator_iterations), min(self.step + steps, self.total_steps)):
-                for index in range(self.cfg.batch_size):
+                for index in range(self.cfg.schedule.batch_size):
                     seq, frame, _ = self._pick(self.pairs, step, 2, index)
                     if (seq, frame) not in frames:
                         frames.add((seq, frame))
@@ -737,86 +701,29 @@ class Trainer(Closeable):
             self._model_tensors = tensor_pointers(self.model)
         return tensor_bytes(geometry, self._model_tensors)
 
-    def _geometry_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
-        """A step of the geometry warm-up (``cfg.geometry_iterations``): the occupancy term alone, at the
-        frame the image step would have drawn; nothing is rendered."""
-        seq, frame, _ = self._pick(self.pairs, step, 2, index)
-        feats = self._prepared_frame(seq, frame, self._step_code(seq, frame, step, index))
-        sigma, labels = self._occupancy(seq, frame, feats, gen)
-        loss = occupancy_loss(sigma, labels, self.cfg.occupancy_step)
-        return {"occupancy": loss, "total": loss}, {}
-
     def _nerf_step(self, step: int, index: int, gen: torch.Generator) -> tuple[dict, dict]:
-        if step - self.generator_iterations < self.cfg.geometry_iterations:
-            return self._geometry_step(step, index, gen)
         seq, frame, cam = self._pick(self.pairs, step, 2, index)
-        feats = self._prepared_frame(seq, frame, self._step_code(seq, frame, step, index))
-        box = padded_box(feats.aabb.detach(), self.cfg.bbox_padding)
-        cams = [cam, *self._other_views(cam, gen)]
+        feats = self._prepared_frame(seq, frame, self.code_index(seq, frame))
+        box = padded_box(feats.aabb.detach(), BBOX_PADDING)
+        segment = step - self.generator_iterations >= self.cfg.loss.segmentation_start
+        camera, window = self.data.frames.training_view(cam, box, gen)
+        out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,
+                                sampler=self.sampling.sampler, sample_filter=self.sampling.sample_filter)
+        pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
+        image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, cam, frame, window))
         pal = self.model.palette
-        segment = step - self.generator_iterations >= self.cfg.segmentation_start
-        occupancy = self._occupancy(seq, frame, feats, gen) if self.cfg.w_occupancy > 0 else None
-        views = []
-        for name in cams:
-            camera, window = self.data.frames.training_view(name, box, gen)
-            out = self.model.render(feats, camera, training=True, generator=gen, precision=self.tc.precision,
-                                    sampler=self.sampling.sampler, sample_filter=self.sampling.sample_filter)
-            pred = out.image if self.body_appearance is None else self._with_body(out, feats, camera)
-            image, mask, garment = (t.to(self.device) for t in self.data.frames.target(seq, name, frame, window))
-            terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
-                                   self.cfg, self.perceptual, opacity=out.opacity[None],
-                                   target_garment=garment[None] if segment else None,
-                                   planes=getattr(self.model.nerf, "planes", None), occupancy=occupancy,
-                                   distortion=None if out.distortion is None else out.distortion[None])
-            views.append((terms, {"pred": pred, "target": image}))
-        if len(views) == 1:
-            return views[0]
-        # the mean over the views: the frame's terms (occupancy, plane_tv) are the same in each, so they keep
-        # their weight; the image terms weigh as a batch of these images would
-        terms = {k: sum(t[k] for t, _ in views) / len(views) for k in views[0][0]}
-        return terms, views[0][1]
-
-    def _other_views(self, camera: str, gen: torch.Generator) -> list[str]:
-        """The ``cfg.views_per_step - 1`` other training cameras a NeRF image renders its frame from besides
-        ``camera`` (drawn from the step's generator ``gen``; none, and no draw, at 1)."""
-        n = min(self.cfg.views_per_step, len(self.cameras)) - 1
-        if n <= 0:
-            return []
-        others = [c for c in self.cameras if c != camera]
-        return [others[int(i)] for i in torch.randperm(len(others), generator=gen)[:n]]
-
-    def occupancy_targets(self, seq: str, frame: int, feats, n_points: int, generator: torch.Generator):
-        """``n_points`` points of frame ``frame`` of ``seq`` (half around its simulated cloth, half in its
-        sampling box; ``feats`` from :meth:`~garmentnerf.model.pipeline.GarmentAnimationNeRF.prepare_frame`),
-        their body projection and their occupancy labels (:mod:`garmentnerf.model.occupancy`): what the
-        occupancy term and ``bench --occupancy`` score the density against."""
-        if seq not in self._garments:
-            arrays = read_garment_arrays(self.scene.garment_path(seq))  # every scene sequence has one (Scene.load)
-            self._garments[seq] = (arrays.vertices, SurfaceProjector(arrays.faces, arrays.vertices.shape[1]))
-        vertices, projector = self._garments[seq]
-        cfg = self.cfg
-        box = padded_box(feats.aabb.detach(), cfg.bbox_padding)
-        points = occupancy_points(torch.from_numpy(np.ascontiguousarray(vertices[frame], dtype=np.float32)),
-                                  projector, box, n_points // 2, n_points - n_points // 2, cfg.occupancy_spread,
-                                  generator)
-        body = self.model.sample_geometry(feats, points.positions)
-        labels = occupancy_labels(points.garment_distance, body.signed_distance.cpu(), cfg.occupancy_half_thickness)
-        return points, body, labels
-
-    def _occupancy(self, seq: str, frame: int, feats, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """The occupancy term's inputs for one frame: the field's density at ``cfg.occupancy_points``
-        points of the frame and their labels (:meth:`occupancy_targets`)."""
-        points, body, labels = self.occupancy_targets(seq, frame, feats, self.cfg.occupancy_points, gen)
-        sigma, _, _ = self.model.evaluate_samples(feats, points.positions, precision=self.tc.precision, points=body)
-        return sigma, labels.to(sigma.device)
+        terms = garment_losses(pred[None], image[None], out.maps, mask[None], pal.colors, pal.initial,
+                               self.cfg.loss, self.perceptual, opacity=out.opacity[None],
+                               target_garment=garment[None] if segment else None)
+        return terms, {"pred": pred, "target": image}
 
     def _backward_batch(self, step: int, stage: str) -> tuple[dict[str, float], dict]:
-        """Backpropagates step ``step``'s ``cfg.batch_size`` images one after the other, each loss
+        """Backpropagates step ``step``'s ``cfg.schedule.batch_size`` images one after the other, each loss
         divided by the batch size, so the gradients add up to those of the batch's mean loss
         while only one image's graph is held at a time. Returns the mean of each loss term over the
         batch and the PSNR of its mean image MSE (floats), and the last image pair (for the log).
         The ray jitter of the whole step comes from one generator seeded from ``(seed, rank, step)``."""
-        batch = self.cfg.batch_size
+        batch = self.cfg.schedule.batch_size
         gen = torch.Generator().manual_seed(_seed_of(self.tc.seed, self.dist.rank, step))
         sums: dict[str, float] = {}
         for index in range(batch):
@@ -825,34 +732,14 @@ class Trainer(Closeable):
             else:
                 terms, images = self._nerf_step(step, index, gen)
             (terms["total"] / batch).backward()
-            if images:  # a geometry step renders nothing
-                with torch.no_grad():
-                    terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
+            with torch.no_grad():
+                terms = {**terms, "mse": (images["pred"].detach() - images["target"]).square().mean()}
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + float(v.detach())
         values = {k: v / batch for k, v in sums.items()}
         if "mse" in values:
             values["psnr"] = -10.0 * math.log10(max(values.pop("mse"), 1e-10))
         return values, images
-
-    def _shell_band(self, resume_info: dict | None):
-        """The garment's height band a shell-trained model samples in (None for the paper's box):
-        measured on the scene's training garments for a new run (and written into the run folder with
-        its first checkpoint, where every render of the model finds it), the run's copy on a resume.
-        Training samples as the ``reference`` preset renders the model, with this band."""
-        if self.cfg.sampler != "shell":
-            return None
-        copy = self.out / SHELL_BAND_FILE
-        if resume_info is not None and copy.is_file():
-            return load_height_range(copy)
-        band = measure_height_range(self.scene, self.model.body, self.data.frames.betas, self.model.projector)
-        self.log(f"shell sampling: the garment's band [{band.h_min:.3f}, {band.h_max:.3f}] m, {band.source}")
-        return band
-
-    def _save_shell_band(self) -> None:
-        """The run's copy of its shell band, written with its first checkpoint (before ``run.json``)."""
-        if self.shell_band is not None and not (self.out / SHELL_BAND_FILE).is_file():
-            save_height_range(self.out / SHELL_BAND_FILE, self.shell_band)
 
     def _with_body(self, out, feats, camera) -> torch.Tensor:
         """(3, H, W) the step's image in the ``raster_body`` composition: ``out``'s maps over the
@@ -911,7 +798,7 @@ class Trainer(Closeable):
                     self.optimizer.zero_grad(set_to_none=True)
                     values, images = self._backward_batch(step, stage)
                     self.dist.average_gradients(self.params)
-                    torch.nn.utils.clip_grad_value_(self.params, self.cfg.grad_clip_value)
+                    torch.nn.utils.clip_grad_value_(self.params, GRAD_CLIP_VALUE)
                     with interrupts.hold():  # a step is applied whole or not at all
                         self.optimizer.step()
                         self.step = step + 1

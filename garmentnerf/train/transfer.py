@@ -2,7 +2,7 @@
 
 The motion encoder E, the field and the decoder's trunk of a trained run know the character and a garment
 on it; a new garment's run can start from them instead of from nothing (the layered dress from the skirt's
-run: docs/quality.md, "The dress from the skirt's weights" and "The dress from the skirt's field, with
+run: docs/lab/ledger.md, "The dress from the skirt's weights" and "The dress from the skirt's field, with
 codes": the figures of a from-scratch run for a fifth of its CPU, and 2.9 dB more after the codes). Three
 differences between the two runs are bridged here:
 
@@ -16,7 +16,7 @@ differences between the two runs are bridged here:
 * **another garment's colours** (a palette of the same size from another garment's run; the t-shirt from
   the skirt): the palette is the new model's, so the new garment's colour is its palette colour and not an
   offset the decoder learns over the file's colour (which a recolouring would keep: the t-shirt TTC of
-  docs/quality.md rendered magenta when recoloured blue). A continuation of the same garment keeps the
+  docs/lab/ledger.md rendered magenta when recoloured blue). A continuation of the same garment keeps the
   colours it learned. Which of the two a file is, the caller says (``same_garment``: the trainer compares
   the garment of the scene recorded in the ``run.json`` beside the file with its own scene's,
   :func:`~garmentnerf.runs.run_garment`). Where nobody can say, the file's ``palette.initial`` (the

@@ -12,14 +12,29 @@ import sys
 import numpy as np
 import pytest
 import torch
+from support.smpl_models import (
+    ROOT_SENTINEL,
+    make_model,
+    reference_smpl,
+    rodrigues,
+    smplh_parents,
+    write_chumpy_pkl,
+    write_npz,
+)
 
 from garmentnerf.body.asset import BodyAssetError
 from garmentnerf.body.model import BodyModel
-from garmentnerf.body.smpl import (SMPL_JOINT_NAMES, SMPL_PARENTS, SMPL_TO_WORLD, load_smpl_asset, smpl_ground_offset,
-                                   smpl_points_to_world, smpl_rotmats_to_world, smpl_rotvecs_to_world,
-                                   smpl_translation_to_world)
-from support.smpl_models import (ROOT_SENTINEL, make_model, reference_smpl, rodrigues, smplh_parents,
-                                 write_chumpy_pkl, write_npz)
+from garmentnerf.body.smpl import (
+    SMPL_JOINT_NAMES,
+    SMPL_PARENTS,
+    SMPL_TO_WORLD,
+    load_smpl_asset,
+    smpl_ground_offset,
+    smpl_points_to_world,
+    smpl_rotmats_to_world,
+    smpl_rotvecs_to_world,
+    smpl_translation_to_world,
+)
 
 C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 

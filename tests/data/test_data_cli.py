@@ -6,11 +6,11 @@ import json
 
 import imageio.v3 as iio
 import numpy as np
+from support.scenes import build_scene
 
 from garmentnerf.cli.main import main
 from garmentnerf.data.scene import Scene
 from garmentnerf.data.scene_images import SceneImages
-from support.scenes import build_scene
 
 
 def test_info_render_preview(tmp_path, capsys):

@@ -8,14 +8,22 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from support.scenes import make_skirt
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.conventions import Camera, look_at
 from garmentnerf.data.cameras import circle_rig, held_out_rig, ring_camera
-from garmentnerf.data.render_gt import (LABEL_BODY, LABEL_GARMENT, GroundTruthRenderer, Lighting, face_layers,
-                                        garment_pixels, renderer_settings, vertex_normals)
+from garmentnerf.data.render_gt import (
+    LABEL_BODY,
+    LABEL_GARMENT,
+    GroundTruthRenderer,
+    Lighting,
+    face_layers,
+    garment_pixels,
+    renderer_settings,
+    vertex_normals,
+)
 from garmentnerf.gl.camera_pass import CameraPass
-from support.scenes import make_skirt
 
 GARMENT_COLOR = (0.2, 0.4, 0.8)
 

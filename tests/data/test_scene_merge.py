@@ -6,12 +6,16 @@ import filecmp
 
 import numpy as np
 import pytest
+from support.scenes import build_scene
 
 from garmentnerf.cli.main import main
-from garmentnerf.data.garment_sequence import penetration_summary, recorded_penetration, save_sequence
+from garmentnerf.data.garment_sequence import (
+    penetration_summary,
+    recorded_penetration,
+    save_sequence,
+)
 from garmentnerf.data.scene import Scene, SceneError
 from garmentnerf.data.scene_merge import import_sequence
-from support.scenes import build_scene
 
 
 def _same_files(a, b) -> bool:

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from support.smpl_models import make_model, reference_smpl, rodrigues, write_npz
+from support.zju_capture import FLIP, H, W, _params, write_capture
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.body.smpl import SMPL_PARENTS, load_smpl_asset, smpl_ground_offset
 from garmentnerf.conventions import project_points
 from garmentnerf.data.zju import CaptureError, CaptureScene, load_pickled_npy
-from support.smpl_models import make_model, reference_smpl, rodrigues, write_npz
-from support.zju_capture import FLIP, H, W, _params, write_capture
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,22 @@ import json
 import math
 
 import numpy as np
-import torch
 import pytest
+import torch
 
 from garmentnerf.cli.main import main
-from garmentnerf.eval.evaluate import (DEFAULT_LIMITS, SPLITS, _middle_window, _Scores, _spread, evaluate_run,
-                                       format_result_table, nearest_camera, parse_frame_range, select_views)
+from garmentnerf.eval.evaluate import (
+    DEFAULT_LIMITS,
+    SPLITS,
+    _middle_window,
+    _Scores,
+    _spread,
+    evaluate_run,
+    format_result_table,
+    nearest_camera,
+    parse_frame_range,
+    select_views,
+)
 from garmentnerf.eval.metrics import PSNR_CAP_DB, psnr, ssim
 
 FRAMES = 6  # tOF needs 6 frames (2 skipped at each end, then one pair)
@@ -29,10 +39,10 @@ def scene(tmp_path_factory, gl_context):
 
 @pytest.fixture(scope="module")
 def run_dir(scene, tmp_path_factory):
+    from garmentnerf.model.config import ModelConfig
     from garmentnerf.runs import create_untrained_run
-    from garmentnerf.train.settings import tiny_config
 
-    return create_untrained_run(tmp_path_factory.mktemp("eval_run") / "untrained", scene.root, tiny_config(), seed=0)
+    return create_untrained_run(tmp_path_factory.mktemp("eval_run") / "untrained", scene.root, ModelConfig.tiny(), seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -403,7 +413,7 @@ def test_render_markdown_shape():
         return {"means": {"psnr": p, "ssim": 0.9, "stlpips_alex": 0.1, "tof": 0.5}, "sequences": {"train": [0, 1]},
                 "cameras": ["c"], "unavailable": {"lpips_alex": "no weights"}, "step": 2}
 
-    variants = [Variant("full"), Variant("no_detail", {"use_detail_feature": False}), Variant("k0", {"history": 0}),
+    variants = [Variant("full"), Variant("no_detail", {"encoder.detail_feature": False}), Variant("k0", {"encoder.history": 0}),
                 Variant("views_4", views=4, cameras=("a", "b", "c", "d")), Variant("views_16", views=16, note="few")]
     results = {v.name: {"seen": res(20.0 + i), "unseen_view": res(18.0 + i)} for i, v in enumerate(variants[:4])}
     meta = {"scene": "s", "preset": "tiny", "iterations": 2, "generator_iterations": 1, "seed": 0, "history": 2,
@@ -452,10 +462,11 @@ def test_report_tiny(scene, tmp_path):
 def test_train_variant_resumes_and_skips(scene, gl_context, tmp_path):
     """An unfinished run is resumed from its checkpoint, a finished one is left alone."""
     from garmentnerf.eval.report import train_variant
-    from garmentnerf.train.settings import TrainConfig, tiny_config
+    from garmentnerf.model.config import ModelConfig
+    from garmentnerf.train.settings import TrainConfig
     from garmentnerf.train.trainer import Trainer
 
-    cfg = tiny_config().replace(use_detail_feature=False, use_dynamic_feature=False)  # no G_img: cheapest
+    cfg = ModelConfig.tiny().updated({"encoder.detail_feature": False, "encoder.dynamic_feature": False})  # no G_img: cheapest
     run = tmp_path / "runs" / "no_features"
     tc = TrainConfig(scene=scene.root, out=run, model_config=cfg, iterations=2, stop_after=1, perceptual="none",
                      progress=False, image_every=0, cameras=("cam00",))

@@ -11,9 +11,8 @@ import trimesh
 
 import garmentnerf.assets
 from garmentnerf.geometry.projection import SurfaceProjector
-from garmentnerf.perf.projection_bench import benchmark_projection
 from garmentnerf.geometry.triangles import closest_point_on_triangles, interpolate
-
+from garmentnerf.perf.projection_bench import benchmark_projection
 
 # -- reference helpers (numpy / trimesh only) ---------------------------------------------------
 

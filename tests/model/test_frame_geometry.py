@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from garmentnerf.conventions import orbit_camera
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
-from garmentnerf.train.settings import tiny_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -20,7 +20,7 @@ CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
 @pytest.fixture(scope="module")
 def model(body, projector):
     torch.manual_seed(0)
-    return GarmentAnimationNeRF(tiny_config(), body, {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]},
+    return GarmentAnimationNeRF(ModelConfig.tiny(), body, {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]},
                                 projector=projector).eval()
 
 

@@ -8,7 +8,11 @@ import pytest
 import torch
 import trimesh
 
-from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
+from garmentnerf.model.height_band import (
+    HeightRange,
+    dilate_vertex_values,
+    measure_height_range,
+)
 from garmentnerf.motion.library import load_motion
 
 
@@ -116,7 +120,11 @@ def test_tshirt_scene_band_matches_a_brute_force_measurement(tshirt_scene, body,
 
 
 def test_a_height_band_file_round_trips_and_refuses_other_files(tmp_path):
-    from garmentnerf.model.height_band import HeightRange, load_height_range, save_height_range
+    from garmentnerf.model.height_band import (
+        HeightRange,
+        load_height_range,
+        save_height_range,
+    )
 
     vertex = torch.linspace(0.03, 0.3, 50)
     band = HeightRange(-0.08, 0.31, "measured on train", vertex)

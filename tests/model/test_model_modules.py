@@ -9,11 +9,33 @@ import torch
 import torch.nn.functional as F
 
 from garmentnerf.conventions import camera_rays, orbit_camera
-from garmentnerf.model import (BoxStratifiedSampler, DetailEncoder, DynamicFeatureEncoder, GarmentNeRF,
-                               ImageGenerator, ModelConfig, NeuralTexture, Palette, PaletteDecoder, UNet,
-                               garment_losses, sample_image_features, select_detail_features)
+from garmentnerf.model import (
+    BoxStratifiedSampler,
+    DetailEncoder,
+    DynamicFeatureEncoder,
+    GarmentNeRF,
+    ImageGenerator,
+    ModelConfig,
+    NeuralTexture,
+    Palette,
+    PaletteDecoder,
+    UNet,
+    garment_losses,
+    sample_image_features,
+    select_detail_features,
+)
 from garmentnerf.model import volume_rendering as vr
-from garmentnerf.model.nerf_mlp import density_activation, positional_encoding, trunc_exp
+from garmentnerf.model.config import (
+    BACKGROUND,
+    BBOX_PADDING,
+    DETAIL_FEATURE_DIM,
+    DYNAMIC_FEATURE_DIM,
+    GRAD_CLIP_VALUE,
+    UNET_DEPTH,
+    LossConfig,
+    convert_flat_config,
+)
+from garmentnerf.model.nerf_mlp import density_activation, trunc_exp
 from garmentnerf.model.samplers import ray_aabb_intersect, stratified_intervals
 
 
@@ -38,13 +60,13 @@ def test_small_preset_encoders():
     cfg = ModelConfig.cpu_small()
     E = DynamicFeatureEncoder.from_config(cfg)
     G = DetailEncoder.from_config(cfg)
-    assert E.widths[0] == 16 and len(E.widths) == cfg.encoder_depth + 1
-    y = E(torch.randn(1, cfg.encoder_in_channels, cfg.info_map_resolution, cfg.info_map_resolution))
-    assert y.shape == (1, cfg.dynamic_feature_dim, cfg.info_map_resolution, cfg.info_map_resolution)
+    assert E.widths[0] == 16 and len(E.widths) == UNET_DEPTH + 1
+    y = E(torch.randn(1, cfg.encoder.in_channels, cfg.encoder.info_map_resolution, cfg.encoder.info_map_resolution))
+    assert y.shape == (1, DYNAMIC_FEATURE_DIM, cfg.encoder.info_map_resolution, cfg.encoder.info_map_resolution)
     assert y.abs().max() < 1
     # G_en sees front and back reference images as one batch.
-    d = G(torch.rand(2, 3, cfg.reference_resolution, cfg.reference_resolution))
-    assert d.shape == (2, cfg.detail_feature_dim, cfg.reference_resolution, cfg.reference_resolution)
+    d = G(torch.rand(2, 3, cfg.encoder.reference_resolution, cfg.encoder.reference_resolution))
+    assert d.shape == (2, DETAIL_FEATURE_DIM, cfg.encoder.reference_resolution, cfg.encoder.reference_resolution)
     assert d.abs().max() < 1
 
 
@@ -146,10 +168,10 @@ def test_density_activations():
         density_activation(raw, "relu")
 
 
-def test_mlp_ablations_and_positional_encoding():
-    cfg = ModelConfig.paper().replace(use_detail_feature=False, positional_encoding_freqs=4)
+def test_mlp_ablations():
+    cfg = ModelConfig.paper().updated({"encoder.detail_feature": False})
     mlp = GarmentNeRF.from_config(cfg)
-    assert mlp.input_dim == cfg.mlp_input_dim == 3 * 9 + 1 + 8
+    assert mlp.input_dim == cfg.mlp_input_dim == 3 + 1 + DYNAMIC_FEATURE_DIM
     n = 4
     sigma, zeta = mlp(torch.randn(n, 3), torch.randn(n), None, torch.randn(n, 8))
     assert sigma.shape == (n,)
@@ -157,68 +179,58 @@ def test_mlp_ablations_and_positional_encoding():
         mlp(torch.randn(n, 3), torch.randn(n), torch.randn(n, 8), torch.randn(n, 8))
     with pytest.raises(ValueError, match="needs the dynamic"):
         mlp(torch.randn(n, 3), torch.randn(n), None, None)
-    assert positional_encoding(torch.zeros(2, 3), 0).shape == (2, 3)
-    assert positional_encoding(torch.zeros(2, 3), 2).shape == (2, 15)
-
-
-def test_atlas_branch_starts_as_a_no_op_and_equals_extra_input_columns():
-    """f^a enters through its own zero-started weights: at the start the network is the one
-    without it; trained, it is the plain network with f^a as extra first-layer columns."""
-    torch.manual_seed(0)
-    cfg = ModelConfig.cpu_small()
-    plain = GarmentNeRF.from_config(cfg)
-    with_atlas = GarmentNeRF.from_config(cfg.replace(atlas_feature_channels=4))
-    missing = with_atlas.load_state_dict(plain.state_dict(), strict=False).missing_keys
-    assert missing == ["atlas_input.weight"] and all(k.startswith(GarmentNeRF.ZERO_START) for k in missing)
-    n = 64
-    args = (torch.randn(n, 3), torch.randn(n), torch.randn(n, 8), torch.randn(n, 8))
-    atlas = torch.randn(n, 4)
-    for got, want in zip(with_atlas(*args, atlas), plain(*args)):
-        assert torch.equal(got, want)
-    with torch.no_grad():
-        with_atlas.atlas_input.weight.normal_()
-    # the reference: the same trunk built wider, f^a appended to f^s, the branch's weights as columns
-    wide = GarmentNeRF.from_config(cfg.replace(dynamic_feature_dim=12))
-    state = dict(plain.state_dict())
-    state["trunk.0.weight"] = torch.cat([state["trunk.0.weight"], with_atlas.atlas_input.weight], dim=1)
-    wide.load_state_dict(state)
-    sigma, zeta = with_atlas(*args, atlas)
-    ref_sigma, ref_zeta = wide(*args[:3], torch.cat([args[3], atlas], dim=1))
-    torch.testing.assert_close(sigma, ref_sigma)
-    torch.testing.assert_close(zeta, ref_zeta)
-    assert not torch.allclose(zeta, plain(*args)[1])
-    with pytest.raises(ValueError, match="needs the atlas"):
-        with_atlas(*args)
-    with pytest.raises(ValueError, match="without the atlas"):
-        plain(*args, atlas)
 
 
 # ---------------------------------------------------------------------------------------- config
 def test_config_round_trip_and_unknown_keys():
-    for cfg in (ModelConfig.paper(), ModelConfig.cpu_small(), ModelConfig(detail_selection="soft_normal")):
+    for cfg in (ModelConfig.paper(), ModelConfig.cpu_small(), ModelConfig.tiny()):
         data = json.loads(json.dumps(cfg.to_dict()))
         assert ModelConfig.from_dict(data) == cfg
-    with pytest.raises(ValueError, match="unknown ModelConfig key.*samples_per_rays"):
-        ModelConfig.from_dict({**ModelConfig.paper().to_dict(), "samples_per_rays": 32})
-    # Missing keys take the defaults (older checkpoints).
-    assert ModelConfig.from_dict({"mlp_width": 64}).mlp_width == 64
+    with pytest.raises(ValueError, match="sampler.samples_per_rays"):
+        ModelConfig.from_dict({**ModelConfig.paper().to_dict(), "sampler": {"samples_per_rays": 32}})
+    with pytest.raises(ValueError, match="unknown model setting 'samplers.samples_per_ray'"):
+        ModelConfig.paper().updated({"samplers.samples_per_ray": 32})
+    # Missing keys take the defaults; a component may be given whole or by dotted names.
+    assert ModelConfig.from_dict({"nerf": {"mlp_width": 64}}).nerf.mlp_width == 64
+    assert ModelConfig.paper().updated({"nerf": {"mlp_width": 64}}) == ModelConfig.paper().updated({"nerf.mlp_width": 64})
+
+
+def test_a_flat_config_of_an_older_run_converts_or_is_refused_naming_the_setting():
+    flat = {"mlp_width": 128, "w_segmentation": 0.5, "encoder_width_scale": 0.5, "generator_width_scale": 0.5,
+            "decoder_upsample_steps": 2, "field": "paper", "bbox_padding": 0.05, "w_occupancy": 0.1,
+            "trained_parameters": ["frame_codes."]}
+    cfg = ModelConfig.from_dict(flat)
+    assert (cfg.nerf.mlp_width, cfg.loss.segmentation, cfg.encoder.width_scale) == (128, 0.5, 0.5)
+    assert cfg.schedule.trained_parameters == ("frame_codes.",)
+    assert convert_flat_config(flat)[1] == ["w_occupancy"]  # training-only, another value than today's
+    for key, value in (("field", "uvh"), ("importance_samples", 6), ("generator_width_scale", 1.0),
+                       ("decoder_upsample_steps", 3), ("bbox_padding", 0.1)):
+        with pytest.raises(ValueError, match=key):
+            ModelConfig.from_dict({**flat, key: value})
+    with pytest.raises(ValueError, match="unknown model config key 'mlp_widht'"):
+        ModelConfig.from_dict({"mlp_widht": 3, "lr": 1e-3})
 
 
 def test_config_paper_numbers_and_validation():
     cfg = ModelConfig.paper()
-    assert (cfg.mlp_input_dim, cfg.encoder_in_channels, cfg.decoder_out_channels) == (20, 9, 12)
-    assert (cfg.w_image, cfg.w_mask, cfg.w_perceptual, cfg.w_sparsity, cfg.w_offset, cfg.w_palette) == (
+    assert (cfg.mlp_input_dim, cfg.encoder.in_channels, cfg.decoder.out_channels) == (20, 9, 12)
+    assert (cfg.loss.image, cfg.loss.mask, cfg.loss.perceptual, cfg.loss.sparsity, cfg.loss.offset, cfg.loss.palette) == (
         1.0, 1.0, 0.1, 2e-4, 0.03, 1e-3)
-    assert (cfg.lr, cfg.lr_final, cfg.grad_clip_value, cfg.samples_per_ray, cfg.bbox_padding) == (
+    assert (cfg.schedule.lr, cfg.schedule.lr_final, GRAD_CLIP_VALUE, cfg.sampler.samples_per_ray, BBOX_PADDING) == (
         5e-4, 5e-5, 40.0, 64, 0.05)
+    assert cfg.decoder.upsample_steps == 2 and DETAIL_FEATURE_DIM == 8
+    assert LossConfig.weight_names() == ("image", "mask", "perceptual", "sparsity", "offset", "palette", "opacity",
+                                         "segmentation")
     with pytest.raises(ValueError, match="image_resolution"):
-        ModelConfig(feature_image_resolution=100)
-    with pytest.raises(ValueError, match="detail_selection"):
-        ModelConfig(detail_selection="nearest")
+        cfg.updated({"decoder.feature_image_resolution": 100})
+    with pytest.raises(ValueError, match="image_resolution"):
+        cfg.updated({"decoder.feature_image_resolution": 192})  # 512 / 192 is not a power of 2
     with pytest.raises(ValueError, match="density_activation"):
-        ModelConfig(density_activation="raw")
-    with pytest.raises(ValueError, match="background"):
-        ModelConfig(background=(0.0, 0.0, 2.0))
+        cfg.updated({"nerf.density_activation": "raw"})
+    with pytest.raises(ValueError, match="schedule.lr_final"):
+        cfg.updated({"schedule.lr_final": 1.0})
+    with pytest.raises(ValueError, match="nerf.mlp_width must be positive"):
+        cfg.updated({"nerf.mlp_width": 0})
 
 
 # ---------------------------------------------------------------------------------------- features
@@ -229,22 +241,16 @@ def test_detail_feature_lookup_and_selection():
     torch.testing.assert_close(out, fmap[:, [0, 2, 1], [0, 3, 1]].T)
     front, back = torch.ones(3, 2), -torch.ones(3, 2)
     vis = torch.tensor([True, False, True])
-    torch.testing.assert_close(select_detail_features(front, back, "visibility", front_visible=vis),
-                               torch.tensor([[1.0, 1], [-1, -1], [1, 1]]))
-    soft = select_detail_features(front, back, "soft_normal", cos_front=torch.tensor([1.0, -1.0, 0.0]),
-                                  cos_back=torch.tensor([-1.0, 1.0, 0.0]))
-    s = 2 ** -0.5
-    torch.testing.assert_close(soft, torch.tensor([[1.0, 1], [-1, -1], [s - s, s - s]]))
-    with pytest.raises(ValueError):
-        select_detail_features(front, back, "visibility")
+    torch.testing.assert_close(select_detail_features(front, back, vis), torch.tensor([[1.0, 1], [-1, -1], [1, 1]]))
 
 
 # ---------------------------------------------------------------------------------------- end to end
 def tiny_config() -> ModelConfig:
-    return ModelConfig(info_map_resolution=32, image_resolution=32, reference_resolution=32, feature_image_resolution=8,
-                       appearance_dim=16,
-                       encoder_base_width=8, encoder_depth=3, mlp_depth=3, mlp_width=32, samples_per_ray=8,
-                       decoder_width=16, decoder_min_width=8, decoder_extra_layers=1)
+    return ModelConfig().updated({
+        "encoder.info_map_resolution": 32, "encoder.reference_resolution": 32, "encoder.width_scale": 0.25,
+        "decoder.image_resolution": 32, "decoder.feature_image_resolution": 8, "nerf.appearance_dim": 16,
+        "nerf.mlp_depth": 3, "nerf.mlp_width": 32, "sampler.samples_per_ray": 8, "decoder.width": 16,
+        "decoder.min_width": 8, "decoder.extra_layers": 1})
 
 
 def test_gradients_reach_every_parameter_end_to_end():
@@ -258,7 +264,7 @@ def test_gradients_reach_every_parameter_end_to_end():
     sampler = BoxStratifiedSampler.from_config(cfg)
 
     # Rays of an 8 x 8 feature image at a camera looking at a 1 x 0.6 x 1.8 m "body" box.
-    r = cfg.feature_image_resolution
+    r = cfg.decoder.feature_image_resolution
     cam = orbit_camera(20.0, 10.0, 3.0, width=r, height=r)
     origins, dirs = (x.reshape(-1, 3) for x in camera_rays(cam))
     aabb = torch.tensor([[-0.5, -0.3, 0.0], [0.5, 0.3, 1.8]])
@@ -273,27 +279,27 @@ def test_gradients_reach_every_parameter_end_to_end():
     b_o = x + 0.01 * torch.randn(N, 3)
     h = torch.randn(N) * 0.05
     uv = torch.rand(N, 2)
-    ref_pixels = torch.rand(2, N, 2) * (cfg.reference_resolution - 1)
+    ref_pixels = torch.rand(2, N, 2) * (cfg.encoder.reference_resolution - 1)
     front_visible = torch.rand(N) > 0.5
 
-    F_s = E(torch.randn(1, cfg.encoder_in_channels, cfg.info_map_resolution, cfg.info_map_resolution))
+    F_s = E(torch.randn(1, cfg.encoder.in_channels, cfg.encoder.info_map_resolution, cfg.encoder.info_map_resolution))
     f_s = F.grid_sample(F_s, (2 * uv - 1).view(1, 1, N, 2), align_corners=False)[0, :, 0].T
-    F_d = G_en(torch.rand(2, 3, cfg.reference_resolution, cfg.reference_resolution))
+    F_d = G_en(torch.rand(2, 3, cfg.encoder.reference_resolution, cfg.encoder.reference_resolution))
     f_front, f_back = (sample_image_features(F_d[i], ref_pixels[i]) for i in range(2))
-    f_d = select_detail_features(f_front, f_back, cfg.detail_selection, front_visible=front_visible)
+    f_d = select_detail_features(f_front, f_back, front_visible)
 
     sigma, zeta = mlp(b_o, h, f_d, f_s)
     R, S = t_starts.shape
     weights = vr.render_weights_from_density(sigma.view(R, S), t_ends - t_starts)
     feature_image = vr.composite(weights, zeta.view(R, S, -1)).T.reshape(1, -1, r, r)
     maps = M_D(feature_image)
-    image = maps.compose(palette(), cfg.background)
-    assert image.shape == (1, 3, cfg.image_resolution, cfg.image_resolution)
+    image = maps.compose(palette(), BACKGROUND)
+    assert image.shape == (1, 3, cfg.decoder.image_resolution, cfg.decoder.image_resolution)
 
     target = torch.rand_like(image)
-    target_mask = torch.rand(1, cfg.image_resolution, cfg.image_resolution) > 0.5
+    target_mask = torch.rand(1, cfg.decoder.image_resolution, cfg.decoder.image_resolution) > 0.5
     perceptual = lambda a, b: F.l1_loss(F.avg_pool2d(a, 4), F.avg_pool2d(b, 4))  # noqa: E731
-    losses = garment_losses(image, target, maps, target_mask, palette.colors, palette.initial, cfg, perceptual)
+    losses = garment_losses(image, target, maps, target_mask, palette.colors, palette.initial, cfg.loss, perceptual)
     assert set(losses) == {"image", "mask", "perceptual", "sparsity", "offset", "palette", "total"}
     assert all(torch.isfinite(v) for v in losses.values())
     losses["total"].backward()
@@ -308,27 +314,20 @@ def test_gradients_reach_every_parameter_end_to_end():
 def test_losses_without_perceptual_and_weighting():
     cfg = tiny_config()
     dec = PaletteDecoder.from_config(cfg)
-    maps = dec(torch.randn(1, cfg.appearance_dim, 2, 2))
+    maps = dec(torch.randn(1, cfg.nerf.appearance_dim, 2, 2))
     p = torch.tensor([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2]])
     image = maps.compose(p)
-    out = garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p + 0.1, p, cfg)
+    out = garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p + 0.1, p, cfg.loss)
     assert "perceptual" not in out
     assert out["image"].item() == 0.0
     assert out["palette"].item() == pytest.approx(6 * 0.01)
-    expected = sum(getattr(cfg, f"w_{k}") * out[k] for k in ("image", "mask", "sparsity", "offset", "palette"))
+    expected = sum(getattr(cfg.loss, k) * out[k] for k in ("image", "mask", "sparsity", "offset", "palette"))
     torch.testing.assert_close(out["total"], expected)
-    # the squared error beside the L1, by hand: a constant 0.1 off everywhere
-    both = garment_losses(image, image.detach() + 0.1, maps, torch.ones(1, 8, 8), p, p, cfg.replace(w_image_l2=10.0))
-    assert both["image"].item() == pytest.approx(0.1, abs=1e-6) and both["image_l2"].item() == pytest.approx(0.01, abs=1e-6)
-    torch.testing.assert_close(both["total"] - out["total"], torch.tensor(cfg.w_image * 0.1 + 10.0 * 0.01 - cfg.w_palette * 6 * 0.01),
+    # the image term, by hand: a constant 0.1 off everywhere, weighted
+    off = garment_losses(image, image.detach() + 0.1, maps, torch.ones(1, 8, 8), p, p, cfg.loss)
+    assert off["image"].item() == pytest.approx(0.1, abs=1e-6)
+    torch.testing.assert_close(off["total"] - out["total"], torch.tensor(cfg.loss.image * 0.1 - cfg.loss.palette * 6 * 0.01),
                                atol=1e-5, rtol=0)
-    # the distortion term: the mean of the per-ray map, weighted, and only when its weight is set
-    rays = torch.rand(1, 4, 4)
-    with_d = garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p + 0.1, p, cfg.replace(w_distortion=0.5),
-                            distortion=rays)
-    assert with_d["distortion"].item() == pytest.approx(rays.mean().item())
-    torch.testing.assert_close(with_d["total"] - out["total"], 0.5 * rays.mean(), atol=1e-6, rtol=0)
-    assert "distortion" not in garment_losses(image, image.detach(), maps, torch.ones(1, 8, 8), p, p, cfg, distortion=rays)
 
 
 @pytest.mark.parametrize("factor", [1, 2, 4])
@@ -336,17 +335,17 @@ def test_perceptual_term_sees_the_images_area_averaged_by_perceptual_downsample(
     """``perceptual_downsample`` hands the perceptual network both images area-averaged by the factor:
     what OpenCV's INTER_AREA resize gives (an independent reference); factor 1 hands them over as they are."""
     cv2 = pytest.importorskip("cv2")
-    cfg = tiny_config().replace(perceptual_downsample=factor)
-    n = cfg.image_resolution
-    maps = PaletteDecoder.from_config(cfg)(torch.randn(1, cfg.appearance_dim, cfg.feature_image_resolution,
-                                                       cfg.feature_image_resolution))
+    cfg = tiny_config().updated({"loss.perceptual_downsample": factor})
+    n = cfg.decoder.image_resolution
+    maps = PaletteDecoder.from_config(cfg)(torch.randn(1, cfg.nerf.appearance_dim, cfg.decoder.feature_image_resolution,
+                                                       cfg.decoder.feature_image_resolution))
     gen = torch.Generator().manual_seed(3)
     image = torch.rand(1, 3, n, n, generator=gen, dtype=torch.float64)
     target = torch.rand(1, 3, n, n, generator=gen, dtype=torch.float64)
     seen = []
     perceptual = lambda a, b: seen.append((a, b)) or (a - b).abs().mean()  # noqa: E731
     p = torch.tensor([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2]])
-    garment_losses(image, target, maps, torch.ones(1, n, n), p, p, cfg, perceptual)
+    garment_losses(image, target, maps, torch.ones(1, n, n), p, p, cfg.loss, perceptual)
     (a, b), = seen
     for got, full in ((a, image), (b, target)):
         hwc = full[0].permute(1, 2, 0).numpy()
@@ -356,20 +355,18 @@ def test_perceptual_term_sees_the_images_area_averaged_by_perceptual_downsample(
 
 def test_perceptual_downsample_must_divide_the_image():
     with pytest.raises(ValueError, match="perceptual_downsample"):
-        ModelConfig.cpu_small().replace(perceptual_downsample=3)
+        ModelConfig.cpu_small().updated({"loss.perceptual_downsample": 3})
     with pytest.raises(ValueError, match="perceptual_downsample"):
-        ModelConfig.cpu_small().replace(perceptual_downsample=0)
+        ModelConfig.cpu_small().updated({"loss.perceptual_downsample": 0})
 
 
 def test_generator_losses_are_the_weighted_l1_and_perceptual_terms():
-    """G_img's pre-training loss: w_image * mean |pred - target| + w_perceptual * perceptual."""
-    from types import SimpleNamespace
-
+    """G_img's pre-training loss: image * mean |pred - target| + perceptual * perceptual."""
     from garmentnerf.model.losses import generator_losses
 
     pred = torch.tensor([[[[0.0, 1.0], [0.5, 0.25]]]]).expand(2, 3, 2, 2)
     target = torch.zeros(2, 3, 2, 2)
-    cfg = SimpleNamespace(w_image=2.0, w_perceptual=0.5)
+    cfg = LossConfig(image=2.0, perceptual=0.5)
     plain = generator_losses(pred, target, cfg)
     assert set(plain) == {"image", "total"}
     assert float(plain["image"]) == pytest.approx(0.4375)  # (0 + 1 + 0.5 + 0.25) / 4

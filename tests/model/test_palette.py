@@ -6,8 +6,14 @@ import pytest
 import torch
 
 from garmentnerf.model.losses import sparsity_loss
-from garmentnerf.model.palette import (DecomposedMaps, Palette, PaletteDecoder, compose, palette_from_labels,
-                                       restoring_clamp)
+from garmentnerf.model.palette import (
+    DecomposedMaps,
+    Palette,
+    PaletteDecoder,
+    compose,
+    palette_from_labels,
+    restoring_clamp,
+)
 
 B, P, H, W = 2, 2, 5, 6
 GARMENT = torch.tensor([0.8, 0.2, 0.1])
@@ -142,25 +148,6 @@ def _feature_support(decoder: PaletteDecoder, channels: int, size: int) -> int:
     return int((grad.abs().sum(dim=(0, 1, 3)) > 0).sum())
 
 
-def test_decoder_low_layers_widen_its_view_of_the_feature_image():
-    torch.manual_seed(0)
-    plain = PaletteDecoder(in_channels=6, width=8, min_width=4, extra_layers=1).double()
-    # The paper's M_D (nearest x2, conv3x3, nearest x2, conv3x3, conv3x3, head conv3x3) at output row 32
-    # of 64: three convs at full resolution reach rows 29..35, which come from rows 14..17 of the x2 image,
-    # whose conv reaches 13..18, which come from feature rows 6..9.
-    assert _feature_support(plain, 6, 16) == 4
-    for low_layers in (1, 3):
-        wide = PaletteDecoder(in_channels=6, width=8, min_width=4, extra_layers=1, low_layers=low_layers).double()
-        # Each conv3x3 at the feature resolution adds one feature row on either side (LeakyReLU never
-        # zeroes a gradient, so the support is exact).
-        assert _feature_support(wide, 6, 16) == 4 + 2 * low_layers
-        out = wide(torch.randn(1, 6, 4, 6, dtype=torch.float64))
-        assert out.radiance.shape == (1, 3, 16, 24)
-    # No low layers: the parameters keep the names of every shipped checkpoint.
-    assert [k for k in plain.state_dict()] == ["body.1.weight", "body.1.bias", "body.4.weight", "body.4.bias",
-                                               "body.6.weight", "body.6.bias", "head.weight", "head.bias"]
-
-
 def test_sparsity_loss_two_colors_matches_paper():
     w = torch.rand(1, 1, 4, 4)
     weights = torch.cat([w, 1 - w], dim=1)
@@ -293,12 +280,12 @@ def test_segmentation_term_only_when_asked():
     p = torch.tensor([[0.2, 0.3, 0.8], [0.6, 0.5, 0.4]])
     image = maps.compose(p)
     mask, garment = torch.ones(1, 1, H, W), torch.ones(1, 1, H, W)
-    paper = garment_losses(image, image, maps, mask, p, p, ModelConfig.paper(), target_garment=garment)
+    paper = garment_losses(image, image, maps, mask, p, p, ModelConfig.paper().loss, target_garment=garment)
     assert "segmentation" not in paper  # the paper's objective has no such term
-    small = ModelConfig.cpu_small()
+    small = ModelConfig.cpu_small().loss
     out = garment_losses(image, image, maps, mask, p, p, small, target_garment=garment)
     assert float(out["segmentation"]) == pytest.approx(0.5)
-    expected = sum(getattr(small, f"w_{k}") * out[k] for k in out if k != "total")
+    expected = sum(getattr(small, k) * out[k] for k in out if k != "total")
     torch.testing.assert_close(out["total"], expected)
 
 

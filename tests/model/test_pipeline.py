@@ -7,27 +7,42 @@ import pytest
 import torch
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera, project_points
+from garmentnerf.conventions import (
+    Camera,
+    camera_rays,
+    intrinsics_from_fov,
+    look_at,
+    orbit_camera,
+    project_points,
+)
 from garmentnerf.data.cameras import reference_cameras
-from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.detail_features import reference_visibility, sample_image_features
+from garmentnerf.model.config import BBOX_PADDING, ModelConfig
+from garmentnerf.model.detail_features import (
+    read_detail_features,
+    reference_visibility,
+    sample_image_features,
+)
 from garmentnerf.model.palette import compose
-from garmentnerf.model.pipeline import (FRAME_STAGES, RENDER_STAGES, GarmentAnimationNeRF, RenderCancelled,
-                                        palette_initial_colors)
+from garmentnerf.model.pipeline import (
+    FRAME_STAGES,
+    RENDER_STAGES,
+    GarmentAnimationNeRF,
+    RenderCancelled,
+    palette_initial_colors,
+)
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.render.frame_inputs import FrameInputBuilder, resolve_reference_cameras
-from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 
 
-def tiny_config(**changes) -> ModelConfig:
-    return tiny_preset().replace(**changes)
+def tiny_config(changes: dict | None = None) -> ModelConfig:
+    return ModelConfig.tiny().updated(changes or {})
 
 
-def make_model(body, projector, seed=0, **changes) -> GarmentAnimationNeRF:
+def make_model(body, projector, seed=0, changes: dict | None = None) -> GarmentAnimationNeRF:
     torch.manual_seed(seed)
-    return GarmentAnimationNeRF(tiny_config(**changes), body, PALETTE, projector=projector).eval()
+    return GarmentAnimationNeRF(tiny_config(changes), body, PALETTE, projector=projector).eval()
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +86,7 @@ def test_frame_inputs(gl_context, body, walk_clip, walk_inputs):
     torch.testing.assert_close(walk_inputs.posed_vertices, posed.vertices[2], atol=0, rtol=0)
     assert walk_inputs.info_maps[3:].abs().max() > 0  # the body moves
     with pytest.raises(ValueError, match="info_maps"):
-        walk_inputs.validate(cfg.replace(history=1))
+        walk_inputs.validate(cfg.updated({"encoder.history": 1}))
 
 
 def test_resolve_reference_cameras():
@@ -110,7 +125,7 @@ def test_shapes_and_timings(model, frame):
     with torch.no_grad():
         out = model.render(frame, CAMERA)
     assert out.image.shape == (3, 64, 64)
-    assert out.maps.radiance.shape == (1, model.cfg.radiance_channels, 64, 64)
+    assert out.maps.radiance.shape == (1, model.cfg.decoder.radiance_channels, 64, 64)
     assert out.maps.offsets.shape == (1, 2, 3, 64, 64)
     assert out.maps.weights.shape == (1, 2, 64, 64)
     assert out.maps.mask.shape == (1, 1, 64, 64)
@@ -133,10 +148,10 @@ def test_missed_rays_are_not_evaluated(model, frame):
             out = model.render(frame, CAMERA)
         # Independent count: rays of the feature image that enter the padded body box.
         origins, dirs = camera_rays(CAMERA.resized(16, 16))
-        pad = torch.tensor([[-1.0], [1.0]]) * model.cfg.bbox_padding
+        pad = torch.tensor([[-1.0], [1.0]]) * BBOX_PADDING
         _, _, hit = ray_aabb_intersect(origins.reshape(-1, 3), dirs.reshape(-1, 3), frame.aabb + pad)
         assert 0 < int(hit.sum()) < 256  # some rays miss the box, some hit it
-        assert sum(calls) == out.points_evaluated == int(hit.sum()) * model.cfg.samples_per_ray
+        assert sum(calls) == out.points_evaluated == int(hit.sum()) * model.cfg.sampler.samples_per_ray
         opacity = out.opacity.reshape(-1)
         assert (opacity[~hit] == 0).all() and (opacity[hit] > 0).all()
         # A camera looking away from the body evaluates nothing.
@@ -290,78 +305,34 @@ def test_visibility_selects_front_for_front_and_back_for_back(model, frame, proj
     front, back = (normals[:, 1] < -0.9) & torso, (normals[:, 1] > 0.9) & torso
     front_pts, back_pts = verts[front], verts[back]
     assert len(front_pts) > 100 and len(back_pts) > 100
-    _, w_front = model.detail_features(frame, front_pts)
-    _, w_back = model.detail_features(frame, back_pts)
-    assert w_front.mean() > 0.97 and w_back.mean() < 0.03
+    maps, cams, depth = frame.detail_features, frame.reference_cameras, frame.reference_depth
+    _, w_front = read_detail_features(maps, cams, depth, front_pts)
+    _, w_back = read_detail_features(maps, cams, depth, back_pts)
+    assert w_front.float().mean() > 0.97 and w_back.float().mean() < 0.03
     # The same through the public test; a visible point gets exactly the front read.
-    cams, depth = frame.reference_cameras, frame.reference_depth
     assert reference_visibility(back_pts, cams[1], depth[1]).float().mean() > 0.97
     assert reference_visibility(front_pts, cams[1], depth[1]).float().mean() < 0.03
-    feats, w = model.detail_features(frame, front_pts)
+    feats, sel = read_detail_features(maps, cams, depth, front_pts)
     pix, _ = project_points(cams[0], front_pts)
     front_read = sample_image_features(frame.detail_features[0], pix)
-    sel = w > 0
     torch.testing.assert_close(feats[sel], front_read[sel])
-    # Soft-normal mode (authors' code): the front weight dominates on the front, not on the back.
-    soft = make_model(model.body, projector, detail_selection="soft_normal")
-    normal_front, normal_back = normals[front], normals[back]
-    _, sw_front = soft.detail_features(frame, front_pts, normal_front)
-    _, sw_back = soft.detail_features(frame, back_pts, normal_back)
-    assert (sw_front > 0.9).float().mean() > 0.95 and (sw_back < 0.45).float().mean() > 0.95
 
 
-@pytest.mark.parametrize("changes", [dict(use_detail_feature=False), dict(use_dynamic_feature=False),
-                                     dict(use_detail_feature=False, use_dynamic_feature=False),
-                                     dict(detail_selection="soft_normal")])
+@pytest.mark.parametrize("changes", [{"encoder.detail_feature": False}, {"encoder.dynamic_feature": False},
+                                     {"encoder.detail_feature": False, "encoder.dynamic_feature": False},
+                                     {"nerf.shading_normals": True}])
 def test_ablations_and_modes(body, projector, walk_inputs, changes):
-    model = make_model(body, projector, **changes).train()
+    model = make_model(body, projector, changes=changes).train()
     frame = model.prepare_frame(walk_inputs)
     cfg = model.cfg
-    assert (model.encoder is None) == (frame.dynamic_features is None) == (not cfg.use_dynamic_feature)
-    assert (model.detail_encoder is None) == (frame.detail_features is None) == (not cfg.use_detail_feature)
+    assert (model.encoder is None) == (frame.dynamic_features is None) == (not cfg.encoder.dynamic_feature)
+    assert (model.detail_encoder is None) == (frame.detail_features is None) == (not cfg.encoder.detail_feature)
     assert model.nerf.input_dim == cfg.mlp_input_dim
     out = model.render(frame, CAMERA)
     assert out.image.shape == (3, 64, 64) and out.points_evaluated > 0
     out.image.mean().backward()
     for name, module in model.trainable_modules().items():
         assert sum(float(p.grad.abs().sum()) for p in module.parameters()) > 0, name
-
-
-def test_atlas_feature_reads_every_level_bilinearly(body, projector, walk_inputs):
-    """The pipeline's f^a against OpenCV's bilinear remap of each level, summed."""
-    import cv2
-
-    model = make_model(body, projector, seed=1, atlas_feature_channels=3, atlas_feature_levels=3,
-                       atlas_feature_resolution=32)
-    with torch.no_grad():
-        for tex in model.atlas_features.textures:
-            tex.normal_()
-    uv = torch.rand(200, 2) * 0.9 + 0.05
-    got = model.atlas_feature(uv)
-    want = torch.zeros(200, 3)
-    for tex in model.atlas_features.textures:
-        image = tex[0].detach().permute(1, 2, 0).numpy()  # (R, R, C); row 0 is v = 0
-        side = image.shape[0]
-        map_x = (uv[:, 0].numpy() * side - 0.5).astype(np.float32).reshape(1, -1)
-        map_y = (uv[:, 1].numpy() * side - 0.5).astype(np.float32).reshape(1, -1)
-        read = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        want += torch.from_numpy(read.reshape(200, 3))
-    torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-3)  # OpenCV's 5-bit interpolation weights
-    assert model.zero_start_prefixes() == ("atlas_features.", "nerf.atlas_input.")
-    assert make_model(body, projector).zero_start_prefixes() == ()
-    # trained, the branch takes gradient like every other module; untrained, it renders as without it
-    plain = make_model(body, projector, seed=1)
-    model.load_state_dict(plain.state_dict(), strict=False)
-    with torch.no_grad():
-        frame = model.prepare_frame(walk_inputs)
-        torch.testing.assert_close(model.render(frame, CAMERA).image,
-                                   plain.render(plain.prepare_frame(walk_inputs), CAMERA).image)
-        model.nerf.atlas_input.weight.normal_(0.0, 0.1)
-    model.train()
-    model.render(model.prepare_frame(walk_inputs), CAMERA).image.mean().backward()
-    assert "atlas_features" in model.trainable_modules()
-    for tex in model.atlas_features.textures:
-        assert tex.grad is not None and tex.grad.abs().sum() > 0
 
 
 def test_evaluate_samples_reuses_a_projection_it_is_given(model, frame):
@@ -375,29 +346,3 @@ def test_evaluate_samples_reuses_a_projection_it_is_given(model, frame):
     assert n == again[2] == 500
     assert torch.equal(sigma, again[0]) and torch.equal(zeta, again[1])
     assert float(sigma.max()) > 0
-
-
-def test_importance_sampling_is_the_default_and_every_presets_sampler(body, projector, walk_inputs):
-    """With ``importance_samples`` the model renders the fine samples drawn from a coarse pass, by default
-    and in every preset (each count scaled by the preset's factor), and its gradients reach every module."""
-    from garmentnerf.model.importance_sampler import ImportanceSampler
-    from garmentnerf.render.presets import RENDER_PRESETS
-
-    model = make_model(body, projector, importance_samples=6).eval()
-    cfg = model.cfg
-    frame = model.prepare_frame(walk_inputs)
-    with torch.no_grad():
-        out = model.render(frame, CAMERA)
-        plain = make_model(body, projector).eval().render(frame, CAMERA)
-    assert out.rays_evaluated == plain.rays_evaluated > 0
-    assert out.samples_placed == out.rays_evaluated * 6 != plain.samples_placed
-    for preset in RENDER_PRESETS.values():
-        plan = preset.sampling(model)
-        assert isinstance(plan.sampler, ImportanceSampler) and not preset.uses_shell(cfg)
-        scale = preset.samples_per_ray(cfg) / cfg.samples_per_ray
-        assert plan.sampler.num_samples == max(1, round(6 * scale))
-        assert plan.sampler.base.num_samples == preset.samples_per_ray(cfg)
-    model.train()
-    model.render(frame, CAMERA).image.mean().backward()
-    for name, module in model.trainable_modules().items():
-        assert sum(float(p.grad.abs().sum()) for p in module.parameters()) > 0, name

@@ -11,33 +11,44 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera
+from garmentnerf.conventions import (
+    Camera,
+    camera_rays,
+    intrinsics_from_fov,
+    look_at,
+    orbit_camera,
+)
 from garmentnerf.geometry.winding import point_in_shell, winding_number
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
+from garmentnerf.model.field import Field
+from garmentnerf.model.height_band import (
+    HeightRange,
+    dilate_vertex_values,
+    measure_height_range,
+)
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.samplers import BoxStratifiedSampler, body_aabb
 from garmentnerf.render.shell_sampler import ShellSampler
-from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.10)
 CAMERA = orbit_camera(30.0, 10.0, 3.0, width=64, height=64)
 
 
-def tiny_config(**changes) -> ModelConfig:
-    return tiny_preset().replace(**{"samples_per_ray": 32, **changes})
+def tiny_config(changes: dict | None = None) -> ModelConfig:
+    return ModelConfig.tiny().updated({"sampler.samples_per_ray": 32, **(changes or {})})
 
 
-class Banded(torch.nn.Module):
-    """Wraps a NeRF MLP: density zero wherever h is outside the band (and optionally scaled)."""
+class Banded(Field):
+    """Wraps the model's field: density zero wherever h is outside the band (and optionally scaled)."""
 
-    def __init__(self, inner, band: HeightRange, scale: float = 1.0):
+    def __init__(self, inner: Field, band: HeightRange, scale: float = 1.0):
         super().__init__()
-        self.inner, self.band, self.scale = inner, band, scale
+        self.inner, self.band, self.scale, self.zeta_channels = inner, band, scale, inner.zeta_channels
 
-    def forward(self, canonical, distance, detail=None, dynamic=None, atlas=None):
-        sigma, zeta = self.inner(canonical, distance, detail, dynamic, atlas)
+    def evaluate(self, frame, points, *, clock, autocast):
+        sigma, zeta = self.inner.evaluate(frame, points, clock=clock, autocast=autocast)
+        distance = points.signed_distance.to(sigma.device)
         inside = (distance >= self.band.h_min) & (distance <= self.band.h_max)
         return sigma * inside.to(sigma.dtype) * self.scale, zeta
 
@@ -48,9 +59,9 @@ def verts(walk_clip):
     return walk_clip[0].vertices[2].float()
 
 
-def banded_model(body, projector, scale=1.0, **changes):
+def banded_model(body, projector, scale=1.0, changes: dict | None = None):
     torch.manual_seed(0)
-    model = GarmentAnimationNeRF(tiny_config(**changes), body, PALETTE, projector=projector).eval()
+    model = GarmentAnimationNeRF(tiny_config(changes), body, PALETTE, projector=projector).eval()
     model.nerf = Banded(model.nerf, BAND, scale)
     return model
 
@@ -175,7 +186,7 @@ def test_culled_render_equals_reference(gl_context, model_and_frame):
     model, frame = model_and_frame
     with torch.no_grad():
         ref = model.render(frame, CAMERA)
-    sampler = ShellSampler(model.cfg.samples_per_ray, model.projector.faces, BAND, gl_context=gl_context)
+    sampler = ShellSampler(model.cfg.sampler.samples_per_ray, model.projector.faces, BAND, gl_context=gl_context)
     culled = {"sampler": sampler, "sample_filter": BAND.sample_filter(model.projector.faces)}
     try:
         with torch.no_grad():
@@ -226,7 +237,7 @@ def test_early_termination(gl_context, body, projector, walk_inputs):
         ref = model.render(frame, CAMERA)
     assert ref.opacity.max() > 0.999
     eps = 1e-3
-    sampler = ShellSampler(model.cfg.samples_per_ray, model.projector.faces, BAND, gl_context=gl_context)
+    sampler = ShellSampler(model.cfg.sampler.samples_per_ray, model.projector.faces, BAND, gl_context=gl_context)
     try:
         with torch.no_grad():
             out = model.render(frame, CAMERA, chunk_points=512, sampler=sampler, termination_eps=eps,
@@ -342,7 +353,11 @@ def test_occlusion_cuts_rays_behind_the_skin(gl_context, verts, projector):
 
 
 def test_presets_render_through_their_sampling_plans(gl_context, model_and_frame):
-    from garmentnerf.render.presets import RENDER_PRESETS, VIEWER_LEVELS, get_render_preset
+    from garmentnerf.render.presets import (
+        RENDER_PRESETS,
+        VIEWER_LEVELS,
+        get_render_preset,
+    )
     from garmentnerf.render.session import padded_render_camera
 
     model, frame = model_and_frame
@@ -372,61 +387,23 @@ def test_presets_render_through_their_sampling_plans(gl_context, model_and_frame
         get_render_preset("warp")
 
 
-def test_a_model_trained_in_the_shell_is_sampled_there_by_every_preset(gl_context, body, projector, verts):
-    from garmentnerf.render.shell_sampler import SHELL_EXTRA_MARGIN
+def test_the_reference_preset_samples_in_the_box_and_the_culled_ones_in_the_shell(gl_context, body, projector):
     from garmentnerf.render.presets import RENDER_PRESETS
 
-    S = 16
-    model = GarmentAnimationNeRF(tiny_config(samples_per_ray=S, sampler="shell", shell_spacing="shell"), body, PALETTE,
-                                 projector=projector).eval()
+    model = GarmentAnimationNeRF(tiny_config({"sampler.samples_per_ray": 16}), body, PALETTE, projector=projector)
     for name, preset in RENDER_PRESETS.items():
-        assert preset.uses_shell(model.cfg)
         plan = preset.sampling(model, BAND, gl_context)
-        assert isinstance(plan.sampler, ShellSampler) and plan.sampler.spacing == "shell" and plan.sampler.occlusion
-        assert plan.sample_filter is not None and plan.sample_filter.band == BAND
-        assert plan.termination_eps == preset.termination_eps
+        assert preset.uses_shell() == (name != "reference")
+        assert isinstance(plan.sampler, ShellSampler if preset.uses_shell() else BoxStratifiedSampler)
         assert plan.sampler.num_samples == preset.samples_per_ray(model.cfg)
-        if name == "reference":
-            reference = plan
-        else:
-            plan.release()
-    # The reference plan is the training sampling: S samples tiling each ray's shell segment.
-    cam = CAMERA.resized(40, 40)
-    _, samples = _sample(reference.sampler, verts, cam)
-    rays = samples.hit.nonzero().squeeze(1)
-    assert len(rays) > 100
-    counts = torch.bincount(samples.ray_ids, minlength=samples.n_rays)
-    assert bool((counts[rays] == S).all()) and int(counts.sum()) == S * len(rays)
-    t0, t1 = samples.t_starts.reshape(-1, S), samples.t_ends.reshape(-1, S)
-    near, far = samples.near[rays], samples.far[rays]
-    torch.testing.assert_close(t0[:, 0], near)
-    torch.testing.assert_close(t1[:, -1], far)
-    torch.testing.assert_close(t1 - t0, ((far - near) / S)[:, None].expand(-1, S), rtol=1e-4, atol=1e-6)
-    # Independent: trimesh's distance to the posed skin of each segment's ends (where the ray enters
-    # the inflated shell, and where it leaves it or is cut behind the skin) is at most the inflation.
-    margin = BAND.h_max + SHELL_EXTRA_MARGIN
-    origins, directions = camera_rays(cam)
-    o, d = origins.reshape(-1, 3)[rays], directions.reshape(-1, 3)[rays]
-    ends = torch.cat([o + near[:, None] * d, o + far[:, None] * d]).double().numpy()
-    dist = _surface_distance(ends, verts.double().numpy(), projector.faces.numpy(), 2 * margin)
-    assert float(dist.max()) <= margin + 1e-3
-    assert float(np.median(dist[:len(rays)])) > 0.5 * margin  # the entries lie on the inflated skin
-    # A box-trained model keeps the paper's sampler for its reference render.
-    box_model = GarmentAnimationNeRF(tiny_config(samples_per_ray=S), body, PALETTE, projector=projector)
-    assert not RENDER_PRESETS["reference"].uses_shell(box_model.cfg)
-    assert isinstance(RENDER_PRESETS["reference"].sampling(box_model, BAND, gl_context).sampler, BoxStratifiedSampler)
-    reference.release()
-    with pytest.raises(ValueError, match="sampler"):
-        tiny_config(sampler="sphere").validate()
-    with pytest.raises(ValueError, match="shell_spacing"):
-        tiny_config(shell_spacing="log").validate()
+        plan.release()
 
 
 def test_bench_cli_with_run(tmp_path, tiny_scene):
     from garmentnerf.cli.main import main
     from garmentnerf.runs import create_untrained_run
 
-    run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config(samples_per_ray=8))
+    run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config({"sampler.samples_per_ray": 8}))
     out_json, out_png = tmp_path / "bench.json", tmp_path / "bench.png"
     rc = main(["bench", "--run", str(run), "--json", str(out_json), "--plot", str(out_png), "--frames", "1",
                "--views", "1", "--repeats", "1", "--presets", "full,interactive"])
@@ -444,7 +421,7 @@ def test_bench_cli_with_run(tmp_path, tiny_scene):
     assert pb["precomputed"] == len(pb["frames"]) == 3 and pb["precompute_ms_per_frame"] > 0  # the tiny clip
     assert set(pb["presets"]) == set(names) and all(r["fps"] > 0 for r in pb["presets"].values())
     assert pb["scrub_ready_ms"] > 0 and pb["scrub_cold_ms"] is None  # every frame of the clip was ready
-    ahead = pb["render_ahead"]  # issue 28: per preset, the clip rendered ahead by the previewer's worker
+    ahead = pb["render_ahead"]  # per preset, the clip rendered ahead by the previewer's worker
     assert set(ahead["presets"]) == set(names) and 0 < pb["completed_share"] <= 1
     for row in ahead["presets"].values():
         assert {"seconds_for_clip", "fps_after", "max_lag_frames"} <= set(row) and row["seconds_for_clip"] > 0

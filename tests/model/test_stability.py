@@ -13,6 +13,7 @@ from garmentnerf.conventions import Camera, intrinsics_from_fov, look_at, orbit_
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.model import volume_rendering as vr
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.model.field import Field
 from garmentnerf.model.height_band import HeightRange
 from garmentnerf.model.palette import check_palette
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
@@ -20,26 +21,26 @@ from garmentnerf.motion.library import load_motion
 from garmentnerf.motion.motion import Motion
 from garmentnerf.render.frame_inputs import FrameInputBuilder
 from garmentnerf.render.shell_sampler import ShellSampler
-from garmentnerf.train.settings import tiny_config as tiny_preset
 
 PALETTE = {"garment": [0.8, 0.2, 0.2], "body": [0.7, 0.6, 0.5]}
 BAND = HeightRange(-0.05, 0.15)
 
 
-def tiny_config(**changes) -> ModelConfig:
-    return tiny_preset().replace(**{"image_resolution": 32, "feature_image_resolution": 8, "appearance_dim": 8,
-                                   "mlp_width": 16, "decoder_width": 8, **changes})
+def tiny_config(changes: dict | None = None) -> ModelConfig:
+    return ModelConfig.tiny().updated({"decoder.image_resolution": 32, "decoder.feature_image_resolution": 8,
+                                       "nerf.appearance_dim": 8, "nerf.mlp_width": 16, "decoder.width": 8,
+                                       **(changes or {})})
 
 
-class ForcedDensity(torch.nn.Module):
-    """The MLP with its density replaced by a constant (gradients still reach zeta)."""
+class ForcedDensity(Field):
+    """The model's field with its density replaced by a constant (gradients still reach zeta)."""
 
-    def __init__(self, inner, value: float):
+    def __init__(self, inner: Field, value: float):
         super().__init__()
-        self.inner, self.value = inner, value
+        self.inner, self.value, self.zeta_channels = inner, value, inner.zeta_channels
 
-    def forward(self, canonical, distance, detail=None, dynamic=None, atlas=None):
-        sigma, zeta = self.inner(canonical, distance, detail, dynamic, atlas)
+    def evaluate(self, frame, points, *, clock, autocast):
+        sigma, zeta = self.inner.evaluate(frame, points, clock=clock, autocast=autocast)
         return sigma * 0.0 + self.value, zeta
 
 
@@ -74,7 +75,7 @@ def finite(*tensors) -> bool:
 def culled_sampling(model, gl_context, samples=None, **sampler_kw) -> dict:
     """Render arguments of the culled sampling: the shell sampler and the height band filter."""
     faces = model.projector.faces
-    sampler = ShellSampler(samples or model.cfg.samples_per_ray, faces, BAND, gl_context=gl_context, **sampler_kw)
+    sampler = ShellSampler(samples or model.cfg.sampler.samples_per_ray, faces, BAND, gl_context=gl_context, **sampler_kw)
     return {"sampler": sampler, "sample_filter": BAND.sample_filter(faces)}
 
 
@@ -278,7 +279,7 @@ def test_long_motion_streams_in_bounded_memory(builder, body, walk):
     long = Motion("long", walk.joint_names, walk.rotations.repeat(reps, 1, 1)[:2000],
                   walk.translation.repeat(reps, 1)[:2000], walk.fps, walk.skeleton)
     assert long.num_frames == 2000
-    k = builder.cfg.history
+    k = builder.cfg.encoder.history
 
     def streamed(f):
         window = long.slice(max(0, f - k), f + 1).pose(body)

@@ -14,10 +14,22 @@ from garmentnerf.body.model import BodyModel
 from garmentnerf.body.smpl import SMPL_JOINT_NAMES
 from garmentnerf.motion.amass import AmassError, load_amass
 from garmentnerf.motion.blend import concatenate, resample, slerp_rotvec, yaw_angle
-from garmentnerf.motion.deepmimic import (DEEPMIMIC_CLIPS, DEFAULT_ARM_ABDUCTION_DEG, DeepMimicClip,
-                                          a_pose_correction_deg, load_deepmimic, read_deepmimic, retarget_deepmimic)
-from garmentnerf.motion.library import (FrameRangeError, UnknownMotionError, available_motions, check_frame,
-                                        load_motion)
+from garmentnerf.motion.deepmimic import (
+    DEEPMIMIC_CLIPS,
+    DEFAULT_ARM_ABDUCTION_DEG,
+    DeepMimicClip,
+    a_pose_correction_deg,
+    load_deepmimic,
+    read_deepmimic,
+    retarget_deepmimic,
+)
+from garmentnerf.motion.library import (
+    FrameRangeError,
+    UnknownMotionError,
+    available_motions,
+    check_frame,
+    load_motion,
+)
 from garmentnerf.motion.motion import Motion
 from garmentnerf.motion.procedural import PROCEDURAL_MOTIONS, procedural_motion
 

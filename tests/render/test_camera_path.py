@@ -12,8 +12,15 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from garmentnerf.conventions import look_at, orbit_camera, project_points
-from garmentnerf.render.camera_path import (CameraPath, Keyframe, catmull_rom_tangents, load_camera_path,
-                                            path_from_json, path_to_json, save_camera_path)
+from garmentnerf.render.camera_path import (
+    CameraPath,
+    Keyframe,
+    catmull_rom_tangents,
+    load_camera_path,
+    path_from_json,
+    path_to_json,
+    save_camera_path,
+)
 
 
 def _orbit_path(constant_speed=False, frames=(0, 12, 20, 41, 55)) -> CameraPath:

@@ -93,11 +93,11 @@ def test_get_returns_float32_rebinds_and_half_precision_is_close():
 
 @pytest.fixture(scope="module")
 def run_dir(tiny_scene, tmp_path_factory):
+    from garmentnerf.model.config import ModelConfig
     from garmentnerf.runs import create_untrained_run
-    from garmentnerf.train.settings import tiny_config
 
     return create_untrained_run(tmp_path_factory.mktemp("run") / "r", tiny_scene.root,
-                                tiny_config().replace(samples_per_ray=4), seed=0)
+                                ModelConfig.tiny().updated({"sampler.samples_per_ray": 4}), seed=0)
 
 
 def test_session_precomputes_and_a_ready_frame_costs_no_frame_work(run_dir, gl_context, monkeypatch):
@@ -152,17 +152,3 @@ def test_previewer_worker_precomputes_the_clip_in_the_background(run_dir):
         assert renderer.cache_status()["ready"] == [] and renderer.cache_status()["bytes"] == 0
     finally:
         renderer.stop()
-
-
-def test_a_frames_normal_grid_counts_against_the_bound_and_comes_back():
-    from dataclasses import replace
-
-    from garmentnerf.model.normal_field import NormalGrid
-
-    plain = FrameCache(binder([]), budget_mb=1.0)
-    plain.put(0, fake_features(0))
-    grid = NormalGrid(torch.rand(3, 4, 5, 6), torch.zeros(3), 0.025, 1e-3)
-    cache = FrameCache(binder([]), budget_mb=1.0)
-    cache.put(0, replace(fake_features(0), normal_grid=grid))
-    assert cache.nbytes == plain.nbytes + 3 * 4 * 5 * 6 * 4
-    assert cache.get(0).normal_grid is grid

@@ -9,11 +9,16 @@ import pytest
 import torch
 
 from garmentnerf.cli.main import main
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.palette import compose
-from garmentnerf.render.cameras import fit_size, orbit_view, parse_camera_spec, turntable
+from garmentnerf.render.cameras import (
+    fit_size,
+    orbit_view,
+    parse_camera_spec,
+    turntable,
+)
 from garmentnerf.render.colors import build_palette, parse_hex_color, to_hex
 from garmentnerf.render.video import FrameWriter, VideoWriter, count_video_frames
-from garmentnerf.train.settings import tiny_config
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +38,7 @@ def scene_dir(request, tmp_path_factory):
 def run_dir(scene_dir, tmp_path_factory):
     from garmentnerf.runs import create_untrained_run
 
-    return create_untrained_run(tmp_path_factory.mktemp("run") / "untrained", scene_dir, tiny_config(), seed=0)
+    return create_untrained_run(tmp_path_factory.mktemp("run") / "untrained", scene_dir, ModelConfig.tiny(), seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +177,7 @@ def test_character_rect_render_equals_the_whole_frame_inside_it(session):
     whole = session.render(1, cam, scale=0.5, preset=whole_preset)  # the same density for both
     cropped = session.render(1, cam, scale=0.5, preset=cropped_preset)
     assert whole.render_size == cropped.render_size == (128, 96)
-    up = 2 ** session.config.decoder_upsample_steps
+    up = 2 ** session.config.decoder.upsample_steps
     assert whole.counts["rays_total"] == cropped.counts["rays_frame"] == (128 // up) * (96 // up)
     assert 0 < cropped.counts["rays_total"] < 0.6 * whole.counts["rays_total"]
     from garmentnerf.render.session import padded_render_camera
@@ -292,15 +297,15 @@ def test_interactive_preset_is_the_bench_row_in_render_and_in_the_viewer(run_dir
 
     from garmentnerf.perf.preset_bench import preset_benchmark
     from garmentnerf.render.presets import RENDER_PRESETS, VIEWER_LEVELS
-    from garmentnerf.viewer.quality import QualityController
-    from garmentnerf.viewer.playback_bench import render_ahead_benchmark
-    from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
     from garmentnerf.runs import load_run
+    from garmentnerf.viewer.playback_bench import render_ahead_benchmark
+    from garmentnerf.viewer.quality import QualityController
+    from garmentnerf.viewer.worker import NeuralRenderer, NeuralRequest
 
     bench = preset_benchmark(run_dir, ["interactive"], frames=1, views=1, repeats=1, gl_context=gl_context,
                              log=lambda *a: None, render_ahead=render_ahead_benchmark)
     row = next(r for r in bench["presets"] if r["preset"] == "interactive")
-    # render-ahead (issue 28): the previewer's worker rendered the tiny clip's 3 frames once each for
+    # render-ahead: the previewer's worker rendered the tiny clip's 3 frames once each for
     # the still camera while it played (none abandoned), then played them back at the clip's rate
     ahead = bench["playback"]["render_ahead"]
     assert ahead["frames"] == 3 and ahead["camera"] == [1280, 800] and set(ahead["presets"]) == {"reference",

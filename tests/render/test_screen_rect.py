@@ -11,6 +11,7 @@ from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, lo
 from garmentnerf.model.samplers import ray_aabb_intersect
 from garmentnerf.render.screen_rect import PixelRect, box_rect
 
+
 def look_at_camera(eye, target, width: int, height: int, fov_y_deg: float) -> Camera:
     R, t = look_at(eye, target)
     return Camera(intrinsics_from_fov(width, height, fov_y_deg), R, t, width, height)

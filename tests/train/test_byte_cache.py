@@ -90,15 +90,15 @@ def test_train_cache_gib_shares_its_total_as_the_defaults_do():
 
 
 def test_scene_frames_rebuild_evicted_inputs_and_targets_to_the_same_values(tiny_scene, gl_context):
+    from garmentnerf.model.config import ModelConfig
     from garmentnerf.train.frames import SceneFrames
-    from garmentnerf.train.settings import tiny_config
 
-    with SceneFrames(tiny_scene, tiny_config(), gl_context) as frames:
+    with SceneFrames(tiny_scene, ModelConfig.tiny(), gl_context) as frames:
         first = frames.inputs("train", 1)
         target = frames.target("train", "cam01", 1)
         one_input, one_target = tensor_bytes(first), tensor_bytes(target)
     # room for one frame's inputs and one view's target: the second frame evicts the first
-    with SceneFrames(tiny_scene, tiny_config(), gl_context, cache_bytes=one_target,
+    with SceneFrames(tiny_scene, ModelConfig.tiny(), gl_context, cache_bytes=one_target,
                      inputs_cache_bytes=one_input) as frames:
         a, ta = frames.inputs("train", 1), frames.target("train", "cam01", 1)
         frames.inputs("train", 2), frames.target("train", "cam01", 2)

@@ -10,35 +10,35 @@ import shutil
 import numpy as np
 import pytest
 import torch
-
-from garmentnerf.runs import frame_code_offset, load_run
-from garmentnerf.train.settings import tiny_config
 from train.test_train import assert_same_steps, make_tc, run
+
+from garmentnerf.model.config import DYNAMIC_FEATURE_DIM, ModelConfig
+from garmentnerf.runs import frame_code_offset, load_run
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def codes_config(**kw):
-    return tiny_config().replace(**{"frame_code_resolution": 4, "frame_code_lr_scale": 20.0, **kw})
+def codes_config(changes: dict | None = None) -> ModelConfig:
+    return ModelConfig.tiny().updated({"frame_codes.resolution": 4, "frame_codes.lr_scale": 20.0, **(changes or {})})
 
 
 def test_a_run_trains_one_code_per_training_frame_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
     from garmentnerf.train.trainer import Trainer, param_groups
 
-    cfg = codes_config(iterations=4)
+    cfg = codes_config({"schedule.iterations": 4})
     full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=4,
                                    model_config=cfg), gl_context)
     n = tiny_scene.num_frames("train")
     codes = full_state["frame_codes.codes"]
-    assert codes.shape == (n, cfg.dynamic_encoder_channels, 4, 4)
+    assert codes.shape == (n, DYNAMIC_FEATURE_DIM, 4, 4)
     assert (codes.flatten(1).abs().amax(dim=1) > 0).any()  # visited frames' codes moved from zero
     loaded = load_run(tmp_path / "a")
-    assert loaded.config.frame_codes == n and loaded.model.frame_codes.codes.shape[0] == n
+    assert loaded.config.frame_codes.count == n and loaded.model.frame_codes.codes.shape[0] == n
     record = json.loads((tmp_path / "a" / "run.json").read_text())["frame_codes"]
     assert record["offsets"] == {"train": 0} and len(record["scene"]) == 16
     with Trainer(make_tc(tiny_scene, tmp_path / "g", generator_iterations=0, model_config=cfg), gl_context,
                  log=lambda m: None) as tr:
-        groups = param_groups(tr.model, list(tr.model.parameters()), tr.cfg)
+        groups = param_groups(tr.model, list(tr.model.parameters()), tr.cfg.frame_codes.lr_scale)
         scaled = [g for g in groups if any(p is tr.model.frame_codes.codes for p in g["params"])]
         assert len(scaled) == 1 and scaled[0]["lr_scale"] == 20.0 and len(scaled[0]["params"]) == 1
         assert tr.code_index("train", 2) == 2 and tr.code_index("test", 0) is None
@@ -54,7 +54,7 @@ def test_a_run_trains_one_code_per_training_frame_and_resumes_exactly(tiny_scene
 def test_the_code_is_added_to_e_upsampled_and_only_for_the_runs_training_sequence(tiny_scene, gl_context, tmp_path):
     from garmentnerf.render.session import RenderSession
 
-    run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=1, model_config=codes_config(iterations=1)),
+    run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=1, model_config=codes_config({"schedule.iterations": 1})),
         gl_context)
     loaded = load_run(tmp_path / "r")
     model = loaded.model
@@ -100,46 +100,11 @@ def test_codes_start_from_weights_trained_without_them(tiny_scene, gl_context, t
     the first step's model computes what the weights' own model computes (the same first loss)."""
     plain, plain_state = run(make_tc(tiny_scene, tmp_path / "plain", generator_iterations=0, iterations=1), gl_context)
     both = {}
-    for name, cfg in (("again", tiny_config()), ("codes", codes_config())):
+    for name, cfg in (("again", ModelConfig.tiny()), ("codes", codes_config())):
         result, _ = run(make_tc(tiny_scene, tmp_path / name, generator_iterations=0, iterations=1, model_config=cfg,
                                 init_weights=tmp_path / "plain" / "model.safetensors"), gl_context)
         both[name] = result.history[0]
     assert both["codes"]["total"] == pytest.approx(both["again"]["total"], abs=1e-6)
-
-
-def test_code_dropout_trains_only_the_kept_codes_and_resumes_exactly(tiny_scene, gl_context, tmp_path, monkeypatch):
-    """``frame_code_dropout``: some steps render their frame with E alone. A frame's code moves from zero
-    exactly when at least one of its visits kept it; an interrupted run drops the same steps."""
-    from garmentnerf.model.pipeline import GarmentAnimationNeRF
-
-    cfg = codes_config(iterations=8, frame_code_dropout=0.5)
-    visits = []  # (frame, code) of every image rendered
-    prepare = GarmentAnimationNeRF.prepare_frame
-
-    def recording(self, inputs, geometry=None, code=None):
-        visits.append((int(inputs.frame), code))
-        return prepare(self, inputs, geometry, code=code)
-
-    monkeypatch.setattr(GarmentAnimationNeRF, "prepare_frame", recording)
-    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=8,
-                                   model_config=cfg), gl_context)
-    assert len(visits) == 8
-    dropped = [code is None for _, code in visits]
-    assert any(dropped) and not all(dropped)
-    assert all(code in (None, frame) for frame, code in visits)  # the "train" sequence's codes start at 0
-    kept_frames = {frame for frame, code in visits if code is not None}
-    moved = set(np.flatnonzero(full_state["frame_codes.codes"].flatten(1).abs().amax(dim=1).numpy() > 0).tolist())
-    assert moved == kept_frames
-    first = list(visits)
-    visits.clear()
-    run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=8, model_config=cfg, stop_after=3),
-        gl_context)
-    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=8),
-                           gl_context)
-    assert visits == first
-    assert_same_steps(full.history[3:], rest.history, full_state, rest_state)
-    with pytest.raises(ValueError, match="frame_code_dropout"):
-        codes_config(frame_code_dropout=1.0)
 
 
 def test_a_codes_stage_holds_every_other_weight_exactly_and_resumes_exactly(tiny_scene, gl_context, tmp_path):
@@ -150,7 +115,7 @@ def test_a_codes_stage_holds_every_other_weight_exactly_and_resumes_exactly(tiny
 
     _, plain_state = run(make_tc(tiny_scene, tmp_path / "plain", generator_iterations=0, iterations=1), gl_context)
     start = tmp_path / "plain" / "model.safetensors"
-    cfg = codes_config(iterations=4, trained_parameters=("frame_codes.",))
+    cfg = codes_config({"schedule.iterations": 4, "schedule.trained_parameters": ("frame_codes.",)})
     tc = make_tc(tiny_scene, tmp_path / "codes", generator_iterations=0, iterations=4, model_config=cfg,
                  init_weights=start)
     with Trainer(tc, gl_context, log=lambda m: None) as tr:
@@ -171,13 +136,13 @@ def test_a_codes_stage_holds_every_other_weight_exactly_and_resumes_exactly(tiny
 def test_a_trained_parameters_prefix_the_model_lacks_is_refused(tiny_scene, gl_context, tmp_path):
     from garmentnerf.train.trainer import Trainer
 
-    cfg = tiny_config().replace(iterations=1, trained_parameters=("frame_codes.",))  # no codes in this model
+    cfg = ModelConfig.tiny().updated({"schedule.iterations": 1, "schedule.trained_parameters": ("frame_codes.",)})  # no codes in this model
     with pytest.raises(ValueError, match=r"trained_parameters: no parameter of the model starts with 'frame_codes\.'"):
         with Trainer(make_tc(tiny_scene, tmp_path / "x", generator_iterations=0, iterations=1, model_config=cfg),
                      gl_context, log=lambda m: None) as tr:
             tr.train()
     with pytest.raises(ValueError, match="empty prefix"):
-        tiny_config().replace(trained_parameters=("",))
+        ModelConfig.tiny().updated({"schedule.trained_parameters": ("",)})
 
 
 def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resume_exactly(tiny_scene, gl_context,
@@ -189,13 +154,17 @@ def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resu
     from safetensors.torch import load_file
 
     from garmentnerf.data.scene import read_garment_arrays
-    from garmentnerf.model.frame_codes import garment_texels, grow_texels, resample_codes
+    from garmentnerf.model.frame_codes import (
+        garment_texels,
+        grow_texels,
+        resample_codes,
+    )
     from garmentnerf.train.trainer import Trainer
 
     run(make_tc(tiny_scene, tmp_path / "dense", generator_iterations=0, iterations=1,
-                model_config=codes_config(iterations=1)), gl_context)
+                model_config=codes_config({"schedule.iterations": 1})), gl_context)
     start = tmp_path / "dense" / "model.safetensors"
-    cfg = codes_config(iterations=4, frame_code_resolution=8, frame_code_support_margin=1)
+    cfg = codes_config({"schedule.iterations": 4, "frame_codes.resolution": 8, "frame_codes.support_margin": 1})
     with Trainer(make_tc(tiny_scene, tmp_path / "s", generator_iterations=0, model_config=cfg, init_weights=start),
                  gl_context, log=lambda m: None) as tr:
         held = tr.model.frame_codes
@@ -213,7 +182,7 @@ def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resu
                                             posed.vertices[frame].float()).uv
         hit |= garment_texels(uv, 8)
     assert torch.equal(support, grow_texels(hit, 1)) and 0 < int(support.sum()) < 64
-    assert full_state["frame_codes.codes"].shape == (tiny_scene.num_frames("train"), cfg.dynamic_encoder_channels,
+    assert full_state["frame_codes.codes"].shape == (tiny_scene.num_frames("train"), DYNAMIC_FEATURE_DIM,
                                                      int(support.sum()))
     assert torch.equal(loaded.model.frame_codes.support, support)
     torch.testing.assert_close(loaded.model.frame_codes.codes.detach(), full_state["frame_codes.codes"])
@@ -225,7 +194,7 @@ def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resu
     assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
     for i in range(tiny_scene.num_frames("train")):
         assert torch.count_nonzero(loaded.model.frame_codes.dense(i)[:, ~support]) == 0
-    with pytest.raises(ValueError, match="frame_code_support_margin needs per-frame codes"):
-        tiny_config().replace(frame_code_support_margin=0)
-    with pytest.raises(ValueError, match="frame_code_support_margin must be -1"):
-        codes_config(frame_code_support_margin=-2)
+    with pytest.raises(ValueError, match="frame_codes.support_margin needs codes"):
+        ModelConfig.tiny().updated({"frame_codes.support_margin": 0})
+    with pytest.raises(ValueError, match="frame_codes.support_margin must be -1"):
+        codes_config({"frame_codes.support_margin": -2})

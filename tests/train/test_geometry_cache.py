@@ -8,14 +8,14 @@ from collections import Counter
 import pytest
 import torch
 
-from garmentnerf.train.settings import tiny_config
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.train.trainer import TrainConfig, Trainer
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _train(scene, out, gl_context, cache_bytes: int):
-    tc = TrainConfig(scene=scene.root, out=out, model_config=tiny_config(), iterations=7, generator_iterations=1,
+    tc = TrainConfig(scene=scene.root, out=out, model_config=ModelConfig.tiny(), iterations=7, generator_iterations=1,
                      perceptual="none", progress=False, log_every=100, image_every=0, ckpt_every=100,
                      geometry_cache_bytes=cache_bytes)
     bound = Counter()
@@ -58,8 +58,7 @@ def test_the_cache_keeps_the_most_recent_frames_under_its_bound(tiny_scene, gl_c
 def _encoder_calls(scene, out, gl_context, cache_bytes: int, trained_parameters=()):
     """A run of 7 NeRF steps with per-frame codes (only ``trained_parameters`` training, all when
     empty): its history, final weights, E's and G_en's forward calls and each step's frame."""
-    cfg = tiny_config().replace(frame_code_resolution=4, frame_code_lr_scale=20.0,
-                                trained_parameters=tuple(trained_parameters))
+    cfg = ModelConfig.tiny().updated({"frame_codes.resolution": 4, "frame_codes.lr_scale": 20.0, "schedule.trained_parameters": tuple(trained_parameters)})
     tc = TrainConfig(scene=scene.root, out=out, model_config=cfg, iterations=7, generator_iterations=1,
                      perceptual="none", progress=False, log_every=100, image_every=0, ckpt_every=100,
                      geometry_cache_bytes=cache_bytes)

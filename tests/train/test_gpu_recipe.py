@@ -1,4 +1,4 @@
-"""The documented GPU recipe (`docs/recipes/gpu_paper_size.json`, TRAINING.md "On a GPU"): the
+"""The documented GPU recipe (`docs/recipes/gpu_paper_size.json`, `docs/recipes/README.md`): the
 bundled model's recipe at the paper's network size, whose weights still fit the bundle."""
 
 from __future__ import annotations
@@ -18,16 +18,22 @@ RECIPE = REPO / "docs" / "recipes" / "gpu_paper_size.json"
 BUNDLED_RUN = REPO / "garmentnerf" / "assets" / "demo" / "run" / "run.json"
 
 #: What makes the network the paper's size (the paper preset's values).
-PAPER_SIZES = ("image_resolution", "reference_resolution", "feature_image_resolution", "appearance_dim",
-               "neural_texture_resolution", "mlp_depth", "mlp_width", "samples_per_ray", "decoder_width",
-               "decoder_min_width", "decoder_extra_layers")
+PAPER_SIZES = ("decoder.image_resolution", "encoder.reference_resolution", "decoder.feature_image_resolution",
+               "nerf.appearance_dim", "encoder.neural_texture_resolution", "nerf.mlp_depth", "nerf.mlp_width",
+               "sampler.samples_per_ray", "decoder.width", "decoder.min_width", "decoder.extra_layers")
 #: Fields the recipe may set apart from the bundled recipe: the sizes and the schedule.
-SCHEDULE = ("lr", "lr_final", "iterations", "generator_iterations", "segmentation_start")
-#: The bundled model's last run learned per-frame codes alone on its finished field (TRAINING.md, run 7):
-#: a stage after the field's recipe, which the GPU recipe trains (the codes would follow it the same way).
-CODES_STAGE = ("frame_code_resolution", "frame_code_lr_scale", "frame_codes", "trained_parameters")
-#: The issue's limit on the bundled weights.
+SCHEDULE = ("schedule.lr", "schedule.lr_final", "schedule.iterations", "schedule.generator_iterations",
+            "loss.segmentation_start")
+#: The bundled model's last stage learned per-frame codes alone on its finished field (its TRAINING.md): a
+#: stage after the field's recipe, which the GPU recipe trains (the codes would follow it the same way).
+CODES_STAGE = ("frame_codes.resolution", "frame_codes.lr_scale", "frame_codes.count", "schedule.trained_parameters")
+#: The demo budget's limit on the bundled weights.
 BUNDLE_LIMIT_BYTES = 25_000_000
+
+
+def dotted(cfg: ModelConfig) -> dict:
+    """``{"component.field": value}`` of every field of ``cfg``."""
+    return {f"{name}.{k}": v for name, part in cfg.to_dict().items() for k, v in part.items()}
 
 
 def bundled_config() -> ModelConfig:
@@ -36,10 +42,10 @@ def bundled_config() -> ModelConfig:
 
 
 def test_recipe_has_the_paper_sizes_and_the_bundled_recipe_otherwise():
-    recipe = read_model_config(RECIPE).to_dict()
-    paper = ModelConfig.paper().to_dict()
+    recipe = dotted(read_model_config(RECIPE))
+    paper = dotted(ModelConfig.paper())
     assert {k: recipe[k] for k in PAPER_SIZES} == {k: paper[k] for k in PAPER_SIZES}
-    bundled = bundled_config().to_dict()
+    bundled = dotted(bundled_config())
     differing = {k for k in recipe if recipe[k] != bundled[k]}
     allowed = set(PAPER_SIZES) | set(SCHEDULE) | set(CODES_STAGE)
     assert differing <= allowed, sorted(differing - allowed)

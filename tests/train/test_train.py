@@ -10,17 +10,17 @@ import socket
 import pytest
 import torch
 
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.runs import build_model, create_untrained_run, load_run, load_weights
 from garmentnerf.train.checkpoints import latest_checkpoint
-from garmentnerf.train.settings import TrainConfig, tiny_config
+from garmentnerf.train.settings import TrainConfig
 from garmentnerf.train.trainer import Trainer
-
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # bit-equal resumes need one thread
 
 
 def make_tc(scene, out, **kw) -> TrainConfig:
-    base = dict(scene=scene.root, out=out, model_config=tiny_config(), iterations=3, generator_iterations=2,
+    base = dict(scene=scene.root, out=out, model_config=ModelConfig.tiny(), iterations=3, generator_iterations=2,
                 perceptual="none", progress=False, log_every=1, image_every=2, ckpt_every=100)
     base.update(kw)
     return TrainConfig(**base)
@@ -59,7 +59,7 @@ def test_rigged_scene(tiny_scene):
 # ---------------------------------------------------------------------------------------- training
 def test_overfit_one_frame(tiny_scene, gl_context, tmp_path):
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=30, generator_iterations=0, frames=(1,),
-                 cameras=("cam00",), model_config=tiny_config().replace(lr=2e-3, lr_final=1e-3))
+                 cameras=("cam00",), model_config=ModelConfig.tiny().updated({"schedule.lr": 2e-3, "schedule.lr_final": 1e-3}))
     result, _ = run(tc, gl_context)
     totals = [h["total"] for h in result.history]
     assert len(totals) == 30 and all(h["stage"] == "nerf" for h in result.history)
@@ -96,7 +96,7 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
     # Checkpoint round trip: the newest checkpoint and model.safetensors hold the final weights.
     step, weights, _ = latest_checkpoint(tmp_path / "b")
     assert step == 5
-    model = build_model(tiny_config())
+    model = build_model(ModelConfig.tiny())
     load_weights(weights, model)
     for key, value in model.state_dict().items():
         assert torch.equal(value, rest_state[key].cpu()), key
@@ -113,14 +113,14 @@ def test_resume_equals_uninterrupted_and_ctrl_c(tiny_scene, gl_context, tmp_path
 
 
 def test_a_batch_is_the_mean_loss_of_its_images_drawn_in_the_single_image_order(tiny_scene, gl_context, tmp_path):
-    """cfg.batch_size 2: step s trains on the (frame, camera) pairs that single-image steps 2s and
+    """cfg.schedule.batch_size 2: step s trains on the (frame, camera) pairs that single-image steps 2s and
     2s + 1 would draw (so an epoch still visits every pair once), and the gradients accumulated
     image by image equal those of the two images' mean loss backpropagated as one graph."""
     from garmentnerf.train.trainer import _seed_of
 
     single = make_tc(tiny_scene, tmp_path / "single", generator_iterations=0)
     batched = make_tc(tiny_scene, tmp_path / "batched", generator_iterations=0,
-                      model_config=tiny_config().replace(batch_size=2))
+                      model_config=ModelConfig.tiny().updated({"schedule.batch_size": 2}))
     with Trainer(single, gl_context, log=lambda m: None) as tr:
         n = len(tr.pairs)
         order = [tr._pick(tr.pairs, s, 2) for s in range(2 * n)]
@@ -145,65 +145,22 @@ def test_a_batch_is_the_mean_loss_of_its_images_drawn_in_the_single_image_order(
         assert sum(float(g.abs().sum()) for g in accumulated) > 0
 
 
-def test_views_per_step_renders_one_frame_from_several_cameras_through_one_encoder_pass(
-        tiny_scene, gl_context, tmp_path, monkeypatch):
-    """cfg.views_per_step 2: an image of a NeRF step prepares its frame (E, G_en) once, renders it from
-    the drawn pair's camera and one other training camera, and its terms are the mean of the two
-    views' terms (the occupancy term, computed once for the frame, keeps its value); the views drawn
-    repeat for the same step (a resume renders the same ones)."""
-    import garmentnerf.train.trainer as trainer_module
-    from garmentnerf.train.trainer import _seed_of
-
-    cfg = tiny_config().replace(views_per_step=2, w_occupancy=0.1, occupancy_points=256)
-    tc = make_tc(tiny_scene, tmp_path / "views", generator_iterations=0, model_config=cfg)
-    per_view, prepared, rendered = [], [], []
-    losses = trainer_module.garment_losses
-
-    def recorded_losses(*args, **kwargs):
-        terms = losses(*args, **kwargs)
-        per_view.append({k: float(v.detach()) for k, v in terms.items()})
-        return terms
-
-    monkeypatch.setattr(trainer_module, "garment_losses", recorded_losses)
-    with Trainer(tc, gl_context, log=lambda m: None) as tr:
-        prepare, view = tr.model.prepare_frame, tr.data.frames.training_view
-        monkeypatch.setattr(tr.model, "prepare_frame", lambda *a, **k: prepared.append(1) or prepare(*a, **k))
-        monkeypatch.setattr(tr.data.frames, "training_view", lambda name, *a, **k: rendered.append(name) or view(name, *a, **k))
-        tr._enter_stage("nerf")
-        step = 3
-        terms, images = tr._nerf_step(step, 0, torch.Generator().manual_seed(_seed_of(tr.tc.seed, 0, step)))
-        first = list(rendered)
-        tr._nerf_step(step, 0, torch.Generator().manual_seed(_seed_of(tr.tc.seed, 0, step)))
-        _, _, cam = tr._pick(tr.pairs, step, 2, 0)
-    assert len(prepared) == 2 and len(per_view) == 4  # one encoder pass and two views per call
-    assert first[0] == cam and first[1] != cam and first[1] in tiny_scene.camera_names("train")
-    assert rendered[2:] == first
-    for key in terms:
-        assert float(terms[key].detach()) == pytest.approx((per_view[0][key] + per_view[1][key]) / 2, rel=1e-6), key
-    assert per_view[0]["occupancy"] == per_view[1]["occupancy"] == pytest.approx(float(terms["occupancy"].detach()))
-    assert per_view[0]["image"] != pytest.approx(per_view[1]["image"], rel=1e-3)  # two different images
-    assert images["pred"].shape == images["target"].shape
-    terms["total"].backward()
-    assert sum(float(p.grad.abs().sum()) for p in tr.params if p.grad is not None) > 0
-
-
-def test_encoder_lr_scale_gives_the_unets_their_own_rate():
-    """cfg.encoder_lr_scale: E and G_en form their own Adam group at that scale (and at 1 stay in the
-    main group, so optimiser states saved before the setting still load); a first Adam step, which
-    moves every weight by the rate (m / sqrt(v) = sign(g)), moves theirs 10 times as far."""
+def test_frame_codes_learn_at_their_own_rate():
+    """The per-frame codes form their own Adam group at ``frame_codes.lr_scale``; a first Adam step, which
+    moves every weight by the rate (m / sqrt(v) = sign(g)), moves theirs that many times as far."""
     from garmentnerf.train.trainer import param_groups
 
-    model = build_model(tiny_config())
+    cfg = ModelConfig.tiny().updated({"frame_codes.resolution": 4, "frame_codes.count": 3})
+    model = build_model(cfg)
     model.set_image_generator_frozen(True)
     params = [p for mod in model.trainable_modules().values() for p in mod.parameters() if p.requires_grad]
-    unets = {id(p) for p in [*model.encoder.parameters(), *model.detail_encoder.parameters()]}
-    assert unets and len(unets) < len(params)
-    plain = param_groups(model, params, tiny_config())
-    assert [g["lr_scale"] for g in plain] == [1.0] and len(plain[0]["params"]) == len(params)
-    groups = param_groups(model, params, tiny_config().replace(encoder_lr_scale=10.0))
+    codes = {id(p) for p in model.frame_codes.parameters()}
+    assert codes and len(codes) < len(params)
+    groups = param_groups(model, params, 10.0)
     assert [g["lr_scale"] for g in groups] == [1.0, 10.0]
-    assert {id(p) for p in groups[1]["params"]} == unets
-    assert not unets & {id(p) for p in groups[0]["params"]}
+    assert {id(p) for p in groups[1]["params"]} == codes
+    plain = param_groups(build_model(ModelConfig.tiny()), params, 10.0)  # no codes: one group
+    assert [g["lr_scale"] for g in plain] == [1.0] and len(plain[0]["params"]) == len(params)
 
     lr = 1e-3
     optimizer = torch.optim.Adam([{**g, "lr": lr * g["lr_scale"]} for g in groups], lr=lr)
@@ -212,9 +169,8 @@ def test_encoder_lr_scale_gives_the_unets_their_own_rate():
         p.grad = torch.full_like(p, 0.5)
     optimizer.step()
     for p, old in zip(params, before):
-        expected = lr * (10.0 if id(p) in unets else 1.0)
+        expected = lr * (10.0 if id(p) in codes else 1.0)
         torch.testing.assert_close(old - p.detach(), torch.full_like(old, expected), rtol=1e-4, atol=0)
-
 
 def test_refuses_non_empty_run_dir(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "busy"
@@ -229,7 +185,7 @@ def test_refuses_non_empty_run_dir(tiny_scene, gl_context, tmp_path):
 
 # ---------------------------------------------------------------------------------------- run folder
 def test_run_folder_errors(tiny_scene, tmp_path):
-    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, tiny_config(), seed=3)
+    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, ModelConfig.tiny(), seed=3)
     info = json.loads((run_dir / "run.json").read_text())
     assert info["format"] == "garmentnerf-run" and info["version"] == 1 and info["step"] == 0
     assert not os.path.isabs(info["scene"])
@@ -252,16 +208,16 @@ def test_run_folder_errors(tiny_scene, tmp_path):
 def test_mismatched_weights_and_checkpoints_are_rejected(tiny_scene, gl_context, tmp_path, capsys):
     from garmentnerf.cli.main import main
 
-    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, tiny_config(), seed=3)
-    wider = build_model(tiny_config().replace(mlp_width=48))
+    run_dir = create_untrained_run(tmp_path / "r", tiny_scene.root, ModelConfig.tiny(), seed=3)
+    wider = build_model(ModelConfig.tiny().updated({"nerf.mlp_width": 48}))
     with pytest.raises(ValueError, match=r"model\.safetensors: .* has shape .*the model config expects"):
         load_weights(run_dir / "model.safetensors", wider)
-    no_detail = build_model(tiny_config().replace(use_detail_feature=False))
+    no_detail = build_model(ModelConfig.tiny().updated({"encoder.detail_feature": False}))
     with pytest.raises(ValueError, match=r"weights do not match the model config \((missing|unexpected)"):
         load_weights(run_dir / "model.safetensors", no_detail)
     # a run whose run.json was edited to another size: one line naming the file, exit 2
     info = json.loads((run_dir / "run.json").read_text())
-    info["model_config"]["mlp_width"] = 48
+    info["model_config"]["nerf"]["mlp_width"] = 48
     (run_dir / "run.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="has shape"):
         load_run(run_dir)
@@ -329,7 +285,7 @@ def _ddp_worker(rank: int, world: int, port: int, scene_root: str, out: str, res
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
-    tc = TrainConfig(scene=scene_root, out=out, model_config=tiny_config(), iterations=2, generator_iterations=1,
+    tc = TrainConfig(scene=scene_root, out=out, model_config=ModelConfig.tiny(), iterations=2, generator_iterations=1,
                      perceptual="none", progress=False, ckpt_every=100)
     with Trainer(tc, log=lambda m: None) as tr:
         picks = [tr._pick(tr.pairs, s, 2) for s in range(1, 3)]
@@ -359,12 +315,12 @@ def test_training_targets_carry_the_garment_share(tiny_scene, gl_context):
     from garmentnerf.data.scene_images import SceneImages
     from garmentnerf.train.frames import SceneFrames
 
-    cfg = tiny_config()
+    cfg = ModelConfig.tiny()
     with SceneFrames(tiny_scene, cfg, gl_context) as frames:
         image, mask, garment = frames.target("train", "cam01", 1)
     with SceneImages(tiny_scene) as images:
         _, labels = images.image("train", "cam01", 1)
-    R = cfg.image_resolution
+    R = cfg.decoder.image_resolution
     want_garment = cv2.resize((labels == 2).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
     want_mask = cv2.resize((labels != 0).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
     assert garment.shape == mask.shape == (1, R, R) and garment.max() > 0.5
@@ -387,13 +343,13 @@ def test_a_layered_garment_trains_one_palette_color_per_layer(tmp_path, gl_conte
     scene = make_rigged_scene(tmp_path / "dress", garment="dress", motion="walk", frames=2, views=3, size=64,
                               held_out_views=1, gl_context=gl_context)
     assert len(scene.palette_init["garment_layers"]) == 2
-    cfg = tiny_config().replace(palette_size=3, w_segmentation=1.0, segmentation_start=0)
+    cfg = ModelConfig.tiny().updated({"decoder.palette_size": 3, "loss.segmentation": 1.0, "loss.segmentation_start": 0})
     with SceneFrames(scene, cfg, gl_context) as frames:
         _, mask, layers = frames.target("train", "cam00", 1)
     with SceneImages(scene) as images:
         _, labels = images.image("train", "cam00", 1)
     assert (labels == 2).sum() > 20 and (labels == 3).sum() > 20
-    R = cfg.image_resolution
+    R = cfg.decoder.image_resolution
     assert layers.shape == (2, R, R)
     for k in range(2):
         want = cv2.resize((labels == 2 + k).astype(np.float32), (R, R), interpolation=cv2.INTER_AREA)
@@ -409,8 +365,7 @@ def test_a_layered_garment_trains_one_palette_color_per_layer(tmp_path, gl_conte
 
 def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_path):
     tc = make_tc(tiny_scene, tmp_path / "run", iterations=20, generator_iterations=0, frames=(1,),
-                 cameras=("cam00",), model_config=tiny_config().replace(lr=1e-2, lr_final=5e-3, w_segmentation=1.0,
-                                                                        segmentation_start=3))
+                 cameras=("cam00",), model_config=ModelConfig.tiny().updated({"schedule.lr": 1e-2, "schedule.lr_final": 5e-3, "loss.segmentation": 1.0, "loss.segmentation_start": 3}))
     result, _ = run(tc, gl_context)
     assert all("segmentation" not in h for h in result.history[:3])  # not before segmentation_start
     seg = [h["segmentation"] for h in result.history[3:]]
@@ -419,91 +374,26 @@ def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_pat
     assert min(seg[10:]) < 0.85 * seg[0], seg
 
 
-def test_occupancy_term_teaches_the_density_where_the_garment_is(tiny_scene, gl_context, tmp_path):
-    import numpy as np
-
-    from garmentnerf.data.scene import read_garment_arrays
-    from garmentnerf.geometry.projection import SurfaceProjector
-    from garmentnerf.model.occupancy import occupancy_iou, occupancy_labels, occupancy_points
-    from garmentnerf.model.samplers import padded_box
-
-    cfg = tiny_config().replace(lr=1e-2, lr_final=5e-3, w_occupancy=1.0, occupancy_points=2048)
-    tc = make_tc(tiny_scene, tmp_path / "run", iterations=25, generator_iterations=0, frames=(1,), model_config=cfg)
-    arrays = read_garment_arrays(tiny_scene.garment_path("train"))
-    projector = SurfaceProjector(arrays.faces, arrays.vertices.shape[1])
-
-    def iou(tr) -> float:
-        """The density's IoU with the labels at fresh points of frame 1 (not the training draws)."""
-        with torch.no_grad():
-            feats = tr.model.prepare_frame(tr._nerf_inputs("train", 1))
-            box = padded_box(feats.aabb, cfg.bbox_padding)
-            pts = occupancy_points(torch.from_numpy(np.ascontiguousarray(arrays.vertices[1])), projector, box, 4000,
-                                   4000, cfg.occupancy_spread, torch.Generator().manual_seed(99))
-            height = tr.model.sample_geometry(feats, pts.positions).signed_distance.cpu()
-            labels = occupancy_labels(pts.garment_distance, height, cfg.occupancy_half_thickness)
-            sigma, _, _ = tr.model.evaluate_samples(feats, pts.positions)
-        return occupancy_iou(sigma, labels, cfg.occupancy_step)
-
-    with Trainer(tc, gl_context, log=lambda m: None) as tr:
-        before = iou(tr)
-        result = tr.train()
-        after = iou(tr)
-    occ = [h["occupancy"] for h in result.history]
-    assert len(occ) == 25 and all(np.isfinite(occ))
-    assert min(occ[-5:]) < 0.7 * occ[0], occ
-    assert after > before + 0.1, (before, after)
-
-
-def test_geometry_warm_up_trains_the_occupancy_alone_then_renders_and_resumes_exactly(tiny_scene, gl_context,
-                                                                                         tmp_path, monkeypatch):
-    from garmentnerf.model.pipeline import GarmentAnimationNeRF
-
-    cfg = tiny_config().replace(iterations=5, geometry_iterations=3, w_occupancy=0.5, occupancy_points=1024)
-    renders = []
-    original_render = GarmentAnimationNeRF.render
-
-    def counting(self, *args, **kwargs):
-        renders.append(1)
-        return original_render(self, *args, **kwargs)
-
-    monkeypatch.setattr(GarmentAnimationNeRF, "render", counting)
-    full, full_state = run(make_tc(tiny_scene, tmp_path / "a", generator_iterations=0, iterations=5,
-                                   model_config=cfg), gl_context)
-    monkeypatch.setattr(GarmentAnimationNeRF, "render", original_render)
-    assert len(renders) == 2  # the two image steps; the three geometry steps render nothing
-    geometry, images = full.history[:3], full.history[3:]
-    assert all(set(h) == {"step", "stage", "occupancy", "total"} and h["total"] == h["occupancy"] for h in geometry)
-    assert all({"image", "occupancy", "psnr"} <= set(h) for h in images)
-    # interrupted after the second geometry step, resumed across the boundary: the same run
-    part, _ = run(make_tc(tiny_scene, tmp_path / "b", generator_iterations=0, iterations=5, model_config=cfg,
-                          stop_after=2), gl_context)
-    assert part.step == 2 and not part.finished
-    rest, rest_state = run(make_tc(tiny_scene, tmp_path / "b", resume=True, generator_iterations=0, iterations=5),
-                           gl_context)
-    assert [h["step"] for h in rest.history] == [3, 4, 5]
-    assert_same_steps(full.history[2:], rest.history, full_state, rest_state)
-
-
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "run"
-    base = tiny_config().replace(w_segmentation=0.0, segmentation_start=0)
+    base = ModelConfig.tiny().updated({"loss.segmentation": 0.0, "loss.segmentation_start": 0})
     first, _ = run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, stop_after=2, model_config=base),
                    gl_context)
     assert first.step == 2 and all("segmentation" not in h for h in first.history)
     rest, _ = run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, resume=True,
-                          loss_weights={"w_segmentation": 0.25}), gl_context)
+                          loss_weights={"segmentation": 0.25}), gl_context)
     assert [h["step"] for h in rest.history] == [3, 4]
     for h in rest.history:  # the new term is in the objective with its new weight
-        weighted = sum(getattr(base.replace(w_segmentation=0.25), f"w_{k}") * v
+        weighted = sum(getattr(base.updated({"loss.segmentation": 0.25}).loss, k) * v
                        for k, v in h.items() if k not in ("step", "stage", "total", "psnr"))
         assert h["total"] == pytest.approx(weighted, rel=1e-5)
     info = json.loads((out / "run.json").read_text())
-    assert info["model_config"]["w_segmentation"] == 0.25
-    assert info["loss_weight_changes"] == [{"step": 2, "w_segmentation": [0.0, 0.25]}]
-    with pytest.raises(ValueError, match="unknown loss weight 'w_bogus'"):
-        make_tc(tiny_scene, out, resume=True, loss_weights={"w_bogus": 1.0}).validate()
+    assert info["model_config"]["loss"]["segmentation"] == 0.25
+    assert info["loss_weight_changes"] == [{"step": 2, "segmentation": [0.0, 0.25]}]
+    with pytest.raises(ValueError, match="unknown loss weight 'bogus'"):
+        make_tc(tiny_scene, out, resume=True, loss_weights={"bogus": 1.0}).validate()
     with pytest.raises(ValueError, match="must be a finite number >= 0"):
-        make_tc(tiny_scene, out, resume=True, loss_weights={"w_mask": -1.0}).validate()
+        make_tc(tiny_scene, out, resume=True, loss_weights={"mask": -1.0}).validate()
 
 
 def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_path):
@@ -545,80 +435,20 @@ def test_training_composes_with_the_rasterised_body(tiny_scene, gl_context, tmp_
             gl_context)
 
 
-def test_training_in_the_shell_samples_as_the_reference_render_of_the_run(tiny_scene, gl_context, tmp_path):
-    from garmentnerf.model.height_band import (SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range,
-                                               save_height_range)
-    from garmentnerf.render.shell_sampler import ShellSampler
-    from garmentnerf.render.session import RenderSession
-
-    cfg = tiny_config().replace(sampler="shell", shell_spacing="shell")
-    tc = make_tc(tiny_scene, tmp_path / "run", iterations=3, generator_iterations=0, model_config=cfg)
-    placed = []
-    with Trainer(tc, gl_context, log=lambda m: None) as tr:
-        plan = tr.sampling
-        assert isinstance(plan.sampler, ShellSampler) and plan.sampler.occlusion and plan.sampler.spacing == "shell"
-        band = measure_height_range(tiny_scene, tr.model.body, None, tr.model.projector)
-        assert plan.sample_filter.band.h_max == band.h_max and plan.sample_filter.band.h_min == band.h_min
-        render = tr.model.render
-        tr.model.render = lambda *a, **k: placed.append(k["sampler"]) or render(*a, **k)
-        result = tr.train()
-    assert result.finished and len(placed) == 3 and all(s is plan.sampler for s in placed)
-    assert all(torch.isfinite(torch.tensor(h["total"])) for h in result.history)
-    # The run keeps the band it was trained with ...
-    stored = load_height_range(tmp_path / "run" / SHELL_BAND_FILE)
-    assert (stored.h_min, stored.h_max) == (band.h_min, band.h_max)
-    assert torch.equal(stored.vertex_h_max, band.vertex_h_max)
-    # ... and its renders use that band, not one measured again on the scene they are shown.
-    save_height_range(tmp_path / "run" / SHELL_BAND_FILE, HeightRange(-0.07, 0.21, "test"))
-    session = RenderSession(load_run(tmp_path / "run"), gl_context)
-    try:
-        ref = session.sampling("reference")
-        assert isinstance(ref.sampler, ShellSampler) and ref.sampler.spacing == "shell" and ref.sampler.occlusion
-        assert (ref.sample_filter.band.h_min, ref.sample_filter.band.h_max) == (-0.07, 0.21)
-        assert ref.sampler.occlusion_margin == pytest.approx(0.07)
-    finally:
-        session.close()
-    # A resume reads the run's copy.
-    tc2 = make_tc(tiny_scene, tmp_path / "run", iterations=3, generator_iterations=0, model_config=cfg, resume=True)
-    with Trainer(tc2, gl_context, log=lambda m: None) as tr:
-        assert (tr.shell_band.h_min, tr.shell_band.h_max) == (-0.07, 0.21)
-
-
-@pytest.mark.parametrize("option, module, channels", [
-    ("world_normals", "encoder", lambda cfg: cfg.encoder_in_channels),  # E sees the world normal map
-    ("shading_normals", "decoder", lambda cfg: cfg.feature_image_channels),  # M_D sees the rendered normal
-    ("depth_normals", "decoder", lambda cfg: cfg.feature_image_channels),  # M_D sees the depth's normal
-])
-def test_a_run_with_normals_trains_saves_and_loads_with_the_wider_first_conv(tiny_scene, gl_context, tmp_path,
-                                                                            option, module, channels):
-    """``world_normals`` / ``shading_normals`` / ``depth_normals``: E / the decoder takes 3 more input
-    channels; a run trains, saves and loads with them."""
-    cfg = tiny_config().replace(**{option: True})
+def test_a_run_with_shading_normals_trains_saves_and_loads_with_the_wider_first_conv(tiny_scene, gl_context,
+                                                                                    tmp_path):
+    """``nerf.shading_normals``: the decoder takes 3 more input channels; a run trains, saves and loads with them."""
+    module, channels = "decoder", lambda cfg: cfg.nerf.zeta_channels
+    cfg = ModelConfig.tiny().updated({"nerf.shading_normals": True})
     result, state = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
                         gl_context)
     first_conv = [v for k, v in state.items() if k.startswith(module + ".") and v.ndim == 4][0]
-    assert first_conv.shape[1] == channels(cfg) == channels(tiny_config()) + 3
+    assert first_conv.shape[1] == channels(cfg) == channels(ModelConfig.tiny()) + 3
     assert all(math.isfinite(h["total"]) for h in result.history)
     loaded = load_run(tmp_path / "r")
-    assert getattr(loaded.config, option)
+    assert loaded.config.nerf.shading_normals
     convs = [m for m in loaded.model.get_submodule(module).modules() if isinstance(m, torch.nn.Conv2d)]
     assert convs[0].in_channels == channels(cfg)
-
-
-def test_a_run_with_importance_sampling_trains_saves_and_loads(tiny_scene, gl_context, tmp_path):
-    """``importance_samples``: each step renders the fine samples of a coarse pass; the run saves the
-    setting and its loaded model samples that way. ``w_distortion`` adds its term to every step."""
-    from garmentnerf.model.importance_sampler import ImportanceSampler
-
-    cfg = tiny_config().replace(importance_samples=6, w_distortion=0.1)
-    result, _ = run(make_tc(tiny_scene, tmp_path / "r", generator_iterations=0, iterations=2, model_config=cfg),
-                    gl_context)
-    assert all(math.isfinite(h["total"]) for h in result.history)
-    assert all(0 < h["distortion"] < 2.0 for h in result.history)  # metres: under the box's size
-    loaded = load_run(tmp_path / "r")
-    assert loaded.config.importance_samples == 6
-    assert isinstance(loaded.model.box_sampler(loaded.config.samples_per_ray), ImportanceSampler)
-
 
 
 def _spinning_processes(count: int) -> list:

@@ -93,7 +93,7 @@ def test_resume_keeps_the_runs_settings_and_refuses_other_ones(tiny_scene, tmp_p
     assert (train["log_every"], train["image_every"], train["stop_after"]) == (1, 0, 5)
     # the scene came from the run's record (relative to the run folder): recorded as the folder itself
     assert ".." not in train["scene"] and Path(train["scene"]).samefile(tiny_scene.root)
-    assert info["model_config"]["iterations"] == 6
+    assert info["model_config"]["schedule"]["iterations"] == 6
     assert info["overrides"] == [{"step": 3, "stop_after": [3, 5]}]
     # every 2 steps (the run's interval), not every 1000 (the option's default): 2, 3 (stop), 4, 5 (stop)
     assert checkpoint_names(out) == ["ckpt_4.safetensors", "ckpt_4.state.pt", "ckpt_5.safetensors",

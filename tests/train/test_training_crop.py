@@ -12,10 +12,11 @@ import pytest
 import torch
 
 from garmentnerf.conventions import project_points
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.render.screen_rect import PixelRect
 from garmentnerf.runs import load_run
 from garmentnerf.train.frames import SceneFrames, character_window
-from garmentnerf.train.settings import TrainConfig, tiny_config
+from garmentnerf.train.settings import TrainConfig
 from garmentnerf.train.trainer import Trainer
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -23,7 +24,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def crop_config(density: float = 1.0):
     """The tiny model on 32 x 32 windows (8 x 8 rays) of the tiny scene's 64 x 64 images."""
-    return tiny_config().replace(image_resolution=32, feature_image_resolution=8, training_crop_density=density)
+    return ModelConfig.tiny().updated({"decoder.image_resolution": 32, "decoder.feature_image_resolution": 8, "schedule.training_crop_density": density})
 
 
 # ---------------------------------------------------------------------------------------- placement
@@ -83,7 +84,7 @@ def test_window_camera_and_target_are_the_scene_pixels(tiny_scene, gl_context):
 def test_half_density_target_is_the_area_downsampled_scene_image(tiny_scene, gl_context):
     from garmentnerf.data.scene_images import SceneImages
 
-    cfg = tiny_config().replace(image_resolution=16, feature_image_resolution=4, training_crop_density=0.5)
+    cfg = ModelConfig.tiny().updated({"decoder.image_resolution": 16, "decoder.feature_image_resolution": 4, "schedule.training_crop_density": 0.5})
     with SceneFrames(tiny_scene, cfg, gl_context) as frames:
         assert (frames.camera("cam00").width, frames.camera("cam00").height) == (32, 32)
         box = torch.tensor([[-0.4, -0.3, 0.0], [0.4, 0.3, 1.7]], dtype=torch.float64)
@@ -97,20 +98,20 @@ def test_half_density_target_is_the_area_downsampled_scene_image(tiny_scene, gl_
 
 
 def test_whole_frame_training_is_unchanged(tiny_scene, gl_context):
-    cfg = tiny_config()
+    cfg = ModelConfig.tiny()
     with SceneFrames(tiny_scene, cfg, gl_context) as frames:
         box = torch.tensor([[-0.4, -0.3, 0.0], [0.4, 0.3, 1.7]], dtype=torch.float64)
         gen = torch.Generator().manual_seed(0)
         state = gen.get_state()
         view, window = frames.training_view("cam02", box, gen)
         assert window is None and torch.equal(gen.get_state(), state)  # draws nothing: old runs resume the same
-        R = cfg.image_resolution
+        R = cfg.decoder.image_resolution
         np.testing.assert_allclose(view.K, tiny_scene.camera("cam02").camera.resized(R, R).K)
 
 
 # ---------------------------------------------------------------------------------------- runs
 def _tc(scene, out, **kw) -> TrainConfig:
-    base = dict(scene=scene.root, out=out, model_config=tiny_config(), iterations=2, generator_iterations=1,
+    base = dict(scene=scene.root, out=out, model_config=ModelConfig.tiny(), iterations=2, generator_iterations=1,
                 perceptual="none", progress=False, log_every=1, image_every=0, ckpt_every=100)
     base.update(kw)
     return TrainConfig(**base)
@@ -126,7 +127,7 @@ def test_crop_run_is_recorded_read_back_and_kept_on_resume(tiny_scene, gl_contex
         result = tr.train()
     assert result.finished and all(np.isfinite(h["total"]) for h in result.history)
     info = json.loads((out / "run.json").read_text())
-    assert info["model_config"]["training_crop_density"] == 1.0
+    assert info["model_config"]["schedule"]["training_crop_density"] == 1.0
     assert info["train"]["preset"] is None  # 32 x 32 images: no preset's sizes
     run = load_run(out)
     native = tiny_scene.camera("held00").camera
@@ -139,7 +140,7 @@ def test_crop_run_is_recorded_read_back_and_kept_on_resume(tiny_scene, gl_contex
     finally:
         session.close()
     # ... where a whole-frame model of the same image size renders it at 32 / 64
-    assert eval_size(tiny_config().replace(image_resolution=32, feature_image_resolution=8), native,
+    assert eval_size(ModelConfig.tiny().updated({"decoder.image_resolution": 32, "decoder.feature_image_resolution": 8}), native,
                      "model") == (32, 32)
     with pytest.raises(ValueError, match="--training-crop-density 0.5: the run .* was trained with 1"):
         Trainer(_tc(tiny_scene, out, model_config=None, iterations=None, generator_iterations=None, resume=True,
@@ -178,41 +179,6 @@ def test_init_weights_starts_the_nerf_stage_from_every_weight(tiny_scene, gl_con
         _tc(tiny_scene, tmp_path / "x", training_crop_density=-1.0).validate()
 
 
-def test_init_weights_without_the_atlas_branch_adds_it_as_a_no_op(tiny_scene, gl_context, tmp_path):
-    """A config with ``atlas_feature_channels`` fine-tunes weights trained without it: the branch
-    starts at its initialisation (its MLP weights zero) and learns at ``atlas_feature_lr_scale``."""
-    from safetensors.torch import load_file
-
-    donor_run = tmp_path / "donor"
-    with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:
-        tr.train()
-    donor = load_file(str(donor_run / "model.safetensors"))
-    cfg = tiny_config().replace(atlas_feature_channels=2, atlas_feature_resolution=16, atlas_feature_lr_scale=5.0)
-    messages = []
-    tc = _tc(tiny_scene, tmp_path / "atlas", model_config=cfg, init_weights=donor_run / "model.safetensors",
-             iterations=1)
-    with Trainer(tc, gl_context, log=messages.append) as tr:
-        state = tr.model.state_dict()
-        assert all(torch.equal(state[k], v) for k, v in donor.items())
-        assert not state["nerf.atlas_input.weight"].any()
-        new = [k for k in state if k not in donor]
-        assert new and all(k.startswith(("atlas_features.", "nerf.atlas_input.")) for k in new)
-        assert any("in this config" in m and "nerf.atlas_input.weight" in m for m in messages)
-        result = tr.train()
-        scales = sorted(g["lr_scale"] for g in tr.optimizer.param_groups)
-        lrs = sorted(g["lr"] for g in tr.optimizer.param_groups)
-        branch = {id(p) for g in tr.optimizer.param_groups if g["lr_scale"] == 5.0 for p in g["params"]}
-        assert branch == {id(p) for name, p in tr.model.named_parameters() if name.startswith(tuple(new))}
-    assert result.finished and scales == [1.0, 5.0] and lrs[1] == pytest.approx(5.0 * lrs[0])
-    trained = load_file(str(tmp_path / "atlas" / "model.safetensors"))
-    assert trained["nerf.atlas_input.weight"].abs().sum() > 0  # one step moved the branch off zero
-    # weights missing anything else still fail, naming the file
-    with pytest.raises(ValueError, match="donor.*missing"):
-        with Trainer(_tc(tiny_scene, tmp_path / "wider", model_config=tiny_config().replace(mlp_depth=3),
-                         init_weights=donor_run / "model.safetensors"), gl_context, log=lambda m: None):
-            pass
-
-
 def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(tiny_scene, gl_context, tmp_path):
     """A config with a wider NeRF MLP fine-tunes a narrower one's weights: every other weight is
     the donor's, the MLP's density and zeta equal the donor MLP's on random samples (new units
@@ -225,10 +191,10 @@ def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(t
     with Trainer(_tc(tiny_scene, donor_run), gl_context, log=lambda m: None) as tr:
         tr.train()
     donor = load_file(str(donor_run / "model.safetensors"))
-    narrow = build_model(tiny_config())
+    narrow = build_model(ModelConfig.tiny())
     load_weights(donor_run / "model.safetensors", narrow)
-    width = tiny_config().mlp_width
-    cfg = tiny_config().replace(mlp_width=2 * width)
+    width = ModelConfig.tiny().nerf.mlp_width
+    cfg = ModelConfig.tiny().updated({"nerf.mlp_width": 2 * width})
     messages = []
     tc = _tc(tiny_scene, tmp_path / "wide", model_config=cfg, init_weights=donor_run / "model.safetensors",
              iterations=1)
@@ -260,38 +226,15 @@ def test_init_weights_into_a_wider_mlp_computes_the_narrow_one_and_then_learns(t
         load_weights(donor_run / "model.safetensors", build_model(cfg))
     # a narrower MLP cannot take a wider one's weights
     with pytest.raises(ValueError, match="has shape"):
-        with Trainer(_tc(tiny_scene, tmp_path / "narrower", model_config=tiny_config().replace(mlp_width=width // 2),
+        with Trainer(_tc(tiny_scene, tmp_path / "narrower", model_config=ModelConfig.tiny().updated({"nerf.mlp_width": width // 2}),
                          init_weights=donor_run / "model.safetensors"), gl_context, log=lambda m: None):
             pass
-
-
-def test_atlas_branch_resumes_exactly(tiny_scene, gl_context, tmp_path):
-    """Stopped and resumed, a run with the atlas branch ends with the uninterrupted run's weights:
-    the optimiser's two parameter groups and their learning-rate scales come back from the checkpoint."""
-    from safetensors.torch import load_file
-
-    cfg = tiny_config().replace(atlas_feature_channels=2, atlas_feature_resolution=16, atlas_feature_lr_scale=5.0)
-    with Trainer(_tc(tiny_scene, tmp_path / "whole", model_config=cfg, iterations=3), gl_context,
-                 log=lambda m: None) as tr:
-        tr.train()
-    with Trainer(_tc(tiny_scene, tmp_path / "split", model_config=cfg, iterations=3, stop_after=2, ckpt_every=1),
-                 gl_context, log=lambda m: None) as tr:
-        assert not tr.train().finished
-    with Trainer(_tc(tiny_scene, tmp_path / "split", model_config=None, iterations=None, generator_iterations=None,
-                     resume=True), gl_context, log=lambda m: None) as tr:
-        assert tr.train().finished
-        assert sorted(g["lr_scale"] for g in tr.optimizer.param_groups) == [1.0, 5.0]
-    whole = load_file(str(tmp_path / "whole" / "model.safetensors"))
-    split = load_file(str(tmp_path / "split" / "model.safetensors"))
-    assert whole.keys() == split.keys() and any(k.startswith("atlas_features.") for k in whole)
-    for key, value in whole.items():
-        torch.testing.assert_close(split[key], value, atol=1e-6, rtol=0, msg=key)
 
 
 def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_path, capsys):
     from garmentnerf.cli.main import main
 
-    cfg = crop_config(1.0).replace(lr=3e-4, lr_final=1e-4, segmentation_start=0)
+    cfg = crop_config(1.0).updated({"schedule.lr": 3e-4, "schedule.lr_final": 1e-4, "loss.segmentation_start": 0})
     config_file = tmp_path / "config.json"
     config_file.write_text(json.dumps(cfg.to_dict()))
     common = ["--scene", str(tiny_scene.root), "--generator-iterations", "1", "--no-progress", "--threads", "1",
@@ -299,13 +242,14 @@ def test_cli_model_config_from_a_file_or_a_run_and_fine_tuning(tiny_scene, tmp_p
     first = tmp_path / "first"
     assert main(["train", "--out", str(first), "--model-config", str(config_file), "--iterations", "1", *common]) == 0
     recorded = json.loads((first / "run.json").read_text())["model_config"]
-    assert recorded == {**cfg.to_dict(), "iterations": 1, "generator_iterations": 1}
+    assert recorded == cfg.updated({"schedule.iterations": 1, "schedule.generator_iterations": 1}).to_dict()
     # the same recipe again from the run's run.json, fine-tuning the first run's weights
     second = tmp_path / "second"
     assert main(["train", "--out", str(second), "--model-config", str(first / "run.json"), "--iterations", "2",
                  "--init-weights", str(first / "model.safetensors"), *common]) == 0
     again = json.loads((second / "run.json").read_text())
-    assert again["model_config"] == {**recorded, "iterations": 2} and again["step"] == 3
+    assert again["model_config"] == ModelConfig.from_dict(recorded).updated({"schedule.iterations": 2}).to_dict()
+    assert again["step"] == 3
     capsys.readouterr()
     bad = tmp_path / "bad.json"
     bad.write_text('{"image_resolution": 32, "no_such_field": 1}')

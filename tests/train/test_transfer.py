@@ -5,8 +5,8 @@ weights in the file's proportions."""
 import pytest
 import torch
 
+from garmentnerf.model.config import ModelConfig
 from garmentnerf.runs import build_model, load_weights, save_weights
-from garmentnerf.train.settings import tiny_config
 from garmentnerf.train.transfer import palette_channel_sources, transfer_garment_state
 
 #: A layered garment's scene colours: inner layer, outer layer, body.
@@ -30,12 +30,12 @@ def _decoded(model, features):
 
 def test_a_one_layer_run_starts_a_layered_garment_with_shading_normals(tmp_path):
     torch.manual_seed(0)
-    skirt = build_model(tiny_config())
+    skirt = build_model(ModelConfig.tiny())
     with torch.no_grad():  # trained-looking weights: nothing zero or symmetric by chance
         for p in skirt.decoder.parameters():
             p.add_(0.3 * torch.randn_like(p))
     save_weights(tmp_path / "skirt.safetensors", skirt)
-    dress_cfg = tiny_config().replace(palette_size=3, shading_normals=True)
+    dress_cfg = ModelConfig.tiny().updated({"decoder.palette_size": 3, "nerf.shading_normals": True})
     dress = build_model(dress_cfg, LAYERED_PALETTE)
     dress_palette = dress.palette.colors.detach().clone()
     with pytest.raises(ValueError, match="has shape"):  # without the adapter the shapes do not match
@@ -45,7 +45,7 @@ def test_a_one_layer_run_starts_a_layered_garment_with_shading_normals(tmp_path)
     assert {"decoder.head.weight", "decoder.head.bias", "palette.colors", "palette.initial"} <= set(changed)
     assert any(k.startswith("decoder.body.") for k in changed)  # the first conv's input columns
 
-    features = torch.randn(2, tiny_config().feature_image_channels, 6, 5)
+    features = torch.randn(2, ModelConfig.tiny().nerf.zeta_channels, 6, 5)
     normals = torch.randn(2, 3, 6, 5)
     a = _decoded(skirt, features)
     b = _decoded(dress, torch.cat([features, normals], dim=1))
@@ -63,7 +63,7 @@ def test_a_one_layer_run_starts_a_layered_garment_with_shading_normals(tmp_path)
 
 
 def test_matching_weights_pass_unchanged():
-    model = build_model(tiny_config())
+    model = build_model(ModelConfig.tiny())
     own = model.state_dict()
     state = {k: v.clone() for k, v in own.items()}
     assert transfer_garment_state(state, own) == []
@@ -76,11 +76,11 @@ def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours():
     scene's colours replace it and the decoder is left as it is; a continuation of the same garment (its
     file packed in float16) keeps the colours it learned."""
     torch.manual_seed(1)
-    skirt = build_model(tiny_config(), {"garment": [0.03, 0.20, 0.35], "body": [0.41, 0.32, 0.28]})
+    skirt = build_model(ModelConfig.tiny(), {"garment": [0.03, 0.20, 0.35], "body": [0.41, 0.32, 0.28]})
     with torch.no_grad():
         skirt.palette.colors.add_(0.05)   # learned colours, away from the initial ones
     state = {k: v.detach().clone() for k, v in skirt.state_dict().items()}
-    tshirt = build_model(tiny_config(), {"garment": [0.44, 0.05, 0.06], "body": [0.41, 0.32, 0.28]})
+    tshirt = build_model(ModelConfig.tiny(), {"garment": [0.44, 0.05, 0.06], "body": [0.41, 0.32, 0.28]})
     own = tshirt.state_dict()
     assert transfer_garment_state(state, own) == ["palette.colors", "palette.initial"]
     torch.testing.assert_close(state["palette.initial"][0], torch.tensor([0.44, 0.05, 0.06]))
@@ -88,7 +88,7 @@ def test_another_garment_of_the_same_palette_size_takes_the_new_scene_colours():
     assert torch.equal(state["decoder.head.weight"], skirt.state_dict()["decoder.head.weight"])
 
     continued = {k: v.detach().clone().half().float() for k, v in skirt.state_dict().items()}  # a packed demo
-    again = build_model(tiny_config(), {"garment": [0.03, 0.20, 0.35], "body": [0.41, 0.32, 0.28]})
+    again = build_model(ModelConfig.tiny(), {"garment": [0.03, 0.20, 0.35], "body": [0.41, 0.32, 0.28]})
     assert transfer_garment_state(continued, again.state_dict()) == []
     torch.testing.assert_close(continued["palette.colors"], skirt.palette.colors.detach().half().float())
     assert not torch.allclose(continued["palette.colors"], again.palette.colors.detach(), atol=1e-2)
@@ -100,11 +100,11 @@ def test_the_caller_says_which_garment_a_file_is_over_its_starting_colours():
     another garment's when the caller says that."""
     torch.manual_seed(2)
     scene_colours = {"garment": [0.51, 0.35, 0.05], "body": [0.41, 0.32, 0.28]}
-    first = build_model(tiny_config(), {"garment": [0.96, 0.66, 0.08], "body": [0.41, 0.32, 0.28]})
+    first = build_model(ModelConfig.tiny(), {"garment": [0.96, 0.66, 0.08], "body": [0.41, 0.32, 0.28]})
     with torch.no_grad():
         first.palette.colors.mul_(1.5).clamp_(0, 1)
     state = {k: v.detach().clone() for k, v in first.state_dict().items()}
-    own = build_model(tiny_config(), scene_colours).state_dict()
+    own = build_model(ModelConfig.tiny(), scene_colours).state_dict()
     assert transfer_garment_state(dict(state), own) == ["palette.colors", "palette.initial"]  # colours alone
     kept = dict(state)
     assert transfer_garment_state(kept, own, same_garment=True) == []
@@ -116,7 +116,7 @@ def test_the_caller_says_which_garment_a_file_is_over_its_starting_colours():
 def test_run_garment_reads_the_scene_recorded_beside_the_weights(tiny_scene, tmp_path):
     from garmentnerf.runs import create_untrained_run, run_garment
 
-    run = create_untrained_run(tmp_path / "run", tiny_scene.root, tiny_config())
+    run = create_untrained_run(tmp_path / "run", tiny_scene.root, ModelConfig.tiny())
     assert run_garment(run) == tiny_scene.garment and run_garment(run)["kind"] == "skirt"
     assert run_garment(tmp_path) is None                     # no run.json
     (run / "run.json").write_text((run / "run.json").read_text().replace(
@@ -136,7 +136,7 @@ def test_continuing_a_run_whose_palette_started_elsewhere_keeps_its_learned_colo
     from garmentnerf.train.trainer import Trainer
 
     def config(out, init):
-        return TrainConfig(scene=tiny_scene.root, out=out, model_config=tiny_config(), iterations=2,
+        return TrainConfig(scene=tiny_scene.root, out=out, model_config=ModelConfig.tiny(), iterations=2,
                            generator_iterations=1, perceptual="none", progress=False, log_every=1, image_every=0,
                            ckpt_every=100, init_weights=init)
 

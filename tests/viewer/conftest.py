@@ -55,7 +55,7 @@ def xvfb():
 
 @pytest.fixture(scope="module")
 def untrained_run(tiny_scene, tmp_path_factory):
+    from garmentnerf.model.config import ModelConfig
     from garmentnerf.runs import create_untrained_run
-    from garmentnerf.train.settings import tiny_config
 
-    return create_untrained_run(tmp_path_factory.mktemp("viewer_run") / "run", tiny_scene.root, tiny_config())
+    return create_untrained_run(tmp_path_factory.mktemp("viewer_run") / "run", tiny_scene.root, ModelConfig.tiny())

@@ -1,4 +1,4 @@
-"""Watching a run while it trains (issue 28): a checkpoint written atomically beside a running
+"""Watching a run while it trains: a checkpoint written atomically beside a running
 watcher is loaded off the UI thread into a new model, and the neural view renders with it."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import torch
 def _write_checkpoint(run_dir, model, step: int) -> None:
     """What the trainer writes (:meth:`Trainer.save_checkpoint`): the weights, then the state, each atomically."""
     from garmentnerf.io_utils import write_file_atomic
-    from garmentnerf.train.checkpoints import checkpoint_files
     from garmentnerf.runs import save_weights
+    from garmentnerf.train.checkpoints import checkpoint_files
 
     weights, state = checkpoint_files(run_dir, step)
     weights.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""The previewer's Garment menu (issue 29): a bundled demo chosen in the window is loaded off the UI
+"""The previewer's Garment menu: a bundled demo chosen in the window is loaded off the UI
 thread and shown in place of the one shown, without a restart; the body, the motion and the camera stay."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Playback you can watch (issue 28): which frame the worker renders while the clip plays, the
+"""Playback you can watch: which frame the worker renders while the clip plays, the
 render-ahead cache of finished frames, and the worker's standing requests.
 
 Pure scheduling first (analytic cases), then the cache and the palette layer's partial upload,
@@ -15,10 +15,23 @@ import time
 import numpy as np
 import pytest
 
-from garmentnerf.viewer.finished_frames import FarthestAheadOfPlayhead, FinishedFrames, result_nbytes
-from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, frames_ahead, frames_behind,
-                                         next_unrendered, predict_target_frame, render_superseded, replaces_shown,
-                                         wrap_position)
+from garmentnerf.viewer.finished_frames import (
+    FarthestAheadOfPlayhead,
+    FinishedFrames,
+    result_nbytes,
+)
+from garmentnerf.viewer.playback import (
+    PlayheadClock,
+    RenderTime,
+    frame_of,
+    frames_ahead,
+    frames_behind,
+    next_unrendered,
+    predict_target_frame,
+    render_superseded,
+    replaces_shown,
+    wrap_position,
+)
 from garmentnerf.viewer.timeline import Timeline
 from garmentnerf.viewer.worker import NOTHING, NeuralResult, RenderWorker
 

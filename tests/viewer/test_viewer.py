@@ -16,8 +16,8 @@ import subprocess
 import time
 
 import numpy as np
-import torch
 import pytest
+import torch
 
 from garmentnerf.cli.view_cmd import NO_DISPLAY_MESSAGE, register
 from garmentnerf.conventions import Camera
@@ -344,8 +344,9 @@ def _background_and_body(app, gl_context, walk, frame):
 
 
 def test_window_shows_upright_shaded_body_matching_headless_render(app, gl_context, walk):
-    from garmentnerf.conventions import project_points
     import torch
+
+    from garmentnerf.conventions import project_points
 
     frame = 12
     app.set_frame(frame)

@@ -13,12 +13,18 @@ import time
 
 import numpy as np
 import pytest
+from support.viewer_app import small_neural_app
 
 from garmentnerf.render.video import count_video_frames, to_uint8
 from garmentnerf.viewer.camera import OrbitController
-from garmentnerf.viewer.export_jobs import (ExportJob, ExportSettings, format_seconds, plan_range,
-                                            plan_turntable, video_name)
-from support.viewer_app import small_neural_app
+from garmentnerf.viewer.export_jobs import (
+    ExportJob,
+    ExportSettings,
+    format_seconds,
+    plan_range,
+    plan_turntable,
+    video_name,
+)
 
 SIZE = (48, 32)
 

@@ -10,13 +10,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from support.viewer_app import small_neural_app
 
 from garmentnerf.conventions import orbit_camera, project_points
 from garmentnerf.render.camera_path import CameraPath, Keyframe
 from garmentnerf.viewer.camera import OrbitController
 from garmentnerf.viewer.export_jobs import ExportSettings, plan_path
-from garmentnerf.viewer.path_editor import PATH_COLOR, PathEditor, frustum_lines, path_lines
-from support.viewer_app import small_neural_app
+from garmentnerf.viewer.path_editor import (
+    PATH_COLOR,
+    PathEditor,
+    frustum_lines,
+    path_lines,
+)
 
 SIZE = (48, 32)
 
