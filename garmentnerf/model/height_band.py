@@ -10,30 +10,19 @@ model measures its samples (:class:`~garmentnerf.geometry.body_points.BodyPointP
 (:class:`~garmentnerf.model.samplers.SampleFilter`): after the (cheap) body projection and before
 the (costly) MLP, samples outside the band are dropped. Dropping a sample is giving its interval
 zero density: the render of a model whose density is zero outside the band is unchanged.
-
-A model trained in the shell (``ModelConfig.sampler == "shell"``) keeps the band it was trained
-with in its run folder (:data:`SHELL_BAND_FILE`, :func:`save_height_range`): its renders use that
-band, not one measured again on whatever scene it is shown (a held-out scene's own garments would
-tell the sampler where the answer is).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
-from garmentnerf.io_utils import load_tagged_tensors, save_tagged_tensors
 
-#: The band a shell-trained run was trained with, in its run folder (:func:`save_height_range`).
-SHELL_BAND_FILE = "shell_band.safetensors"
-#: The ``format`` tag in its metadata.
-HEIGHT_BAND_FORMAT = "garmentnerf-height-band"
 
 #: Margins added to the measured garment heights (metres): above the garment, and below the skin
 #: (samples just inside the body carry the skin's density ramp).
@@ -106,28 +95,6 @@ class HeightRange:
     @classmethod
     def from_dict(cls, d: dict) -> "HeightRange":
         return cls(float(d["h_min"]), float(d["h_max"]), str(d.get("source", "given")))
-
-
-def save_height_range(path, band: HeightRange) -> Path:
-    """Write ``band`` (its bounds, source and per-vertex bound) to a ``.safetensors`` file
-    atomically. Returns the path."""
-    tensors = {"bounds": torch.tensor([band.h_min, band.h_max], dtype=torch.float64)}
-    if band.vertex_h_max is not None:
-        tensors["vertex_h_max"] = band.vertex_h_max.float()
-    return save_tagged_tensors(path, tensors, HEIGHT_BAND_FORMAT, {"source": band.source})
-
-
-def load_height_range(path) -> HeightRange:
-    """Read a file written by :func:`save_height_range`.
-
-    Raises:
-        ValueError: a file that is not one (the message names it).
-    """
-    tensors, meta = load_tagged_tensors(path, HEIGHT_BAND_FORMAT, "height band")
-    bounds = tensors.get("bounds")
-    if bounds is None or bounds.shape != (2,):
-        raise ValueError(f"{path}: not a height band file")
-    return HeightRange(float(bounds[0]), float(bounds[1]), meta.get("source", "given"), tensors.get("vertex_h_max"))
 
 
 def dilate_vertex_values(values: torch.Tensor, faces: torch.Tensor, rings: int) -> torch.Tensor:
@@ -219,6 +186,6 @@ class HeightBandFilter:
         return (h >= self.band.h_min) & (h <= self.band.upper_bound(points.face, points.bary, self.faces))
 
 
-__all__ = ["HeightRange", "HeightBandFilter", "measure_height_range", "garment_frame_heights", "save_height_range",
-           "load_height_range", "SHELL_BAND_FILE", "dilate_vertex_values", "DEFAULT_HEIGHT_RANGE",
+__all__ = ["HeightRange", "HeightBandFilter", "measure_height_range", "garment_frame_heights",
+           "dilate_vertex_values", "DEFAULT_HEIGHT_RANGE",
            "HEIGHT_MARGIN_IN", "HEIGHT_MARGIN_OUT", "VERTEX_BAND_RINGS"]

@@ -39,10 +39,9 @@ of a render, the body projection the largest). See
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 from garmentnerf.model.config import BBOX_PADDING
-from garmentnerf.model.height_band import SHELL_BAND_FILE, HeightRange, load_height_range, measure_height_range
+from garmentnerf.model.height_band import HeightRange, measure_height_range
 from garmentnerf.model.pipeline import PRECISIONS
 from garmentnerf.render.shell_sampler import ShellSampler
 
@@ -188,14 +187,9 @@ def get_render_preset(name) -> RenderPreset:
 
 
 def height_range_for_run(run, projector=None) -> HeightRange:
-    """The garment's height band of a loaded run: the band a shell-trained run was trained with
-    (its :data:`~garmentnerf.model.height_band.SHELL_BAND_FILE`), else measured on its scene's
-    training garments with :data:`BOX_TRAINED_MARGIN_IN` under the skin, else
-    :meth:`HeightRange.default` when the run has no scene (measuring takes about a second: callers
-    keep it)."""
-    root = getattr(run, "root", None)
-    if root is not None and (Path(root) / SHELL_BAND_FILE).is_file():
-        return load_height_range(Path(root) / SHELL_BAND_FILE)
+    """The garment's height band of a loaded run: measured on its scene's training garments with
+    :data:`BOX_TRAINED_MARGIN_IN` under the skin, else :meth:`HeightRange.default` when the run has no
+    scene (measuring takes about a second: callers keep it)."""
     scene = getattr(run, "scene", None)
     if scene is None:
         return HeightRange.default()

@@ -498,10 +498,9 @@ class _Runner:
     # ---- the result ----------------------------------------------------------------------------------------
     def publish(self) -> None:
         """Make the recipe's folder the last train stage's run: its weights, its body appearance (a later
-        fit stage's if the recipe ends with one), its shell band, and its ``run.json`` with the scene
+        fit stage's if the recipe ends with one) and its ``run.json`` with the scene
         recorded relative to the folder (written last)."""
         from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
-        from garmentnerf.model.height_band import SHELL_BAND_FILE
         from garmentnerf.runs import (
             MODEL_FILE,
             RUN_FILE,
@@ -518,8 +517,7 @@ class _Runner:
         later_fits = [s for s in stages[last + 1:] if not s.trains]
         appearance = (stage_folder(self.out, self.recipe, later_fits[-1]) if later_fits else folder) \
             / BODY_APPEARANCE_FILE
-        files = {MODEL_FILE: folder / MODEL_FILE, BODY_APPEARANCE_FILE: appearance,
-                 SHELL_BAND_FILE: folder / SHELL_BAND_FILE}
+        files = {MODEL_FILE: folder / MODEL_FILE, BODY_APPEARANCE_FILE: appearance}
         for name, source in files.items():
             if source.is_file():
                 write_file_atomic(self.out / name, source.read_bytes())

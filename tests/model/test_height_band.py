@@ -117,27 +117,3 @@ def test_tshirt_scene_band_matches_a_brute_force_measurement(tshirt_scene, body,
     covered = torch.nonzero(band.vertex_h_max > 0.031).squeeze(1)
     last_corners = torch.unique(projector.faces[-28:].reshape(-1))
     assert bool(torch.isin(last_corners, covered).any())
-
-
-def test_a_height_band_file_round_trips_and_refuses_other_files(tmp_path):
-    from garmentnerf.model.height_band import (
-        HeightRange,
-        load_height_range,
-        save_height_range,
-    )
-
-    vertex = torch.linspace(0.03, 0.3, 50)
-    band = HeightRange(-0.08, 0.31, "measured on train", vertex)
-    back = load_height_range(save_height_range(tmp_path / "band.safetensors", band))
-    assert (back.h_min, back.h_max, back.source) == (-0.08, 0.31, "measured on train")
-    assert torch.equal(back.vertex_h_max, vertex)
-    plain = load_height_range(save_height_range(tmp_path / "plain.safetensors", HeightRange(-0.1, 0.4)))
-    assert plain.vertex_h_max is None and (plain.h_min, plain.h_max) == (-0.1, 0.4)
-    (tmp_path / "junk.safetensors").write_bytes(b"not a tensor file")
-    with pytest.raises(ValueError, match="junk.safetensors: not a readable safetensors file"):
-        load_height_range(tmp_path / "junk.safetensors")
-    from garmentnerf.model.body_appearance import BodyAppearance, save_body_appearance
-
-    save_body_appearance(tmp_path / "body.safetensors", BodyAppearance(8))
-    with pytest.raises(ValueError, match="body.safetensors: not a height band file"):
-        load_height_range(tmp_path / "body.safetensors")
