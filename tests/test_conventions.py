@@ -7,14 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.conventions import (
-    Camera,
-    camera_rays,
-    intrinsics_from_fov,
-    look_at,
-    orbit_camera,
-    project_points,
-)
+from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera, project_points
 
 
 def test_front_camera_sees_an_upright_character_with_its_left_on_the_right():

@@ -10,15 +10,7 @@ import torch
 from safetensors.torch import load_file
 
 from garmentnerf.cli.main import main
-from garmentnerf.demos import (
-    DEFAULT_DEMO,
-    DEMO_NAMES,
-    demo,
-    demo_run_dir,
-    installed_demos,
-    pack_demo,
-    pack_weights,
-)
+from garmentnerf.demos import DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo, pack_weights
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.runs import create_untrained_run, load_run
 

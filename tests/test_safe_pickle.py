@@ -19,12 +19,7 @@ from support.zju_capture import write_capture
 from garmentnerf.body.asset import BodyAssetError
 from garmentnerf.body.smpl import SMPL_PARENTS, load_smpl_asset
 from garmentnerf.data.zju import CaptureError, CaptureScene
-from garmentnerf.safe_pickle import (
-    RefusedGlobal,
-    StandIn,
-    load_npy_restricted,
-    load_restricted,
-)
+from garmentnerf.safe_pickle import RefusedGlobal, StandIn, load_npy_restricted, load_restricted
 
 
 def _payloads(marker):

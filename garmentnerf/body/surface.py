@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import torch
 
 #: Velocity-map scale: map value = velocity in m/s x VELOCITY_SCALE. It equals the authors'

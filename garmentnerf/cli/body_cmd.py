@@ -7,8 +7,16 @@ import json
 import math
 from pathlib import Path
 
-from garmentnerf.cli.common import (add_body_args, add_motion_args, add_scene_override_arg, check_frame,
-                                    check_output_file, load_body, load_motion_arg, refuse_existing)
+from garmentnerf.cli.common import (
+    add_body_args,
+    add_motion_args,
+    add_scene_override_arg,
+    check_frame,
+    check_output_file,
+    load_body,
+    load_motion_arg,
+    refuse_existing,
+)
 from garmentnerf.io_utils import atomic_write_path
 
 

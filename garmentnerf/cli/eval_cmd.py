@@ -10,8 +10,14 @@ import json
 import math
 from pathlib import Path
 
-from garmentnerf.cli.common import (add_demo_arg, add_device_arg, add_scene_override_arg, check_output_file,
-                                    parse_device, run_folder_arg)
+from garmentnerf.cli.common import (
+    add_demo_arg,
+    add_device_arg,
+    add_scene_override_arg,
+    check_output_file,
+    parse_device,
+    run_folder_arg,
+)
 from garmentnerf.io_utils import atomic_write_path
 
 

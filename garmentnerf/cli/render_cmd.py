@@ -10,8 +10,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from garmentnerf.cli.common import (add_demo_arg, add_device_arg, add_scene_override_arg, check_output_dir,
-                                    parse_device, run_folder_arg)
+from garmentnerf.cli.common import (
+    add_demo_arg,
+    add_device_arg,
+    add_scene_override_arg,
+    check_output_dir,
+    parse_device,
+    run_folder_arg,
+)
 from garmentnerf.demos import DEFAULT_DEMO
 from garmentnerf.render.video import FrameWriter, VideoWriter
 
@@ -159,8 +165,8 @@ def _checked_render_args(args: argparse.Namespace):
     """(output size or None (the default), render preset, background color or None, camera path or
     None); everything that can be wrong with the arguments fails here, before the model loads."""
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.render.presets import get_render_preset
     from garmentnerf.render.colors import parse_hex_color
+    from garmentnerf.render.presets import get_render_preset
     from garmentnerf.render.session import DEFAULT_PRESET
 
     size = parse_output_size(args.size) if args.size is not None else None

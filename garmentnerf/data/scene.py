@@ -35,10 +35,23 @@ import numpy as np
 from garmentnerf.conventions import DEFAULT_FAR, DEFAULT_NEAR
 from garmentnerf.data.cameras import CAMERA_SPLITS, NamedCamera, RigLookup, in_splits
 from garmentnerf.data.garment_sequence import load_sequence
-from garmentnerf.data.render_gt import SKIN_TONE, renderer_settings as default_settings
-from garmentnerf.data.scene_schema import (GARMENT_FILE, GARMENT_QUANTISED_KEY, GARMENT_VERTICES_KEY, MOTION_FILE,
-                                           ROTATION_TOLERANCE, SCENE_FILE, SCENE_FORMAT, SCENE_VERSION,
-                                           SEQUENCE_SPLITS, SchemaChecker, SceneError, SequenceInfo, parse_scene)
+from garmentnerf.data.render_gt import SKIN_TONE
+from garmentnerf.data.render_gt import renderer_settings as default_settings
+from garmentnerf.data.scene_schema import (
+    GARMENT_FILE,
+    GARMENT_QUANTISED_KEY,
+    GARMENT_VERTICES_KEY,
+    MOTION_FILE,
+    ROTATION_TOLERANCE,
+    SCENE_FILE,
+    SCENE_FORMAT,
+    SCENE_VERSION,
+    SEQUENCE_SPLITS,
+    SceneError,
+    SchemaChecker,
+    SequenceInfo,
+    parse_scene,
+)
 from garmentnerf.io_utils import FileDigests, atomic_write_path, npz_member_shape
 from garmentnerf.motion.motion import Motion
 from garmentnerf.version import package_version

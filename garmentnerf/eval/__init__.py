@@ -8,9 +8,22 @@
   :mod:`garmentnerf.model.perceptual`.
 """
 
-from garmentnerf.eval.metrics import (FARNEBACK_PARAMS, PSNR_CAP_DB, TOF_SKIP_ENDS, MetricSummary, TOFResult,
-                                      composite_premultiplied, evaluate_sequence, farneback_flow, mean_psnr, psnr,
-                                      ssim, temporal_flow_error, to_grey_uint8, tof_crop)
+from garmentnerf.eval.metrics import (
+                                      FARNEBACK_PARAMS,
+                                      PSNR_CAP_DB,
+                                      TOF_SKIP_ENDS,
+                                      MetricSummary,
+                                      TOFResult,
+                                      composite_premultiplied,
+                                      evaluate_sequence,
+                                      farneback_flow,
+                                      mean_psnr,
+                                      psnr,
+                                      ssim,
+                                      temporal_flow_error,
+                                      to_grey_uint8,
+                                      tof_crop,
+)
 
 __all__ = [
     "FARNEBACK_PARAMS", "PSNR_CAP_DB", "TOF_SKIP_ENDS", "MetricSummary", "TOFResult", "composite_premultiplied",

@@ -128,9 +128,25 @@ from tqdm import tqdm
 
 from garmentnerf.data.render_gt import LABEL_BODY, GroundTruthRenderer, garment_pixels
 from garmentnerf.data.scene_images import SceneImages
-from garmentnerf.eval.metrics import (PSNR_CAP_DB, MetricSummary, _encode_float, flat_psnr, interior, is_psnr_metric,
-                                      luma_correlation, masked_psnr, mean_luma, mean_psnr, psnr, shading_agreement,
-                                      sharpness_ratio, silhouette_iou, ssim, temporal_flow_error, to_grey_uint8)
+from garmentnerf.eval.metrics import (
+    PSNR_CAP_DB,
+    MetricSummary,
+    _encode_float,
+    flat_psnr,
+    interior,
+    is_psnr_metric,
+    luma_correlation,
+    masked_psnr,
+    mean_luma,
+    mean_psnr,
+    psnr,
+    shading_agreement,
+    sharpness_ratio,
+    silhouette_iou,
+    ssim,
+    temporal_flow_error,
+    to_grey_uint8,
+)
 from garmentnerf.gl.context import create_context
 from garmentnerf.model.config import BACKGROUND
 from garmentnerf.model.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available

@@ -44,9 +44,9 @@ import numpy as np
 import torch
 
 from garmentnerf.gl.context import current
+from garmentnerf.gl.dilation import NearestTexelDilation
 from garmentnerf.gl.mesh_arrays import as_numpy
 from garmentnerf.gl.resources import GLObjectsOwner, TargetCache
-from garmentnerf.gl.dilation import NearestTexelDilation
 from garmentnerf.gl.shaders import build_program
 
 #: The most render targets one draw call writes (GL guarantees 8 draw buffers): 32 channels.

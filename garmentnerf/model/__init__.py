@@ -30,15 +30,28 @@ import importlib
 from garmentnerf.model import volume_rendering
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.detail_features import sample_image_features, select_detail_features
+from garmentnerf.model.field import Field
 from garmentnerf.model.frame_context import FrameFeatures, FrameInputs
 from garmentnerf.model.image_generator import ImageGenerator, NeuralTexture, freeze
 from garmentnerf.model.losses import garment_losses, generator_losses, offset_loss, palette_loss, sparsity_loss
-from garmentnerf.model.field import Field
 from garmentnerf.model.nerf_mlp import GarmentNeRF, density_activation, trunc_exp
-from garmentnerf.model.palette import (DecomposedMaps, Palette, PaletteDecoder, check_palette, compose,
-                                       palette_from_labels)
-from garmentnerf.model.samplers import (BoxStratifiedSampler, BoundSampler, RaySamples, SampleFilter, Sampler,
-                                        body_aabb, ray_aabb_intersect)
+from garmentnerf.model.palette import (
+    DecomposedMaps,
+    Palette,
+    PaletteDecoder,
+    check_palette,
+    compose,
+    palette_from_labels,
+)
+from garmentnerf.model.samplers import (
+    BoundSampler,
+    BoxStratifiedSampler,
+    RaySamples,
+    SampleFilter,
+    Sampler,
+    body_aabb,
+    ray_aabb_intersect,
+)
 from garmentnerf.model.unet import DetailEncoder, DynamicFeatureEncoder, UNet
 
 __all__ = [

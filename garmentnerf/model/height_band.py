@@ -23,7 +23,6 @@ import torch
 from garmentnerf.body.model import BodyModel
 from garmentnerf.geometry.body_points import BodyPointProjector, BodyPoints
 
-
 #: Margins added to the measured garment heights (metres): above the garment, and below the skin
 #: (samples just inside the body carry the skin's density ramp).
 HEIGHT_MARGIN_OUT = 0.03

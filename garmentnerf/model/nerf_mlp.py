@@ -36,10 +36,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from garmentnerf.geometry.triangles import interpolate
-from garmentnerf.model.uv_maps import sample_uv_map
 from garmentnerf.model.config import BODY_PRIOR_WIDTH, DETAIL_FEATURE_DIM, DYNAMIC_FEATURE_DIM
 from garmentnerf.model.detail_features import DEFAULT_VISIBILITY_TOLERANCE, read_detail_features
 from garmentnerf.model.field import Field, StageClock
+from garmentnerf.model.uv_maps import sample_uv_map
 
 #: trunc_exp clamps its input's gradient here (torch-ngp's value); exp(15) ~ 3.3e6 per metre.
 TRUNC_EXP_MAX = 15.0

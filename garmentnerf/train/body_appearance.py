@@ -30,7 +30,6 @@ from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.model.body_appearance import BodyAppearance
 from garmentnerf.render.body_layer import body_surface
 
-
 #: Weight of the albedo prior ``mean((A(uv) - 1)^2)`` over a batch's samples: it settles the scale
 #: that the texture and the shading could trade (their product is what is seen), so a texel no
 #: training view saw (albedo 1) agrees with its neighbours, and keeps the texture from absorbing

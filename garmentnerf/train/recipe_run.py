@@ -501,12 +501,7 @@ class _Runner:
         fit stage's if the recipe ends with one) and its ``run.json`` with the scene
         recorded relative to the folder (written last)."""
         from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
-        from garmentnerf.runs import (
-            MODEL_FILE,
-            RUN_FILE,
-            read_run_info,
-            recorded_scene_path,
-        )
+        from garmentnerf.runs import MODEL_FILE, RUN_FILE, read_run_info, recorded_scene_path
 
         stages = self.recipe.stages
         last = max(i for i, s in enumerate(stages) if s.trains)

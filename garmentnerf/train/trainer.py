@@ -115,18 +115,45 @@ from garmentnerf.model.losses import garment_losses, generator_losses
 from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
+from garmentnerf.runs import (
+    RUN_FILE,
+    body_info_from_scene,
+    build_model,
+    frame_code_record,
+    load_weights,
+    read_run_info,
+    recorded_scene_path,
+    run_garment,
+    save_run_model,
+    save_weights,
+)
 from garmentnerf.train.byte_cache import tensor_bytes, tensor_cache, tensor_pointers
-from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
-                                           first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
-                                           rng_state, set_rng_state)
+from garmentnerf.train.checkpoints import (
+    CheckpointWriteError,
+    checkpoint_files,
+    checkpoint_write_error,
+    checkpoints,
+    first_line,
+    latest_checkpoint,
+    prune_checkpoints,
+    read_checkpoint_state,
+    rng_state,
+    set_rng_state,
+)
 from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
 from garmentnerf.train.perceptual import make_perceptual
-from garmentnerf.runs import (RUN_FILE, body_info_from_scene, build_model, frame_code_record, load_weights,
-                              read_run_info, recorded_scene_path, run_garment, save_run_model, save_weights)
 from garmentnerf.train.run import CHECKPOINT_DIR, TB_DIR, load_module_weights, remove_run_temporaries
-from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
-                                        new_run_settings, resume_settings, show_setting)
+from garmentnerf.train.settings import (
+    MODEL_PRESETS,
+    OVERRIDABLE_SETTINGS,
+    RUN_SETTINGS,
+    TrainConfig,
+    model_config_for,
+    new_run_settings,
+    resume_settings,
+    show_setting,
+)
 from garmentnerf.train.transfer import transfer_garment_state
 
 # The settings and checkpoint names are defined in :mod:`.settings` and :mod:`.checkpoints`; they

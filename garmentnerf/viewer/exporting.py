@@ -39,10 +39,24 @@ import numpy as np
 
 from garmentnerf.model.pipeline import RenderCancelled
 from garmentnerf.render.video import to_uint8
-from garmentnerf.viewer.export_jobs import (EXPORT_MODES, MAX_QUALITY, MAX_VIDEO_FRAMES, MIN_QUALITY,
-                                            MIN_SNAPSHOT_QUALITY, ExportCancelled, ExportJob, ExportSettings,
-                                            check_size, open_video, plan_path, plan_range,
-                                            plan_turntable, snapshot_name, video_name, write_png)
+from garmentnerf.viewer.export_jobs import (
+    EXPORT_MODES,
+    MAX_QUALITY,
+    MAX_VIDEO_FRAMES,
+    MIN_QUALITY,
+    MIN_SNAPSHOT_QUALITY,
+    ExportCancelled,
+    ExportJob,
+    ExportSettings,
+    check_size,
+    open_video,
+    plan_path,
+    plan_range,
+    plan_turntable,
+    snapshot_name,
+    video_name,
+    write_png,
+)
 from garmentnerf.viewer.render_thread import ThreadSession
 from garmentnerf.viewer.scene_gl import SceneRenderer
 

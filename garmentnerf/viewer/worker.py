@@ -33,14 +33,19 @@ from typing import Any
 
 from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.model.pipeline import RenderCancelled
-from garmentnerf.render.presets import VIEWER_LEVELS
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB
+from garmentnerf.render.presets import VIEWER_LEVELS
 from garmentnerf.viewer.finished_frames import DEFAULT_FINISHED_MB, FinishedFrames
 from garmentnerf.viewer.palette_layer import BodyView, crop_to_content, pack_frame
-from garmentnerf.viewer.playback import (PlayheadClock, RenderTime, frame_of, next_unrendered, predict_target_frame,
-                                         render_superseded)
+from garmentnerf.viewer.playback import (
+    PlayheadClock,
+    RenderTime,
+    frame_of,
+    next_unrendered,
+    predict_target_frame,
+    render_superseded,
+)
 from garmentnerf.viewer.render_thread import ThreadSession
-
 
 #: What a render function returns when it found nothing to render (neither started nor dropped).
 NOTHING = object()

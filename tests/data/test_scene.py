@@ -14,13 +14,7 @@ import torch
 from support.scenes import SIZE, _motion, _write_garment, build_scene
 
 from garmentnerf.conventions import project_points
-from garmentnerf.data.cameras import (
-    CAMERA_SPLITS,
-    circle_rig,
-    default_rig,
-    held_out_rig,
-    reference_cameras,
-)
+from garmentnerf.data.cameras import CAMERA_SPLITS, circle_rig, default_rig, held_out_rig, reference_cameras
 from garmentnerf.data.preview import contact_sheet, label_edges, scene_contact_sheet
 from garmentnerf.data.render_gt import GroundTruthRenderer, to_uint8
 from garmentnerf.data.scene import GarmentArrays, Scene, SceneError

@@ -9,11 +9,7 @@ import pytest
 from support.scenes import build_scene
 
 from garmentnerf.cli.main import main
-from garmentnerf.data.garment_sequence import (
-    penetration_summary,
-    recorded_penetration,
-    save_sequence,
-)
+from garmentnerf.data.garment_sequence import penetration_summary, recorded_penetration, save_sequence
 from garmentnerf.data.scene import Scene, SceneError
 from garmentnerf.data.scene_merge import import_sequence
 

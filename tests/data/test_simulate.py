@@ -10,12 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from garmentnerf.data.garment_sequence import (
-    GarmentSequence,
-    GarmentSequenceError,
-    load_sequence,
-    save_sequence,
-)
+from garmentnerf.data.garment_sequence import GarmentSequence, GarmentSequenceError, load_sequence, save_sequence
 from garmentnerf.data.garments import (
     GARMENT_KINDS,
     MIN_CLEARANCE,
@@ -27,12 +22,7 @@ from garmentnerf.data.garments import (
 
 newton = pytest.importorskip("newton", reason="cloth simulation needs newton==1.8.0")
 
-from garmentnerf.data.simulate import (  # noqa: E402
-    PENETRATION_BOUND_M,
-    SimSettings,
-    SimulationResumeError,
-    simulate,
-)
+from garmentnerf.data.simulate import PENETRATION_BOUND_M, SimSettings, SimulationResumeError, simulate  # noqa: E402
 
 SKIN_TONE = np.array([0.80, 0.63, 0.53])
 #: Short settle and small chunks: a few frames exercise settling, chunking and resuming.
@@ -296,12 +286,7 @@ def test_sequence_wrong_shapes_rejected(tmp_path):
 def test_frame_substeps_follow_the_skin_near_the_cloth():
     """Analytic cases: the step limit of the default settings, and the skin's travel near the
     cloth (within NEAR_CLOTH_M) divided by it, between ``substeps`` and MAX_SUBSTEP_FACTOR times it."""
-    from garmentnerf.data.simulate import (
-        MAX_SUBSTEP_FACTOR,
-        NEAR_CLOTH_M,
-        cloth_step_limit,
-        frame_substeps,
-    )
+    from garmentnerf.data.simulate import MAX_SUBSTEP_FACTOR, NEAR_CLOTH_M, cloth_step_limit, frame_substeps
 
     settings = SimSettings()
     limit = cloth_step_limit(settings)

@@ -8,10 +8,7 @@ import torch
 import trimesh
 
 from garmentnerf.geometry.projection import SurfaceProjector
-from garmentnerf.geometry.projection_dense import (
-    DensePosedSurface,
-    DenseSurfaceProjector,
-)
+from garmentnerf.geometry.projection_dense import DensePosedSurface, DenseSurfaceProjector
 from garmentnerf.perf.projection_bench import _sample_points, benchmark_dense_projection
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")

@@ -8,11 +8,7 @@ import pytest
 import torch
 
 from garmentnerf.body.shading import monomial_exponents, normal_monomials
-from garmentnerf.model.body_appearance import (
-    BodyAppearance,
-    load_body_appearance,
-    save_body_appearance,
-)
+from garmentnerf.model.body_appearance import BodyAppearance, load_body_appearance, save_body_appearance
 from garmentnerf.model.palette import DecomposedMaps, compose, composite_alpha
 
 

@@ -10,13 +10,7 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from garmentnerf.model.frame_codes import (
-    FrameCodes,
-    adapt_frame_codes,
-    garment_texels,
-    grow_texels,
-    resample_codes,
-)
+from garmentnerf.model.frame_codes import FrameCodes, adapt_frame_codes, garment_texels, grow_texels, resample_codes
 from garmentnerf.model.uv_maps import sample_uv_map
 
 

@@ -8,11 +8,7 @@ import pytest
 import torch
 import trimesh
 
-from garmentnerf.model.height_band import (
-    HeightRange,
-    dilate_vertex_values,
-    measure_height_range,
-)
+from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
 from garmentnerf.motion.library import load_motion
 
 

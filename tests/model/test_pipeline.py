@@ -7,21 +7,10 @@ import pytest
 import torch
 
 from garmentnerf.body.surface import vertex_normals
-from garmentnerf.conventions import (
-    Camera,
-    camera_rays,
-    intrinsics_from_fov,
-    look_at,
-    orbit_camera,
-    project_points,
-)
+from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera, project_points
 from garmentnerf.data.cameras import reference_cameras
 from garmentnerf.model.config import BBOX_PADDING, ModelConfig
-from garmentnerf.model.detail_features import (
-    read_detail_features,
-    reference_visibility,
-    sample_image_features,
-)
+from garmentnerf.model.detail_features import read_detail_features, reference_visibility, sample_image_features
 from garmentnerf.model.palette import compose
 from garmentnerf.model.pipeline import (
     FRAME_STAGES,

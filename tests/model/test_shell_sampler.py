@@ -11,21 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.conventions import (
-    Camera,
-    camera_rays,
-    intrinsics_from_fov,
-    look_at,
-    orbit_camera,
-)
+from garmentnerf.conventions import Camera, camera_rays, intrinsics_from_fov, look_at, orbit_camera
 from garmentnerf.geometry.winding import point_in_shell, winding_number
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.field import Field
-from garmentnerf.model.height_band import (
-    HeightRange,
-    dilate_vertex_values,
-    measure_height_range,
-)
+from garmentnerf.model.height_band import HeightRange, dilate_vertex_values, measure_height_range
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
 from garmentnerf.model.samplers import BoxStratifiedSampler, body_aabb
 from garmentnerf.render.shell_sampler import ShellSampler
@@ -353,11 +343,7 @@ def test_occlusion_cuts_rays_behind_the_skin(gl_context, verts, projector):
 
 
 def test_presets_render_through_their_sampling_plans(gl_context, model_and_frame):
-    from garmentnerf.render.presets import (
-        RENDER_PRESETS,
-        VIEWER_LEVELS,
-        get_render_preset,
-    )
+    from garmentnerf.render.presets import RENDER_PRESETS, VIEWER_LEVELS, get_render_preset
     from garmentnerf.render.session import padded_render_camera
 
     model, frame = model_and_frame

@@ -8,11 +8,7 @@ import pytest
 import torch
 
 from garmentnerf.model import volume_rendering as vr
-from garmentnerf.model.samplers import (
-    BoxStratifiedSampler,
-    ray_aabb_intersect,
-    stratified_intervals,
-)
+from garmentnerf.model.samplers import BoxStratifiedSampler, ray_aabb_intersect, stratified_intervals
 
 
 def slab_density(t: torch.Tensor, sigma: float, t0: float, t1: float) -> torch.Tensor:

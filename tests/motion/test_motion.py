@@ -23,13 +23,7 @@ from garmentnerf.motion.deepmimic import (
     read_deepmimic,
     retarget_deepmimic,
 )
-from garmentnerf.motion.library import (
-    FrameRangeError,
-    UnknownMotionError,
-    available_motions,
-    check_frame,
-    load_motion,
-)
+from garmentnerf.motion.library import FrameRangeError, UnknownMotionError, available_motions, check_frame, load_motion
 from garmentnerf.motion.motion import Motion
 from garmentnerf.motion.procedural import PROCEDURAL_MOTIONS, procedural_motion
 

@@ -11,11 +11,7 @@ import torch
 from garmentnerf.data.cameras import ring_camera
 from garmentnerf.model.body_appearance import BodyAppearance
 from garmentnerf.render.body_layer import body_surface, render_body_layer
-from garmentnerf.train.body_appearance import (
-    BodySamples,
-    fit_body_appearance,
-    interior_body_pixels,
-)
+from garmentnerf.train.body_appearance import BodySamples, fit_body_appearance, interior_body_pixels
 
 SIZE = 96
 

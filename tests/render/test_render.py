@@ -11,12 +11,7 @@ import torch
 from garmentnerf.cli.main import main
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.palette import compose
-from garmentnerf.render.cameras import (
-    fit_size,
-    orbit_view,
-    parse_camera_spec,
-    turntable,
-)
+from garmentnerf.render.cameras import fit_size, orbit_view, parse_camera_spec, turntable
 from garmentnerf.render.colors import build_palette, parse_hex_color, to_hex
 from garmentnerf.render.video import FrameWriter, VideoWriter, count_video_frames
 

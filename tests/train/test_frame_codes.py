@@ -154,11 +154,7 @@ def test_sparse_codes_hold_the_garments_footprint_start_from_dense_ones_and_resu
     from safetensors.torch import load_file
 
     from garmentnerf.data.scene import read_garment_arrays
-    from garmentnerf.model.frame_codes import (
-        garment_texels,
-        grow_texels,
-        resample_codes,
-    )
+    from garmentnerf.model.frame_codes import garment_texels, grow_texels, resample_codes
     from garmentnerf.train.trainer import Trainer
 
     run(make_tc(tiny_scene, tmp_path / "dense", generator_iterations=0, iterations=1,

@@ -21,13 +21,7 @@ from garmentnerf.demos import demo
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.runs import load_run
 from garmentnerf.train.checkpoints import latest_checkpoint
-from garmentnerf.train.recipe import (
-    RecipeError,
-    parse_recipe,
-    read_recipe,
-    recipe_model_config,
-    stage_model_configs,
-)
+from garmentnerf.train.recipe import RecipeError, parse_recipe, read_recipe, recipe_model_config, stage_model_configs
 from garmentnerf.train.recipe_run import check_scenes, run_recipe
 
 #: The tiny recipe: stage a trains every weight, a fit of its body appearance, stage b starts from a's

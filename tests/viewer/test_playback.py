@@ -15,11 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from garmentnerf.viewer.finished_frames import (
-    FarthestAheadOfPlayhead,
-    FinishedFrames,
-    result_nbytes,
-)
+from garmentnerf.viewer.finished_frames import FarthestAheadOfPlayhead, FinishedFrames, result_nbytes
 from garmentnerf.viewer.playback import (
     PlayheadClock,
     RenderTime,

@@ -16,12 +16,7 @@ from garmentnerf.conventions import orbit_camera, project_points
 from garmentnerf.render.camera_path import CameraPath, Keyframe
 from garmentnerf.viewer.camera import OrbitController
 from garmentnerf.viewer.export_jobs import ExportSettings, plan_path
-from garmentnerf.viewer.path_editor import (
-    PATH_COLOR,
-    PathEditor,
-    frustum_lines,
-    path_lines,
-)
+from garmentnerf.viewer.path_editor import PATH_COLOR, PathEditor, frustum_lines, path_lines
 
 SIZE = (48, 32)
 
