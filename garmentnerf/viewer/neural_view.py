@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from garmentnerf.model.config import BACKGROUND
 from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
 from garmentnerf.viewer.playback import PlayheadClock, replaces_shown, show_newest
@@ -101,7 +102,7 @@ class NeuralView:
         self.learned_palette = run.palette().detach().cpu().numpy().astype(np.float32)
         self.palette = self.learned_palette.copy()
         layer.set_palette(self.palette)
-        layer.background = tuple(float(c) for c in run.config.background)
+        layer.background = tuple(float(c) for c in BACKGROUND)
         if self.can_rasterise_body:
             layer.set_body_model(run.model.body, run.body_appearance)
         if run.scene is not None:
