@@ -1,6 +1,6 @@
 """Our exact body projection against two closest-point libraries, on the same points, in one run.
 
-The interactive-speed issue asks for 1 us per point at 262,144 points. This measures how far the
+The interactive previewer wants 1 us per point at 262,144 points. This measures how far the
 dedicated libraries get on the same problem, so that the goal can be judged against the state of
 the art rather than against a nearest-vertex KD-tree (which is not a closest point on the mesh):
 

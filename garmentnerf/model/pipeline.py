@@ -8,7 +8,7 @@ Two levels, so that a viewer can cache what the camera does not change:
    F^d_t = G_en(reference images); the frame's body bound for closest-point queries
    (:meth:`~garmentnerf.geometry.body_points.BodyPointProjector.bind`), its vertex normals and its
    box. The GL passes that make :class:`FrameInputs` live in
-   :class:`~garmentnerf.model.frame_context.FrameInputBuilder`, outside this ``nn.Module``.
+   :class:`~garmentnerf.render.frame_inputs.FrameInputBuilder`, outside this ``nn.Module``.
 2. :meth:`GarmentAnimationNeRF.render` ``(FrameFeatures, camera) -> RenderOutput`` -- per view:
    rays through the pixel centres of the *feature image* (the camera
    :meth:`~garmentnerf.conventions.Camera.resized` to ``cfg.decoder.feature_image_resolution``); the

@@ -108,7 +108,7 @@ from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.io_utils import write_file_atomic
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, load_body_appearance, save_body_appearance
-from garmentnerf.model.config import BBOX_PADDING, GENERATOR_LR, GRAD_CLIP_VALUE, ModelConfig
+from garmentnerf.model.config import BBOX_PADDING, GENERATOR_LR, GRAD_CLIP_VALUE, ModelConfig, convert_flat_config
 from garmentnerf.model.frame_codes import adapt_frame_codes, garment_texels, grow_texels
 from garmentnerf.model.frame_context import frame_vertices
 from garmentnerf.model.losses import garment_losses, generator_losses
@@ -300,9 +300,14 @@ class Trainer(Closeable):
             self.tc = tc = new_run_settings(tc)
             return (tc.model_config if tc.model_config is not None else model_config_for(tc.preset)), {}
         try:
-            cfg = ModelConfig.from_dict(dict(resume_info["model_config"]))
+            recorded = dict(resume_info["model_config"])
+            cfg = ModelConfig.from_dict(recorded)
+            gone = [] if all(isinstance(v, dict) for v in recorded.values()) else convert_flat_config(recorded)[1]
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{out / RUN_FILE}: model_config: {exc}") from exc
+        if gone:
+            raise ValueError(f"{out / RUN_FILE}: the run trained with {', '.join(gone)}, which this version no longer "
+                             "has; it renders as it was trained, but --resume would not continue it as it began")
         tc, setting_changes = resume_settings(tc, resume_info, cfg, out)
         try:
             tc.validate()

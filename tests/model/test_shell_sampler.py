@@ -1,4 +1,4 @@
-"""The shell sampler (garmentnerf.model.shell_sampler), the height band filter
+"""The shell sampler (garmentnerf.render.shell_sampler), the height band filter
 (garmentnerf.model.height_band), early termination in the render, the render presets and
 ``garmentnerf bench --run``."""
 

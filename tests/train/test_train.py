@@ -374,6 +374,28 @@ def test_segmentation_term_is_trained_and_logged(tiny_scene, gl_context, tmp_pat
     assert min(seg[10:]) < 0.85 * seg[0], seg
 
 
+def test_a_run_of_an_older_flat_config_resumes_unless_it_trained_with_a_removed_setting(tiny_scene, gl_context,
+                                                                                          tmp_path):
+    """A run.json written before the component configs: its flat config converts, and the run resumes; one
+    that trained with a setting this version no longer has is refused (its render would still load)."""
+    from garmentnerf.model.config import FLAT_NAMES
+
+    out = tmp_path / "run"
+    run(make_tc(tiny_scene, out, generator_iterations=0, iterations=4, stop_after=2), gl_context)
+    info = json.loads((out / "run.json").read_text())
+    paths = {dotted: flat for flat, dotted in FLAT_NAMES.items()}
+    flat = {paths[f"{name}.{key}"]: value for name, part in info["model_config"].items() for key, value in part.items()}
+    (out / "run.json").write_text(json.dumps({**info, "model_config": flat}))
+    assert load_run(out).config == ModelConfig.from_dict(info["model_config"])
+    (out / "run.json").write_text(json.dumps({**info, "model_config": {**flat, "w_occupancy": 0.1}}))
+    assert load_run(out).config == ModelConfig.from_dict(info["model_config"])
+    with pytest.raises(ValueError, match="trained with w_occupancy, which this version no longer has"):
+        run(make_tc(tiny_scene, out, resume=True, iterations=4, generator_iterations=0), gl_context)
+    (out / "run.json").write_text(json.dumps({**info, "model_config": flat}))
+    rest, _ = run(make_tc(tiny_scene, out, resume=True, iterations=4, generator_iterations=0), gl_context)
+    assert rest.step == 4
+
+
 def test_loss_weights_change_on_resume_and_are_recorded(tiny_scene, gl_context, tmp_path):
     out = tmp_path / "run"
     base = ModelConfig.tiny().updated({"loss.segmentation": 0.0, "loss.segmentation_start": 0})
