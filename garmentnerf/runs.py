@@ -55,7 +55,7 @@ from safetensors.torch import load_file, save
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.data.scene import Scene
-from garmentnerf.io_utils import write_file_atomic
+from garmentnerf.io_utils import read_json_strict, write_file_atomic
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, BodyAppearance, load_body_appearance
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
@@ -146,10 +146,7 @@ def read_run_info(run_dir) -> dict:
         raise FileNotFoundError(f"{run_dir}: no such run folder")
     if not file.is_file():
         raise FileNotFoundError(f"{file}: missing (not a garmentnerf run folder?)")
-    try:
-        info = json.loads(file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{file}: unreadable ({exc})") from exc
+    info = read_json_strict(file, "run")  # NaN, Infinity, 1e999 and a key given twice refused, named
     if not isinstance(info, dict):
         raise ValueError(f"{file}: must hold a JSON object")
     if info.get("format") != RUN_FORMAT:

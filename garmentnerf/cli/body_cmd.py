@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from garmentnerf.cli.common import (add_body_args, add_motion_args, add_scene_override_arg, check_frame,
-                                    check_output_file, load_body, load_motion_arg, refuse_existing)
+                                    check_motion_fps, check_output_file, load_body, load_motion_arg, refuse_existing)
 from garmentnerf.io_utils import atomic_write_path
 
 
@@ -60,6 +60,7 @@ def register(sub) -> None:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    check_motion_fps(args)  # before anything is imported or loaded: the resampled frames grow with it
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     import trimesh
 

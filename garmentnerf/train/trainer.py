@@ -116,6 +116,7 @@ from garmentnerf.model.samplers import padded_box
 from garmentnerf.render.body_layer import frame_body_layer
 from garmentnerf.render.presets import get_render_preset
 from garmentnerf.train.byte_cache import tensor_bytes, tensor_cache, tensor_pointers
+from garmentnerf.folder_lock import folder_has_files, lock_folder
 from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_files, checkpoint_write_error, checkpoints,
                                            first_line, latest_checkpoint, prune_checkpoints, read_checkpoint_state,
                                            rng_state, set_rng_state)
@@ -195,14 +196,21 @@ class Trainer(Closeable):
         self._log = log
         self.out = Path(tc.out)
         self.step_callback: Callable[[int, dict], None] | None = None
+        self._lock = None  # the run folder's writer lock (the main process's), from _check_run_folder to close()
         if tc.threads:
             torch.set_num_threads(int(tc.threads))
         self._busy_watch = BusyWatch(torch.get_num_threads(), "this training")  # checked at the start and checkpoints
         try:
             self._setup(gl_context)
         except BaseException:
+            self._release_lock()
             self.dist.close()
             raise
+
+    def _release_lock(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     # ---- setup -------------------------------------------------------------------------------------
     def log(self, message: str) -> None:
@@ -238,13 +246,19 @@ class Trainer(Closeable):
                  + (f", resuming at step {self.step}" if ckpts else ""))
 
     def _check_run_folder(self) -> tuple[dict | None, list[tuple[int, Path, Path]]]:
-        """(``run.json`` of the run resumed or None, its complete checkpoints newest first); raises
-        (on every rank together) when ``out`` cannot be resumed or is not empty for a new run."""
+        """(``run.json`` of the run resumed or None, its complete checkpoints newest first), with the
+        folder's writer lock taken (by the main process); raises (on every rank together) when another
+        process writes into ``out``, or ``out`` cannot be resumed or is not empty for a new run."""
         out = self.out
         resume_info = None
         ckpts = []
         problem = None
-        if self.tc.resume:
+        if self.dist.main:  # one writer per run folder (garmentnerf.folder_lock); the other ranks follow the main one
+            try:
+                self._lock = lock_folder(out, "garmentnerf train" + (" --resume" if self.tc.resume else ""))
+            except ValueError as exc:
+                problem = exc
+        if problem is None and self.tc.resume:
             if not (out / RUN_FILE).is_file():
                 if (out / CHECKPOINT_DIR).is_dir() or (out / TB_DIR).is_dir():
                     problem = FileNotFoundError(f"{out / RUN_FILE}: missing: the run stopped before its first "
@@ -258,7 +272,7 @@ class Trainer(Closeable):
                 if not ckpts:
                     problem = FileNotFoundError(f"{out / CHECKPOINT_DIR}: no complete checkpoint "
                                                 f"(ckpt_<step>.safetensors + ckpt_<step>.state.pt) to resume from")
-        elif out.exists() and (not out.is_dir() or any(out.iterdir())):
+        elif problem is None and folder_has_files(out):
             problem = ValueError(f"{out}: run folder is not empty; pass --resume to continue the run in it, "
                                  f"or choose another --out")
         if not self.dist.all_ok(problem is None):
@@ -851,6 +865,7 @@ class Trainer(Closeable):
             self.sampling = None
         if getattr(self, "data", None) is not None:
             self.data.close()
+        self._release_lock()
         self.dist.close()
 
 
