@@ -123,8 +123,9 @@ from garmentnerf.train.checkpoints import (CheckpointWriteError, checkpoint_file
 from garmentnerf.train.distributed import Distributed
 from garmentnerf.train.frames import SceneFramesFactory
 from garmentnerf.train.perceptual import make_perceptual
-from garmentnerf.runs import (RUN_FILE, body_info_from_scene, build_model, frame_code_record, load_weights,
-                              read_run_info, recorded_scene_path, run_garment, save_run_model, save_weights)
+from garmentnerf.runs import (RUN_FILE, body_info_from_scene, build_model, check_scene_for_run, frame_code_record,
+                              load_weights, read_run_info, recorded_scene_path, run_garment, save_run_model,
+                              save_weights)
 from garmentnerf.train.run import CHECKPOINT_DIR, TB_DIR, load_module_weights, remove_run_temporaries
 from garmentnerf.train.settings import (MODEL_PRESETS, OVERRIDABLE_SETTINGS, RUN_SETTINGS, TrainConfig, model_config_for,
                                         new_run_settings, resume_settings, show_setting)
@@ -315,6 +316,9 @@ class Trainer(Closeable):
         if not (self.scene_path / "scene.json").is_file() and not self.scene_path.suffix == ".json":
             raise FileNotFoundError(f"{self.scene_path / 'scene.json'}: missing (--scene must be a scene folder)")
         self.scene = Scene.load(self.scene_path)
+        if resume_info is not None and self.tc.scene is not None:  # another scene for a run: it must fit it
+            cfg = ModelConfig.from_dict(dict(resume_info["model_config"]))
+            check_scene_for_run(self.out, resume_info, cfg.decoder.palette_size, self.scene)
 
     def _settle_config(self, cfg: ModelConfig, resume_info: dict | None) -> dict[str, float]:
         """``self.cfg`` (``cfg`` with this run's iterations and loss weights), the step counts and the
@@ -538,6 +542,7 @@ class Trainer(Closeable):
     # ---- checkpoints -------------------------------------------------------------------------------
     def _run_extra(self) -> dict:
         return {"perceptual": self.perceptual_name, "body": body_info_from_scene(self.scene),
+                "garment": dict(self.scene.garment),
                 "generator_iterations": self.generator_iterations,
                 "nerf_step": max(0, self.step - self.generator_iterations), "seed": self.tc.seed,
                 "train": {**self.tc.to_json(), "scene": str(self.scene_path)},
