@@ -24,7 +24,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.io_utils import atomic_write_path, read_json_strict
 
 __all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "EVAL_FILES", "MAX_DEMO_WEIGHTS_BYTES", "PAPER_TABLE_1", "Demo",
            "demo", "demo_run_dir", "results_table",
@@ -76,7 +76,7 @@ class Demo:
     def scene_dir(self) -> Path | None:
         """The scene folder the run points at (None when the run is missing or names none)."""
         try:
-            scene = json.loads((self.run_dir / "run.json").read_text()).get("scene")
+            scene = read_json_strict(self.run_dir / "run.json", "run").get("scene")
         except (OSError, ValueError):
             return None
         return (self.run_dir / scene).resolve() if scene else None
@@ -94,7 +94,7 @@ class Demo:
     def evaluation(self, split: str) -> dict | None:
         """The shipped ``garmentnerf eval --json`` report of ``split`` (a key of :data:`EVAL_FILES`), or None."""
         path = self.run_dir / EVAL_FILES[split]
-        return json.loads(path.read_text()) if path.is_file() else None
+        return read_json_strict(path, "evaluation") if path.is_file() else None
 
     def figures(self) -> dict[str, dict[str, float]]:
         """Per split with a shipped evaluation (``unseen_view``, ``unseen_motion``): the foreground

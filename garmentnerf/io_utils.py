@@ -1,17 +1,22 @@
-"""Safe file handling: writes that lose nothing a user made to a crash or a second run, reading
-an ``.npy``/``.npz`` array's header without loading (or unpickling) the array, and content
-digests of files memoised on their size and modification time."""
+"""Safe file handling: writes that lose nothing a user made to a crash or a second run, the one
+strict reader of the project's JSON files, reading an ``.npy``/``.npz`` array's header without
+loading (or unpickling) the array, and content digests of files memoised on their size and
+modification time."""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
+import math
 import os
+import re
 import tempfile
 import threading
 import time
 import zipfile
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
@@ -150,6 +155,146 @@ def next_free_path(path: str | Path) -> Path:
         if not candidate.exists():
             return candidate
     raise FileExistsError(f"{path}: no free numbered name left")
+
+
+# ---- JSON: one strict reader for every file the project reads ------------------------------------------
+@dataclass(frozen=True)
+class _NonFinite:
+    """A number JSON holds that is no finite float: NaN, Infinity, 1e999, an integer of hundreds of digits."""
+
+    text: str
+
+
+def _float(text: str):
+    value = float(text)
+    return value if math.isfinite(value) else _NonFinite(text)
+
+
+def _int(text: str):
+    return int(text) if len(text.lstrip("-")) <= 308 else _NonFinite(text)  # beyond that, no float holds it
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _shown_key(key: str) -> str:
+    """A JSON key as a message shows it: as it is when it is a plain name, else quoted and escaped."""
+    return key if _PLAIN_KEY.fullmatch(key) else json.dumps(key)
+
+
+_PLAIN_KEY = re.compile(r"[A-Za-z0-9_.\- ]{1,64}")
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    seen = set()
+    for key, _ in pairs:
+        if key in seen:
+            raise _DuplicateKey(f"key '{_shown_key(key)}' is given twice in one object")
+        seen.add(key)
+    return dict(pairs)
+
+
+def _first_non_finite(value, where: str = "") -> tuple[str, str] | None:
+    """(key path, number text) of the first non-finite number in ``value``, or None."""
+    if isinstance(value, _NonFinite):
+        return where, value.text
+    if isinstance(value, dict):
+        for key, item in value.items():
+            found = _first_non_finite(item, f"{where}.{_shown_key(key)}" if where else _shown_key(key))
+            if found is not None:
+                return found
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            found = _first_non_finite(item, f"{where}[{i}]")
+            if found is not None:
+                return found
+    return None
+
+
+def parse_json_strict(text: str, where: str):
+    """The JSON value of ``text`` (the contents of ``where``, named in errors).
+
+    Refused, as a ValueError of one line naming ``where`` (and the key, as ``a.b[2].c``): NaN,
+    Infinity and numbers beyond a float (``1e999``), which Python's ``json`` would otherwise accept;
+    a key given twice in one object; text that is not JSON (with its line and column).
+    """
+    try:
+        value = json.loads(text, parse_constant=_NonFinite, parse_float=_float, parse_int=_int,
+                           object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{where}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") from None
+    except (ValueError, RecursionError) as exc:
+        raise ValueError(f"{where}: not valid JSON ({type(exc).__name__}: {exc})") from None
+    found = _first_non_finite(value)
+    if found is not None:
+        key, number = found
+        if len(number) > 24:
+            number = f"{number[:12]}... ({len(number)} characters)"
+        raise ValueError(f"{where}: {key + ': ' if key else ''}{number} is not a finite number")
+    return value
+
+
+def read_json_strict(path, what: str):
+    """The JSON value of the file ``path``, a ``what`` file (e.g. ``camera path``), read by
+    :func:`parse_json_strict`.
+
+    Raises:
+        FileNotFoundError: no such file (``<path>: no such <what> file``).
+        IsADirectoryError: ``path`` is a folder.
+        ValueError: anything else, one line naming the file (and the key).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such {what} file") from None
+    except IsADirectoryError:
+        raise IsADirectoryError(f"{path}: is a folder, not a {what} file") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a {what} file (not UTF-8 text)") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: unreadable ({exc.strerror or exc})") from None
+    return parse_json_strict(text, str(path))
+
+
+def json_number(value, where: str, low: float | None = None, high: float | None = None, *,
+                low_open: bool = False) -> float:
+    """``value`` as a float: a JSON number (not a boolean) in ``[low, high]`` (``(low, high]`` with
+    ``low_open``); ValueError naming ``where`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where} must be a number, got {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise ValueError(f"{where} must be a finite number, got {value!r}")
+    if low is not None and (number <= low if low_open else number < low):
+        raise ValueError(f"{where} must be {'>' if low_open else '>='} {low:g}, got {value!r}")
+    if high is not None and number > high:
+        raise ValueError(f"{where} must be <= {high:g}, got {value!r}")
+    return number
+
+
+def json_whole(value, where: str, low: int | None = None, high: int | None = None) -> int:
+    """``value`` as an int: a whole JSON number (``3`` or ``3.0``, not a boolean) in ``[low, high]``;
+    ValueError naming ``where`` otherwise."""
+    number = json_number(value, where)
+    if number != int(number):
+        raise ValueError(f"{where} must be a whole number, got {value!r}")
+    whole = int(value) if isinstance(value, int) else int(number)
+    if (low is not None and whole < low) or (high is not None and whole > high):
+        bounds = f"{low if low is not None else ''}..{high if high is not None else ''}"
+        raise ValueError(f"{where} must be a whole number in {bounds}, got {value!r}")
+    return whole
+
+
+def json_bool(value, where: str) -> bool:
+    """``value`` when it is a JSON boolean (``true``/``false``; not ``"false"``, not ``0``);
+    ValueError naming ``where`` otherwise."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{where} must be true or false, got {value!r}")
+    return value
 
 
 def read_npy_header(file: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype]:

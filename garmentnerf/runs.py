@@ -27,7 +27,9 @@ temporary, which the trainer deletes when the run is resumed
 The trainer's keys include ``train`` (the run's :class:`~garmentnerf.train.trainer.TrainConfig`
 settings: preset, seed, frames, checkpoint interval, ...; ``--resume`` continues with them),
 ``overrides`` (``[{"step": s, "<setting>": [old, new], ...}]``: settings changed on a resume, from
-step ``s`` on) and ``loss_weight_changes`` (the same for loss weights).
+step ``s`` on), ``loss_weight_changes`` (the same for loss weights) and ``garment`` (the scene's
+``garment``: what another scene given for the run, ``eval --scene``, ``train --resume --scene``, is
+checked against with the model's palette size, :func:`check_scene_for_run`).
 
 ``step`` counts every optimiser step of the run: steps ``[0, generator_iterations)`` pre-train
 G_img, the following ones train the NeRF (the trainer records ``generator_iterations`` and
@@ -55,7 +57,7 @@ from safetensors.torch import load_file, save
 
 from garmentnerf.body.model import BodyModel
 from garmentnerf.data.scene import Scene
-from garmentnerf.io_utils import write_file_atomic
+from garmentnerf.io_utils import read_json_strict, write_file_atomic
 from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE, BodyAppearance, load_body_appearance
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.pipeline import GarmentAnimationNeRF
@@ -78,7 +80,7 @@ def run_train_cameras(run, scene) -> list[str]:
 
 
 __all__ = ["run_train_cameras", "LoadedRun", "frame_code_record", "frame_code_offset", "load_run", "save_run_model", "create_untrained_run",
-           "read_run_info", "recorded_scene_path", "run_garment", "build_model", "save_weights", "load_weights",
+           "read_run_info", "recorded_scene_path", "run_garment", "check_scene_for_run", "scene_palette_size", "build_model", "save_weights", "load_weights",
            "grow_linear_tensor", "body_info_from_scene", "RUN_FORMAT", "RUN_VERSION", "RUN_FILE", "MODEL_FILE"]
 
 
@@ -146,10 +148,7 @@ def read_run_info(run_dir) -> dict:
         raise FileNotFoundError(f"{run_dir}: no such run folder")
     if not file.is_file():
         raise FileNotFoundError(f"{file}: missing (not a garmentnerf run folder?)")
-    try:
-        info = json.loads(file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{file}: unreadable ({exc})") from exc
+    info = read_json_strict(file, "run")  # NaN, Infinity, 1e999 and a key given twice refused, named
     if not isinstance(info, dict):
         raise ValueError(f"{file}: must hold a JSON object")
     if info.get("format") != RUN_FORMAT:
@@ -341,10 +340,11 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
     Args:
         run_dir: the run folder.
         device: where to put the model.
-        scene: a scene folder to use instead of the recorded one (e.g. a moved scene).
+        scene: a scene folder to use instead of the recorded one (e.g. a moved scene); one of another
+            garment or palette size is refused (:func:`check_scene_for_run`).
     Raises:
         FileNotFoundError: missing ``run.json``/``model.safetensors`` or a missing override scene.
-        ValueError: a corrupt or inconsistent file (the message names it).
+        ValueError: a corrupt or inconsistent file (the message names it), a scene that does not fit.
     """
     run_dir = Path(run_dir)
     info = read_run_info(run_dir)
@@ -359,6 +359,7 @@ def load_run(run_dir, device="cpu", scene=None) -> LoadedRun:
         if not (path if path.suffix == ".json" else path / "scene.json").is_file():
             raise FileNotFoundError(f"{path}: no scene.json (scene given to load_run)")
         loaded_scene = Scene.load(path)
+        check_scene_for_run(run_dir, info, config.decoder.palette_size, loaded_scene)
     elif info.get("scene"):
         path = recorded_scene_path(run_dir, info)
         if (path / "scene.json").is_file():
@@ -383,6 +384,32 @@ def recorded_scene_path(run_dir, info: dict) -> Path | None:
         return None
     path = Path(info["scene"])
     return path if path.is_absolute() else (Path(run_dir) / path).resolve()
+
+
+def scene_palette_size(scene: Scene) -> int:
+    """The palette size P a model of ``scene`` has: a colour per garment layer (``palette_init``'s
+    ``garment_layers``; one for a one-layer garment) and the body's."""
+    layers = (scene.palette_init or {}).get("garment_layers") or []
+    return 1 + len(layers) if layers else 2
+
+
+def check_scene_for_run(run_dir, info: dict, palette_size: int, scene: Scene, flag: str = "--scene") -> None:
+    """ValueError (one line naming ``flag``, the scene and the run) when ``scene`` cannot stand for the
+    scene the run in ``run_dir`` (its ``run.json``: ``info``; its model's ``palette_size``) was trained
+    on: a garment of another kind (the check ``data add-sequence`` makes,
+    :func:`~garmentnerf.data.scene_merge.garment_difference`), or another palette size."""
+    from garmentnerf.data.scene_merge import garment_difference
+
+    garment = info.get("garment")
+    if not isinstance(garment, dict):  # runs from before the record: their recorded scene's, if it is there
+        garment = run_garment(run_dir)
+    problem = garment_difference(garment, scene.garment, "the run's") if garment else None
+    if problem is None and scene_palette_size(scene) != palette_size:
+        problem = (f"its palette has {scene_palette_size(scene)} colours, the run's model {palette_size} (a "
+                   f"garment of {scene_palette_size(scene) - 1} layer(s) against {palette_size - 1})")
+    if problem:
+        raise ValueError(f"{flag} {scene.root}: cannot stand for the scene the run in {run_dir} was trained on: "
+                         f"{problem}")
 
 
 def run_garment(run_dir) -> dict | None:

@@ -1,4 +1,4 @@
-"""Atomic file writing (garmentnerf.io_utils)."""
+"""Atomic file writing and the strict JSON reader (garmentnerf.io_utils)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import stat
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from garmentnerf.io_utils import atomic_write_path, next_free_path
 
@@ -121,3 +123,62 @@ def test_npz_member_shape_reads_headers_only(tmp_path):
     assert npz_member_shape(tmp_path / "a.npz", "v") == (4, 7, 3)
     assert npz_member_shape(tmp_path / "a.npz", "o") == (1,)  # an object array: not unpickled
     assert npz_member_shape(tmp_path / "a.npz", "missing") is None
+
+
+# ---- the strict JSON reader ------------------------------------------------------------------------------
+@pytest.mark.parametrize("text, message", [
+    ('{"a": NaN}', "f.json: a: NaN is not a finite number"),
+    ('{"a": [1, {"b": -Infinity}]}', "f.json: a[1].b: -Infinity is not a finite number"),
+    ('{"a": 1e999}', "f.json: a: 1e999 is not a finite number"),
+    ('{"a": 1' + "0" * 400 + "}", "f.json: a: 100000000000... (401 characters) is not a finite number"),
+    ('{"a": 1, "a": 2}', "f.json: key 'a' is given twice in one object"),
+    ('{"a\\nb": NaN}', 'f.json: "a\\nb": NaN is not a finite number'),
+    ('{"a": 1,', "f.json: not valid JSON (Expecting property name"),
+    ("[" * 100000, "f.json: not valid JSON (RecursionError"),
+])
+def test_the_strict_reader_refuses_what_json_would_let_through(text, message):
+    from garmentnerf.io_utils import parse_json_strict
+
+    with pytest.raises(ValueError) as info:
+        parse_json_strict(text, "f.json")
+    assert str(info.value).startswith(message) and "\n" not in str(info.value)
+
+
+def test_typed_fields_take_real_numbers_and_booleans():
+    from garmentnerf.io_utils import json_bool, json_number, json_whole
+
+    assert json_bool(False, "x") is False and json_whole(3.0, "w", 1, 8) == 3 and json_number(2, "n", 0) == 2.0
+    for call, message in [(lambda: json_bool("false", "constant_speed"), "constant_speed must be true or false"),
+                          (lambda: json_bool(0, "flag"), "flag must be true or false"),
+                          (lambda: json_number(True, "fps"), "fps must be a number, got True"),
+                          (lambda: json_number("1", "fps"), "fps must be a number"),
+                          (lambda: json_number(0.0, "fps", 0.0, low_open=True), "fps must be > 0"),
+                          (lambda: json_whole(2.5, "width"), "width must be a whole number"),
+                          (lambda: json_whole(9000, "width", 8, 8192), "width must be a whole number in 8..8192")]:
+        with pytest.raises(ValueError, match=message):
+            call()
+
+
+def test_read_json_strict_names_the_file(tmp_path):
+    from garmentnerf.io_utils import read_json_strict
+
+    (tmp_path / "a.json").write_text('{"w": 1}')
+    assert read_json_strict(tmp_path / "a.json", "thing") == {"w": 1}
+    with pytest.raises(FileNotFoundError, match="no such thing file"):
+        read_json_strict(tmp_path / "b.json", "thing")
+    with pytest.raises(IsADirectoryError, match="is a folder, not a thing file"):
+        read_json_strict(tmp_path, "thing")
+    (tmp_path / "c.json").write_bytes(b"\xff\xfe")
+    with pytest.raises(ValueError, match="not a thing file"):
+        read_json_strict(tmp_path / "c.json", "thing")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(alphabet='{}[]":,-+.0123456789eEaINfinityNtrulse \n\\', max_size=40) | st.text(max_size=20))
+def test_any_text_is_a_value_or_one_line(text):
+    from garmentnerf.io_utils import parse_json_strict
+
+    try:
+        parse_json_strict(text, "f.json")
+    except ValueError as exc:
+        assert str(exc).startswith("f.json: ") and "\n" not in str(exc)

@@ -105,6 +105,22 @@ class BodyModel:
         return self.asset.uv.shape[0] > 0
 
     # ---- shape --------------------------------------------------------------------------------
+    def shape_from_text(self, text: str | None, what: str = "--shape") -> str | list[float] | None:
+        """A body shape as written on a command line or in a spec: a preset name stays a name, anything
+        else is comma-separated coefficients (:func:`~garmentnerf.ranges.parse_list`: an empty list or
+        item is refused, naming ``what``); :meth:`betas` checks either."""
+        from garmentnerf.ranges import parse_list
+
+        if text is None or text in self.asset.named_shapes:
+            return text
+        items = parse_list(text, what, kind="shape coefficient")
+        if len(items) == 1:
+            try:
+                return [float(items[0])]
+            except ValueError:
+                return items[0]  # not a number: betas() names the unknown preset
+        return parse_list(text, what, float, kind="shape coefficient")
+
     def betas(self, shape: str | np.ndarray | torch.Tensor | None = None) -> torch.Tensor:
         """(S,) shape coefficients from a preset name, a vector (shorter vectors are zero-padded), or None."""
         S = self.asset.num_shape_coeffs

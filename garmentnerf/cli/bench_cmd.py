@@ -29,6 +29,8 @@ from pathlib import Path
 from garmentnerf.cli.common import add_demo_arg, check_output_file, run_folder_arg
 from garmentnerf.cpu_load import OtherProcessesLoad, load_report
 from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.budgets import PLAYBACK
+from garmentnerf.ranges import parse_list
 
 ROWS = [
     ("pose_clip_ms_per_frame", "pose the body (LBS, batched clip)", "ms/frame"),
@@ -62,7 +64,7 @@ def register(sub) -> None:
     p.add_argument("--sequence", default=None, help="with --run: scene sequence (default: the first training one)")
     p.add_argument("--playback-frames", type=int, default=24, metavar="N",
                    help="with --run: frames played per preset for the playback figures: precomputed playback, and the "
-                        "previewer's render-ahead of the clip's first N frames (default: 24)")
+                        "previewer's render-ahead of the clip's first N frames, 1..240 (default: 24)")
     p.add_argument("--training", action="store_true",
                    help="with --run: time NeRF training steps of the run's recipe per MLP precision, side by side, "
                         "instead of the render presets")
@@ -101,10 +103,10 @@ def _run_training_bench(args: argparse.Namespace) -> dict:
     from garmentnerf.perf.train_bench import training_benchmark
     from garmentnerf.train.settings import TRAINING_PRECISIONS
 
-    precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+    precisions = args.precisions  # a list: run_bench parsed it
     unknown = [p for p in precisions if p not in TRAINING_PRECISIONS]
-    if not precisions or unknown:
-        raise ValueError(f"--precisions {args.precisions}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
+    if unknown:
+        raise ValueError(f"--precisions {','.join(precisions)}: each must be one of {', '.join(TRAINING_PRECISIONS)}")
     if args.steps < 3 or args.rounds < 1:
         raise ValueError(f"--steps must be >= 3 and --rounds >= 1, got {args.steps} and {args.rounds}")
     results = training_benchmark(args.run, precisions, steps=args.steps, rounds=args.rounds,
@@ -136,6 +138,11 @@ def run_bench(args: argparse.Namespace) -> int:
     args.run, args.demo = (str(run_dir) if run_dir is not None else None), None
     if args.runs < 1:
         raise ValueError(f"--runs must be at least 1, got {args.runs}")
+    if getattr(args, "playback_frames", None) is not None:
+        PLAYBACK.check(args.playback_frames, "--playback-frames")  # the benchmark's time grows with it
+    # the lists as lists from here on (an empty list or item is refused before any work)
+    args.presets = parse_list(getattr(args, "presets", None), "--presets", kind="preset")
+    args.precisions = parse_list(getattr(args, "precisions", None), "--precisions", kind="precision")
     if getattr(args, "plot", None) and not getattr(args, "run", None):
         raise ValueError("--plot needs --run")
     if getattr(args, "training", False) and (not getattr(args, "run", None) or getattr(args, "plot", None)):
@@ -175,8 +182,7 @@ def _run_presets(args: argparse.Namespace) -> dict:
     from garmentnerf.perf.preset_bench import preset_benchmark
     from garmentnerf.viewer.playback_bench import render_ahead_benchmark
 
-    presets = [p.strip() for p in args.presets.split(",") if p.strip()] if args.presets else None
-    results = preset_benchmark(args.run, presets, frames=args.frames, views=args.views, repeats=args.repeats,
+    results = preset_benchmark(args.run, args.presets, frames=args.frames, views=args.views, repeats=args.repeats,
                                sequence=args.sequence, playback_frames=args.playback_frames,
                                render_ahead=render_ahead_benchmark, against=args.against)
     _print_presets(results)

@@ -12,6 +12,7 @@ from garmentnerf.cli.common import (
     add_motion_args,
     add_scene_override_arg,
     check_frame,
+    check_motion_fps,
     check_output_file,
     load_body,
     load_motion_arg,
@@ -68,6 +69,7 @@ def register(sub) -> None:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    check_motion_fps(args)  # before anything is imported or loaded: the resampled frames grow with it
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     import trimesh
 

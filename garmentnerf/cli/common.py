@@ -22,7 +22,7 @@ def add_motion_args(parser: argparse.ArgumentParser, frame: bool = True) -> None
     parser.add_argument("--motion", default="walk",
                         help="motion name (see 'garmentnerf motion list'), names joined by ',' to "
                              "concatenate with blends, or a motion/AMASS .npz file (default: walk)")
-    parser.add_argument("--fps", type=float, default=None, help="resample the motion to this frame rate")
+    parser.add_argument("--fps", type=float, default=None, help="resample the motion to this frame rate (1..1000)")
     if frame:
         parser.add_argument("--frame", type=int, default=0, help="frame index (default: 0)")
 
@@ -70,19 +70,18 @@ def load_body(args):
 
     body = BodyModel.from_file(args.body, args.body_uv) if args.body else BodyModel.default()
     try:
-        return body, body.betas(parse_shape(args.shape, body))
+        return body, body.betas(body.shape_from_text(args.shape))
     except BodyShapeError as exc:
         raise ValueError(f"--shape {args.shape}: {exc}") from None
 
 
-def parse_shape(text: str | None, body) -> str | list[float] | None:
-    """A preset name stays a name; anything else must be comma-separated numbers."""
-    if text is None or text in body.asset.named_shapes:
-        return text
-    try:
-        return [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        return text  # not numbers: let BodyModel.betas report the unknown preset name
+def check_motion_fps(args) -> None:
+    """``--fps`` of :func:`add_motion_args` within :data:`garmentnerf.budgets.MOTION_FPS` (checked before
+    the body and the motion load: the resampled frames grow with it)."""
+    from garmentnerf.budgets import MOTION_FPS
+
+    if args.fps is not None:
+        MOTION_FPS.check(args.fps, "--fps")
 
 
 def load_motion_arg(args, body, betas):

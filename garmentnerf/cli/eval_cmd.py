@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import re
 from pathlib import Path
 
+from garmentnerf.budgets import HISTORY, QUALITY
 from garmentnerf.cli.common import (
     add_demo_arg,
     add_device_arg,
@@ -19,6 +20,7 @@ from garmentnerf.cli.common import (
     run_folder_arg,
 )
 from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.ranges import parse_frame_range, parse_list
 
 
 def register(sub) -> None:
@@ -38,8 +40,8 @@ def register(sub) -> None:
     p.add_argument("--split", required=True, metavar="SPLIT", help="seen, unseen_view or unseen_motion")
     add_scene_override_arg(p)
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="frames A..B-1 of every sequence of the split (A:B, A:, :B or N; default: the split's "
-                        "default, see above)")
+                   help="frames A..B-1 of every sequence of the split (A:B, A:B:S, A:, :B or A; default: the "
+                        "split's default, see above)")
     p.add_argument("--cameras", default=None, metavar="NAMES",
                    help="comma-separated camera names of the split (default: the split's default)")
     p.add_argument("--baseline", action="store_true",
@@ -57,8 +59,8 @@ def register(sub) -> None:
                    help="render preset: reference (the paper's sampling, default), full, balanced or interactive "
                         "(the rows of 'garmentnerf bench --run')")
     p.add_argument("--quality", type=float, default=None, metavar="Q",
-                   help="render at Q times the pixel density the model was trained at (default: the preset's, "
-                        "1 for reference); 0.5 on a model trained on character windows at the scene's density "
+                   help="render at Q times the pixel density the model was trained at, 0.0625..4 (default: the "
+                        "preset's, 1 for reference); 0.5 on a model trained on character windows at the scene's density "
                         "casts the rays of one trained on whole frames: an equal-cost comparison")
     p.add_argument("--composition", default="auto", metavar="HOW",
                    help="raster_body (the body rasterised with the run's learned appearance, the garment from "
@@ -106,8 +108,11 @@ def register(sub) -> None:
 
 
 def run_eval(args: argparse.Namespace) -> int:
+    # the arguments that scale the work first, before anything is imported or loaded (garmentnerf.budgets)
+    if args.quality is not None:
+        QUALITY.check(args.quality, "--quality")
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.eval.evaluate import RESOLUTIONS, SPLITS, evaluate_run, format_result_table, parse_frame_range
+    from garmentnerf.eval.evaluate import RESOLUTIONS, SPLITS, evaluate_run, format_result_table
     from garmentnerf.eval.gallery import Gallery
     from garmentnerf.render.presets import get_render_preset
     from garmentnerf.runs import load_run
@@ -122,8 +127,6 @@ def run_eval(args: argparse.Namespace) -> int:
         get_render_preset(args.preset)
     except ValueError as e:
         raise ValueError(f"--preset: {e}") from None
-    if args.quality is not None and not (math.isfinite(args.quality) and args.quality > 0):
-        raise ValueError(f"--quality must be a number > 0, got {args.quality}")
     if args.resolution not in RESOLUTIONS:
         raise ValueError(f"--resolution: unknown resolution '{args.resolution}' (known: {', '.join(RESOLUTIONS)})")
     if args.gallery_views < 1:
@@ -131,10 +134,8 @@ def run_eval(args: argparse.Namespace) -> int:
     if args.baseline and args.split != "unseen_view":
         raise ValueError(f"--baseline (nearest training view) is defined for --split unseen_view only, "
                          f"not '{args.split}'")
-    try:
-        frames = parse_frame_range(args.frames)
-    except ValueError as exc:
-        raise ValueError(f"--{exc}") from None
+    frames = parse_frame_range(args.frames, "--frames")
+    cameras = parse_list(args.cameras, "--cameras", kind="camera")
     parse_device(args.device)
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.render.session import COMPOSITIONS, resolve_composition
@@ -153,7 +154,7 @@ def run_eval(args: argparse.Namespace) -> int:
                          f"pass --scene DIR")
     resolve_composition(args.composition, run)  # raster_body without a body appearance fails here, not mid-way
     gallery = Gallery(args.gallery_views) if args.gallery is not None else None
-    result = evaluate_run(run, args.split, frames=frames, cameras=args.cameras, progress=not args.no_progress,
+    result = evaluate_run(run, args.split, frames=frames, cameras=cameras, progress=not args.no_progress,
                           baseline=args.baseline, preset=args.preset, quality=args.quality,
                           resolution=args.resolution, gallery=gallery, composition=args.composition)
     print(format_result_table(result))
@@ -168,19 +169,24 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _int_list(text: str, option: str) -> tuple[int, ...]:
+def _whole_number(text: str) -> int:
     try:
-        values = tuple(int(x) for x in str(text).split(",") if x.strip())
+        value = int(text)
     except ValueError:
-        raise ValueError(f"{option} must be comma-separated integers, got '{text}'") from None
-    if any(v < 0 for v in values):
-        raise ValueError(f"{option} must be >= 0, got '{text}'")
-    return values
+        raise ValueError("not a whole number") from None
+    if value < 0:
+        raise ValueError("must be >= 0")
+    return value
 
 
 def run_report(args: argparse.Namespace) -> int:
+    # the arguments that scale the work first, before anything is imported or loaded (garmentnerf.budgets)
+    for name in parse_list(args.variants, "--variants", kind="variant") or ():
+        k = re.fullmatch(r"k(\d+)", name)  # a history variant: its info maps grow with k
+        if k:
+            HISTORY.check(int(k.group(1)), f"--variants {name}: k")
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.eval.evaluate import SPLITS, parse_frame_range
+    from garmentnerf.eval.evaluate import SPLITS
     from garmentnerf.eval.report import build_report
     from garmentnerf.train.settings import MODEL_PRESETS
 
@@ -190,22 +196,18 @@ def run_report(args: argparse.Namespace) -> int:
     check_output_file(args.out, "--out", args.overwrite)
     if args.perceptual not in ("auto", "stlpips", "vgg19", "none"):
         raise ValueError(f"unknown perceptual loss '{args.perceptual}' (known: auto, stlpips, vgg19, none)")
-    splits = None
-    if args.splits is not None:
-        splits = [s.strip() for s in args.splits.split(",") if s.strip()]
-        for s in splits:
-            if s not in SPLITS:
-                raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()] if args.variants else None
+    splits = parse_list(args.splits, "--splits", kind="split")
+    for s in splits or ():
+        if s not in SPLITS:
+            raise ValueError(f"unknown split '{s}' (known: {', '.join(SPLITS)})")
+    variants = parse_list(args.variants, "--variants", kind="variant")
     frames = args.frames
-    try:
-        parse_frame_range(frames)  # fails early on a malformed range
-    except ValueError as exc:
-        raise ValueError(f"--{exc}") from None
+    parse_frame_range(frames, "--frames")  # fails early on a malformed range
+    views = tuple(parse_list(args.views, "--views", _whole_number, kind="number"))
+    histories = tuple(parse_list(args.history, "--history", _whole_number, kind="number"))
     out = build_report(args.scene, args.out, iterations=args.iterations,
                        generator_iterations=args.generator_iterations, preset=args.preset, runs_dir=args.runs_dir,
-                       variants=variants, views=_int_list(args.views, "--views"),
-                       histories=_int_list(args.history, "--history"), splits=splits, frames=frames,
+                       variants=variants, views=views, histories=histories, splits=splits, frames=frames,
                        perceptual=args.perceptual, device=args.device, seed=args.seed,
                        progress=not args.no_progress, overwrite=args.overwrite)
     print(f"report: wrote {out}")

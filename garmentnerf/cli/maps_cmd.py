@@ -8,8 +8,9 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, load_body, load_motion_arg,
-                                    refuse_existing)
+from garmentnerf.budgets import HISTORY
+from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, check_motion_fps, load_body,
+                                    load_motion_arg, refuse_existing)
 from garmentnerf.io_utils import atomic_write_path
 
 DESCRIPTION = """\
@@ -33,7 +34,7 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_body_args(p)
     add_motion_args(p)
-    p.add_argument("--history", type=int, default=2, help="k, velocity history slots (default: 2)")
+    p.add_argument("--history", type=int, default=2, help="k, velocity history slots, 0..8 (default: 2)")
     p.add_argument("--resolution", type=int, default=128, help="map size in texels (default: 128)")
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--png", default=None, help="also write a preview image of the maps")
@@ -42,13 +43,14 @@ def register(sub) -> None:
 
 
 def run_maps(args: argparse.Namespace) -> int:
+    # the arguments that scale the work first, before anything is imported or loaded (garmentnerf.budgets)
+    check_motion_fps(args)  # the resampled frames grow with it
+    HISTORY.check(args.history, "--history")
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.gl.context import create_context
     from garmentnerf.gl.info_maps import InfoMapRenderer
 
     out = refuse_existing(args.out, args.overwrite)
-    if args.history < 0 or args.history > 8:
-        raise ValueError(f"--history must be between 0 and 8, got {args.history}")
     if not 8 <= args.resolution <= 4096:
         raise ValueError(f"--resolution must be between 8 and 4096, got {args.resolution}")
     body, betas = load_body(args)

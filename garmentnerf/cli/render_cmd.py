@@ -19,6 +19,8 @@ from garmentnerf.cli.common import (
     run_folder_arg,
 )
 from garmentnerf.demos import DEFAULT_DEMO
+from garmentnerf.ranges import parse_frames, parse_list
+from garmentnerf.budgets import QUALITY, VIDEO_FPS
 from garmentnerf.render.video import FrameWriter, VideoWriter
 
 
@@ -43,7 +45,7 @@ def register(sub) -> None:
                         "nerfstudio's camera_path.json loads too): its keyframes' frames choose the motion's "
                         "frames, its size and fps are the defaults of --size and --fps")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="frames A..B-1 of the motion (A:B, A:, :B or N; default: all, or the camera path's span)")
+                   help="frames A..B-1 of the motion (A:B, A:B:S, A:, :B or A; default: all, or the camera path's span)")
     p.add_argument("--size", default=None,
                    help="output size: N (longer side; orbit views are square) or WxH (default: 256, or the "
                         "camera path's)")
@@ -51,7 +53,7 @@ def register(sub) -> None:
                    help="render preset: reference (the paper's sampling), full (default: the reference's image, "
                         "culled), balanced or interactive (the rows of 'garmentnerf bench --run')")
     p.add_argument("--quality", type=float, default=None,
-                   help="neural render quality: fraction of the training pixel density, (0, 4] "
+                   help="neural render quality: fraction of the training pixel density, 0.0625..4 "
                         "(default: the preset's resolution)")
     p.add_argument("--palette", default=None,
                    help="palette colors as hex, in the model's order: '#garment[,#body]', or for a layered "
@@ -61,34 +63,17 @@ def register(sub) -> None:
     p.add_argument("--background", default=None, metavar="HEX", help="background color (default: the model's)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (made if needed)")
     p.add_argument("--video", action="store_true", help="also write an mp4 of the frames")
-    p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the motion's)")
+    p.add_argument("--fps", type=float, default=None, help="video frame rate, 0.1..1000 (default: the motion's)")
     add_device_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_render)
 
 
-_RANGE = re.compile(r"^\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
-
-
-def parse_frames(text: str | None, num_frames: int, motion: str = "motion") -> list[int]:
-    """``A:B`` (B exclusive), ``A:``, ``:B``, ``N`` -> frame list; ValueError when out of range."""
-    if text is None or not str(text).strip():
-        return list(range(num_frames))
-    m = _RANGE.match(str(text))
-    if not m or (m.group(1) == "" and m.group(2) is None):
-        raise ValueError(f"--frames must look like A:B, A:, :B or N, got '{text}'")
-    last = num_frames - 1
-    if m.group(2) is None:
-        a = int(m.group(1))
-        b = a + 1
-    else:
-        a = int(m.group(1)) if m.group(1) else 0
-        b = int(m.group(2)) if m.group(2) else num_frames
-    if a >= b:
-        raise ValueError(f"--frames {text.strip()} selects no frame (A:B renders frames A..B-1)")
-    if not (0 <= a < b <= num_frames):
-        raise ValueError(f"--frames {text.strip()} is out of range for {motion} ({num_frames} frames: 0..{last})")
-    return list(range(a, b))
+def render_frames(text: str | None, num_frames: int, motion: str) -> list[int]:
+    """``--frames`` of the motion being rendered (:func:`garmentnerf.ranges.parse_frames`); all of them when
+    not given."""
+    frames = parse_frames(text, "--frames", num_frames, motion)
+    return list(range(num_frames)) if frames is None else frames
 
 
 def parse_output_size(text: str):
@@ -112,6 +97,11 @@ def _safe(name: str) -> str:
 
 
 def run_render(args: argparse.Namespace) -> int:
+    # the arguments that scale the work first, before anything is imported or loaded (garmentnerf.budgets)
+    if args.quality is not None:
+        QUALITY.check(args.quality, "--quality")
+    if args.fps is not None:
+        VIDEO_FPS.check(args.fps, "--fps")
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.gl.context import create_context
     from garmentnerf.render.cameras import cameras_for, parse_camera_spec
@@ -129,12 +119,17 @@ def run_render(args: argparse.Namespace) -> int:
         motion_name = session.sequence or session.motion.name
         if camera_path is not None:
             camera_path.check_motion(session.num_frames, f"motion '{motion_name}'")
-            frames = (parse_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
-                      if args.frames is not None else camera_path.frames())
+            if args.frames is not None:
+                frames = render_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+            else:
+                try:
+                    frames = camera_path.render_frames()
+                except ValueError as exc:
+                    raise ValueError(f"--camera-path {args.camera_path}: {exc}") from None
             cameras = camera_path.cameras(frames, size)
             cam_label, fps = Path(args.camera_path).stem, args.fps or camera_path.fps
         else:
-            frames = parse_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+            frames = render_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
             centers = [session.body_center(f)[:2] for f in frames]
             cameras = cameras_for(spec, frames, size or 256, run.scene, centers)
             cam_label, fps = spec.name if spec.kind == "scene" else spec.kind, args.fps or session.fps
@@ -181,17 +176,13 @@ def _checked_render_args(args: argparse.Namespace):
     parse_device(args.device)
     check_output_dir(args.out)
     preset = get_render_preset(args.preset if args.preset is not None else DEFAULT_PRESET)
-    if args.quality is not None and not (args.quality > 0 and args.quality <= 4):
-        raise ValueError(f"--quality must be in (0, 4], got {args.quality}")
     if args.palette is not None:
-        for i, item in enumerate(c.strip() for c in args.palette.split(",")):
-            if item not in ("", "-"):
+        for i, item in enumerate(parse_list(args.palette, "--palette", kind="colour ('-' keeps one)")):
+            if item != "-":
                 parse_hex_color(item, f"--palette color {i}")
     if args.body_color is not None:
         parse_hex_color(args.body_color, "--body-color")
     background = parse_hex_color(args.background, "--background") if args.background else None
-    if args.fps is not None and not args.fps > 0:
-        raise ValueError(f"--fps must be > 0, got {args.fps}")
     return size, preset, background, camera_path
 
 

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import signal
 from pathlib import Path
 
 from garmentnerf.cli.common import check_output_dir, parse_device
 from garmentnerf.interrupts import interrupting
+from garmentnerf.ranges import parse_frames
 
 
 def register(sub) -> None:
@@ -63,8 +63,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None,
                    help="random seed (default: 0; on --resume: the run's, another one is refused)")
     p.add_argument("--stop-after", type=int, default=None, metavar="STEP",
-                   help="stop with a checkpoint at this global step (resume later; a resume without it trains "
-                        "to the end)")
+                   help="stop with a checkpoint at this global step, at least 1 (resume later; a resume without "
+                        "it trains to the end)")
     p.add_argument("--log-every", type=int, default=None, metavar="N",
                    help="steps between logged scalars (default: 10; on --resume: the run's)")
     p.add_argument("--image-every", type=int, default=None, metavar="N",
@@ -114,11 +114,11 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _frames(text: str | None, scene_path) -> tuple[int, ...] | None:
-    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
-    from garmentnerf.train.settings import parse_frames
-
-    return None if text is None else parse_frames(text, "--frames")
+def _frames(text: str | None) -> tuple[int, ...] | None:
+    """``--frames``: the frame indices used in each training sequence (a closed range: the sequences differ
+    in length)."""
+    frames = parse_frames(text, "--frames")
+    return None if frames is None else tuple(frames)
 
 
 def _loss_weights(items: list[str]) -> dict[str, float] | None:
@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         caches = cache_bounds(args.cache_gib)
 
     bounds = (("--log-every", args.log_every, 1), ("--ckpt-every", args.ckpt_every, 1),
-              ("--image-every", args.image_every, 0), ("--stop-after", args.stop_after, 0),
+              ("--image-every", args.image_every, 0), ("--stop-after", args.stop_after, 1),
               ("--iterations", args.iterations, 1), ("--generator-iterations", args.generator_iterations, 0))
     for flag, value, least in bounds:
         if value is not None and value < least:
@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
                      model_config=model_config,
                      iterations=args.iterations, generator_iterations=args.generator_iterations,
                      stop_after=args.stop_after, log_every=args.log_every, image_every=args.image_every,
-                     ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames, args.scene),
+                     ckpt_every=args.ckpt_every, resume=args.resume, frames=_frames(args.frames),
                      perceptual=args.perceptual, vgg19_weights=args.vgg19_weights, threads=args.threads,
                      progress=not args.no_progress, init_generator=args.init_generator,
                      init_weights=args.init_weights, training_crop_density=args.training_crop_density,
@@ -254,13 +254,13 @@ def read_model_config(path):
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.model.config import ModelConfig
 
+    from garmentnerf.io_utils import read_json_strict
+
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = read_json_strict(path, "model config")
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: missing (--model-config)") from None
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a readable JSON file ({exc})") from None
     if isinstance(data, dict) and isinstance(data.get("model_config"), dict):
         data = data["model_config"]
     if not isinstance(data, dict):

@@ -28,9 +28,10 @@ The chunk folders can be deleted once the scene is complete (``keep_chunks=False
 Interruptions
     Ctrl-C and SIGTERM stop the run and its simulation processes at once; a simulation process
     whose ``data make`` is killed (SIGKILL) stops by itself within a second. Every file is
-    written atomically, and a re-run first waits for such processes (folder locks) and removes
-    the temporaries of the writes they abandoned, so nothing half-written is ever read and none
-    is left behind. A second ``data make`` of a folder that one is writing is refused.
+    written atomically, and a re-run first waits for such processes (their folder locks,
+    :mod:`garmentnerf.folder_lock`) and removes the temporaries of the writes they abandoned, so
+    nothing half-written is ever read and none is left behind. A second ``data make`` of a folder
+    that one is writing is refused.
 
 Settings
     ``scene.json`` records the spec and simulation settings under ``make``; a re-run must give the
@@ -72,6 +73,7 @@ from garmentnerf.data.scene import Scene
 from garmentnerf.data.scene_images import SceneImages, palette_from_images
 from garmentnerf.data.scene_schema import MOTION_FILE, SCENE_FILE
 from garmentnerf.data.simulate import PENETRATION_BOUND_M, SimSettings, _chunk_path, simulate
+from garmentnerf.folder_lock import LOCK_FILE, lock_folder
 from garmentnerf.io_utils import STALE_TEMPORARY_SECONDS, remove_stale_temporaries, temporary_pattern
 from garmentnerf.interrupts import interrupting, raise_interrupted
 from garmentnerf.motion.library import load_motion
@@ -255,38 +257,6 @@ def _check_record(file: Path, found, wanted: dict) -> None:
 
 
 # ---- locks, temporaries, signals --------------------------------------------------------------------
-@contextlib.contextmanager
-def _folder_lock(folder: Path, wait_s: float, busy: str):
-    """Hold an exclusive advisory lock (``flock``) on the folder itself while the block runs.
-
-    The ``data make`` process holds one on the scene folder (a second ``data make`` of the same
-    folder is refused), each simulation process one on its ``sim/<sequence>`` folder: whoever
-    holds a folder's lock knows that nobody else writes there, so temporaries found in it are
-    leftovers of a killed write. The kernel drops a lock when its process dies, however it dies.
-    Waits up to ``wait_s`` seconds for it, then raises ValueError(``busy``). Without ``fcntl``
-    (not POSIX) nothing is locked.
-    """
-    try:  # local: POSIX only (see above)
-        import fcntl
-    except ImportError:  # pragma: no cover - POSIX only
-        yield
-        return
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        deadline = time.monotonic() + wait_s
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    raise ValueError(busy) from None
-                time.sleep(0.1)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
-
-
 def _remove_temporaries(folder: Path, name: str = "*", min_age: float = 0.0) -> None:
     """Delete the leftovers of killed atomic writes of ``name`` (a glob) in ``folder`` (see
     :func:`~garmentnerf.io_utils.remove_stale_temporaries`); call it holding the folder's writer lock."""
@@ -358,10 +328,11 @@ def _simulate_sequence(root: str, sequence: str, kind: str, shape: str, settings
 
         out_dir = _sim_dir(Path(root), sequence)
         out_dir.mkdir(parents=True, exist_ok=True)
-        with _folder_lock(out_dir, _ORPHAN_WAIT_S, f"{out_dir}: another simulation process writes here"):
+        with lock_folder(out_dir, f"garmentnerf data make: simulation of {sequence}", wait_s=_ORPHAN_WAIT_S,
+                         busy=f"{out_dir}: another simulation process ({{holder}}) writes here"):
             scene = Scene.load(root, check_files=False)
             body = BodyModel.default()
-            betas = body.betas(shape)
+            betas = body.betas(body.shape_from_text(shape))
             garment = make_garment(kind, body, betas)
             motion = scene.load_motion(sequence)
             settings = SimSettings.from_dict(settings_dict)
@@ -476,7 +447,7 @@ def _is_interrupted_creation(root: Path, names: list[str]) -> bool:
             if path != sequences and path not in folders:
                 return False
         elif path.parent == root:
-            if not fnmatch.fnmatch(path.name, temporary_pattern(SCENE_FILE)):
+            if path.name != LOCK_FILE and not fnmatch.fnmatch(path.name, temporary_pattern(SCENE_FILE)):
                 return False
         elif not (path.parent in folders and not path.is_symlink()
                   and (path.name == MOTION_FILE or fnmatch.fnmatch(path.name, temporary_pattern(MOTION_FILE)))):
@@ -508,8 +479,9 @@ def make_scene(out: str | Path, spec: MakeSpec, *, settings=None, progress: bool
         created = not root.exists()
         root.mkdir(parents=True, exist_ok=True)
         try:
-            with _folder_lock(root, 0.0, f"{root}: another 'garmentnerf data make' is writing this scene; wait "
-                                         f"for it to finish, or choose another --out"):
+            with lock_folder(root, "garmentnerf data make",
+                             busy=f"{root}: another 'garmentnerf data make' ({{holder}}) is writing this scene; wait "
+                                  f"for it to finish, or choose another --out"):
                 return _make_locked(root, spec, settings, plan, progress, keep_chunks, palette_frames)
         except BaseException:
             if created:  # failed before writing anything: leave no empty folder behind
@@ -532,10 +504,10 @@ def _make_locked(root: Path, spec: MakeSpec, settings, plan, progress: bool, kee
             raise FileExistsError(f"{root}: exists and is not a garmentnerf scene; choose another --out")
         _remove_temporaries(root, SCENE_FILE)
         body = BodyModel.default()
-        betas = body.betas(spec.shape)
+        shape = body.shape_from_text(spec.shape)
+        betas = body.betas(shape)
         cams = default_rig(spec.views, spec.held_out_views, radius=spec.radius, height=spec.height,
                            width=spec.size, height_px=spec.size)
-        shape = spec.shape if "," not in spec.shape else [float(x) for x in spec.shape.split(",")]
         scene = Scene.create(root, cams, spec.fps, spec.garment, GARMENT_COLORS[spec.garment], body_shape=shape)
         for name, motion_spec, split, cap in plan:
             motion = build_motion(motion_spec, body, betas, spec.fps, cap or None, spec.in_place)
@@ -547,8 +519,9 @@ def _make_locked(root: Path, spec: MakeSpec, settings, plan, progress: bool, kee
     for name in names:
         folder = _sim_dir(root, name)
         if folder.is_dir():
-            with _folder_lock(folder, _ORPHAN_WAIT_S, f"{folder}: a simulation process of an earlier 'data make' "
-                                                      f"still writes here; wait for it to end and run again"):
+            with lock_folder(folder, "garmentnerf data make", wait_s=_ORPHAN_WAIT_S,
+                             busy=f"{folder}: a simulation process of an earlier 'data make' ({{holder}}) still "
+                                  f"writes here; wait for it to end and run again"):
                 _remove_temporaries(folder)
                 _remove_temporaries(root / "sequences" / name)
         else:

@@ -52,7 +52,7 @@ from garmentnerf.data.scene_schema import (
     SequenceInfo,
     parse_scene,
 )
-from garmentnerf.io_utils import FileDigests, atomic_write_path, npz_member_shape
+from garmentnerf.io_utils import FileDigests, atomic_write_path, npz_member_shape, read_json_strict
 from garmentnerf.motion.motion import Motion
 from garmentnerf.version import package_version
 
@@ -322,12 +322,8 @@ class Scene(RigLookup):
         if not file.is_file():
             raise SceneError(f"{file}: no such file (not a scene folder)")
         try:
-            text = file.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise SceneError(f"{file}: cannot read ({exc})") from exc
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise SceneError(f"{file}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+            data = read_json_strict(file, "scene")  # NaN, Infinity, 1e999 and a key given twice refused, named
+        except (OSError, ValueError) as exc:
+            raise SceneError(str(exc)) from None
         return Scene(root, **parse_scene(data, str(file), root, check_files))
 

@@ -19,13 +19,22 @@ import numpy as np
 from garmentnerf.data.scene import Scene, SceneError, SequenceInfo, read_garment_arrays
 from garmentnerf.data.scene_schema import SEQUENCE_SPLITS, SchemaChecker
 
-__all__ = ["import_sequence"]
+__all__ = ["import_sequence", "garment_difference"]
+
+
+def garment_difference(ours: dict, theirs: dict, whose: str = "this scene's") -> str | None:
+    """Why a scene dressed in garment ``theirs`` (``scene.json``'s ``garment``) cannot stand for one in
+    ``ours`` (None: the same kind), as the end of a message: ``its garment is a dress, <whose> a skirt``."""
+    if ours.get("kind") != theirs.get("kind"):
+        return f"its garment is a {theirs.get('kind')}, {whose} a {ours.get('kind')}"
+    return None
 
 
 def _incompatibility(target: Scene, source: Scene) -> str | None:
     """Why ``source``'s sequences cannot train ``target`` (None: they can)."""
-    if target.garment.get("kind") != source.garment.get("kind"):
-        return f"its garment is a {source.garment.get('kind')}, this scene's a {target.garment.get('kind')}"
+    garment = garment_difference(target.garment, source.garment)
+    if garment:
+        return garment
     for key in ("model", "shape"):
         if target.body.get(key) != source.body.get(key):
             return f"its body {key} is {source.body.get(key)!r}, this scene's {target.body.get(key)!r}"

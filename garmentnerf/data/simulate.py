@@ -75,7 +75,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from garmentnerf.data.garments import Garment, body_collision_faces, make_garment
-from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.io_utils import atomic_write_path, read_json_strict
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
@@ -484,7 +484,7 @@ def _manifest(garment: Garment, motion: "Motion", betas: torch.Tensor, settings:
 
 def _check_manifest(path: Path, expected: dict) -> None:
     try:
-        found = json.loads(path.read_text())
+        found = read_json_strict(path, "simulation manifest")
     except (OSError, ValueError) as exc:
         raise SimulationResumeError(f"{path}: unreadable simulation manifest ({exc}); delete the folder "
                                     f"to start over") from exc

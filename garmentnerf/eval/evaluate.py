@@ -150,6 +150,7 @@ from garmentnerf.eval.metrics import (
 from garmentnerf.gl.context import create_context
 from garmentnerf.model.config import BACKGROUND
 from garmentnerf.model.perceptual import LPIPS, STLPIPS, lpips_available, stlpips_available
+from garmentnerf.ranges import FrameRange, parse_frame_range, parse_list
 from garmentnerf.render.presets import get_render_preset
 from garmentnerf.render.session import RenderSession, resolve_composition
 from garmentnerf.runs import load_run, run_train_cameras
@@ -159,7 +160,7 @@ if TYPE_CHECKING:
     from garmentnerf.eval.gallery import Gallery
 
 __all__ = ["SPLITS", "RESOLUTIONS", "DEFAULT_LIMITS", "EVAL_FORMAT", "evaluate_run", "nearest_camera",
-           "select_views", "eval_size", "parse_frame_range", "perceptual_metrics", "foreground_metrics",
+           "select_views", "eval_size", "perceptual_metrics", "foreground_metrics",
            "GroundTruthView", "format_result_table", "BaselineNotDefined"]
 
 EVAL_FORMAT = "garmentnerf-eval"
@@ -199,41 +200,18 @@ class BaselineNotDefined(ValueError):
 # Selection
 # ---------------------------------------------------------------------------------------------
 
-def parse_frame_range(text: str | None) -> slice | None:
-    """``"A:B"`` (B exclusive), ``"A:"``, ``":B"`` or ``"N"`` -> a slice (None for None/empty)."""
-    if text is None or not str(text).strip():
-        return None
-    parts = [p.strip() for p in str(text).split(":")]
-    try:
-        nums = [int(p) if p else None for p in parts]
-    except ValueError:
-        raise ValueError(f"frames must look like A:B, A:, :B or N (integers), got '{text}'") from None
-    if len(nums) == 1:
-        if nums[0] is None or nums[0] < 0:
-            raise ValueError(f"frames must look like A:B, A:, :B or N, got '{text}'")
-        return slice(nums[0], nums[0] + 1)
-    if len(nums) != 2:
-        raise ValueError(f"frames must look like A:B, A:, :B or N, got '{text}'")
-    if any(n is not None and n < 0 for n in nums):
-        raise ValueError(f"frames must be >= 0, got '{text}'")
-    return slice(nums[0], nums[1])
-
-
 def _frames_of(spec, num_frames: int, sequence: str) -> list[int]:
-    """Frame list of one sequence from None / a slice / "A:B" / a sequence of ints."""
+    """Frame list of one sequence from None (all) / ``"A:B"`` (:func:`garmentnerf.ranges.parse_frame_range`) /
+    a :class:`~garmentnerf.ranges.FrameRange` / a ``slice`` / a sequence of ints."""
     if isinstance(spec, str):
-        spec = parse_frame_range(spec)
+        spec = parse_frame_range(spec, "--frames")
     if spec is None:
         return list(range(num_frames))
     if isinstance(spec, slice):
-        if spec.step not in (None, 1):
-            raise ValueError("frames: only contiguous ranges (step 1) are supported")
-        a = 0 if spec.start is None else int(spec.start)
-        b = num_frames if spec.stop is None else int(spec.stop)
-        if not (0 <= a < b <= num_frames):
-            raise ValueError(f"frames {a}:{b} are out of range for sequence '{sequence}' "
-                             f"({num_frames} frames: 0..{num_frames - 1})")
-        return list(range(a, b))
+        text = ":".join("" if v is None else str(v) for v in (spec.start, spec.stop, spec.step))
+        spec = parse_frame_range(text, "frames")
+    if isinstance(spec, FrameRange):
+        return spec.frames(num_frames, f"sequence '{sequence}'")
     out = []
     for f in spec:
         if isinstance(f, bool) or not isinstance(f, (int, np.integer)) or not 0 <= int(f) < num_frames:
@@ -304,8 +282,7 @@ def select_views(run, scene, split: str, frames=None, cameras=None) -> dict[str,
         else:
             notes.append(f"all {len(pool)} of {pool_text}")
     else:
-        cams = [c.strip() for c in cameras.split(",")] if isinstance(cameras, str) else [str(c) for c in cameras]
-        cams = [c for c in cams if c]
+        cams = parse_list(cameras, "--cameras", kind="camera") if isinstance(cameras, str) else [str(c) for c in cameras]
         for c in cams:
             if c not in allowed:
                 raise ValueError(f"camera '{c}' is not one of the {split} cameras of the scene "
@@ -579,8 +556,9 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
     Args:
         run: a :class:`~garmentnerf.runs.LoadedRun` or a run folder.
         split: ``seen``, ``unseen_view`` or ``unseen_motion``.
-        frames: None (the split's default), ``"A:B"``, a ``slice`` or a list of frame indices,
-            applied to every sequence of the split.
+        frames: None (the split's default), a frame range (``"A:B"``, ``"A:B:S"``, ... or a parsed
+            :class:`~garmentnerf.ranges.FrameRange`), a ``slice`` or a list of frame indices, applied
+            to every sequence of the split.
         cameras: None (the split's default), ``"a,b"`` or a list of camera names of the split.
         progress: a tqdm progress bar on stderr.
         baseline: also score the nearest-view baseline (``unseen_view`` only), under ``"baseline"``.

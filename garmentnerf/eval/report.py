@@ -30,7 +30,8 @@ Resumable
     is resumed from its newest checkpoint; one trained with other settings is an error (choose
     another ``--runs-dir``). Evaluations are cached as ``runs_dir/<variant>/eval/<split>.json``
     and reused while the run's step and the frame selection are unchanged. The report is
-    written atomically.
+    written atomically. A report holds the writer lock (:mod:`garmentnerf.folder_lock`) of
+    ``runs_dir`` throughout, and of each variant's run while it trains or is evaluated.
 """
 
 from __future__ import annotations
@@ -45,12 +46,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from garmentnerf.budgets import HISTORY
 from garmentnerf.data.scene import Scene
 from garmentnerf.eval.evaluate import SPLITS, _spread, evaluate_run
 from garmentnerf.gl.context import create_context
-from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.io_utils import atomic_write_path, read_json_strict
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.model.perceptual import lpips_available
+from garmentnerf.folder_lock import folder_has_files, lock_folder
 from garmentnerf.runs import RUN_FILE, load_run, read_run_info
 from garmentnerf.train.checkpoints import latest_checkpoint
 from garmentnerf.train.settings import MODEL_PRESETS, TrainConfig, model_config_for
@@ -135,7 +138,7 @@ def default_variants(scene, base_history: int, names: list[str] | None = None,
 def _parse_variant(name: str, train_cams: list[str], base_history: int) -> Variant:
     m = re.fullmatch(r"k(\d+)", name)
     if m:
-        k = int(m.group(1))
+        k = HISTORY.check(int(m.group(1)), f"variant '{name}': k")
         return Variant("full") if k == base_history else Variant(name, {"encoder.history": k})
     m = re.fullmatch(r"views_(\d+)", name)
     if m:
@@ -205,7 +208,7 @@ def train_variant(scene_path, run_dir, cfg, cameras=None, *, iterations: int | N
             raise ValueError(f"{run_dir}: unfinished run (step {info['step']} of {total}) without a checkpoint "
                              f"to resume from; remove it to train again")
         resume = True
-    elif run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+    elif folder_has_files(run_dir):
         raise ValueError(f"{run_dir}: exists and is not a run folder; use another --runs-dir")
     tc = TrainConfig(scene=scene_path, out=run_dir, model_config=cfg, device=device, seed=seed,
                      iterations=iterations, generator_iterations=generator_iterations, resume=resume,
@@ -231,7 +234,7 @@ def _write_json(path: Path, data: dict) -> None:
 def _cached_eval(path: Path, request: dict, step: int, compute: Callable[[], dict]) -> dict:
     if path.is_file():
         try:
-            old = json.loads(path.read_text(encoding="utf-8"))
+            old = read_json_strict(path, "evaluation")
             if old.get("request") == request and int(old.get("step", -1)) == int(step):
                 return old
         except (OSError, ValueError):
@@ -508,7 +511,10 @@ def build_report(scene, out, *, iterations: int | None = None, generator_iterati
     try:
         job = _ReportJob(scene_path, runs_dir, base_cfg, list(splits), frames, request, iterations,
                          generator_iterations, perceptual, device, seed, progress, ctx, say)
-        results, status, baseline = job.run_all(variant_list)
+        # one writer per folder: the runs folder for the whole report (each variant's run folder as well,
+        # by its trainer and while it is evaluated)
+        with lock_folder(runs_dir, "garmentnerf report"):
+            results, status, baseline = job.run_all(variant_list)
     finally:
         ctx.release()
     meta = {"scene": str(scene_path), "preset": preset, "iterations": n_iter, "generator_iterations": gen_full,
@@ -620,6 +626,10 @@ class _ReportJob:
         """One variant's results on every split (cached; the run is loaded once, only when a
         split must be computed) and its run's step."""
         run_dir = self.runs_dir / v.name
+        with lock_folder(run_dir, "garmentnerf report: evaluation"):  # its eval/ cache is written into the run
+            return self._evaluate(run_dir)
+
+    def _evaluate(self, run_dir: Path) -> tuple[dict[str, dict], int]:
         run = None
         per: dict[str, dict] = {}
         step = int(read_run_info(run_dir)["step"])
@@ -631,7 +641,7 @@ class _ReportJob:
                 return evaluate_run(run, split, frames=self.frames, progress=self.progress, gl_context=self.ctx,
                                     resolution=REPORT_RESOLUTION)
 
-            self.say(f"{v.name}: evaluating {split}")
+            self.say(f"{run_dir.name}: evaluating {split}")
             per[split] = _cached_eval(run_dir / "eval" / f"{split}.json", self.request, step, compute)
         return per, step
 

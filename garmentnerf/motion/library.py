@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -20,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from garmentnerf.budgets import MOTION_FPS
 from garmentnerf.motion.amass import load_amass
 from garmentnerf.motion.blend import concatenate, resample
 from garmentnerf.motion.deepmimic import DEEPMIMIC_CLIPS, load_deepmimic, read_deepmimic
@@ -97,9 +97,7 @@ def load_motion(name_or_path: str | Path, body: "BodyModel", betas: torch.Tensor
     if betas is not None and not isinstance(betas, torch.Tensor):
         betas = body.betas(betas)
     if fps is not None:
-        fps = float(fps)
-        if not (math.isfinite(fps) and fps > 0):
-            raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
+        fps = MOTION_FPS.check(fps, "fps")
     spec = str(name_or_path).strip()
     if spec in DEEPMIMIC_CLIPS or spec in PROCEDURAL_MOTIONS:
         return _load_single(spec, body, betas, fps)

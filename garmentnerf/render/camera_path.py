@@ -34,8 +34,11 @@ File format (``*.json``, written by :func:`save_camera_path`)::
 ``camera_to_world`` is the OpenCV-convention pose of :mod:`garmentnerf.conventions`: its columns are
 the image's right, the image's down and the viewing direction in world coordinates (Z up, metres)
 and the camera centre. ``fov_y`` is the vertical field of view in degrees, ``frame`` the motion
-frame (a number, may be fractional), ``width``/``height`` the render size and ``fps`` the video's
-frame rate.
+frame (a number, may be fractional), ``width``/``height`` the render size (8..8192) and ``fps`` the
+video's frame rate (:data:`~garmentnerf.budgets.VIDEO_FPS`). The file is read by the project's
+strict JSON reader (:func:`~garmentnerf.io_utils.read_json_strict`: NaN, Infinity and ``1e999`` are
+refused, naming the key), ``constant_speed`` must be a JSON boolean, and a camera may be at most
+:data:`MAX_DISTANCE_M` from the origin.
 
 nerfstudio's ``camera_path.json`` (``ns-render camera-path``) loads too: every entry of its
 ``camera_path`` list (``camera_to_world`` as 16 row-major numbers, ``fov`` vertical in degrees)
@@ -58,7 +61,8 @@ from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from garmentnerf.conventions import Camera, intrinsics_from_fov
-from garmentnerf.io_utils import write_file_atomic
+from garmentnerf.io_utils import json_bool, json_number, json_whole, read_json_strict, write_file_atomic
+from garmentnerf.budgets import VIDEO_FPS
 
 FORMAT = "garmentnerf-camera-path"
 VERSION = 1
@@ -70,6 +74,9 @@ RIGID_TOLERANCE = 1e-4
 ARC_SAMPLES = 256
 #: Render sizes a path may ask for (pixels per side).
 MIN_SIZE, MAX_SIZE = 8, 8192
+#: How far from the world's origin a keyframe's camera may be, metres (a character is a couple of metres
+#: tall; further out, the projections lose every pixel to float rounding).
+MAX_DISTANCE_M = 1000.0
 #: OpenGL camera axes (x right, y up, z back) -> OpenCV camera axes (x right, y down, z forward).
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -104,6 +111,10 @@ class Keyframe:
             raise ValueError("camera_to_world contains NaN or Inf")
         if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOLERANCE:
             raise ValueError(f"camera_to_world's last row must be 0 0 0 1, got {m[3].tolist()}")
+        distance = math.hypot(*(float(x) for x in m[:3, 3]))  # no overflow warning for a far one
+        if distance > MAX_DISTANCE_M:
+            raise ValueError(f"the camera is {distance:.3g} m from the world's origin, more than the "
+                             f"{MAX_DISTANCE_M:g} m a path may go")
         error = _rigid_error(m[:3, :3])
         if error > RIGID_TOLERANCE:
             raise ValueError(f"camera_to_world's rotation is not rigid (off by {error:.2g}: scaled, sheared "
@@ -269,8 +280,7 @@ class CameraPath:
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and MIN_SIZE <= value <= MAX_SIZE):
                 raise ValueError(f"{name} must be a whole number of pixels in {MIN_SIZE}..{MAX_SIZE}, got {value}")
-        if not (math.isfinite(float(self.fps)) and float(self.fps) > 0):
-            raise ValueError(f"fps must be > 0, got {self.fps}")
+        VIDEO_FPS.check(self.fps, "fps")
         object.__setattr__(self, "keyframes", keyframes)
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
@@ -297,6 +307,15 @@ class CameraPath:
     def frames(self) -> list[int]:
         """The whole motion frames the path spans: ceil(first) .. floor(last)."""
         return list(range(math.ceil(self.first_frame), math.floor(self.last_frame) + 1))
+
+    def render_frames(self) -> list[int]:
+        """:meth:`frames`, refusing (ValueError, one line) a path that spans no whole frame: a render
+        of it would have nothing to show."""
+        frames = self.frames()
+        if not frames:
+            raise ValueError(f"its keyframes (frames {self.first_frame:g}..{self.last_frame:g}) span no whole "
+                             f"motion frame; put a keyframe on a whole frame, or pass the frames to render")
+        return frames
 
     def check_motion(self, num_frames: int, motion: str = "the motion") -> None:
         """ValueError (one line) when a keyframe lies outside frames 0..num_frames-1 of the motion."""
@@ -349,19 +368,19 @@ def path_to_json(path: CameraPath) -> dict:
                           for k in path.keyframes]}
 
 
-def _number(value, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{what} must be a number, got {value!r}")
-    return float(value)
-
-
-def _whole(value, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
-        raise ValueError(f"{what} must be a whole number, got {value!r}")
-    return int(value)
+def _numbers(value, what: str) -> None:
+    """ValueError naming ``what`` unless ``value`` is (nested lists of) JSON numbers."""
+    if isinstance(value, list):
+        for item in value:
+            _numbers(item, what)
+    else:
+        json_number(value, f"{what}'s entries")
 
 
 def _matrix(value, what: str) -> np.ndarray:
+    if not isinstance(value, list):
+        raise ValueError(f"{what} must be a 4x4 matrix of numbers, got {type(value).__name__}")
+    _numbers(value, what)
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -383,8 +402,8 @@ def _keyframe(item, i: int, convert=None, frame=None, fov_key: str = "fov_y") ->
     if convert is not None:
         m = (np.vstack([m, [0.0, 0.0, 0.0, 1.0]]) if m.shape == (3, 4) else m) @ convert
     try:
-        return Keyframe(m, _number(item[fov_key], f"keyframe {i}'s {fov_key}"),
-                        frame if frame is not None else _number(item["frame"], f"keyframe {i}'s frame"))
+        return Keyframe(m, json_number(item[fov_key], f"keyframe {i}'s {fov_key}"),
+                        frame if frame is not None else json_number(item["frame"], f"keyframe {i}'s frame"))
     except ValueError as exc:
         raise ValueError(f"keyframe {i}: {exc}") from None
 
@@ -395,15 +414,16 @@ def path_from_json(data) -> CameraPath:
     if not isinstance(data, dict):
         raise ValueError(f"a camera path must be a JSON object, got {type(data).__name__}")
     if data.get("format") == FORMAT:
-        if _whole(data.get("version", VERSION), "version") > VERSION:
+        if json_whole(data.get("version", VERSION), "version", 1) > VERSION:
             raise ValueError(f"version {data['version']} is newer than this garmentnerf reads ({VERSION})")
         keyframes = data.get("keyframes")
         if not isinstance(keyframes, list) or not keyframes:
             raise ValueError("the camera path has no keyframes")
         items = [_keyframe(k, i) for i, k in enumerate(keyframes)]
-        return CameraPath(tuple(items), _whole(data.get("width", 1280), "width"),
-                          _whole(data.get("height", 720), "height"), _number(data.get("fps", 30.0), "fps"),
-                          bool(data.get("constant_speed", False)))
+        return CameraPath(tuple(items), json_whole(data.get("width", 1280), "width", MIN_SIZE, MAX_SIZE),
+                          json_whole(data.get("height", 720), "height", MIN_SIZE, MAX_SIZE),
+                          VIDEO_FPS.check(json_number(data.get("fps", 30.0), "fps"), "fps"),
+                          json_bool(data.get("constant_speed", False), "constant_speed"))
     if "camera_path" in data:  # nerfstudio
         entries = data["camera_path"]
         if not isinstance(entries, list) or not entries:
@@ -411,24 +431,18 @@ def path_from_json(data) -> CameraPath:
         items = [_keyframe(k, i, convert=_GL_TO_CV, frame=float(i), fov_key="fov") for i, k in enumerate(entries)]
         fps = data.get("fps")
         if fps is None and data.get("seconds"):
-            fps = len(entries) / _number(data["seconds"], "seconds")
-        return CameraPath(tuple(items), _whole(data.get("render_width", 1280), "render_width"),
-                          _whole(data.get("render_height", 720), "render_height"),
-                          _number(fps if fps is not None else 30.0, "fps"))
+            fps = len(entries) / json_number(data["seconds"], "seconds", 0.0, low_open=True)
+        return CameraPath(tuple(items), json_whole(data.get("render_width", 1280), "render_width", MIN_SIZE, MAX_SIZE),
+                          json_whole(data.get("render_height", 720), "render_height", MIN_SIZE, MAX_SIZE),
+                          VIDEO_FPS.check(json_number(fps if fps is not None else 30.0, "fps"), "fps"))
     raise ValueError(f"not a camera path: no \"format\": \"{FORMAT}\" and no nerfstudio 'camera_path' list")
 
 
 def load_camera_path(file: str | Path) -> CameraPath:
-    """Read a path file; ValueError naming the file for anything wrong with it, FileNotFoundError."""
+    """Read a path file (:func:`~garmentnerf.io_utils.read_json_strict`, then :func:`path_from_json`):
+    ValueError naming the file (and the key) for anything wrong with it, FileNotFoundError, IsADirectoryError."""
     file = Path(file)
-    if not file.is_file():
-        raise FileNotFoundError(f"{file}: no such camera path file")
-    try:
-        data = json.loads(file.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise ValueError(f"{file}: not a JSON camera path (not text)") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{file}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    data = read_json_strict(file, "camera path")  # NaN, Infinity, 1e999: refused naming the key
     try:
         return path_from_json(data)
     except ValueError as exc:

@@ -12,6 +12,8 @@ import re
 import numpy as np
 import torch
 
+from garmentnerf.ranges import parse_list
+
 _HEX = re.compile(r"^#?([0-9a-fA-F]{6}|[0-9a-fA-F]{3})$")
 
 
@@ -38,20 +40,21 @@ def build_palette(learned: torch.Tensor, colors: str | None = None, body: str | 
 
     Args:
         learned: (P, 3) learned palette.
-        colors: ``'#garment'`` or ``'#c0,#c1,...'`` replacing colors 0, 1, ... (``-`` or an empty
-            item keeps that learned color); None keeps them all.
+        colors: ``'#garment'`` or ``'#c0,#c1,...'`` replacing colors 0, 1, ... (``-`` keeps that learned
+            color; an empty item or list is refused: :func:`~garmentnerf.ranges.parse_list`); None keeps
+            them all.
         body: replaces the last color (the body/other color).
     """
     pal = learned.detach().to("cpu", torch.float32).clone()
     P = pal.shape[0]
-    if colors is not None and str(colors).strip():
-        items = [c.strip() for c in str(colors).split(",")]
-        if all(item in ("", "-") for item in items):
+    if colors is not None:
+        items = parse_list(colors, "--palette", kind="colour ('-' keeps one)")
+        if all(item == "-" for item in items):
             raise ValueError(f"--palette {colors!r} names no color (give '#rrggbb' items; '-' keeps one)")
         if len(items) > P:
             raise ValueError(f"--palette has {len(items)} colors but the model's palette has {P}")
         for i, item in enumerate(items):
-            if item in ("", "-"):
+            if item == "-":
                 continue
             pal[i] = torch.tensor(parse_hex_color(item, f"palette color {i}"))
     if body is not None:

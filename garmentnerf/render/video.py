@@ -10,7 +10,10 @@ Video (:class:`VideoWriter`)
     H.264 mp4 through imageio-ffmpeg, written to a temporary file in the same folder and linked
     into place when closed (never replacing a file). Frames with an odd side are padded by
     repeating the last row/column (yuv420p needs even sizes). Closing after an interruption still
-    gives a valid, shorter video.
+    gives a valid, shorter video. Before it is linked into place the file is checked: not empty,
+    readable by imageio, holding every frame appended (:func:`check_video`); a file that fails,
+    or whose encoder failed, is removed and :class:`VideoError` says why. The frame rate must be
+    in :data:`garmentnerf.budgets.VIDEO_FPS` (as ``render --fps`` and a camera path's ``fps`` must be).
 """
 
 from __future__ import annotations
@@ -20,12 +23,17 @@ import os
 import tempfile
 from pathlib import Path
 
-import imageio.v2 as iio
+import imageio.v3 as iio
 import imageio_ffmpeg
 import numpy as np
 from PIL import Image
 
+from garmentnerf.budgets import VIDEO_FPS
 from garmentnerf.io_utils import atomic_write_path, remove_stale_temporaries
+
+
+class VideoError(ValueError):
+    """A video could not be written or did not check out (one line; the partial file is removed)."""
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -79,9 +87,7 @@ class VideoWriter:
         self.path = Path(path)
         if self.path.exists():
             raise FileExistsError(f"{self.path}: already exists (refusing to overwrite)")
-        if not (np.isfinite(fps) and fps > 0):
-            raise ValueError(f"video fps must be > 0, got {fps}")
-        self.fps = float(fps)
+        self.fps = VIDEO_FPS.check(fps, "video fps")
         self.quality = quality
         self.frames = 0
         self._gen = None
@@ -103,24 +109,35 @@ class VideoWriter:
         ph, pw = h + (h % 2), w + (w % 2)
         if (ph, pw) != (h, w):
             frame = np.pad(frame, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
-        if self._gen is None:
-            self._size = (pw, ph)
-            self._gen = imageio_ffmpeg.write_frames(str(self._tmp), (pw, ph), fps=self.fps, codec="libx264",
-                                                    quality=self.quality, macro_block_size=1,
-                                                    output_params=["-f", "mp4"], ffmpeg_log_level="error")
-            self._gen.send(None)
-        elif (pw, ph) != self._size:
-            raise ValueError(f"video frame {w}x{h} differs from the first frame's size {self._size}")
-        self._gen.send(np.ascontiguousarray(frame))
+        try:
+            if self._gen is None:
+                self._size = (pw, ph)
+                self._gen = imageio_ffmpeg.write_frames(str(self._tmp), (pw, ph), fps=self.fps, codec="libx264",
+                                                        quality=self.quality, macro_block_size=1,
+                                                        output_params=["-f", "mp4"], ffmpeg_log_level="error")
+                self._gen.send(None)
+            elif (pw, ph) != self._size:
+                raise ValueError(f"video frame {w}x{h} differs from the first frame's size {self._size}")
+            self._gen.send(np.ascontiguousarray(frame))
+        except (OSError, RuntimeError) as exc:  # the encoder died (a broken pipe) or would not start
+            self.abort()
+            raise VideoError(f"{self.path}: the video encoder failed at frame {self.frames + 1} "
+                             f"({_first_line(exc)}); no video written") from None
         self.frames += 1
 
     def close(self) -> Path | None:
-        """Finish the file and link it into place; returns its path (None when no frame was added)."""
+        """Finish the file, check it (:func:`check_video`) and link it into place; returns its path
+        (None when no frame was added). VideoError (the file removed) when it does not check out."""
         gen, self._gen = self._gen, None
         try:
             if gen is None:
                 return None
-            gen.close()
+            try:
+                gen.close()
+            except (OSError, RuntimeError) as exc:
+                raise VideoError(f"{self.path}: the video encoder failed ({_first_line(exc)}); no video "
+                                 f"written") from None
+            check_video(self._tmp, self.frames, shown=self.path)
             os.link(self._tmp, self.path)  # fails if the name appeared meanwhile: never clobber
             return self.path
         finally:
@@ -145,10 +162,36 @@ class VideoWriter:
             self.abort()
 
 
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def count_video_frames(path: str | Path) -> int:
-    """Frames in a video file, decoded with imageio's ffmpeg reader (for tests and checks)."""
-    with iio.get_reader(str(path), format="FFMPEG") as reader:
-        return sum(1 for _ in reader)
+    """Frames in an mp4 file (whatever its name: a temporary too), decoded with imageio's ffmpeg
+    reader (for tests and checks)."""
+    return sum(1 for _ in iio.imiter(str(path), plugin="FFMPEG", extension=".mp4"))
 
 
-__all__ = ["FrameWriter", "VideoWriter", "write_png_exclusive", "to_uint8", "count_video_frames"]
+def check_video(path: str | Path, frames: int, shown: str | Path | None = None) -> None:
+    """VideoError (naming ``shown``, default ``path``) unless the video file ``path`` is not empty,
+    is readable by imageio and holds ``frames`` frames."""
+    shown = path if shown is None else shown
+    try:
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise VideoError(f"{shown}: the video was not written ({exc.strerror or exc})") from None
+    if size == 0:
+        raise VideoError(f"{shown}: the video encoder wrote an empty file; no video written")
+    try:
+        found = count_video_frames(path)
+    except Exception as exc:  # noqa: BLE001 - imageio/ffmpeg raise many kinds for a damaged file
+        raise VideoError(f"{shown}: the video written is not readable ({_first_line(exc)}); no video "
+                         f"written") from None
+    if found != frames:
+        raise VideoError(f"{shown}: the video written holds {found} frame(s), not the {frames} rendered; no "
+                         f"video written")
+
+
+__all__ = ["FrameWriter", "VideoWriter", "VideoError", "write_png_exclusive", "to_uint8", "count_video_frames",
+           "check_video"]

@@ -13,11 +13,13 @@ run's learned one and stays fixed, so recolouring the body tints the fitted text
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -29,6 +31,7 @@ from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.gl.camera_pass import CameraPass
 from garmentnerf.model.body_appearance import BodyAppearance
 from garmentnerf.render.body_layer import body_surface
+from garmentnerf.folder_lock import lock_folder
 
 #: Weight of the albedo prior ``mean((A(uv) - 1)^2)`` over a batch's samples: it settles the scale
 #: that the texture and the shading could trade (their product is what is seen), so a texel no
@@ -167,24 +170,33 @@ def fit_run_appearance(run_dir, out, *, scene=None, frame_stride: int = 5, steps
     """Fit the body appearance of the run in ``run_dir`` (what ``garmentnerf body fit-appearance``
     does): samples from its training cameras at every ``frame_stride``-th frame of its scene's (or
     ``scene``'s) training sequences, fitted for ``steps`` steps under the run's learned body colour
-    (``albedo_prior`` None: :data:`ALBEDO_PRIOR`), and written atomically to ``out``.
+    (``albedo_prior`` None: :data:`ALBEDO_PRIOR`), and written atomically to ``out``. When ``out`` is in
+    the run folder, the folder's writer lock (:func:`~garmentnerf.folder_lock.lock_folder`) is held throughout.
 
     Returns:
         the fit's summary (:func:`fit_body_appearance`).
     Raises:
         ValueError: the run's scene is missing (pass ``scene``), or an impossible setting.
     """
-    # lazy: the evaluation and GL stacks are only needed here
-    from garmentnerf.gl.context import create_context
-    from garmentnerf.model.body_appearance import save_body_appearance
-    from garmentnerf.runs import load_run, run_train_cameras
-
     if frame_stride < 1:
         raise ValueError(f"--frame-stride must be at least 1, got {frame_stride}")
     if steps < 1:
         raise ValueError(f"--steps must be at least 1, got {steps}")
     if albedo_prior is not None and not (math.isfinite(albedo_prior) and albedo_prior >= 0):
         raise ValueError(f"--albedo-prior must be a number >= 0, got {albedo_prior}")
+    with contextlib.ExitStack() as stack:
+        if Path(out).resolve().parent == Path(run_dir).resolve():
+            stack.enter_context(lock_folder(run_dir, "garmentnerf body fit-appearance"))
+        return _fit_run_appearance(run_dir, out, scene, frame_stride, steps, albedo_prior, progress)
+
+
+def _fit_run_appearance(run_dir, out, scene, frame_stride: int, steps: int, albedo_prior: float | None,
+                        progress: bool) -> dict:
+    # lazy: the evaluation and GL stacks are only needed here
+    from garmentnerf.gl.context import create_context
+    from garmentnerf.model.body_appearance import save_body_appearance
+    from garmentnerf.runs import load_run, run_train_cameras
+
     run = load_run(run_dir, scene=scene)
     if run.scene is None:
         raise ValueError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "

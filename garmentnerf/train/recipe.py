@@ -35,15 +35,16 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
-import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
+from garmentnerf.io_utils import parse_json_strict
 from garmentnerf.model.config import ModelConfig
-from garmentnerf.train.settings import MODEL_PRESETS, model_config_for, parse_frames
+from garmentnerf.ranges import parse_frames
+from garmentnerf.train.settings import MODEL_PRESETS, model_config_for
 
 __all__ = ["RECIPE_FORMAT", "RECIPE_VERSION", "RECIPE_FILE", "STAGE_KINDS", "DEMO_SCENE_PREFIX", "RecipeError",
            "ExtraSequence", "RecipeScene", "Stage", "Recipe", "read_recipe", "parse_recipe", "load_recipe_json",
@@ -213,36 +214,14 @@ def _plain(value):
 
 
 # ---- reading -------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class _NonFinite:
-    """What a NaN, an Infinity or a number too large for a float reads as (refused where it is used)."""
-
-    text: str
-    """The number as the file has it."""
-
-
-def _number(text: str):
-    value = float(text)
-    return value if math.isfinite(value) else _NonFinite(text)
-
-
-def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
-    keys = [k for k, _ in pairs]
-    duplicate = next((k for i, k in enumerate(keys) if k in keys[:i]), None)
-    if duplicate is not None:
-        raise RecipeError(f"key '{duplicate}' is given twice in one object")
-    return dict(pairs)
-
-
 def load_json(text: str, where: str):
-    """The JSON value of ``text`` (a file called ``where``): NaN, Infinity and numbers beyond a float
-    read as markers the typed reader refuses at their key; a key given twice in an object is refused."""
+    """The JSON value of ``text`` (a file called ``where``), read by the project's strict reader
+    (:func:`~garmentnerf.io_utils.parse_json_strict`: NaN, Infinity, numbers beyond a float and a key
+    given twice in an object are refused, naming the key)."""
     try:
-        return json.loads(text, parse_constant=_NonFinite, parse_float=_number, object_pairs_hook=_unique_keys)
-    except RecipeError as exc:
-        raise RecipeError(f"{where}: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise RecipeError(f"{where}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") from None
+        return parse_json_strict(text, where)
+    except ValueError as exc:
+        raise RecipeError(str(exc)) from None
 
 
 def load_recipe_json(path) -> object:
@@ -307,8 +286,6 @@ class _Object:
                 raise self.fail(name, "missing")
             return default
         value = self.data[name]
-        if isinstance(value, _NonFinite):
-            raise self.fail(name, f"{value.text} is not a finite number")
         ok = {"str": lambda v: isinstance(v, str),
               "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
               "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
@@ -319,7 +296,7 @@ class _Object:
         if not ok(value):
             wanted = {"str": "a string", "int": "an integer", "number": "a number", "bool": "true or false",
                       "str_list": "a list of strings", "list": "a list", "object": "an object"}[kind]
-            raise self.fail(name, f"must be {wanted}, got {json.dumps(_plain_marker(value))}")
+            raise self.fail(name, f"must be {wanted}, got {json.dumps(value)}")
         return float(value) if kind == "number" else value
 
     def at_least(self, name: str, value, least):
@@ -337,26 +314,13 @@ class _Object:
 
     def child(self, name: str, value, index: int | None = None) -> "_Object":
         where = self.key(name) + ("" if index is None else f"[{index}]")
-        if isinstance(value, _NonFinite) or not isinstance(value, dict):
+        if not isinstance(value, dict):
             raise RecipeError(f"{self.file}: {where}: must be an object")
         return _Object(value, self.file, where)
 
 
-def _plain_marker(value):
-    """``value`` with the non-finite markers written as their text (for messages)."""
-    if isinstance(value, _NonFinite):
-        return value.text
-    if isinstance(value, dict):
-        return {k: _plain_marker(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_plain_marker(v) for v in value]
-    return value
-
-
 def _frozen(value, obj: _Object, key: str):
-    """A config override value, refused where it holds a non-finite number; lists become tuples."""
-    if isinstance(value, _NonFinite):
-        raise obj.fail(key, f"{value.text} is not a finite number")
+    """A config override value, read-only: lists become tuples, objects mappings."""
     if isinstance(value, list):
         return tuple(_frozen(v, obj, f"{key}[{i}]") for i, v in enumerate(value))
     if isinstance(value, dict):
@@ -445,7 +409,7 @@ def parse_recipe(data, file: str) -> Recipe:
     Raises:
         RecipeError: one line naming ``file`` and the key.
     """
-    if isinstance(data, _NonFinite) or not isinstance(data, dict):
+    if not isinstance(data, dict):
         raise RecipeError(f"{file}: a recipe is a JSON object")
     top = _Object(data, file, "")
     top.check_keys(("format", "version", "name", "description", "scenes", "stages"))

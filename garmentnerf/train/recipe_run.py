@@ -53,7 +53,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from types import MappingProxyType
 
-from garmentnerf.io_utils import write_file_atomic
+from garmentnerf.io_utils import read_json_strict, write_file_atomic
+from garmentnerf.folder_lock import folder_has_files, lock_folder
 from garmentnerf.train.recipe import (
     DEMO_SCENE_PREFIX,
     RECIPE_FILE,
@@ -122,11 +123,11 @@ def read_log(out) -> dict:
     """The ``recipe_log.json`` of the recipe folder ``out`` (ValueError naming it when unreadable)."""
     file = Path(out) / LOG_FILE
     try:
-        log = json.loads(file.read_text(encoding="utf-8"))
+        log = read_json_strict(file, "recipe log")
     except FileNotFoundError:
         raise FileNotFoundError(f"{file}: missing (not a folder 'garmentnerf train --recipe' made)") from None
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{file}: unreadable ({exc})") from None
+    except OSError as exc:
+        raise ValueError(str(exc)) from None
     if not isinstance(log, dict) or log.get("format") != LOG_FORMAT or not isinstance(log.get("stages"), list):
         raise ValueError(f"{file}: not a recipe log")
     return log
@@ -256,22 +257,24 @@ def run_recipe(recipe: Recipe, recipe_file, out, scene=None, *, resume: bool = F
             from the one ``out`` was started with (one line, before anything is written).
     """
     out = Path(out)
-    scene_path = None if scene is None else Path(scene)
-    if resume:
-        log = _resumed_log(recipe, str(recipe_file), out, scene_path)
-        scene_path = None if log["scene"] is None else Path(log["scene"])
-    else:
-        if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            raise ValueError(f"{out}: run folder is not empty; pass --resume to continue the recipe in it, or "
-                             f"choose another --out")
-        log = _new_log(recipe, str(recipe_file), scene_path, out)
-    runner = _Runner(recipe, str(recipe_file), out, scene_path, options, say, make_sequence, log)
-    check_scenes(recipe, str(recipe_file), scene_path)
-    if not resume:
-        out.mkdir(parents=True, exist_ok=True)
-        write_file_atomic(out / RECIPE_FILE, (json.dumps(recipe.to_json(), indent=1) + "\n").encode("utf-8"))
-        _write_log(out, log)
-    return runner.run()
+    # one writer per folder: the recipe's folder for the whole sitting (each stage's run folder as well, by
+    # its trainer or fit)
+    with lock_folder(out, "garmentnerf train --recipe" + (" --resume" if resume else "")):
+        scene_path = None if scene is None else Path(scene)
+        if resume:
+            log = _resumed_log(recipe, str(recipe_file), out, scene_path)
+            scene_path = None if log["scene"] is None else Path(log["scene"])
+        else:
+            if folder_has_files(out):
+                raise ValueError(f"{out}: run folder is not empty; pass --resume to continue the recipe in it, or "
+                                 f"choose another --out")
+            log = _new_log(recipe, str(recipe_file), scene_path, out)
+        runner = _Runner(recipe, str(recipe_file), out, scene_path, options, say, make_sequence, log)
+        check_scenes(recipe, str(recipe_file), scene_path)
+        if not resume:
+            write_file_atomic(out / RECIPE_FILE, (json.dumps(recipe.to_json(), indent=1) + "\n").encode("utf-8"))
+            _write_log(out, log)
+        return runner.run()
 
 
 def _resumed_log(recipe: Recipe, recipe_file: str, out: Path, scene: Path | None) -> dict:
@@ -402,7 +405,8 @@ class _Runner:
     def new_config(self, index: int, stage: Stage, folder: Path):
         """The :class:`TrainConfig` of ``stage`` as a new run in ``folder``."""
         from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
-        from garmentnerf.train.settings import TrainConfig, parse_frames
+        from garmentnerf.ranges import parse_frames
+        from garmentnerf.train.settings import TrainConfig
 
         opt = self.options
         appearance = None
@@ -414,7 +418,7 @@ class _Runner:
             seed=stage.seed, iterations=stage.iterations, generator_iterations=stage.generator_iterations,
             stop_after=stage.stop_after, log_every=opt.log_every, image_every=opt.image_every,
             ckpt_every=opt.ckpt_every or stage.ckpt_every, sequences=stage.sequences,
-            frames=None if stage.frames is None else parse_frames(stage.frames, "frames"),
+            frames=None if stage.frames is None else tuple(parse_frames(stage.frames, "frames")),
             perceptual=opt.perceptual, vgg19_weights=opt.vgg19_weights, threads=opt.threads or stage.threads,
             progress=opt.progress, init_generator=self._weights(stage.init_generator, index),
             init_weights=self._weights(stage.init, index), training_crop_density=stage.training_crop_density,
@@ -470,14 +474,18 @@ class _Runner:
         return not result.interrupted and result.step >= end
 
     def fit(self, index: int, stage: Stage, record: dict) -> None:
-        """Fit the body appearance of the previous train stage's run into ``stage``'s folder."""
+        """Fit the body appearance of the previous train stage's run into ``stage``'s folder (holding its
+        writer lock)."""
+        folder = stage_folder(self.out, self.recipe, stage)
+        with lock_folder(folder, "garmentnerf train --recipe: fit stage"):
+            self._fit(index, stage, record, folder)
+
+    def _fit(self, index: int, stage: Stage, record: dict, folder: Path) -> None:
         import torch
 
         from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
         from garmentnerf.train.body_appearance import fit_run_appearance
 
-        folder = stage_folder(self.out, self.recipe, stage)
-        folder.mkdir(parents=True, exist_ok=True)
         threads = self.options.threads or stage.threads
         if threads:
             torch.set_num_threads(threads)

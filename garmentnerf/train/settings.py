@@ -19,7 +19,7 @@ from garmentnerf.runs import recorded_scene_path
 
 __all__ = ["TrainConfig", "MODEL_PRESETS", "TRAIN_DEFAULTS", "RUN_SETTINGS", "OVERRIDABLE_SETTINGS",
            "TRAINING_PRECISIONS", "model_config_for", "training_precision",
-           "new_run_settings", "resume_settings", "show_setting", "parse_frames"]
+           "new_run_settings", "resume_settings", "show_setting"]
 
 MODEL_PRESETS = ("paper", "cpu_small", "tiny")
 
@@ -33,30 +33,6 @@ RUN_SETTINGS = ("preset", "seed", "iterations", "generator_iterations", "sequenc
 TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 #: :class:`TrainConfig` fields a resume may change (from the resumed step on; recorded in ``overrides``).
 OVERRIDABLE_SETTINGS = ("log_every", "image_every", "ckpt_every", "keep_checkpoints", "perceptual", "vgg19_weights")
-
-
-def parse_frames(text: str, what: str = "--frames") -> tuple[int, ...]:
-    """The frame indices of a range in Python slice syntax (``A:B``, ``A:B:S``, or one frame ``A``);
-    ValueError naming ``what`` when ``text`` is not one or selects no frame."""
-    parts = text.split(":")
-    try:
-        nums = [int(x) if x.strip() else None for x in parts]
-    except ValueError:
-        raise ValueError(f"{what} must be A:B (integers), got {text!r}") from None
-    if len(nums) == 1:
-        if nums[0] is None:
-            raise ValueError(f"{what} must be A:B, got {text!r}")
-        return (nums[0],)
-    if len(nums) not in (2, 3):
-        raise ValueError(f"{what} must be A:B, got {text!r}")
-    start, stop = nums[0] or 0, nums[1]
-    if stop is None:
-        raise ValueError(f"{what} needs an end (A:B)")
-    step = nums[2] if len(nums) == 3 and nums[2] else 1
-    out = tuple(range(start, stop, step))
-    if not out:
-        raise ValueError(f"{what} {text} selects no frame")
-    return out
 
 
 def model_config_for(preset: str) -> ModelConfig:
@@ -199,8 +175,9 @@ class TrainConfig:
             raise ValueError(f"training_crop_density must be a number >= 0, got {self.training_crop_density}")
         if self.precision is not None and self.precision not in TRAINING_PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(TRAINING_PRECISIONS)}, got {self.precision!r}")
-        if self.stop_after is not None and self.stop_after < 0:
-            raise ValueError(f"stop_after must be >= 0, got {self.stop_after}")
+        if self.stop_after is not None and self.stop_after < 1:  # 0 would stop before the first checkpoint
+            raise ValueError(f"stop_after must be >= 1 (a run stopped at 0 would have nothing to resume from), "
+                             f"got {self.stop_after}")
 
     def to_json(self) -> dict:
         """The fields as JSON values (``run.json``'s ``train``; ``model_config`` left out)."""

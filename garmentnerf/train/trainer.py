@@ -103,6 +103,7 @@ from tqdm import tqdm
 
 from garmentnerf.cpu_load import BusyWatch, OtherProcessesLoad
 from garmentnerf.data.scene import Scene, read_garment_arrays
+from garmentnerf.folder_lock import folder_has_files, lock_folder
 from garmentnerf.gl.body_layer_pass import BodyLayerPass
 from garmentnerf.interrupts import HeldInterrupts
 from garmentnerf.io_utils import write_file_atomic
@@ -119,6 +120,7 @@ from garmentnerf.runs import (
     RUN_FILE,
     body_info_from_scene,
     build_model,
+    check_scene_for_run,
     frame_code_record,
     load_weights,
     read_run_info,
@@ -222,14 +224,21 @@ class Trainer(Closeable):
         self._log = log
         self.out = Path(tc.out)
         self.step_callback: Callable[[int, dict], None] | None = None
+        self._lock = None  # the run folder's writer lock (the main process's), from _check_run_folder to close()
         if tc.threads:
             torch.set_num_threads(int(tc.threads))
         self._busy_watch = BusyWatch(torch.get_num_threads(), "this training")  # checked at the start and checkpoints
         try:
             self._setup(gl_context)
         except BaseException:
+            self._release_lock()
             self.dist.close()
             raise
+
+    def _release_lock(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     # ---- setup -------------------------------------------------------------------------------------
     def log(self, message: str) -> None:
@@ -265,13 +274,19 @@ class Trainer(Closeable):
                  + (f", resuming at step {self.step}" if ckpts else ""))
 
     def _check_run_folder(self) -> tuple[dict | None, list[tuple[int, Path, Path]]]:
-        """(``run.json`` of the run resumed or None, its complete checkpoints newest first); raises
-        (on every rank together) when ``out`` cannot be resumed or is not empty for a new run."""
+        """(``run.json`` of the run resumed or None, its complete checkpoints newest first), with the
+        folder's writer lock taken (by the main process); raises (on every rank together) when another
+        process writes into ``out``, or ``out`` cannot be resumed or is not empty for a new run."""
         out = self.out
         resume_info = None
         ckpts = []
         problem = None
-        if self.tc.resume:
+        if self.dist.main:  # one writer per run folder (garmentnerf.folder_lock); the other ranks follow the main one
+            try:
+                self._lock = lock_folder(out, "garmentnerf train" + (" --resume" if self.tc.resume else ""))
+            except ValueError as exc:
+                problem = exc
+        if problem is None and self.tc.resume:
             if not (out / RUN_FILE).is_file():
                 if (out / CHECKPOINT_DIR).is_dir() or (out / TB_DIR).is_dir():
                     problem = FileNotFoundError(f"{out / RUN_FILE}: missing: the run stopped before its first "
@@ -285,7 +300,7 @@ class Trainer(Closeable):
                 if not ckpts:
                     problem = FileNotFoundError(f"{out / CHECKPOINT_DIR}: no complete checkpoint "
                                                 f"(ckpt_<step>.safetensors + ckpt_<step>.state.pt) to resume from")
-        elif out.exists() and (not out.is_dir() or any(out.iterdir())):
+        elif problem is None and folder_has_files(out):
             problem = ValueError(f"{out}: run folder is not empty; pass --resume to continue the run in it, "
                                  f"or choose another --out")
         if not self.dist.all_ok(problem is None):
@@ -333,6 +348,9 @@ class Trainer(Closeable):
         if not (self.scene_path / "scene.json").is_file() and not self.scene_path.suffix == ".json":
             raise FileNotFoundError(f"{self.scene_path / 'scene.json'}: missing (--scene must be a scene folder)")
         self.scene = Scene.load(self.scene_path)
+        if resume_info is not None and self.tc.scene is not None:  # another scene for a run: it must fit it
+            cfg = ModelConfig.from_dict(dict(resume_info["model_config"]))
+            check_scene_for_run(self.out, resume_info, cfg.decoder.palette_size, self.scene)
 
     def _settle_config(self, cfg: ModelConfig, resume_info: dict | None) -> dict[str, float]:
         """``self.cfg`` (``cfg`` with this run's iterations and loss weights), the step counts and the
@@ -556,6 +574,7 @@ class Trainer(Closeable):
     # ---- checkpoints -------------------------------------------------------------------------------
     def _run_extra(self) -> dict:
         return {"perceptual": self.perceptual_name, "body": body_info_from_scene(self.scene),
+                "garment": dict(self.scene.garment),
                 "generator_iterations": self.generator_iterations,
                 "nerf_step": max(0, self.step - self.generator_iterations), "seed": self.tc.seed,
                 "train": {**self.tc.to_json(), "scene": str(self.scene_path)},
@@ -883,6 +902,7 @@ class Trainer(Closeable):
             self.sampling = None
         if getattr(self, "data", None) is not None:
             self.data.close()
+        self._release_lock()
         self.dist.close()
 
 

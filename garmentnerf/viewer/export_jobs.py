@@ -196,9 +196,10 @@ def plan_range(controller, size: tuple[int, int], first: int, last: int, centers
 def plan_path(path, size: tuple[int, int], num_frames: int, motion: str = "the clip") -> Plan:
     """The frames a :class:`~garmentnerf.render.camera_path.CameraPath` spans, each seen from the
     path's camera at ``size`` (W, H): what ``garmentnerf render --camera-path`` renders from the
-    saved path. ValueError when a keyframe lies outside the ``num_frames`` clip."""
+    saved path. ValueError when a keyframe lies outside the ``num_frames`` clip or the path spans no
+    whole frame."""
     path.check_motion(num_frames, motion)
-    frames = path.frames()
+    frames = path.render_frames()
     return list(zip(frames, path.cameras(frames, (int(size[0]), int(size[1])))))
 
 

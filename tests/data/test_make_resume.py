@@ -271,21 +271,18 @@ def test_resume_with_other_output_settings_is_refused(reference, tmp_path):
 
 
 def test_a_second_make_of_a_folder_being_made_is_refused(reference, tmp_path):
-    import fcntl
+    from garmentnerf.folder_lock import lock_folder
 
     reference = reference.scene()
     out = tmp_path / "scene"
     shutil.copytree(reference, out)
     before = _snapshot(out)
-    fd = os.open(out, os.O_RDONLY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running make holds it
+    with lock_folder(out, "garmentnerf data make"):  # as a running make holds it
         proc = subprocess.run(_command(out), capture_output=True, text=True, timeout=TIMEOUT_S)
-    finally:
-        os.close(fd)
     assert proc.returncode == 2
-    assert proc.stderr.splitlines() == [f"garmentnerf: error: {out}: another 'garmentnerf data make' is writing "
-                                        f"this scene; wait for it to finish, or choose another --out"]
+    assert proc.stderr.splitlines() == [f"garmentnerf: error: {out}: another 'garmentnerf data make' (PID "
+                                        f"{os.getpid()}, 'garmentnerf data make') is writing this scene; wait for "
+                                        f"it to finish, or choose another --out"]
     assert _snapshot(out) == before
 
 

@@ -183,7 +183,9 @@ def test_bad_json_and_missing_files(tmp_path):
         assert msg.startswith(f"{file}: ") and fragment in msg and "\n" not in msg, msg
 
     file.write_text(text.replace('"fps":', '"fps"', 1))
-    expect("invalid JSON at line")
+    expect("not valid JSON (")
+    file.write_text(text.replace('"fps": ', '"fps": NaN, "x": ', 1))
+    expect("fps: NaN is not a finite number")
     file.write_text(text)
     garment = tmp_path / "s" / "sequences" / "train" / "garment.npz"
     garment.rename(garment.with_suffix(".bak"))

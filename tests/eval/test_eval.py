@@ -15,12 +15,12 @@ from garmentnerf.eval.evaluate import (
     DEFAULT_LIMITS,
     SPLITS,
     _middle_window,
+    _frames_of,
     _Scores,
     _spread,
     evaluate_run,
     format_result_table,
     nearest_camera,
-    parse_frame_range,
     select_views,
 )
 from garmentnerf.eval.metrics import PSNR_CAP_DB, psnr, ssim
@@ -89,12 +89,12 @@ def test_selection_helpers():
     assert _spread(list("abc"), 4) == list("abc")
     assert _middle_window(100, 30) == list(range(35, 65))
     assert _middle_window(6, 30) == list(range(6))
-    assert parse_frame_range("2:5") == slice(2, 5)
-    assert parse_frame_range("3") == slice(3, 4)
-    assert parse_frame_range(None) is None
-    for bad in ("a:b", "1:2:3", "-1:2"):
-        with pytest.raises(ValueError):
-            parse_frame_range(bad)
+    # frame ranges are garmentnerf.ranges' (tests/test_ranges.py): a step selects every S-th frame
+    assert _frames_of("2:5", 10, "s") == [2, 3, 4] and _frames_of("1:8:3", 10, "s") == [1, 4, 7]
+    assert _frames_of(slice(2, None, 4), 10, "s") == [2, 6] and _frames_of(None, 3, "s") == [0, 1, 2]
+    for bad in ("a:b", "0:4:0", "-1:2", "", "4:4", "8:12"):
+        with pytest.raises(ValueError, match="frames"):
+            _frames_of(bad, 10, "s")
     assert set(DEFAULT_LIMITS) == set(SPLITS)
 
 

@@ -8,6 +8,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -231,8 +233,35 @@ def test_a_nerfstudio_camera_path_loads_in_opengl_convention(tmp_path):
         assert float(depth[0]) == pytest.approx(-z)
 
 
+def _path_text(**changes) -> str:
+    data = {"format": "garmentnerf-camera-path", "version": 1, "width": 64, "height": 48, "fps": 24.0,
+            "constant_speed": False, "keyframes": [{"frame": 0, "fov_y": 40, "camera_to_world": np.eye(4).tolist()},
+                                                   {"frame": 2, "fov_y": 40, "camera_to_world": np.eye(4).tolist()}]}
+    text = json.dumps(data)
+    for key, value in changes.items():  # raw JSON text, so that NaN and Infinity can be written
+        text = text.replace(f'"{key}": {json.dumps(data[key])}', f'"{key}": {value}', 1)
+    return text
+
+
 @pytest.mark.parametrize("content, message", [
-    ("{not json", "not JSON"),
+    ("{not json", "not valid JSON"),
+    (_path_text(width="Infinity"), "width: Infinity is not a finite number"),
+    (_path_text(version="Infinity"), "version: Infinity is not a finite number"),
+    (_path_text(fps="NaN"), "fps: NaN is not a finite number"),
+    (_path_text(fps="1e999"), "fps: 1e999 is not a finite number"),
+    (_path_text(fps="1e308"), "fps must be in 0.1..1000"),
+    (_path_text(fps="1e-300"), "fps must be in 0.1..1000"),
+    (_path_text(constant_speed='"false"'), "constant_speed must be true or false, got 'false'"),
+    (_path_text(width="true"), "width must be a number, got True"),
+    (_path_text(width="0"), "width must be a whole number in 8..8192"),
+    (_path_text(keyframes='[{"frame": 0, "fov_y": 40, "camera_to_world": [[1, 0, 0, 1e200], [0, 1, 0, 0], '
+                          '[0, 0, 1, 0], [0, 0, 0, 1]]}]'), "m from the world's origin"),
+    (_path_text(keyframes='[{"frame": 0, "fov_y": 40, "camera_to_world": [["1", 0, 0, 0], [0, 1, 0, 0], '
+                          '[0, 0, 1, 0], [0, 0, 0, 1]]}]'), "camera_to_world's entries must be a number"),
+    (json.dumps({"camera_path": [{"camera_to_world": np.eye(4).ravel().tolist(), "fov": 40}], "render_width": 0}),
+     "render_width must be a whole number in 8..8192"),
+    (json.dumps({"camera_path": [{"camera_to_world": np.eye(4).ravel().tolist(), "fov": 40}]}).replace(
+        '"fov": 40', '"fov": -Infinity'), "camera_path[0].fov: -Infinity is not a finite number"),
     (json.dumps({"format": "garmentnerf-camera-path", "keyframes": []}), "no keyframes"),
     (json.dumps({"camera_path": []}), "no keyframes"),
     (json.dumps({"something": 1}), "not a camera path"),
@@ -263,3 +292,57 @@ def test_a_keyframe_outside_the_motion_is_refused():
     with pytest.raises(ValueError, match="keyframe 4 is at frame 55, outside walk \\(50 frames"):
         path.check_motion(50, "walk")
     assert path_from_json(path_to_json(path)).frames() == list(range(0, 56))
+
+
+def test_a_folder_or_a_missing_file_is_named_as_such(tmp_path):
+    with pytest.raises(IsADirectoryError, match=f"{tmp_path}: is a folder, not a camera path file"):
+        load_camera_path(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no such camera path file"):
+        load_camera_path(tmp_path / "nope.json")
+
+
+def test_a_path_between_two_frames_renders_nothing_and_says_so():
+    path = path_from_json(json.loads(_path_text()))
+    between = path.with_keyframes([Keyframe(k.camera_to_world, k.fov_y, f) for k, f in zip(path.keyframes, (0.2, 0.8))])
+    assert between.frames() == []
+    with pytest.raises(ValueError, match=r"its keyframes \(frames 0.2..0.8\) span no whole motion frame"):
+        between.render_frames()
+
+
+# ---- any file: a path or one line (Hypothesis) -----------------------------------------------------------
+_json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-10**400, 10**400) | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=6), inner, max_size=5),
+    max_leaves=20)
+_matrices = st.lists(st.lists(st.floats(allow_nan=True, allow_infinity=True) | st.integers(-3, 3), min_size=3,
+                              max_size=5), min_size=3, max_size=5)
+_keyframes = st.fixed_dictionaries({}, optional={
+    "frame": _json_values | st.floats(-5, 60), "fov_y": _json_values | st.floats(-10, 200),
+    "camera_to_world": _json_values | _matrices | st.just(np.eye(4).tolist())})
+_ours = st.fixed_dictionaries({"format": st.just("garmentnerf-camera-path")}, optional={
+    "version": _json_values | st.integers(0, 3), "width": _json_values | st.integers(-5, 9000),
+    "height": _json_values | st.integers(-5, 9000), "fps": _json_values | st.floats(-1, 2000),
+    "constant_speed": _json_values, "keyframes": st.lists(_keyframes, max_size=4) | _json_values})
+_nerfstudio = st.fixed_dictionaries({"camera_path": st.lists(st.fixed_dictionaries({}, optional={
+    "camera_to_world": _json_values | st.just(np.eye(4).ravel().tolist()), "fov": _json_values | st.floats(0, 180)}),
+    max_size=3) | _json_values}, optional={"render_width": _json_values | st.integers(0, 9000),
+                                          "render_height": _json_values, "fps": _json_values,
+                                          "seconds": _json_values})
+
+
+@settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(_ours, _nerfstudio, _json_values).map(lambda v: json.dumps(v)) | st.text(max_size=40))
+def test_any_file_gives_a_path_or_one_line(tmp_path_factory, text):
+    file = tmp_path_factory.mktemp("paths") / "path.json"
+    file.write_text(text)
+    try:
+        path = load_camera_path(file)
+    except ValueError as exc:
+        message = str(exc)
+        assert message.startswith(f"{file}: ") and "\n" not in message, message
+        return
+    assert isinstance(path, CameraPath) and 8 <= path.width <= 8192 and 0.1 <= path.fps <= 1000
+    frames = np.linspace(path.first_frame, path.last_frame, 5)
+    for camera in path.cameras(frames, (16, 12)):
+        assert np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.R)) and np.all(np.isfinite(camera.t))

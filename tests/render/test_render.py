@@ -99,6 +99,40 @@ def test_frame_and_video_writers_never_overwrite(tmp_path):
     assert not [p for p in tmp_path.rglob(".*")]  # no temporary files left
 
 
+def test_a_video_that_does_not_check_out_is_removed_and_named(tmp_path, monkeypatch):
+    """A video is checked before it is said to be written: an encoder that dies mid-way (a broken pipe)
+    or a file holding other than the frames appended is a one-line VideoError, and no file stays."""
+    import imageio_ffmpeg
+
+    from garmentnerf.render import video as video_module
+    from garmentnerf.budgets import VIDEO_FPS
+    from garmentnerf.render.video import VideoError
+
+    for fps in (1e-300, 1e308, float("nan"), 0.0):
+        with pytest.raises(ValueError, match=f"video fps must be in {VIDEO_FPS.low:g}..{VIDEO_FPS.high:g}"):
+            VideoWriter(tmp_path / "x.mp4", fps)
+    frame = np.zeros((8, 8, 3), np.uint8)
+    monkeypatch.setattr(video_module, "count_video_frames", lambda path: 2)  # one frame lost on the way
+    v = VideoWriter(tmp_path / "short.mp4", 10)
+    for _ in range(3):
+        v.append(frame)
+    with pytest.raises(VideoError, match=r"short.mp4: the video written holds 2 frame\(s\), not the 3 rendered"):
+        v.close()
+    monkeypatch.undo()
+
+    def dying_encoder(*args, **kwargs):  # takes the first frame, then its ffmpeg is gone
+        yield
+        yield
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames", dying_encoder)
+    v = VideoWriter(tmp_path / "broken.mp4", 10)
+    v.append(frame)
+    with pytest.raises(VideoError, match=r"broken.mp4: the video encoder failed at frame 2 \(.*Broken pipe\)"):
+        v.append(frame)
+    assert not list(tmp_path.iterdir())  # neither video, nor a temporary
+
+
 # ---- the session ------------------------------------------------------------------------------------
 def test_session_caches_frames_and_scales(session):
     cam = orbit_view(30.0, width=96, height=96)
@@ -402,7 +436,8 @@ def test_render_command_follows_a_camera_path(run_dir, tmp_path, session):
 
 
 @pytest.mark.parametrize("content, message", [
-    ("not json at all", "not JSON"),
+    ("not json at all", "not valid JSON"),
+    ("between frames", "span no whole motion frame"),
     ('{"format": "garmentnerf-camera-path", "keyframes": []}', "no keyframes"),
     ('{"format": "garmentnerf-camera-path", "keyframes": [{"frame": 0, "fov_y": 40, '
      '"camera_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]}]}', "not rigid"),
@@ -414,6 +449,8 @@ def test_render_command_camera_path_errors_are_one_line(run_dir, tmp_path, capsy
     extra = []
     if content == "frame 999":
         _write_path(file, frames=(0, 2, 999))
+    elif content == "between frames":
+        _write_path(file, frames=(0.2, 0.8))
     elif content == "--camera too":
         _write_path(file)
         extra = ["--camera", "orbit"]
