@@ -30,10 +30,11 @@ ROOT_UNIT = "__init__"
 #: The units of ``garmentnerf``, lowest layer first.
 LAYERS: tuple[tuple[str, ...], ...] = (
     # The ground: camera and array conventions, safe file writes, signals, closeable objects, the
-    # machine's CPU load, the package version, the byte-bounded cache, the package's data files (body
-    # asset, demos, shaders) and the package's own (empty) __init__. They import nothing of garmentnerf.
-    ("conventions", "io_utils", "interrupts", "lifecycle", "cpu_load", "version", "byte_lru", "assets", "shaders",
-     ROOT_UNIT),
+    # machine's CPU load, the package version, the byte-bounded cache, frame ranges and lists, argument
+    # budgets, the folder lock, the package's data files (body asset, demos, shaders) and the package's
+    # own (empty) __init__. They import nothing of garmentnerf.
+    ("conventions", "io_utils", "interrupts", "lifecycle", "cpu_load", "version", "byte_lru", "ranges", "budgets",
+     "folder_lock", "assets", "shaders", ROOT_UNIT),
     # Reading pickled files without running their code (reads .npy headers with io_utils).
     ("safe_pickle",),
     # The body model: template, shape, skinning, UV atlas, shading basis.
