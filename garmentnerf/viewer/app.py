@@ -332,6 +332,7 @@ class App(Closeable):
         frame = self.timeline.frame
         center = self.sequence.centers[frame]
         self.scene.set_body((self._sequence_serial, frame), self.sequence.frame(frame), self.sequence.faces, center)
+        self.neural_view.sync_body()  # the body stands in until the first neural image is drawn
         self.controller.update_anchor(center)
         self._sync_path_lines()
 
