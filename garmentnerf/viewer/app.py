@@ -40,6 +40,7 @@ from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.render.camera_path import Keyframe
 from garmentnerf.runs import load_run
+from garmentnerf.startup import seconds_since_start
 from garmentnerf.viewer import panels
 from garmentnerf.viewer.camera import MouseGestures, OrbitController
 from garmentnerf.viewer.export_jobs import ExportJob, check_size
@@ -51,10 +52,10 @@ from garmentnerf.viewer.panels import StatusLine
 from garmentnerf.viewer.path_editor import PathEditor, path_lines
 from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.renderables import FULL_VIEW
-from garmentnerf.viewer.scene_gl import SceneRenderer, read_image, state_token
+from garmentnerf.viewer.scene_gl import SceneContent, SceneRenderer, read_image, state_token
 from garmentnerf.viewer.sequence import BodySequence, MotionMenu, body_and_shape
 from garmentnerf.viewer.shortcuts import SHORTCUTS, action_for_key, pressed_actions, resolve
-from garmentnerf.viewer.timeline import FrameTimer, PlaybackMeter, Timeline
+from garmentnerf.viewer.timeline import FirstFrames, FrameTimer, PlaybackMeter, Timeline
 from garmentnerf.viewer.window import NoDisplayError, Window, display_available
 
 __all__ = ["App", "NoDisplayError", "display_available", "ENV_FRAMES", "ENV_STATS"]
@@ -137,6 +138,8 @@ class App(Closeable):
         self.fixed_dt, self.clock = fixed_dt, clock
         self.max_frames = max_frames if max_frames is not None else _env_frames()
         self.timer = FrameTimer()
+        self.first_frames = FirstFrames()  # when the window first showed the body, the garment (view --bench)
+        self._presented = SceneContent()   # what the scene image the window shows holds
         self.scene_scale = SceneScale(dynamic=dynamic_scene)  # the scene drawn smaller while the view moves
         self.scene_draw_scale = 1.0  # the last frame's, of the render size (overlay)
         self.closed = False
@@ -255,6 +258,7 @@ class App(Closeable):
         work = self.clock() - start
         self.window.swap()
         self.timer.finish(work, scene_time)
+        self.first_frames.saw(self._presented.body, self._presented.garment, seconds_since_start())
         if self._snapshot_requested:
             self._snapshot_requested = False
             self.exports.snapshot_with_status()
@@ -324,6 +328,7 @@ class App(Closeable):
         if self.scene.render(target, drawn, free_area=self.free_area if side_by_side else FULL_VIEW):
             self.scene_scale.observe(scale, (self.clock() - start) * 1e3)
         self.scene.present(target, self.window.ctx.screen, fb_w, fb_h)
+        self._presented = target.content
 
     def _sync_scene(self) -> None:
         """The window's GL context current; the body shows the timeline's frame (uploaded only when
@@ -564,7 +569,8 @@ class App(Closeable):
         """What the stats hook writes: UI timing, the neural layer's state, the newest export."""
         t = self.timer
         out = {"frames": t.frames, "fps": t.fps if math.isfinite(t.fps) else None, "view_mode": self.neural_view.mode,
-               "framebuffer": list(self.window.framebuffer_size), "motion": self.motion_name}
+               "framebuffer": list(self.window.framebuffer_size), "motion": self.motion_name,
+               "first_frame": {"body_s": self.first_frames.body_s, "garment_s": self.first_frames.garment_s}}
         neural = self.neural_view.stats()
         if neural is not None:
             out["neural"] = neural
