@@ -95,6 +95,8 @@ class App(Closeable):
         watch: show each new checkpoint of the run's folder as it lands (loaded off the UI thread,
             :mod:`~garmentnerf.viewer.checkpoint_watch`).
         demo_root: where the bundled demos the Garment menu offers are (tests use their own).
+        follow: the camera follows the body (:mod:`~garmentnerf.viewer.camera`: why this is the
+            default; the "Follow the body (T)" switch).
         dynamic_scene: while the view moves, draw the scene at the scale that fits
             :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
             once more at ``render_scale`` when it is still); False: always at ``render_scale``.
@@ -109,7 +111,8 @@ class App(Closeable):
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
                  title: str = "garmentnerf view", clock=time.perf_counter, run=None,
-                 dynamic_scene: bool = True, watch: bool = False, demo_root: Path = DEMO_ROOT) -> None:
+                 dynamic_scene: bool = True, watch: bool = False, demo_root: Path = DEMO_ROOT,
+                 follow: bool = True) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -131,6 +134,8 @@ class App(Closeable):
         self.controller = OrbitController()
         self.controller.aim_home(sequence.centers)
         self.controller.reset()
+        self.controller.set_follow(follow, sequence.track[self.timeline.frame])
+        self.controller.reset()  # following: the home view about the body
         self.path_editor = PathEditor()
         self.path_error = ""  # the Camera path panel's last error (cleared by the next success)
         self.show_ui, self.show_help, self.scrubbing, self.goto_frame = True, False, False, 0
@@ -315,6 +320,8 @@ class App(Closeable):
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
         path = self.camera_path() if self.path_editor.look_through else None
+        if path is None:  # following: each frame's camera, so that a followed clip renders ahead
+            path = self.controller.follow_view(self.sequence.track, self.sequence.track_key)
         self.neural_view.update(camera, self.timeline, self.playback_meter, camera_path=path)
         # while the view moves the scene is drawn smaller (SceneScale); the neural request is not
         now = self.clock()
@@ -338,7 +345,7 @@ class App(Closeable):
         center = self.sequence.centers[frame]
         self.scene.set_body((self._sequence_serial, frame), self.sequence.frame(frame), self.sequence.faces, center)
         self.neural_view.sync_body()  # the body stands in until the first neural image is drawn
-        self.controller.update_anchor(center)
+        self.controller.update_anchor(self.sequence.track[frame])
         self._sync_path_lines()
 
     def _sync_path_lines(self) -> None:
@@ -488,7 +495,7 @@ class App(Closeable):
             self.neural_view.renderer.set_every_frame(on)
 
     def set_follow(self, follow: bool) -> None:
-        self.controller.set_follow(follow, self.sequence.centers[self.timeline.frame])
+        self.controller.set_follow(follow, self.sequence.track[self.timeline.frame])
 
     def load_motion(self, name: str) -> None:
         """Start posing a motion in the background; the view switches when it is ready."""

@@ -10,6 +10,8 @@ poses the chosen one on a :class:`BackgroundLoader`'s thread, so no torch work r
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -23,6 +25,7 @@ from garmentnerf.body.model import BodyModel
 from garmentnerf.body.surface import vertex_normals
 from garmentnerf.motion.library import available_motions, load_motion
 from garmentnerf.render.session import resolve_motion
+from garmentnerf.viewer.camera import follow_track
 
 
 @dataclass
@@ -34,8 +37,8 @@ class BodySequence:
         fps: its frame rate.
         vertex_data: (T, V, 6) float32, position (metres, world) and unit normal per vertex.
         faces: (F, 3) int32 triangles, counter-clockwise seen from outside.
-        centers: (T, 3) float64 per-frame centre of the body (mean vertex), for follow mode and the
-            floor's contact shadow.
+        centers: (T, 3) float64 per-frame centre of the body (mean vertex), for the floor's contact
+            shadow; :attr:`track` (smoothed on the ground) anchors a following camera.
     """
 
     name: str
@@ -43,6 +46,17 @@ class BodySequence:
     vertex_data: np.ndarray
     faces: np.ndarray
     centers: np.ndarray
+
+    @functools.cached_property
+    def track(self) -> np.ndarray:
+        """(T, 3) where a following camera is anchored at each frame
+        (:func:`~garmentnerf.viewer.camera.follow_track` of :attr:`centers`)."""
+        return follow_track(self.centers, self.fps)
+
+    @functools.cached_property
+    def track_key(self) -> str:
+        """A digest of :attr:`track` (tells the follow views of two clips apart)."""
+        return hashlib.sha1(np.ascontiguousarray(self.track).tobytes()).hexdigest()[:16]
 
     @property
     def num_frames(self) -> int:
