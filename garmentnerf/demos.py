@@ -148,7 +148,10 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     (:func:`pack_weights`), its body appearance, ``TRAINING.md``, ``recipe.json`` (a ``train --recipe``
     folder's: the recipe as run) and ``eval_*.json`` if present,
     ``run.json`` pointing at ``../<name>``, and that scene folder holding the run scene's
-    ``scene.json`` and ``sequences/`` (not its rendered ``cache/`` or simulator ``sim/``).
+    ``scene.json`` and ``sequences/`` (not its rendered ``cache/`` or simulator ``sim/``) and the
+    garment's height band measured on them
+    (:data:`~garmentnerf.render.band_cache.SCENE_BAND_FILE`: the previewer's first garment frame
+    does not wait for the measurement).
 
     Staged in a temporary folder under ``root`` and moved into place at the end. Raises
     FileNotFoundError (not a run, or its scene missing), FileExistsError (the demo is installed
@@ -156,6 +159,8 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     each before anything under ``root`` changes.
     """
     # lazy: the registry above is read by every command's flag checks; loading a run needs torch
+    from garmentnerf.render.band_cache import SCENE_BAND_FILE, band_key, save_band
+    from garmentnerf.render.presets import BOX_TRAINED_MARGIN_IN, height_range_for_run
     from garmentnerf.runs import load_run
 
     target = demo(name, root)
@@ -189,6 +194,8 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
         scene_out.mkdir()
         shutil.copy2(scene_src / "scene.json", scene_out / "scene.json")
         shutil.copytree(scene_src / "sequences", scene_out / "sequences")
+        save_band(scene_out / SCENE_BAND_FILE, height_range_for_run(run),
+                  band_key(run.scene, run.model.body, run.betas, BOX_TRAINED_MARGIN_IN))
         for src, dst in ((run_out, target.run_dir), (scene_out, scene_dst)):
             if dst.exists():
                 shutil.rmtree(dst)

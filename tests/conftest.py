@@ -5,6 +5,22 @@ from __future__ import annotations
 import pytest
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _own_cache_dir(tmp_path_factory):
+    """What the package caches under the user's cache folder (measured height bands,
+    :mod:`garmentnerf.render.band_cache`) goes to a folder of the test session instead (commands the
+    tests run in subprocesses inherit it)."""
+    import os
+
+    old = os.environ.get("GARMENTNERF_CACHE_DIR")
+    os.environ["GARMENTNERF_CACHE_DIR"] = str(tmp_path_factory.mktemp("garmentnerf_cache"))
+    yield
+    if old is None:
+        os.environ.pop("GARMENTNERF_CACHE_DIR", None)
+    else:
+        os.environ["GARMENTNERF_CACHE_DIR"] = old
+
+
 @pytest.fixture(scope="session")
 def gl_context():
     """A headless (EGL) moderngl context for the whole session; skips when none can be made."""

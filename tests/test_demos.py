@@ -12,6 +12,8 @@ from safetensors.torch import load_file
 from garmentnerf.cli.main import main
 from garmentnerf.demos import DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo, pack_weights
 from garmentnerf.model.config import ModelConfig
+from garmentnerf.render.band_cache import SCENE_BAND_FILE, band_key, load_band
+from garmentnerf.render.presets import BOX_TRAINED_MARGIN_IN, height_range_for_run
 from garmentnerf.runs import create_untrained_run, load_run
 
 
@@ -45,11 +47,15 @@ def test_pack_makes_a_loadable_demo_in_float16_beside_its_scene(untrained_run, t
     assert [d.name for d in installed_demos(root)] == ["tshirt"] and demo_run_dir("tshirt", root) == packed.run_dir
     assert json.loads((packed.run_dir / "run.json").read_text())["scene"] == "../tshirt"
     assert packed.scene_dir == (root / "tshirt").resolve()
-    # the scene's shipped files, not its rendered cache
+    # the scene's shipped files, not its rendered cache, and the garment's height band measured on them
     shipped = sorted(p.relative_to(root / "tshirt").as_posix() for p in (root / "tshirt").rglob("*") if p.is_file())
-    expected = sorted(p.relative_to(tiny_scene.root).as_posix() for p in tiny_scene.root.rglob("*")
-                      if p.is_file() and p.relative_to(tiny_scene.root).parts[0] in ("scene.json", "sequences"))
+    expected = sorted([SCENE_BAND_FILE] + [p.relative_to(tiny_scene.root).as_posix() for p in tiny_scene.root.rglob("*")
+                      if p.is_file() and p.relative_to(tiny_scene.root).parts[0] in ("scene.json", "sequences")])
     assert shipped == expected and not (root / "tshirt" / "cache").exists()
+    loaded = load_run(packed.run_dir)
+    key = band_key(loaded.scene, loaded.model.body, loaded.betas, BOX_TRAINED_MARGIN_IN)
+    shipped_band = load_band(root / "tshirt" / SCENE_BAND_FILE, key)  # the packed scene's own key
+    assert shipped_band is not None and shipped_band == height_range_for_run(load_run(untrained_run))
     # float32 weights stored as float16: the same values to float16's rounding (numpy's cast)
     source, weights = load_file(str(untrained_run / "model.safetensors")), load_file(str(packed.run_dir / "model.safetensors"))
     assert weights.keys() == source.keys()

@@ -9,10 +9,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import roma
 import torch
 
 from garmentnerf.body.asset import BodyAsset, default_asset_path
+from garmentnerf.body.rotations import rotvec_to_rotmat
 from garmentnerf.body.skinning import (apply_transforms, blend_transforms, forward_kinematics, kinematic_levels,
                                        skinning_transforms)
 from garmentnerf.body.smpl import load_smpl_asset
@@ -166,7 +166,7 @@ class BodyModel:
         """
         rotations = torch.as_tensor(rotations, dtype=self.dtype, device=self.device)
         if rotations.ndim == 3:
-            rotations = roma.rotvec_to_rotmat(rotations)
+            rotations = rotvec_to_rotmat(rotations)
         if rotations.ndim != 4 or rotations.shape[1:] != (self.num_joints, 3, 3):
             raise ValueError(f"rotations must be (T, {self.num_joints}, 3) or (T, {self.num_joints}, 3, 3), "
                              f"got {tuple(rotations.shape)}")

@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 
+import garmentnerf.startup  # noqa: F401 - before the subcommands: its clock is the command's start
 from garmentnerf.cli import (bench_cmd, body_cmd, data_cmd, demo_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd,
                              train_cmd, view_cmd)
 from garmentnerf.interrupts import interrupting

@@ -38,11 +38,19 @@ import math
 from pathlib import Path
 
 import numpy as np
-import roma
 import torch
 
 from garmentnerf.body.smpl import SMPL_JOINT_NAMES
 from garmentnerf.motion.motion import Motion
+
+
+def _roma():
+    """roma, imported at first use (it imports torch._dynamo: seconds of CPU; see
+    :mod:`garmentnerf.body.rotations`)."""
+    import roma
+
+    return roma
+
 
 #: SMPL axes (Y up, facing +Z) -> ours (Z up, facing -Y).
 C_SMPL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -122,7 +130,7 @@ def load_amass(path: str | Path, up: str = "auto", name: str | None = None) -> M
     rotvec[:, :keep] = aa[:, :keep]
 
     C = torch.as_tensor(C_SMPL, dtype=torch.float64)
-    R = roma.rotvec_to_rotmat(rotvec)
+    R = _roma().rotvec_to_rotmat(rotvec)
     if up == "auto":
         up = detect_up_axis(R[:, 0])
     out = C @ R @ C.T
@@ -131,7 +139,7 @@ def load_amass(path: str | Path, up: str = "auto", name: str | None = None) -> M
         out[:, 0] = R[:, 0] @ C.T
     else:
         t = t @ C.T
-    return Motion(name or path.stem, list(SMPL_JOINT_NAMES), roma.rotmat_to_rotvec(out).float(), t.float(), fps, "smpl")
+    return Motion(name or path.stem, list(SMPL_JOINT_NAMES), _roma().rotmat_to_rotvec(out).float(), t.float(), fps, "smpl")
 
 
 def detect_up_axis(root_rotations: torch.Tensor) -> str:

@@ -9,13 +9,21 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Sequence
 
-import roma
 import torch
 
 from garmentnerf.motion.motion import Motion
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
+
+
+def _roma():
+    """roma, imported at first use (it imports torch._dynamo: seconds of CPU; see
+    :mod:`garmentnerf.body.rotations`)."""
+    import roma
+
+    return roma
+
 
 #: Default cross-fade length of :func:`concatenate`, in frames.
 DEFAULT_BLEND_FRAMES = 10
@@ -32,12 +40,12 @@ def slerp_rotvec(r0: torch.Tensor, r1: torch.Tensor, t: torch.Tensor | float) ->
         (..., 3) float64 rotation vectors of ``R0 exp(t log(R0^T R1))`` (the shortest arc; the
         same rotation as quaternion slerp with the sign of q1 chosen so that q0 . q1 >= 0).
     """
-    R0 = roma.rotvec_to_rotmat(r0.double())
-    R1 = roma.rotvec_to_rotmat(r1.double())
-    rel = roma.rotmat_to_rotvec(R0.transpose(-1, -2) @ R1)
+    R0 = _roma().rotvec_to_rotmat(r0.double())
+    R1 = _roma().rotvec_to_rotmat(r1.double())
+    rel = _roma().rotmat_to_rotvec(R0.transpose(-1, -2) @ R1)
     t = torch.as_tensor(t, dtype=torch.float64, device=rel.device)
-    step = roma.rotvec_to_rotmat(rel * t.unsqueeze(-1) if t.ndim else rel * t)
-    return roma.rotmat_to_rotvec(R0 @ step)
+    step = _roma().rotvec_to_rotmat(rel * t.unsqueeze(-1) if t.ndim else rel * t)
+    return _roma().rotmat_to_rotvec(R0 @ step)
 
 
 def yaw_angle(rotmat: torch.Tensor) -> torch.Tensor:
@@ -46,7 +54,7 @@ def yaw_angle(rotmat: torch.Tensor) -> torch.Tensor:
     From the swing-twist decomposition of the quaternion (x, y, z, w): ``2 atan2(z, w)``. It is
     defined for every rotation except a half turn about a horizontal axis.
     """
-    q = roma.rotmat_to_unitquat(rotmat.double())
+    q = _roma().rotmat_to_unitquat(rotmat.double())
     return 2.0 * torch.atan2(q[..., 2], q[..., 3])
 
 
@@ -181,12 +189,12 @@ def _append(rot_a, trans_a, rot_b, trans_b, n: int, rest_root: torch.Tensor, win
     n = min(n, rot_a.shape[0], rot_b.shape[0])
     anchor = rot_a.shape[0] - 1  # B' starts at A's last root position
     # Heading: turn B about Z so its mean root yaw at the start equals A's at the end.
-    Rb = roma.rotvec_to_rotmat(rot_b[:, 0])
-    yaw_a = _mean_angle(yaw_angle(roma.rotvec_to_rotmat(rot_a[-window:, 0])))
+    Rb = _roma().rotvec_to_rotmat(rot_b[:, 0])
+    yaw_a = _mean_angle(yaw_angle(_roma().rotvec_to_rotmat(rot_a[-window:, 0])))
     yaw_b = _mean_angle(yaw_angle(Rb[:window]))
     Y = rot_z(yaw_a - yaw_b)
     rot_b = rot_b.clone()
-    rot_b[:, 0] = roma.rotmat_to_rotvec(Y @ Rb)
+    rot_b[:, 0] = _roma().rotmat_to_rotvec(Y @ Rb)
     # Root positions p = translation + rest root. B's path is turned by Y about its first root
     # position; its heights are kept.
     pa = trans_a + rest_root

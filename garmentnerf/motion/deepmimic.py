@@ -53,11 +53,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import roma
 import torch
 
 from garmentnerf.motion.blend import sample_at_times
 from garmentnerf.motion.motion import Motion
+
+
+def _roma():
+    """roma, imported at first use (it imports torch._dynamo: seconds of CPU; see
+    :mod:`garmentnerf.body.rotations`)."""
+    import roma
+
+    return roma
+
 
 if TYPE_CHECKING:  # pragma: no cover
     from garmentnerf.body.model import BodyModel
@@ -197,14 +205,14 @@ def _quat(frames: np.ndarray, col: int) -> torch.Tensor:
     """(T, 3, 3) rotation matrices from the wxyz quaternion at ``col`` (normalised)."""
     wxyz = torch.tensor(frames[:, col:col + 4], dtype=torch.float64)
     q = torch.cat([wxyz[:, 1:], wxyz[:, :1]], dim=1)  # roma: xyzw
-    return roma.unitquat_to_rotmat(q / q.norm(dim=1, keepdim=True))
+    return _roma().unitquat_to_rotmat(q / q.norm(dim=1, keepdim=True))
 
 
 def _hinge(frames: np.ndarray, col: int) -> torch.Tensor:
     angle = torch.tensor(frames[:, col], dtype=torch.float64)
     rotvec = torch.zeros(angle.shape[0], 3, dtype=torch.float64)
     rotvec[:, 2] = angle
-    return roma.rotvec_to_rotmat(rotvec)
+    return _roma().rotvec_to_rotmat(rotvec)
 
 
 def deepmimic_global_rotations(frames: np.ndarray) -> dict[str, torch.Tensor]:
@@ -231,7 +239,7 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> torch.Tensor:
         if c > 0:
             return torch.eye(3, dtype=torch.float64)
         raise ValueError("rest-pose correction: opposite bone directions")  # pragma: no cover
-    return roma.rotvec_to_rotmat(torch.as_tensor(axis / s * math.atan2(s, c), dtype=torch.float64))
+    return _roma().rotvec_to_rotmat(torch.as_tensor(axis / s * math.atan2(s, c), dtype=torch.float64))
 
 
 def rest_corrections(rest_joints: np.ndarray, joint_index: dict[str, int],
@@ -303,12 +311,12 @@ def retarget_deepmimic(clip: DeepMimicClip, body: "BodyModel", betas: torch.Tens
             targets[ix[name]] = g_dm[f"{dm}.{side}"] @ corr[name]
         targets[ix[f"foot.{side}"]] = g_dm[f"ankle.{side}"]
     fixed_local: dict[int, torch.Tensor] = {}
-    chest_local = roma.rotmat_to_rotvec(g_dm["root"].transpose(1, 2) @ g_dm["chest"])
+    chest_local = _roma().rotmat_to_rotvec(g_dm["root"].transpose(1, 2) @ g_dm["chest"])
     for n in _SPINE_SHARE:
-        fixed_local[ix[n]] = roma.rotvec_to_rotmat(chest_local / len(_SPINE_SHARE))
-    neck_local = roma.rotmat_to_rotvec(g_dm["chest"].transpose(1, 2) @ g_dm["neck"])
+        fixed_local[ix[n]] = _roma().rotvec_to_rotmat(chest_local / len(_SPINE_SHARE))
+    neck_local = _roma().rotmat_to_rotvec(g_dm["chest"].transpose(1, 2) @ g_dm["neck"])
     for n in _NECK_SHARE:
-        fixed_local[ix[n]] = roma.rotvec_to_rotmat(neck_local / len(_NECK_SHARE))
+        fixed_local[ix[n]] = _roma().rotvec_to_rotmat(neck_local / len(_NECK_SHARE))
 
     eye = torch.eye(3, dtype=torch.float64).expand(T, 3, 3)
     glob: list[torch.Tensor | None] = [None] * J
@@ -323,7 +331,7 @@ def retarget_deepmimic(clip: DeepMimicClip, body: "BodyModel", betas: torch.Tens
             else:
                 local[:, j] = fixed_local.get(j, eye)
                 glob[j] = parent @ local[:, j]
-    rotations = roma.rotmat_to_rotvec(local)
+    rotations = _roma().rotmat_to_rotvec(local)
 
     # Root translation: scaled DeepMimic root path, horizontal start at the origin.
     root_pos = torch.tensor(frames[:, _ROOT_POS:_ROOT_POS + 3], dtype=torch.float64) @ C.T

@@ -57,8 +57,6 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
-from scipy.spatial.transform import Rotation, RotationSpline
 
 from garmentnerf.conventions import Camera, intrinsics_from_fov
 from garmentnerf.io_utils import json_bool, json_number, json_whole, read_json_strict, write_file_atomic
@@ -178,6 +176,8 @@ def catmull_rom_tangents(knots: np.ndarray, values: np.ndarray) -> np.ndarray:
 def centripetal_knots(keyframes: tuple[Keyframe, ...]) -> np.ndarray:
     """(K,) knots spaced by the square root of the distance between neighbouring keyframes
     (travel plus :data:`TURN_METRES` per radian of turn; a floor keeps coincident keyframes apart)."""
+    from scipy.spatial.transform import Rotation  # lazy: scipy costs the previewer's start a second
+
     steps = [0.0]
     for a, b in zip(keyframes[:-1], keyframes[1:]):
         turn = Rotation.from_matrix(a.camera_to_world[:3, :3].T @ b.camera_to_world[:3, :3]).magnitude()
@@ -202,6 +202,9 @@ class PathInterpolator:
         if self._single:
             self.knots = np.array([self.first_frame])
             return
+        from scipy.interpolate import CubicHermiteSpline, PchipInterpolator  # lazy: see centripetal_knots
+        from scipy.spatial.transform import Rotation, RotationSpline
+
         knots = centripetal_knots(keyframes) if constant_speed else np.array([k.frame for k in keyframes])
         positions = np.stack([k.position for k in keyframes])
         self.knots = knots

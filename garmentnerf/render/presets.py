@@ -41,7 +41,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 from garmentnerf.model.config import BBOX_PADDING
-from garmentnerf.model.height_band import HeightRange, measure_height_range
+from garmentnerf.model.height_band import HeightRange
+from garmentnerf.render.band_cache import scene_height_range
 from garmentnerf.model.pipeline import PRECISIONS
 from garmentnerf.render.shell_sampler import ShellSampler
 
@@ -188,15 +189,16 @@ def get_render_preset(name) -> RenderPreset:
 
 def height_range_for_run(run, projector=None) -> HeightRange:
     """The garment's height band of a loaded run: measured on its scene's training garments with
-    :data:`BOX_TRAINED_MARGIN_IN` under the skin, else :meth:`HeightRange.default` when the run has no
-    scene (measuring takes about a second: callers keep it)."""
+    :data:`BOX_TRAINED_MARGIN_IN` under the skin (measured once per scene, body and shape, and kept:
+    :func:`~garmentnerf.render.band_cache.scene_height_range`; measuring takes 6 to 11 s of CPU on a
+    2-core machine: callers keep it), else :meth:`HeightRange.default` when the run has no scene."""
     scene = getattr(run, "scene", None)
     if scene is None:
         return HeightRange.default()
     model = run.model
-    return measure_height_range(scene, model.body, getattr(run, "betas", None),
-                                projector if projector is not None else model.projector,
-                                margin_in=BOX_TRAINED_MARGIN_IN)
+    return scene_height_range(scene, model.body, getattr(run, "betas", None),
+                              projector if projector is not None else model.projector,
+                              margin_in=BOX_TRAINED_MARGIN_IN)
 
 
 __all__ = ["RenderPreset", "SamplingPlan", "RENDER_PRESETS", "RENDER_PRESET_NAMES", "VIEWER_LEVELS",

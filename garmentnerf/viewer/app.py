@@ -40,6 +40,7 @@ from garmentnerf.io_utils import atomic_write_path
 from garmentnerf.lifecycle import Closeable
 from garmentnerf.render.camera_path import Keyframe
 from garmentnerf.runs import load_run
+from garmentnerf.startup import seconds_since_start
 from garmentnerf.viewer import panels
 from garmentnerf.viewer.camera import MouseGestures, OrbitController
 from garmentnerf.viewer.export_jobs import ExportJob, check_size
@@ -51,10 +52,10 @@ from garmentnerf.viewer.panels import StatusLine
 from garmentnerf.viewer.path_editor import PathEditor, path_lines
 from garmentnerf.viewer.quality import SceneScale
 from garmentnerf.viewer.renderables import FULL_VIEW
-from garmentnerf.viewer.scene_gl import SceneRenderer, read_image, state_token
+from garmentnerf.viewer.scene_gl import SceneContent, SceneRenderer, read_image, state_token
 from garmentnerf.viewer.sequence import BodySequence, MotionMenu, body_and_shape
 from garmentnerf.viewer.shortcuts import SHORTCUTS, action_for_key, pressed_actions, resolve
-from garmentnerf.viewer.timeline import FrameTimer, PlaybackMeter, Timeline
+from garmentnerf.viewer.timeline import FirstFrames, FrameTimer, PlaybackMeter, Timeline
 from garmentnerf.viewer.window import NoDisplayError, Window, display_available
 
 __all__ = ["App", "NoDisplayError", "display_available", "ENV_FRAMES", "ENV_STATS"]
@@ -94,6 +95,8 @@ class App(Closeable):
         watch: show each new checkpoint of the run's folder as it lands (loaded off the UI thread,
             :mod:`~garmentnerf.viewer.checkpoint_watch`).
         demo_root: where the bundled demos the Garment menu offers are (tests use their own).
+        follow: the camera follows the body (:mod:`~garmentnerf.viewer.camera`: why this is the
+            default; the "Follow the body (T)" switch).
         dynamic_scene: while the view moves, draw the scene at the scale that fits
             :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
             once more at ``render_scale`` when it is still); False: always at ``render_scale``.
@@ -108,7 +111,8 @@ class App(Closeable):
                  snapshot_size: tuple[int, int] = (1920, 1080), max_frames: int | None = None,
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
                  title: str = "garmentnerf view", clock=time.perf_counter, run=None,
-                 dynamic_scene: bool = True, watch: bool = False, demo_root: Path = DEMO_ROOT) -> None:
+                 dynamic_scene: bool = True, watch: bool = False, demo_root: Path = DEMO_ROOT,
+                 follow: bool = True) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -130,6 +134,8 @@ class App(Closeable):
         self.controller = OrbitController()
         self.controller.aim_home(sequence.centers)
         self.controller.reset()
+        self.controller.set_follow(follow, sequence.track[self.timeline.frame])
+        self.controller.reset()  # following: the home view about the body
         self.path_editor = PathEditor()
         self.path_error = ""  # the Camera path panel's last error (cleared by the next success)
         self.show_ui, self.show_help, self.scrubbing, self.goto_frame = True, False, False, 0
@@ -137,6 +143,8 @@ class App(Closeable):
         self.fixed_dt, self.clock = fixed_dt, clock
         self.max_frames = max_frames if max_frames is not None else _env_frames()
         self.timer = FrameTimer()
+        self.first_frames = FirstFrames()  # when the window first showed the body, the garment (view --bench)
+        self._presented = SceneContent()   # what the scene image the window shows holds
         self.scene_scale = SceneScale(dynamic=dynamic_scene)  # the scene drawn smaller while the view moves
         self.scene_draw_scale = 1.0  # the last frame's, of the render size (overlay)
         self.closed = False
@@ -255,6 +263,7 @@ class App(Closeable):
         work = self.clock() - start
         self.window.swap()
         self.timer.finish(work, scene_time)
+        self.first_frames.saw(self._presented.body, self._presented.garment, seconds_since_start())
         if self._snapshot_requested:
             self._snapshot_requested = False
             self.exports.snapshot_with_status()
@@ -311,6 +320,8 @@ class App(Closeable):
         rw, rh = self.scene.render_size((fb_w, fb_h))
         camera = camera if (rw, rh) == (fb_w, fb_h) else camera.resized(rw, rh)
         path = self.camera_path() if self.path_editor.look_through else None
+        if path is None:  # following: each frame's camera, so that a followed clip renders ahead
+            path = self.controller.follow_view(self.sequence.track, self.sequence.track_key)
         self.neural_view.update(camera, self.timeline, self.playback_meter, camera_path=path)
         # while the view moves the scene is drawn smaller (SceneScale); the neural request is not
         now = self.clock()
@@ -324,6 +335,7 @@ class App(Closeable):
         if self.scene.render(target, drawn, free_area=self.free_area if side_by_side else FULL_VIEW):
             self.scene_scale.observe(scale, (self.clock() - start) * 1e3)
         self.scene.present(target, self.window.ctx.screen, fb_w, fb_h)
+        self._presented = target.content
 
     def _sync_scene(self) -> None:
         """The window's GL context current; the body shows the timeline's frame (uploaded only when
@@ -332,7 +344,8 @@ class App(Closeable):
         frame = self.timeline.frame
         center = self.sequence.centers[frame]
         self.scene.set_body((self._sequence_serial, frame), self.sequence.frame(frame), self.sequence.faces, center)
-        self.controller.update_anchor(center)
+        self.neural_view.sync_body()  # the body stands in until the first neural image is drawn
+        self.controller.update_anchor(self.sequence.track[frame])
         self._sync_path_lines()
 
     def _sync_path_lines(self) -> None:
@@ -482,7 +495,7 @@ class App(Closeable):
             self.neural_view.renderer.set_every_frame(on)
 
     def set_follow(self, follow: bool) -> None:
-        self.controller.set_follow(follow, self.sequence.centers[self.timeline.frame])
+        self.controller.set_follow(follow, self.sequence.track[self.timeline.frame])
 
     def load_motion(self, name: str) -> None:
         """Start posing a motion in the background; the view switches when it is ready."""
@@ -563,7 +576,8 @@ class App(Closeable):
         """What the stats hook writes: UI timing, the neural layer's state, the newest export."""
         t = self.timer
         out = {"frames": t.frames, "fps": t.fps if math.isfinite(t.fps) else None, "view_mode": self.neural_view.mode,
-               "framebuffer": list(self.window.framebuffer_size), "motion": self.motion_name}
+               "framebuffer": list(self.window.framebuffer_size), "motion": self.motion_name,
+               "first_frame": {"body_s": self.first_frames.body_s, "garment_s": self.first_frames.garment_s}}
         neural = self.neural_view.stats()
         if neural is not None:
             out["neural"] = neural

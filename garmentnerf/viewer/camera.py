@@ -11,7 +11,18 @@ zoom of a controller.
 
 Follow mode: the target is stored *relative to an anchor* (the body's ground position, updated by
 the app every frame), so the camera travels with a walking body; switching follow on or off
-re-expresses the target so the view does not jump.
+re-expresses the target so the view does not jump. The anchor the app gives is the clip's follow
+track (:func:`follow_track`): the body centre's ground position, smoothed over
+:data:`FOLLOW_SMOOTHING_S` either side, so a clip that walks away is followed at its pace while a
+dance in place, whose centre sways with the arms and hips, does not shake the camera.
+:meth:`OrbitController.follow_view` is that camera as a function of the frame
+(:class:`FollowView`), the form in which the neural render worker is given it (as a camera path it
+looks through), so a followed clip renders ahead like one seen from a still camera.
+
+The previewer follows the body by default: a clip may travel several metres (the library's ``run``
+2.7 m, an AMASS walk tens of metres), and a camera that framed the whole trajectory would show the
+character small (and the neural render has fewer pixels to work with), while a following camera keeps
+it at the home distance, centred, whatever the clip does.
 """
 
 from __future__ import annotations
@@ -27,6 +38,63 @@ from garmentnerf.conventions import DEFAULT_FAR, Camera, look_at, orbit_camera
 VIEW_DIRECTIONS: dict[str, float] = {"front": 0.0, "left": 90.0, "back": 180.0, "right": -90.0}
 #: The range of the orbit camera's vertical field of view, degrees.
 MIN_FOV_Y, MAX_FOV_Y = 10.0, 90.0
+#: The follow track averages the body centre over this many seconds either side of a frame.
+FOLLOW_SMOOTHING_S = 0.5
+
+
+def follow_track(centers: np.ndarray, fps: float, seconds: float = FOLLOW_SMOOTHING_S) -> np.ndarray:
+    """(T, 3) float64 where a following camera is anchored at each frame: the ground position (z = 0)
+    of the per-frame body ``centers`` (T, 3), averaged over ``seconds`` either side of the frame.
+    The window shrinks symmetrically at the clip's ends (frame 0 and the last frame are their own
+    centres), so a body moving at a constant velocity is followed without lag anywhere."""
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    T = len(c)
+    out = np.zeros((T, 3))
+    if T == 0:
+        return out
+    ground = np.where(np.isfinite(c[:, :2]), c[:, :2], 0.0)
+    half = max(0, int(round(float(seconds) * float(fps)))) if math.isfinite(seconds * fps) else 0
+    cumulative = np.concatenate([np.zeros((1, 2)), np.cumsum(ground, axis=0)])
+    for t in range(T):
+        h = min(half, t, T - 1 - t)
+        out[t, :2] = (cumulative[t + h + 1] - cumulative[t - h]) / (2 * h + 1)
+    return out
+
+
+@dataclass(frozen=True)
+class FollowView:
+    """A following :class:`OrbitController`'s camera as a function of the clip frame: the orbit
+    (angles, distance, field of view, clip planes) about ``target`` relative to the anchor, with the
+    anchor at ``track[frame]`` (a :func:`follow_track`). It has what the neural render worker asks of
+    a camera path (:class:`~garmentnerf.render.camera_path.CameraPath`): :meth:`camera_at` and
+    :attr:`token`."""
+
+    azimuth: float
+    elevation: float
+    distance: float
+    target: tuple[float, float, float]
+    fov_y: float
+    near: float
+    far: float
+    track: np.ndarray = field(repr=False, compare=False)
+    track_key: object = None
+
+    def anchor(self, frame: float) -> np.ndarray:
+        """(3,) the anchor at ``frame`` (rounded, clamped to the track)."""
+        i = min(max(0, int(round(float(frame)))), len(self.track) - 1)
+        return self.track[i]
+
+    def camera_at(self, frame: float, width: int, height: int) -> Camera:
+        """The camera the following controller gives at ``frame`` for a ``width`` x ``height`` image."""
+        world_target = np.asarray(self.target, dtype=np.float64) + self.anchor(frame)
+        return orbit_camera(self.azimuth, self.elevation, self.distance, world_target, int(width), int(height),
+                            self.fov_y, self.near, self.far)
+
+    @property
+    def token(self) -> tuple:
+        """Equal for two follow views that place every frame's camera alike (size aside)."""
+        return ("follow", self.azimuth, self.elevation, self.distance, self.target, self.fov_y, self.near, self.far,
+                self.track_key)
 
 
 def _wrap_degrees(angle: float) -> float:
@@ -191,6 +259,16 @@ class OrbitController:
         """Called by the app every frame; moves the camera with the body only when following."""
         if self.follow and body_position is not None:
             self.anchor = self._ground(body_position)
+
+    def follow_view(self, track: np.ndarray, track_key: object = None) -> FollowView | None:
+        """This controller's camera at every frame of a clip whose anchors are ``track`` (T, 3) (what
+        :meth:`camera` gives after :meth:`update_anchor` with ``track[frame]``), or None when not
+        following. ``track_key``: a value that tells this track from another (the view's token)."""
+        if not self.follow:
+            return None
+        return FollowView(float(self.azimuth), float(self.elevation), float(self.distance),
+                          tuple(float(x) for x in self.target), float(self.fov_y), float(self.near),
+                          float(self.far), np.asarray(track, dtype=np.float64), track_key)
 
     # ---- output ---------------------------------------------------------------------------------
     def camera(self, width: int, height: int) -> Camera:

@@ -167,7 +167,8 @@ def plan_turntable(controller, size: tuple[int, int], count: int, start_frame: i
     frame stops one step short of the first, so the video loops, as
     :func:`garmentnerf.render.cameras.turntable`); distance, elevation, field of view and target are
     the current ones. Frames: ``start_frame`` held, or playing on from it (wrapping) when ``plays``.
-    ``centers`` (T, 3): per-frame body centres; a following controller moves the target with them.
+    ``centers`` (T, 3): per-frame anchors (the clip's follow track, as the window's); a following
+    controller moves the target with them.
     """
     view = copy.deepcopy(controller)  # the window's controller keeps moving meanwhile
     w, h = (int(s) for s in size)
@@ -183,7 +184,7 @@ def plan_turntable(controller, size: tuple[int, int], count: int, start_frame: i
 
 def plan_range(controller, size: tuple[int, int], first: int, last: int, centers: np.ndarray) -> Plan:
     """Frames ``first..last`` (inclusive) seen from the controller's current view (following the
-    body when the controller follows it). ``centers`` (T, 3): per-frame body centres."""
+    body when the controller follows it). ``centers`` (T, 3): per-frame anchors (the clip's follow track)."""
     view = copy.deepcopy(controller)
     w, h = (int(s) for s in size)
     plan = []

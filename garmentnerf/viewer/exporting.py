@@ -314,7 +314,7 @@ class Exports:
             self._prepare_scene()
             image = self.scene.render_image(self._view_camera(w, h), samples=self.scene.snapshot_samples)
             return ExportJob.completed("snapshot", write_png(image, directory / snapshot_name(clip.name, frame)))
-        self.controller.update_anchor(clip.centers[frame])  # the camera the window shows
+        self.controller.update_anchor(clip.track[frame])  # the camera the window shows
         quality = min(MAX_QUALITY, max(MIN_SNAPSHOT_QUALITY, self.snapshot_quality))
         view, path = self.neural_view, directory / snapshot_name(clip.name, frame)
         job = ExportJob("snapshot", [(frame, self._view_camera(w, h))], path, source="neural", quality=quality,
@@ -338,7 +338,7 @@ class Exports:
         s = settings or self.settings
         clip, frame = self._clip(), self.timeline.frame
         s.check(clip.num_frames)
-        self.controller.update_anchor(clip.centers[frame])
+        self.controller.update_anchor(clip.track[frame])
         if s.mode == "path":
             path = self._camera_path(s.size, clip.fps)
             if path is None:
@@ -347,9 +347,9 @@ class Exports:
             return plan, f"path_f{plan[0][0]:04d}-{plan[-1][0]:04d}"
         if s.mode == "turntable":
             plan = plan_turntable(self.controller, s.size, s.turntable_frames, frame, clip.num_frames,
-                                  s.turntable_plays, clip.centers)
+                                  s.turntable_plays, clip.track)
             return plan, "turntable" if s.turntable_plays else f"turntable_f{frame:04d}"
-        plan = plan_range(self.controller, s.size, s.range_first, s.range_last, clip.centers)
+        plan = plan_range(self.controller, s.size, s.range_first, s.range_last, clip.track)
         return plan, f"f{s.range_first:04d}-{s.range_last:04d}"
 
     def start_video(self, settings: ExportSettings | None = None, directory: str | Path | None = None) -> ExportJob:

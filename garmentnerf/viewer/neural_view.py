@@ -103,8 +103,12 @@ class NeuralView:
         self.palette = self.learned_palette.copy()
         layer.set_palette(self.palette)
         layer.background = tuple(float(c) for c in BACKGROUND)
+        body = run.model.body
         if self.can_rasterise_body:
-            layer.set_body_model(run.model.body, run.body_appearance)
+            layer.set_body_model(body, run.body_appearance)
+            self.scene.body.set_appearance(body.uv, body.uv_faces, run.body_appearance)  # the stand-in's look
+        else:
+            self.scene.body.set_appearance(None, None, None)
         if run.scene is not None:
             names = run.scene.camera_names("train") or run.scene.camera_names()
             self.gt_camera = names[0] if names else None
@@ -198,8 +202,27 @@ class NeuralView:
         layer.mode = mode if mode in ("ground_truth", "difference", "maps") else "neural"
         layer.use_depth = mode == "neural" and self.body_with_neural
         self.scene.body.visible = mode == "body" or (mode == "neural" and self.body_with_neural)
+        self.sync_body()
         if mode in GROUND_TRUTH_MODES and not self.ground_truth_available():
             self._status("no ground truth for this motion (only the run scene's sequences have it)")
+
+    @property
+    def waiting_for_garment(self) -> bool:
+        """A neural mode is shown and no neural image has reached the layer yet (none drawn, none
+        on its way to the next draw): the window draws the posed body meanwhile (:meth:`sync_body`)."""
+        layer = self.scene.palette_layer
+        return self.run is not None and self.mode != "body" and not layer.has_image and not layer.arriving
+
+    def sync_body(self) -> None:
+        """Per UI frame, before the scene is drawn: while :attr:`waiting_for_garment`, the rasterised
+        body stands in (depth tested, in the run's learned appearance times the body's palette colour
+        when the run has one, else the studio material), so the stage is never empty; it goes as
+        soon as the first neural image (which carries the body) is drawn."""
+        body = self.scene.body
+        body.standin = self.waiting_for_garment
+        body.learned = body.standin and not body.visible and body.has_appearance and self.palette is not None
+        if body.learned:
+            body.tint = tuple(float(c) for c in self.palette[-1])
 
     def next_mode(self) -> None:
         modes = list(VIEW_MODES)

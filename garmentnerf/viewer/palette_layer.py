@@ -272,6 +272,12 @@ class PaletteLayer:
         return self.maps_tex is not None
 
     @property
+    def arriving(self) -> bool:
+        """Whether submitted maps wait for the next draw (which uploads and shows them)."""
+        with self._lock:
+            return self._pending is not None
+
+    @property
     def has_ground_truth(self) -> bool:
         return self.gt_tex is not None
 

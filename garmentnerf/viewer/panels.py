@@ -195,7 +195,7 @@ def _neural_stats(app) -> None:
         stages += [(k, t.get(k, 0.0)) for k in ("rays", "projection", "features", "mlp", "compositing", "decoder")]
         imgui.text_disabled("  ".join(f"{k} {v:.0f}" for k, v in stages) + " ms")
     else:
-        imgui.text_disabled("neural: waiting for the first frame ...")
+        imgui.text_colored(imgui.ImVec4(*SHOWN_COLOR), garment_status(view.renderer.activity))
     share = st.completed_share
     imgui.text_disabled(f"renders {st.renders} of {st.started} started"
                         + (f" ({100 * share:.0f}%)" if share is not None else "")
@@ -232,6 +232,15 @@ def _neural_stats(app) -> None:
             imgui.text_disabled(line)
     if st.last_error:
         imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), st.last_error[:120])
+
+
+def garment_status(activity: tuple[str, int | None]) -> str:
+    """The overlay's line while no neural image is shown (the window draws the body meanwhile):
+    what the render worker is doing (:attr:`NeuralRenderer.activity <garmentnerf.viewer.worker.NeuralRenderer>`)."""
+    what, frame = activity
+    if what == "rendering" and frame is not None:
+        return f"garment: rendering frame {frame} ..."
+    return "garment: starting the renderer ..."
 
 
 # ---- help ----------------------------------------------------------------------------------------

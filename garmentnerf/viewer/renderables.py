@@ -129,7 +129,14 @@ class BodyMesh:
         self.lighting = lighting or StudioLighting()
         self.color = BODY_COLOR
         self.visible = True
+        self.standin = False        # drawn even when not visible: the neural layer has no image yet
+        self.learned = False        # draw in the learned appearance (set_appearance), when there is one
+        self.tint = BODY_COLOR      # ... times this colour: the body's palette colour
         self.program = build_program(ctx, "viewer_mesh.vert", "viewer_mesh.frag")
+        self._appearance = _Held()  # (uv, uv_faces, appearance) of set_appearance, or None (a new holder each)
+        self._look: LearnedLook | None = None  # its GL objects (made in prepare)
+        self._look_stale = False    # the appearance or the topology changed: make the look again
+        self._shown = _Held()       # the vertex data of the shown frame (the look uploads it too)
         self.vbo: moderngl.Buffer | None = None
         self.ibo: moderngl.Buffer | None = None
         self.vao: moderngl.VertexArray | None = None
@@ -155,6 +162,21 @@ class BodyMesh:
         self._pending_faces = tris
         self.num_vertices = int(num_vertices)
         self.key = None
+        self._look_stale = True
+
+    def set_appearance(self, uv, uv_faces, appearance) -> None:
+        """The body's atlas ``uv`` (Nuv, 2) and ``uv_faces`` (F, 3, rows of the topology's faces) and
+        a run's :class:`~garmentnerf.model.body_appearance.BodyAppearance` (None: none): drawn when
+        :attr:`learned` is set (as the ``raster_body`` composition shades the body, times
+        :attr:`tint`), else the studio material. Read on the GL thread."""
+        self._appearance = _Held(None if appearance is None else (
+            np.asarray(uv, dtype=np.float32), np.asarray(uv_faces, dtype=np.int64), appearance))
+        self._look_stale = True
+
+    @property
+    def has_appearance(self) -> bool:
+        """Whether a learned appearance is set (:meth:`set_appearance`)."""
+        return self._appearance.value is not None
 
     def set_frame(self, key: object, vertex_data: np.ndarray) -> bool:
         """Show ``vertex_data`` (V, 6) float32 [position, normal]; a no-op when ``key`` is the shown key.
@@ -164,10 +186,33 @@ class BodyMesh:
         if vertex_data.shape != (self.num_vertices, 6):
             raise ValueError(f"body frame must be ({self.num_vertices}, 6), got {vertex_data.shape}")
         self._pending = np.ascontiguousarray(vertex_data, dtype=np.float32)
+        self._shown.value = self._pending
         self.key = key
         return True
 
     def prepare(self, view: ViewParams | None = None) -> None:
+        self._prepare_mesh()
+        if not self.learned:
+            return  # the look is made and filled only while it is drawn
+        if self._look_stale and self._pending_faces is None:
+            self._make_look()
+        if self._look is not None and self._look.key != self.key and self._shown.value is not None:
+            self._look.upload(self.key, self._shown.value)
+
+    def _make_look(self) -> None:
+        """(Re)make the learned look's GL objects for the current topology and appearance."""
+        self._look_stale = False
+        if self._look is not None:
+            self._look.release()
+            self._look = None
+        if self._appearance.value is None or self._faces is None:
+            return
+        uv, uv_faces, appearance = self._appearance.value
+        if uv_faces.shape != np.shape(self._faces):
+            return  # another mesh than the appearance's: the studio material
+        self._look = LearnedLook(self.ctx, np.asarray(self._faces), uv, uv_faces, appearance)
+
+    def _prepare_mesh(self) -> None:
         if self._pending_faces is not None:
             self._release_buffers()
             self.vbo = self.ctx.buffer(reserve=max(self.num_vertices * 24, 24), dynamic=True)
@@ -184,8 +229,16 @@ class BodyMesh:
     def pass_state(self) -> PassState:
         return OPAQUE
 
+    @property
+    def drawn(self) -> bool:
+        """Whether :meth:`draw` draws anything (shown, and a frame uploaded)."""
+        return (self.visible or self.standin) and self.vao is not None and self.key is not None and self.index_count > 0
+
     def draw(self, view: ViewParams) -> None:
-        if not self.visible or self.vao is None or self.key is None or self.index_count == 0:
+        if not self.drawn:
+            return
+        if self.learned and self._look is not None and self._look.key == self.key:
+            self._look.draw(view, self.tint)
             return
         p, L = self.program, self.lighting
         p["u_view"].write(mat4_bytes(view.view))
@@ -214,7 +267,90 @@ class BodyMesh:
 
     def release(self) -> None:
         self._release_buffers()
+        if self._look is not None:
+            self._look.release()
+            self._look = None
         self.program.release()
+
+
+class _Held:
+    """A reference whose identity stays while its value changes (the scene's state sees the identity)."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value=None) -> None:
+        self.value = value
+
+
+#: Most shading monomials the learned look evaluates (``shaders/viewer_body_learned.vert``'s MAX_TERMS;
+#: degree 4 has 35).
+MAX_SHADING_TERMS = 64
+
+
+class LearnedLook:
+    """The body in a run's learned appearance, as the scene pass draws it (:class:`BodyMesh` owns one).
+
+    The atlas has seams: a body vertex may carry several UVs. The mesh is drawn with one vertex per
+    (body vertex, UV) pair of the faces (a few more vertices than the body's), whose position and
+    normal are gathered from the body's frame at each upload; the UVs and the triangles are static.
+    Shaded by ``shaders/viewer_body_learned.{vert,frag}`` (the appearance times the body's palette colour).
+    """
+
+    def __init__(self, ctx: moderngl.Context, faces: np.ndarray, uv: np.ndarray, uv_faces: np.ndarray,
+                 appearance) -> None:
+        from garmentnerf.body.shading import monomial_exponents  # lazy: torch, only with an appearance
+
+        faces = np.asarray(faces, dtype=np.int64)
+        pairs = faces.reshape(-1) * len(uv) + np.asarray(uv_faces, dtype=np.int64).reshape(-1)
+        unique, inverse = np.unique(pairs, return_inverse=True)
+        self.source = unique // len(uv)               # (Vs,) the body vertex of each drawn vertex
+        split_uv = np.ascontiguousarray(uv[unique % len(uv)], dtype=np.float32)
+        triangles = np.ascontiguousarray(inverse.reshape(-1), dtype=np.int32)
+        self.ctx = ctx
+        self.key: object = None
+        exponents = np.asarray(monomial_exponents(int(appearance.degree)), dtype=np.int32).reshape(-1, 3)
+        shading = appearance.shading.detach().to("cpu").float().numpy().reshape(-1, 3)
+        if len(exponents) > MAX_SHADING_TERMS or shading.shape != exponents.shape:
+            raise ValueError(f"a body appearance of {len(shading)} shading terms (degree {appearance.degree}) "
+                             f"does not fit the viewer's {MAX_SHADING_TERMS}")
+        self.program = build_program(ctx, "viewer_body_learned.vert", "viewer_body_learned.frag")
+        self.program["u_albedo"].value = 0
+        self.program["u_terms"].value = len(exponents)
+        padded = np.zeros((MAX_SHADING_TERMS, 3), np.float32)
+        padded[:len(shading)] = shading
+        self.program["u_shading"].write(padded.tobytes())
+        padded_e = np.zeros((MAX_SHADING_TERMS, 3), np.int32)
+        padded_e[:len(exponents)] = exponents
+        self.program["u_exponents"].write(padded_e.tobytes())
+        albedo = appearance.albedo.detach().to("cpu").float().permute(1, 2, 0).numpy()  # (T, T, 3), row 0: v = 0
+        self.albedo = ctx.texture((albedo.shape[1], albedo.shape[0]), 3, np.ascontiguousarray(albedo).tobytes(),
+                                  dtype="f4")
+        self.albedo.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self.albedo.repeat_x = self.albedo.repeat_y = False
+        self.vbo = ctx.buffer(reserve=max(len(self.source) * 24, 24), dynamic=True)
+        self.uv_vbo = ctx.buffer(split_uv.tobytes() or b"\0" * 8)
+        self.ibo = ctx.buffer(triangles.tobytes() or b"\0" * 4)
+        self.index_count = int(triangles.size)
+        self.vao = ctx.vertex_array(self.program, [(self.vbo, "3f 3f", "in_position", "in_normal"),
+                                                   (self.uv_vbo, "2f", "in_uv")],
+                                    index_buffer=self.ibo, index_element_size=4)
+
+    def upload(self, key: object, vertex_data: np.ndarray) -> None:
+        """The body's frame ``vertex_data`` (V, 6) [position, normal], gathered per drawn vertex."""
+        self.vbo.write(np.ascontiguousarray(np.take(vertex_data, self.source, axis=0), dtype=np.float32))
+        self.key = key
+
+    def draw(self, view: ViewParams, tint) -> None:
+        p = self.program
+        p["u_view"].write(mat4_bytes(view.view))
+        p["u_proj"].write(mat4_bytes(view.proj))
+        p["u_tint"].value = tuple(float(x) for x in tint)
+        self.albedo.use(location=0)
+        self.vao.render(moderngl.TRIANGLES, vertices=self.index_count)
+
+    def release(self) -> None:
+        for obj in (self.vao, self.vbo, self.uv_vbo, self.ibo, self.albedo, self.program):
+            obj.release()
 
 
 class LineSet:

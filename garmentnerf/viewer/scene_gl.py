@@ -38,7 +38,7 @@ from garmentnerf.viewer.palette_layer import PaletteLayer, pack_maps
 from garmentnerf.viewer.renderables import FULL_VIEW, BodyMesh, FloorGrid, LineSet, PassState, ViewParams
 
 # The renderables' names, for callers that know the scene by this module (tests/render/test_render.py).
-__all__ = ["SceneRenderer", "RenderTarget", "SceneStats", "read_image", "scene_state", "state_token",
+__all__ = ["SceneRenderer", "RenderTarget", "SceneContent", "SceneStats", "read_image", "scene_state", "state_token",
            "is_software_renderer", "BACKGROUND", "BodyMesh", "FloorGrid", "PaletteLayer", "ViewParams", "pack_maps"]
 
 #: Window/snapshot background (display RGB).
@@ -70,6 +70,7 @@ class RenderTarget:
         self.ctx = ctx
         self.size = (int(width), int(height))
         self.drawn_state = None  # the scene state of the image it holds (SceneRenderer.render)
+        self.content = SceneContent()  # what that image shows
         self.samples = max(0, min(int(samples), int(ctx.max_samples))) if samples > 1 else 0
         self.color_ms = ctx.renderbuffer(self.size, 4, samples=self.samples)
         self.depth_ms = ctx.depth_renderbuffer(self.size, samples=self.samples)
@@ -115,6 +116,15 @@ def scene_state(objects) -> tuple:
         if lighting is not None:
             out.append(tuple((k, state_token(v)) for k, v in sorted(vars(lighting).items())))
     return tuple(out)
+
+
+@dataclass(frozen=True)
+class SceneContent:
+    """What an image of the scene shows: the body (rasterised, or in the neural image, which carries
+    it) and the neural garment (the network's image in the layer)."""
+
+    body: bool = False
+    garment: bool = False
 
 
 @dataclass
@@ -226,6 +236,9 @@ class SceneRenderer:
         with current(ctx):
             for r in self.renderables:
                 r.prepare(view)
+            layer = self.palette_layer
+            garment = layer.visible and layer.has_image
+            content = SceneContent(body=self.body.drawn or garment, garment=garment)
             target.fbo.use()
             ctx.viewport = (0, 0, *target.size)
             ctx.scissor = None
@@ -241,6 +254,7 @@ class SceneRenderer:
         # another state and draws once more; a result submitted by the worker during this draw is
         # never mistaken for one already drawn.
         target.drawn_state = key
+        target.content = content
         return True
 
     def _set_pass_state(self, state: PassState) -> None:

@@ -1,5 +1,6 @@
 """Playback state of the previewer (current frame, play/pause, loop, speed) and the meters the stats
-overlay reads (:class:`PlaybackMeter`, :class:`FrameTimer`). Pure logic, no GL.
+overlay and the bench read (:class:`PlaybackMeter`, :class:`FrameTimer`, :class:`FirstFrames`). Pure
+logic, no GL.
 
 Time is kept as a continuous position in frames (frame ``i`` is shown while ``i <= position < i + 1``,
 as :class:`garmentnerf.motion.motion.Motion` defines a clip of T frames to last ``T / fps`` seconds).
@@ -218,3 +219,24 @@ class FrameTimer:
 def _mean_ms(seconds) -> float:
     """Mean of ``seconds`` in milliseconds (NaN when empty)."""
     return 1000.0 * sum(seconds) / len(seconds) if seconds else float("nan")
+
+
+@dataclass
+class FirstFrames:
+    """When the window first showed the body and the garment: seconds from the command's start
+    (:func:`garmentnerf.startup.seconds_since_start`) to the end of the first UI frame (after its
+    swap) whose scene had the body / the neural garment in it. ``garmentnerf view --bench`` reports
+    them (``first_frame.body_s``, ``first_frame.garment_s``); None until seen.
+
+    A neural image carries the body (rasterised under the garment, or drawn by the network), so a
+    frame that shows the garment shows the body too."""
+
+    body_s: float | None = None
+    garment_s: float | None = None
+
+    def saw(self, body: bool, garment: bool, now: float) -> None:
+        """A UI frame ended at ``now`` (seconds since the start) showing the body / the garment."""
+        if (body or garment) and self.body_s is None:
+            self.body_s = float(now)
+        if garment and self.garment_s is None:
+            self.garment_s = float(now)

@@ -389,6 +389,9 @@ class NeuralRenderer:
         self._target: tuple | None = None        # (view key, frame) of the render in flight (worker thread)
         self._last_done: tuple | None = None     # (view key, frame) of the last delivered render
         self._pending_run = None                 # a newer checkpoint's run, switched to before the next render
+        # what the worker does, for the overlay: ("starting", None) while it makes its session,
+        # ("rendering", frame) during a render (set on the worker thread, read anywhere: one tuple)
+        self.activity: tuple[str, int | None] = ("starting", None)
         self._run_lock = threading.Lock()
         self.worker = RenderWorker(self._render, self._deliver, name="garmentnerf-neural", idle_work=self._precompute,
                                    superseded=self._superseded, follow_up=self._follow_up)
@@ -548,12 +551,15 @@ class NeuralRenderer:
             return NOTHING
 
         self._switch_run()
+        if self._thread_session.current is None:
+            self.activity = ("starting", None)
         session = self._thread_session.session(request.motion if request.motion is not None else self._motion)
         target = self._next_target(request, self._clip_frames(session, request), self._clock(), session.frames)
         if target is None:
             return NOTHING
         frame, ahead = target
         self._target = (request.view_key, frame)
+        self.activity = ("rendering", frame)
         session.frames.set_playhead(frame)
         session.set_composition(request.composition)
         start = time.perf_counter()

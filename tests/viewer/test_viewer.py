@@ -743,7 +743,8 @@ def test_view_command_with_run_renders_a_neural_frame(xvfb, untrained_run, tmp_p
 
 def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     """``garmentnerf view --bench`` with a tiny run for ~2 s: every figure is present and finite, a
-    palette change shows within the frame budget without a new neural render."""
+    palette change shows within the frame budget without a new neural render, the body is shown no
+    later than the garment (``first_frame``)."""
     import json
     import math
     import sys
@@ -780,6 +781,11 @@ def test_view_bench_writes_finite_figures(xvfb, untrained_run, tmp_path):
     sizes = [data["presets"][n]["render_size"][0] for n in VIEWER_LEVELS]
     assert sizes[0] < sizes[1] < sizes[2]  # higher presets render more pixels
     assert data["worker"]["errors"] == 0
+    # the first frame through the real window: the body, then the garment, seconds from the command's start
+    first = data["first_frame"]
+    assert finite(first["body_s"]) and finite(first["garment_s"]), first
+    assert 0 < first["body_s"] <= first["garment_s"] < 500, first
+    assert "first frame: body" in proc.stdout
     # other processes' load meanwhile (the X server's included), printed and kept beside the figures
     others = data["other_processes_cores"]
     assert others is None or 0.0 <= others <= os.cpu_count(), others
