@@ -134,6 +134,17 @@ def _loss_weights(items: list[str]) -> dict[str, float] | None:
     return out or None
 
 
+def _machine_options(args: argparse.Namespace) -> dict:
+    """The cache bounds of ``--cache-gib`` (``{}`` without it), once ``--threads`` and it are checked."""
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads must be at least 1, got {args.threads}")
+    if args.cache_gib is None:
+        return {}
+    if not (math.isfinite(args.cache_gib) and args.cache_gib > 0):
+        raise ValueError(f"--cache-gib must be a positive number of GiB, got {args.cache_gib:g}")
+    return cache_bounds(args.cache_gib)
+
+
 def run(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.train.trainer import TrainConfig, Trainer
@@ -142,13 +153,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     if args.recipe is not None or (args.resume and is_recipe_folder(args.out)):
         return run_recipe_command(args)
-    if args.threads is not None and args.threads < 1:
-        raise ValueError(f"--threads must be at least 1, got {args.threads}")
-    caches = {}
-    if args.cache_gib is not None:
-        if not (math.isfinite(args.cache_gib) and args.cache_gib > 0):
-            raise ValueError(f"--cache-gib must be a positive number of GiB, got {args.cache_gib:g}")
-        caches = cache_bounds(args.cache_gib)
+    caches = _machine_options(args)
 
     bounds = (("--log-every", args.log_every, 1), ("--ckpt-every", args.ckpt_every, 1),
               ("--image-every", args.image_every, 0), ("--stop-after", args.stop_after, 1),
@@ -222,13 +227,7 @@ def run_recipe_command(args: argparse.Namespace) -> int:
     else:  # --resume of a recipe folder without --recipe: the recipe it was started with
         file = Path(args.out) / "recipe.json"
     recipe = read_recipe(file)
-    if args.threads is not None and args.threads < 1:
-        raise ValueError(f"--threads must be at least 1, got {args.threads}")
-    caches = {}
-    if args.cache_gib is not None:
-        if not (math.isfinite(args.cache_gib) and args.cache_gib > 0):
-            raise ValueError(f"--cache-gib must be a positive number of GiB, got {args.cache_gib:g}")
-        caches = cache_bounds(args.cache_gib)
+    caches = _machine_options(args)
     for flag, value, least in (("--log-every", args.log_every, 1), ("--ckpt-every", args.ckpt_every, 1),
                                ("--image-every", args.image_every, 0)):
         if value is not None and value < least:

@@ -38,10 +38,9 @@ import json
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from types import MappingProxyType
 
-from garmentnerf.io_utils import parse_json_strict
+from garmentnerf.io_utils import parse_json_strict, read_json_strict
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.ranges import parse_frames
 from garmentnerf.train.settings import MODEL_PRESETS, model_config_for
@@ -225,17 +224,12 @@ def load_json(text: str, where: str):
 
 
 def load_recipe_json(path) -> object:
-    """The JSON value of the file ``path`` (see :func:`load_json`); FileNotFoundError / RecipeError naming it."""
-    path = Path(path)
+    """The JSON value of the recipe file ``path`` (:func:`~garmentnerf.io_utils.read_json_strict`);
+    FileNotFoundError / RecipeError naming it."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: no such recipe file") from None
-    except IsADirectoryError:
-        raise RecipeError(f"{path}: is a folder, not a recipe file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RecipeError(f"{path}: unreadable ({exc})") from None
-    return load_json(text, str(path))
+        return read_json_strict(path, "recipe")
+    except (IsADirectoryError, ValueError) as exc:
+        raise RecipeError(str(exc)) from None
 
 
 def read_recipe(path) -> Recipe:
