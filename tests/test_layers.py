@@ -35,8 +35,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # own (empty) __init__. They import nothing of garmentnerf.
     ("conventions", "io_utils", "interrupts", "lifecycle", "cpu_load", "version", "byte_lru", "ranges", "budgets",
      "folder_lock", "assets", "shaders", ROOT_UNIT),
-    # Reading pickled files without running their code (reads .npy headers with io_utils).
-    ("safe_pickle",),
+    # Reading pickled files without running their code (reads .npy headers with io_utils); the
+    # command's start time and the machine's load since then (reads cpu_load).
+    ("safe_pickle", "startup"),
     # The body model: template, shape, skinning, UV atlas, shading basis.
     ("body",),
     # Body motions; the geometry of points against the body surface. Independent of each other.
@@ -49,10 +50,10 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("data",),
     # The run folder: run.json, the model's weights, loading a run.
     ("runs",),
-    # The bundled demos: run folders shipped in the package.
-    ("demos",),
     # Rendering a run: the one render path of every tool; the GL passes that feed the model.
     ("render",),
+    # The bundled demos: run folders shipped in the package (packing one measures its garment's band).
+    ("demos",),
     # Training (renders with the render presets).
     ("train",),
     # Evaluation (renders runs, reads the trainer's frames, checkpoints and settings).
