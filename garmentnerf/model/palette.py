@@ -51,7 +51,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from garmentnerf.model.config import BLEND_WEIGHT_FLOOR, OFFSET_SCALE
+from garmentnerf.model.config import BACKGROUND, BLEND_WEIGHT_FLOOR, OFFSET_SCALE
 
 #: Makes softplus(0 + shift) = 1: the untrained radiance is 1, so the image starts at the palette.
 _SOFTPLUS_ONE = math.log(math.e - 1.0)
@@ -209,7 +209,7 @@ class DecomposedMaps:
     body_color: torch.Tensor | None = None
     body_coverage: torch.Tensor | None = None
 
-    def compose(self, palette: torch.Tensor, background=(0.0, 0.0, 0.0)) -> torch.Tensor:
+    def compose(self, palette: torch.Tensor, background=BACKGROUND) -> torch.Tensor:
         """:func:`compose` with these maps (and their body layer, when they have one)."""
         return compose(self.radiance, self.offsets, self.weights, self.mask, palette, background,
                        self.body_color, self.body_coverage)

@@ -224,7 +224,7 @@ class BoxStratifiedSampler:
         near: smallest distance from the ray origin.
     """
 
-    def __init__(self, num_samples: int = 64, padding: float = 0.05, near: float = 0.0):
+    def __init__(self, num_samples: int = 64, padding: float = BBOX_PADDING, near: float = 0.0):
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
         if padding < 0:

@@ -44,6 +44,7 @@ import torch
 from garmentnerf.conventions import Camera
 from garmentnerf.geometry.winding import point_in_shell
 from garmentnerf.gl.shell_raster import ShellBounds, ShellRaster, inflate_surface
+from garmentnerf.model.config import BBOX_PADDING
 from garmentnerf.model.height_band import HeightRange
 from garmentnerf.model.samplers import RaySamples, padded_box, pixel_rays, ray_aabb_intersect
 
@@ -71,7 +72,7 @@ class ShellSampler:
     """
 
     def __init__(self, num_samples: int, faces: torch.Tensor, height_range: HeightRange | None = None, *,
-                 shell_margin: float | torch.Tensor | None = None, padding: float = 0.05,
+                 shell_margin: float | torch.Tensor | None = None, padding: float = BBOX_PADDING,
                  gl_context=None, occlusion: bool = False, occlusion_margin: float | None = None):
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
