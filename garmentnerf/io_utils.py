@@ -87,6 +87,17 @@ def write_file_atomic(path, data: bytes) -> Path:
     return path
 
 
+def user_cache_dir(kind: str) -> Path:
+    """Where the package keeps what it measured or made once, of one ``kind`` (a folder name):
+    ``$GARMENTNERF_CACHE_DIR/<kind>``, else ``$XDG_CACHE_HOME/garmentnerf/<kind>``, else
+    ``~/.cache/garmentnerf/<kind>``. Losing it only means doing the work again."""
+    root = os.environ.get("GARMENTNERF_CACHE_DIR", "").strip()
+    if not root:
+        xdg = os.environ.get("XDG_CACHE_HOME", "").strip()
+        root = str(Path(xdg) / "garmentnerf") if xdg else str(Path.home() / ".cache" / "garmentnerf")
+    return Path(root) / kind
+
+
 #: A temporary file of :func:`atomic_write_path` untouched for this long is a leftover of a killed
 #: write (a live write touches its file continuously; a PNG takes milliseconds).
 STALE_TEMPORARY_SECONDS = 60.0

@@ -52,6 +52,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("runs",),
     # Rendering a run: the one render path of every tool; the GL passes that feed the model.
     ("render",),
+    # Baked frames: the garment rendered once from a ring of cameras, kept, and drawn from any camera by GL.
+    ("bake",),
     # The bundled demos: run folders shipped in the package (packing one measures its garment's band).
     ("demos",),
     # Training (renders with the render presets).

@@ -113,6 +113,9 @@ class RenderOutput:
             image (:attr:`image`, :meth:`recolor`) without re-rendering.
         opacity: (h, w) accumulated opacity per feature-image ray (0 for rays not rendered).
         depth: (h, w) opacity-normalised expected depth along each ray (metres; 0 where opacity 0).
+        median_depth: (h, w) the distance along each ray at which its opacity reaches one half
+            (:func:`~garmentnerf.model.volume_rendering.median_depth_packed`; 0 where it never does): the
+            surface a bake is built on.
         feature_image: (C_zeta, h, w) F^zeta, the decoder's input.
         palette: (P, 3) the palette :attr:`image` is composed with; background: its RGB.
         points_evaluated: samples the NeRF MLP was evaluated at.
@@ -137,6 +140,7 @@ class RenderOutput:
     samples_placed: int = 0
     points_projected: int = 0
     rays_terminated: int = 0
+    median_depth: torch.Tensor | None = None
 
     @functools.cached_property
     def image(self) -> torch.Tensor:
@@ -517,7 +521,7 @@ class GarmentAnimationNeRF(nn.Module):
         """The volume-rendering half of :meth:`render`: F^zeta, opacity, depth (no decoding).
 
         Returns a dict with ``feature_image (C, h, w)`` (the rendered zeta), ``opacity (h, w)``,
-        ``depth (h, w)`` and the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
+        ``depth (h, w)``, ``median_depth (h, w)`` and the counts ``points_evaluated``, ``rays_evaluated``, ``rays_total``, ``samples_placed``,
         ``points_projected``, ``rays_terminated``; stage times are added to ``timings`` when
         given. See :meth:`render` for the arguments.
         """
@@ -573,15 +577,18 @@ class GarmentAnimationNeRF(nn.Module):
         with sw("compositing"):
             opacity = march.opacity
             depth = torch.where(opacity > 0, march.depth / opacity.clamp_min(1e-10), torch.zeros_like(march.depth))
+            median = march.median_depth
             feat = march.values
             if subset is not None:
                 idx = subset.to(dev)
                 feat = feat.new_zeros(n_pixels, C).index_copy(0, idx, feat)
                 opacity = opacity.new_zeros(n_pixels).index_copy(0, idx, opacity)
                 depth = depth.new_zeros(n_pixels).index_copy(0, idx, depth)
+                median = median.new_zeros(n_pixels).index_copy(0, idx, median)
             feature_image = feat.T.reshape(C, fh, fw)
         hit = samples.hit.cpu()  # rays given a segment: exactly those with samples
         return {"feature_image": feature_image, "opacity": opacity.reshape(fh, fw), "depth": depth.reshape(fh, fw),
+                "median_depth": median.reshape(fh, fw),
                 "points_evaluated": evaluated, "rays_evaluated": int(hit.sum()), "rays_total": n_rays,
                 "samples_placed": int(samples.ray_ids.shape[0]), "points_projected": march.samples_evaluated,
                 "rays_terminated": int((march.terminated & hit).sum())}
@@ -638,7 +645,8 @@ class GarmentAnimationNeRF(nn.Module):
         bg = tuple(float(c) for c in (BACKGROUND if background is None else background))
         return RenderOutput(maps, out["opacity"], out["depth"], out["feature_image"], pal, bg,
                             out["points_evaluated"], out["rays_evaluated"], out["rays_total"], all_timings,
-                            out["samples_placed"], out["points_projected"], out["rays_terminated"])
+                            out["samples_placed"], out["points_projected"], out["rays_terminated"],
+                            out["median_depth"])
 
     def forward(self, frame: FrameInputs | FrameFeatures, camera: Camera, **kwargs) -> RenderOutput:
         """:meth:`render`, preparing the frame first when given :class:`FrameInputs`."""

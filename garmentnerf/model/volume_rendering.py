@@ -26,6 +26,7 @@ value and only zeroes gradients that are 0 anyway; transmittance from densities 
 from __future__ import annotations
 
 import bisect
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -202,6 +203,41 @@ def expected_depth_packed(weights: torch.Tensor, t_starts: torch.Tensor, t_ends:
     return depth
 
 
+#: The accumulated opacity at which :func:`median_depth_packed` (and the march's ``median_depth``) reads a
+#: ray's surface: half the ray's light is stopped in front of it.
+SURFACE_OPACITY = 0.5
+
+
+def median_depth_packed(sigmas: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor, ray_ids: torch.Tensor,
+                        n_rays: int, level: float = SURFACE_OPACITY) -> torch.Tensor:
+    """(R,) the distance along each ray at which its accumulated opacity first reaches ``level``, linear in
+    optical thickness inside the sample that crosses it; 0 for a ray that never reaches it.
+
+    The plain reference of the march's ``median_depth`` (:func:`render_packed_segmented`). Unlike the
+    expected depth it is not pulled back by faint density behind the surface: it is the depth a
+    surface built from the render should sit at.
+
+    Args:
+        sigmas, t_starts, t_ends, ray_ids: (N,) packed samples, ``ray_ids`` sorted.
+    """
+    target = -math.log(1.0 - level)
+    tau = optical_thickness(sigmas.float(), (t_ends - t_starts).float())
+    before = packed_exclusive_cumsum(tau, ray_ids, n_rays)
+    return _level_crossing(tau, before, t_starts.float(), t_ends.float(), ray_ids, n_rays, target)
+
+
+def _level_crossing(tau: torch.Tensor, before: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                    ray_ids: torch.Tensor, n_rays: int, target: float,
+                    out: torch.Tensor | None = None) -> torch.Tensor:
+    """``out`` (R,) (zeros when None) with the distance where each ray's optical thickness crosses ``target``
+    written for the samples (N,) that cross it (``before`` < target <= ``before + tau``)."""
+    out = tau.new_zeros(n_rays) if out is None else out
+    hit = (before < target) & (before + tau >= target)
+    frac = ((target - before) / tau.clamp_min(1e-12)).clamp(0.0, 1.0)
+    t = t_starts + (t_ends - t_starts) * frac
+    return out.index_put((ray_ids[hit],), t[hit])
+
+
 # ------------------------------------------------------------------------ segmented (field in the loop)
 @dataclass
 class MarchResult:
@@ -215,6 +251,8 @@ class MarchResult:
             termination).
         terminated: (R,) bool, rays stopped early with samples left (on the CPU).
         distortion: (R,) :func:`distortion_packed` of the evaluated samples, when asked for (else None).
+        median_depth: (R,) :func:`median_depth_packed` of the evaluated samples (detached; 0 where the ray's
+            opacity never reaches :data:`SURFACE_OPACITY`).
     """
 
     values: torch.Tensor
@@ -223,6 +261,7 @@ class MarchResult:
     samples_evaluated: int
     terminated: torch.Tensor
     distortion: torch.Tensor | None = None
+    median_depth: torch.Tensor | None = None
 
 
 def distortion_packed(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor, ray_ids: torch.Tensor,
@@ -310,6 +349,8 @@ def render_packed_segmented(field: Callable[[torch.Tensor], tuple[torch.Tensor, 
     w_before = torch.zeros(n_rays, device=dev)  # the weight and weighted midpoints earlier segments placed
     wm_before = torch.zeros(n_rays, device=dev)
     distortion = torch.zeros(n_rays, device=dev)
+    median_depth = torch.zeros(n_rays, device=dev)
+    surface_tau = -math.log(1.0 - SURFACE_OPACITY)
     tau_seen = torch.zeros(n_rays)  # CPU, detached: which rays are still live
     cursor = torch.zeros(n_rays, dtype=torch.long)
     evaluated = 0
@@ -338,7 +379,10 @@ def render_packed_segmented(field: Callable[[torch.Tensor], tuple[torch.Tensor, 
         _, local = torch.unique_consecutive(rid_cpu, return_inverse=True)  # the segment's rays, numbered 0..
         local = local.to(dev)
         n_local = int(local[-1]) + 1 if local.numel() else 0
-        w = torch.exp(-(packed_exclusive_cumsum(tau, local, n_local) + tau_before[rid])) * -torch.expm1(-tau)
+        before = packed_exclusive_cumsum(tau, local, n_local) + tau_before[rid]
+        w = torch.exp(-before) * -torch.expm1(-tau)
+        with torch.no_grad():
+            median_depth = _level_crossing(tau.detach(), before.detach(), ts, te, rid, n_rays, surface_tau, median_depth)
         values = values.index_add(0, rid, w.unsqueeze(-1) * vals.float())
         opacity = opacity.index_add(0, rid, w)
         mids = (ts + te) * 0.5
@@ -354,4 +398,5 @@ def render_packed_segmented(field: Callable[[torch.Tensor], tuple[torch.Tensor, 
         cursor = cursor.index_add(0, rid_cpu, torch.ones_like(rid_cpu))
         evaluated += int(index.shape[0])
     terminated = cursor < counts
-    return MarchResult(values, opacity, depth, evaluated, terminated, distortion if with_distortion else None)
+    return MarchResult(values, opacity, depth, evaluated, terminated, distortion if with_distortion else None,
+                       median_depth)

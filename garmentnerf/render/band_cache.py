@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from garmentnerf.io_utils import load_tagged_tensors, save_tagged_tensors
+from garmentnerf.io_utils import load_tagged_tensors, save_tagged_tensors, user_cache_dir
 from garmentnerf.model.height_band import (HEIGHT_MARGIN_IN, HEIGHT_MARGIN_OUT, VERTEX_BAND_RINGS, HeightRange,
                                            measure_height_range)
 
@@ -43,13 +42,8 @@ BAND_MAX_FRAMES = 24
 
 
 def cache_dir() -> Path:
-    """Where measured bands are kept: ``$GARMENTNERF_CACHE_DIR/height_band``, else
-    ``$XDG_CACHE_HOME/garmentnerf/height_band``, else ``~/.cache/garmentnerf/height_band``."""
-    root = os.environ.get("GARMENTNERF_CACHE_DIR", "").strip()
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME", "").strip()
-        root = str(Path(xdg) / "garmentnerf") if xdg else str(Path.home() / ".cache" / "garmentnerf")
-    return Path(root) / "height_band"
+    """Where measured bands are kept: :func:`~garmentnerf.io_utils.user_cache_dir` ``height_band``."""
+    return user_cache_dir("height_band")
 
 
 def _tensor_digest(t) -> str:

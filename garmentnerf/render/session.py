@@ -143,6 +143,12 @@ class NeuralFrame:
             ``rays_terminated`` of the render, and ``rays_frame`` (the whole frame's).
         body: in the ``raster_body`` composition, the frame's posed body vertices and unit vertex
             normals ((V, 3) each, CPU float32), to draw the body layer with; else None.
+        surface_depth: (fh, fw) float32 camera-space z of each feature ray's median depth (where its
+            opacity reaches one half; 0 where it never does), over :attr:`feature_camera`: the
+            unbiased surface that :mod:`garmentnerf.bake` builds meshes on (the expected depth in
+            :attr:`depth` lies behind thin cloth).
+        feature_camera: the camera of those rays: the render camera padded to whole feature cells,
+            at one pixel per feature ray.
     """
 
     maps: DecomposedMaps
@@ -159,6 +165,8 @@ class NeuralFrame:
     preset: str = DEFAULT_PRESET
     counts: dict[str, int] = field(default_factory=dict)
     body: tuple[torch.Tensor, torch.Tensor] | None = None
+    surface_depth: np.ndarray | None = None
+    feature_camera: Camera | None = None
 
     @property
     def output_size(self) -> tuple[int, int]:
@@ -449,6 +457,11 @@ class RenderSession(Closeable):
         depth[rect.y0 // up:rect.y1 // up, rect.x0 // up:rect.x1 // up] = _camera_depth(
             out.depth.detach().cpu(), out.opacity.detach().cpu(), view.resized(rect.width // up, rect.height // up))
         depth = np.repeat(np.repeat(depth, up, axis=0), up, axis=1)[:hr, :wr]
+        rect_cells = view.resized(rect.width // up, rect.height // up)
+        surface = np.zeros((fh, fw), np.float32)
+        median = out.median_depth.detach().cpu()
+        surface[rect.y0 // up:rect.y1 // up, rect.x0 // up:rect.x1 // up] = _camera_depth(median, (median > 0).float(),
+                                                                                          rect_cells, min_opacity=0.5)
         timings = dict(out.timings)
         if body_ms is not None:
             timings["body_layer"] = body_ms
@@ -459,7 +472,8 @@ class RenderSession(Closeable):
         return NeuralFrame(maps, camera, (wr, hr), np.ascontiguousarray(depth, dtype=np.float32),
                            self.learned_palette(), tuple(out.background), int(frame), float(quality), s,
                            timings, cached, plan.preset.name, counts,
-                           self._body_geometry(feats) if self.body_appearance is not None else None)
+                           self._body_geometry(feats) if self.body_appearance is not None else None,
+                           surface, padded.resized(fw, fh))
 
     @staticmethod
     def _body_geometry(features) -> tuple[torch.Tensor, torch.Tensor]:
