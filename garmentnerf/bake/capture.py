@@ -100,7 +100,8 @@ def capture_frame(session, frame: int, settings: BakeSettings, should_cancel: Ca
             views.append(view)
         if on_view is not None:
             on_view(i + 1, len(cameras))
-    return BakedFrame(int(frame), tuple(views))
+    body = session.posed.vertices[frame].detach().to("cpu").float().numpy()
+    return BakedFrame(int(frame), tuple(views), body)
 
 
 __all__ = ["BakeSettings", "BAKE_PRESETS", "DEFAULT_BAKE_PRESET", "CAPTURE_PRESET", "bake_settings",

@@ -13,7 +13,7 @@ Keys
     cache (:func:`cache_folder`) is keyed by all three, so a second launch finds its bake at once.
 
 A frame file
-    Per view ``i``: ``v{i}.layers`` (L, H, W, 4) uint8, quantised per layer channel between
+    ``body.vertices`` (V, 3) float16, the posed body (millimetres at the scale of a body); per view ``i``: ``v{i}.layers`` (L, H, W, 4) uint8, quantised per layer channel between
     ``v{i}.low`` and ``v{i}.high`` (L, 4) float32 (about 1/500 of each channel's range);
     ``v{i}.depth`` float16 camera z of the feature rays; ``v{i}.camera`` float64 (K, R, t, width,
     height, near, far). A file that cannot be read, or holds another frame, is :class:`BakeFileError`.
@@ -39,6 +39,7 @@ BAKE_FORMAT = "garmentnerf-bake"
 BAKE_VERSION = 1
 MANIFEST_FILE = "bake.json"
 FRAMES_DIR = "frames"
+BODY_FACES_FILE = "body_faces.npy"
 
 
 class BakeFileError(ValueError):
@@ -117,6 +118,8 @@ def frame_bytes(baked: BakedFrame) -> bytes:
         arrays[f"v{i}.depth"] = view.depth.astype(np.float16)
         arrays[f"v{i}.camera"] = _camera_record(view.camera)
         arrays[f"v{i}.cell"] = np.array([view.cell], np.int64)
+    if baked.body_vertices is not None:
+        arrays["body.vertices"] = np.asarray(baked.body_vertices, np.float16)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
     return buffer.getvalue()
@@ -143,11 +146,14 @@ def read_frame_file(path: Path, frame: int | None = None) -> BakedFrame:
                         or not np.isfinite(layers).all() or not np.isfinite(depth).all()):
                     raise BakeFileError(f"{path}: view {i} is inconsistent")
                 views.append(BakedView(camera, layers, depth, cell))
+            body = data["body.vertices"].astype(np.float32) if "body.vertices" in data.files else None
+            if body is not None and (body.ndim != 2 or body.shape[1] != 3 or not np.isfinite(body).all()):
+                raise BakeFileError(f"{path}: the body's vertices are inconsistent")
     except BakeFileError:
         raise
     except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise BakeFileError(f"{path}: not a readable bake frame ({type(exc).__name__}: {exc})") from None
-    return BakedFrame(stored, tuple(views))
+    return BakedFrame(stored, tuple(views), body)
 
 
 class BakeFolder:
@@ -167,16 +173,37 @@ class BakeFolder:
 
     @staticmethod
     def manifest_for(model: str, motion: str, motion_name: str, settings: BakeSettings, num_frames: int,
-                     run_name: str = "") -> dict:
+                     run_name: str = "", fps: float = 30.0, palette=None) -> dict:
+        """What :meth:`create` writes: the keys, the capture settings, the motion's name, frame count and
+        rate, the run's name and its learned palette (the body's colour last)."""
         return {"format": BAKE_FORMAT, "version": BAKE_VERSION, "model": model, "motion": motion,
                 "motion_name": str(motion_name), "run": str(run_name), "num_frames": int(num_frames),
+                "fps": float(fps), "palette": [] if palette is None else np.asarray(palette, float).tolist(),
                 "capture": settings.capture_key()}
 
+    def body_faces(self) -> np.ndarray | None:
+        """(F, 3) int64 the body's triangles (written by :meth:`create` when given), None when missing."""
+        path = self.root / BODY_FACES_FILE
+        if not path.is_file():
+            return None
+        try:
+            faces = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise BakeFileError(f"{path}: not readable ({exc})") from None
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise BakeFileError(f"{path}: not a (F, 3) array of triangles")
+        return faces.astype(np.int64)
+
     @classmethod
-    def create(cls, root, manifest: dict) -> "BakeFolder":
-        """A new bake folder at ``root`` (made if missing, or empty) with ``manifest``."""
+    def create(cls, root, manifest: dict, body_faces: np.ndarray | None = None) -> "BakeFolder":
+        """A new bake folder at ``root`` (made if missing, or empty) with ``manifest`` and the body's
+        triangles."""
         root = Path(root)
         (root / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+        if body_faces is not None:
+            buffer = io.BytesIO()
+            np.save(buffer, np.asarray(body_faces, np.int32))
+            write_file_atomic(root / BODY_FACES_FILE, buffer.getvalue())
         write_file_atomic(root / MANIFEST_FILE, (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode())
         return cls(root, manifest)
 
@@ -240,4 +267,4 @@ def cache_folder(manifest: dict) -> Path:
 
 
 __all__ = ["BakeFolder", "BakeFileError", "model_key", "motion_key", "frame_bytes", "read_frame_file", "cache_folder",
-           "BAKE_FORMAT", "BAKE_VERSION", "MANIFEST_FILE", "FRAMES_DIR"]
+           "BAKE_FORMAT", "BAKE_VERSION", "MANIFEST_FILE", "FRAMES_DIR", "BODY_FACES_FILE"]

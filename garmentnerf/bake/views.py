@@ -91,10 +91,12 @@ class BakedView:
 
 @dataclass(frozen=True)
 class BakedFrame:
-    """The K captures of one body frame."""
+    """The K captures of one body frame, and the posed body they were baked over (``body_vertices (V, 3)``
+    float32; the faces are the body model's), so that a bake can be drawn and exported on its own."""
 
     frame: int
     views: tuple[BakedView, ...]
+    body_vertices: np.ndarray | None = None
 
     @property
     def nbytes(self) -> int:
