@@ -66,6 +66,9 @@ def register(sub) -> None:
                    help="raster_body (the body rasterised with the run's learned appearance, the garment from "
                         "the network), nerf (the paper's: the network draws both) or auto (default: raster_body "
                         "when the run has body_appearance.safetensors)")
+    p.add_argument("--bake", default=None, metavar="PRESET",
+                   help="also score the run's bake at this bake preset (draft, balanced, fine: 'garmentnerf bake'): "
+                        "each frame baked once, drawn from every camera as the previewer draws it")
     add_device_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_eval)
@@ -137,6 +140,14 @@ def run_eval(args: argparse.Namespace) -> int:
     frames = parse_frame_range(args.frames, "--frames")
     cameras = parse_list(args.cameras, "--cameras", kind="camera")
     parse_device(args.device)
+    bake = None
+    if args.bake is not None:
+        from garmentnerf.bake.capture import bake_settings
+
+        try:
+            bake = bake_settings(args.bake)
+        except ValueError as e:
+            raise ValueError(f"--bake: {e}") from None
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from garmentnerf.render.session import COMPOSITIONS, resolve_composition
 
@@ -156,7 +167,7 @@ def run_eval(args: argparse.Namespace) -> int:
     gallery = Gallery(args.gallery_views) if args.gallery is not None else None
     result = evaluate_run(run, args.split, frames=frames, cameras=cameras, progress=not args.no_progress,
                           baseline=args.baseline, preset=args.preset, quality=args.quality,
-                          resolution=args.resolution, gallery=gallery, composition=args.composition)
+                          resolution=args.resolution, gallery=gallery, composition=args.composition, bake=bake)
     print(format_result_table(result))
     if gallery is not None:
         gallery.write(args.gallery, overwrite=args.overwrite)

@@ -126,6 +126,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from garmentnerf.bake.capture import capture_frame, check_can_bake
+from garmentnerf.bake.draw import BakeDrawer, baked_maps
+from garmentnerf.bake.store import frame_bytes
 from garmentnerf.data.render_gt import LABEL_BODY, GroundTruthRenderer, garment_pixels
 from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.eval.metrics import (
@@ -550,7 +553,7 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
                  model: bool = True, gl_context=None, scene=None, device: str = "cpu",
                  lpips_backbone: str | None = None, tof: bool = True, preset: str = "reference",
                  quality: float | None = None, resolution: str = "native", gallery: "Gallery | None" = None,
-                 composition: str = "auto") -> dict:
+                 composition: str = "auto", bake=None) -> dict:
     """Render and score a run on one split (see the module docstring for every convention).
 
     Args:
@@ -580,6 +583,9 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         composition: how the model's views are composed
             (:data:`~garmentnerf.render.session.COMPOSITIONS`; ``auto``: with the rasterised body
             when the run has a body appearance).
+        bake: also score the run's bake (:class:`~garmentnerf.bake.capture.BakeSettings`): each frame is
+            baked once and drawn from every evaluated camera by the previewer's GL draw, scored against the
+            same ground truth under ``"bake"``, with its seconds and megabytes a frame.
     Returns:
         A strict-JSON-serialisable dict (layout in the module docstring).
     Raises:
@@ -604,12 +610,15 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
                for c in sel["cameras"]} if baseline else {}
     scores = _Scores(perceptual) if model else None
     base_scores = _Scores(perceptual) if baseline else None
+    if bake is not None and not model:
+        raise ValueError("a bake is scored beside the model: model=False and a bake")
+    bake_scores = _Scores(perceptual) if bake is not None else None
     views = _ViewPlan(scene_obj, cfg, sel, resolution)
 
     own_ctx = None
     if gl_context is None:
         gl_context = own_ctx = create_context(headless=True)
-    session = gt = bar = None
+    session = gt = bar = baker = None
     try:
         gt = _GroundTruth(scene_obj, gl_context, run.model.body, background)
         if progress:
@@ -618,7 +627,11 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
             session = RenderSession(run, gl_context, motion=next(iter(sel["sequences"])), composition=composition)
         if gallery is not None:
             gallery.plan(views.total)
-        methods = _Methods(session, scores, base_scores, nearest, render_preset, float(quality), background)
+        if bake is not None:
+            check_can_bake(session)
+            baker = _Baker(bake, BakeDrawer(gl_context, bake.draw_views, bake.mesh_step))
+        methods = _Methods(session, scores, base_scores, nearest, render_preset, float(quality), background,
+                           baker, bake_scores)
         for index, view in enumerate(views):
             methods.score(index, *view, views=views, gt=gt, gallery=gallery)
             if bar is not None:
@@ -627,10 +640,12 @@ def evaluate_run(run, split: str, frames=None, cameras=None, progress: bool = Tr
         for closable in (bar, session, gt):
             if closable is not None:
                 closable.close()
+        if baker is not None:
+            baker.drawer.release()
         if own_ctx is not None:
             own_ctx.release()
     result = _result(run, split, sel, views, render_preset, float(quality), background, unavailable,
-                     scores, base_scores, nearest, tof, time.perf_counter() - t_start)
+                     scores, base_scores, nearest, tof, time.perf_counter() - t_start, bake_scores, baker)
     if model:
         result["composition"] = composition
     return _encode_float(result)
@@ -651,6 +666,9 @@ class _Methods:
     quality: float
     """The pixel density it renders at, as a multiple of the trained density."""
     background: tuple[float, float, float]
+    baker: "_Baker | None" = None
+    """Bakes the frames and draws them (None: no bake is scored)."""
+    bake_scores: _Scores | None = None
 
     def score(self, index: int, sequence: str, frame: int, camera: str, *, views: "_ViewPlan",
               gt: _GroundTruth, gallery: "Gallery | None") -> None:
@@ -668,6 +686,18 @@ class _Methods:
             silhouette = nf.alpha() > 0.5
             character = character | silhouette
             row = self.scores.add(sequence, camera, frame, shown["render"], target, pred_silhouette=silhouette)
+        if self.baker is not None:
+            maps = baked_maps(self.baker.drawer, self.session, self.baker.frame(self.session, sequence, frame),
+                              views.camera(camera))
+            if maps is None:
+                shown["bake"] = np.broadcast_to(np.asarray(self.background, np.float32), (*size[::-1], 3)).copy()
+                silhouette = np.zeros(size[::-1], bool)
+            else:
+                with torch.no_grad():
+                    shown["bake"] = maps.compose(self.session.learned_palette(), self.background)[0].permute(
+                        1, 2, 0).contiguous().numpy()
+                silhouette = maps.alpha[0, 0].numpy() > 0.5
+            self.bake_scores.add(sequence, camera, frame, shown["bake"], target, pred_silhouette=silhouette)
         if self.base_scores is not None:
             near = self.nearest[camera]["camera"]
             if views.size(near) != size:
@@ -679,6 +709,26 @@ class _Methods:
             row = row if row is not None else base_row
         if gallery is not None and gallery.wants(index):
             gallery.add(f"{sequence} {camera} frame {frame}", target.image, shown, row, character)
+
+
+class _Baker:
+    """The bake an evaluation scores: each frame baked once (the views come in frame order), timed."""
+
+    def __init__(self, settings, drawer) -> None:
+        self.settings = settings
+        self.drawer = drawer
+        self.current: tuple[str, int, Any] | None = None
+        self.seconds: list[float] = []
+        self.megabytes: list[float] = []
+
+    def frame(self, session, sequence: str, frame: int):
+        if self.current is None or self.current[:2] != (sequence, frame):
+            t0 = time.perf_counter()
+            baked = capture_frame(session, frame, self.settings)
+            self.seconds.append(time.perf_counter() - t0)
+            self.megabytes.append(len(frame_bytes(baked)) / 1e6)
+            self.current = (sequence, frame, baked)
+        return self.current[2]
 
 
 def _check_request(split: str, baseline: bool, model: bool, resolution: str) -> None:
@@ -737,7 +787,7 @@ class _ViewPlan:
 
 
 def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: float, background, unavailable, scores,
-            base_scores, nearest, tof: bool, seconds: float) -> dict:
+            base_scores, nearest, tof: bool, seconds: float, bake_scores=None, baker=None) -> dict:
     """The result dict of :func:`evaluate_run` (layout in the module docstring)."""
     consecutive = {s: _consecutive(f) for s, f in sel["sequences"].items()}
     common = {
@@ -777,6 +827,14 @@ def _result(run, split: str, sel, views: _ViewPlan, render_preset, quality: floa
             out["baseline"] = b
             out["margin_db"] = {m: out["means"][m] - b["means"][m] for m in ("psnr", "fg_psnr")
                                 if m in out["means"] and m in b["means"]}
+    if bake_scores is not None:
+        b = result_of(bake_scores, "bake")
+        b["settings"] = baker.settings.to_dict()
+        b["seconds_per_frame"] = float(np.mean(baker.seconds)) if baker.seconds else None
+        b["mb_per_frame"] = float(np.mean(baker.megabytes)) if baker.megabytes else None
+        b["description"] = ("the run's frames baked once from a ring of cameras and drawn from each evaluated camera "
+                            "by the previewer's GL draw, composed with the same body layer and palette")
+        out["bake"] = b
     out["seconds"] = seconds
     return out
 
@@ -814,6 +872,8 @@ def format_result_table(result: dict) -> str:
     rows = []
     if result.get("method"):
         rows.append((result["method"], result))
+    if result.get("bake"):
+        rows.append(("bake", result["bake"]))
     if result.get("baseline"):
         rows.append((result["baseline"]["method"], result["baseline"]))
     frames = sum(len(f) for f in result["sequences"].values())
