@@ -11,6 +11,9 @@ the previewer's render-ahead among them (``playback.render_ahead``, ``playback.c
 prints ``--run``'s speed-up over it per preset with the PSNR difference (e.g. a new bundled model
 against the one it replaces, kept outside the repo).
 
+With ``--run DIR --bake [PRESET]``: the bake's cost and its figures against the ``full`` render on the
+held-out cameras (:mod:`garmentnerf.perf.bake_bench`; ``bake.seconds_per_frame``, ``bake.psnr_fg``, ...).
+
 With ``--run DIR --training``: seconds per NeRF training step of the run's recipe per MLP precision,
 side by side, whole and by stage (:func:`garmentnerf.perf.train_bench.training_benchmark`); ``--against RUN``
 times other runs' recipes taking turns with it (recipes compared in one run).
@@ -77,6 +80,10 @@ def register(sub) -> None:
                    help="with --training: time each step with its frame's inputs, body geometry and frozen encoders "
                         "made in it (a run's first visit to each frame) instead of from the trainer's caches (a long "
                         "run's steady state)")
+    p.add_argument("--bake", default=None, metavar="PRESET", nargs="?", const="balanced",
+                   help="with --run/--demo: bake the held-out frames (--bake-frames) at this bake preset (default: "
+                        "balanced) and score the bake's views beside the full render's, against ground truth")
+    p.add_argument("--bake-frames", default="20:50", metavar="A:B", help="with --bake: frames scored (default: 20:50)")
     p.add_argument("--against", action="append", default=[], metavar="RUN",
                    help="with --run: also measure this run folder's model (repeatable), taking turns with --run's, and "
                         "print --run's speed-up over it: each render preset (its PSNR beside), or with --training each "
@@ -155,7 +162,14 @@ def run_bench(args: argparse.Namespace) -> int:
     for flag, path in (("--json", args.json), ("--plot", getattr(args, "plot", None))):
         if path:
             check_output_file(path, flag, args.overwrite)
-    if getattr(args, "training", False):
+    if getattr(args, "bake", None) is not None:
+        from garmentnerf.bake.capture import bake_settings
+
+        if not getattr(args, "run", None) or getattr(args, "training", False):
+            raise ValueError("--bake needs --run or --demo (and not --training)")
+        bake_settings(args.bake)
+        mode = _run_bake_bench
+    elif getattr(args, "training", False):
         mode = _run_training_bench
     elif getattr(args, "run", None):
         mode = _run_presets
@@ -175,6 +189,13 @@ def run_bench(args: argparse.Namespace) -> int:
         write_plot(results, args.plot, overwrite=args.overwrite)
         print(f"wrote {args.plot}")
     return 0
+
+
+def _run_bake_bench(args: argparse.Namespace) -> dict:
+    # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
+    from garmentnerf.perf.bake_bench import bake_benchmark
+
+    return bake_benchmark(args.run, args.bake, frames=args.bake_frames)
 
 
 def _run_presets(args: argparse.Namespace) -> dict:
