@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
-from garmentnerf.bake.views import BakedFrame, BakedView, nearest_views, view_mesh
+from garmentnerf.bake.views import BakedFrame, BakedView, nearest_views
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.shaders import build_program
 
@@ -47,6 +47,8 @@ class _GpuView:
     buffers: tuple
     texture: moderngl.TextureArray
     triangles: int
+    low: np.ndarray   # (L, 4) the range of each layer channel: value = low + code * span
+    span: np.ndarray
 
     def release(self) -> None:
         self.vao.release()
@@ -131,8 +133,8 @@ class BakeDrawer:
         if hit is not None and hit[0] is view:
             self._views.move_to_end(key)
             return hit[1]
-        mesh = view_mesh(view, self.mesh_step)
-        L = view.layers.shape[0]
+        mesh = view.mesh(self.mesh_step)
+        L = view.codes.shape[0]
         if L > MAX_LAYERS:
             raise ValueError(f"a bake of {L - 2} garment colours; the GL draw takes at most {MAX_LAYERS - 2}")
         program = self._view_program(L)
@@ -142,11 +144,10 @@ class BakeDrawer:
         vao = self.ctx.vertex_array(program, [(vbo, "3f 2f", "in_position", "in_uv")], index_buffer=ibo,
                                     index_element_size=4)
         W, H = view.size
-        texture = self.ctx.texture_array((W, H, L), 4, data=np.ascontiguousarray(view.layers, np.float32).tobytes(),
-                                         dtype="f4")
+        texture = self.ctx.texture_array((W, H, L), 4, data=np.ascontiguousarray(view.codes).tobytes(), dtype="f1")
         texture.filter = (moderngl.LINEAR, moderngl.LINEAR)
         texture.repeat_x = texture.repeat_y = False
-        gpu = _GpuView(vao, (vbo, ibo), texture, int(len(mesh.faces)))
+        gpu = _GpuView(vao, (vbo, ibo), texture, int(len(mesh.faces)), view.low, view.high - view.low)
         self._views[key] = (view, gpu)
         while len(self._views) > VIEW_CACHE:
             _, (_, old) = self._views.popitem(last=False)
@@ -204,7 +205,7 @@ class BakeDrawer:
         chosen = self.views_for(baked, camera)
         if not chosen:
             return None
-        L = chosen[0][0].layers.shape[0]
+        L = chosen[0][0].codes.shape[0]
         size = (camera.width, camera.height)
         slots = self._slots_for(size, L)
         ctx = self.ctx
@@ -241,6 +242,8 @@ class BakeDrawer:
                 view, weight = chosen[s]
                 gpu = self._gpu_view(view)
                 gpu.texture.use(0)
+                program["u_low"].write(np.ascontiguousarray(gpu.low, np.float32).tobytes())
+                program["u_span"].write(np.ascontiguousarray(gpu.span, np.float32).tobytes())
                 gpu.vao.render(moderngl.TRIANGLES, vertices=3 * gpu.triangles)
                 self.triangles_drawn += gpu.triangles
                 weights.append(float(weight))

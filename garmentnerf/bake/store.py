@@ -80,19 +80,6 @@ def motion_key(posed_vertices) -> str:
     return _digest(str(a.shape).encode(), a.tobytes())
 
 
-def _quantised(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    low = layers.min(axis=(1, 2)).astype(np.float32)
-    high = layers.max(axis=(1, 2)).astype(np.float32)
-    span = np.where(high > low, high - low, 1.0)[:, None, None, :]
-    q = np.rint((layers - low[:, None, None, :]) / span * 255.0)
-    return np.clip(q, 0, 255).astype(np.uint8), low, high
-
-
-def _dequantised(q: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    span = (high - low)[:, None, None, :]
-    return (q.astype(np.float32) * (span / 255.0) + low[:, None, None, :]).astype(np.float32)
-
-
 def _camera_record(c: Camera) -> np.ndarray:
     return np.concatenate([c.K.ravel(), c.R.ravel(), c.t, [c.width, c.height, c.near, c.far]]).astype(np.float64)
 
@@ -111,10 +98,9 @@ def frame_bytes(baked: BakedFrame) -> bytes:
                                      "version": np.array([BAKE_VERSION], np.int64),
                                      "views": np.array([len(baked.views)], np.int64)}
     for i, view in enumerate(baked.views):
-        q, low, high = _quantised(view.layers)
-        arrays[f"v{i}.layers"] = q
-        arrays[f"v{i}.low"] = low
-        arrays[f"v{i}.high"] = high
+        arrays[f"v{i}.layers"] = view.codes
+        arrays[f"v{i}.low"] = view.low
+        arrays[f"v{i}.high"] = view.high
         arrays[f"v{i}.depth"] = view.depth.astype(np.float16)
         arrays[f"v{i}.camera"] = _camera_record(view.camera)
         arrays[f"v{i}.cell"] = np.array([view.cell], np.int64)
@@ -137,15 +123,17 @@ def read_frame_file(path: Path, frame: int | None = None) -> BakedFrame:
                 raise BakeFileError(f"{path}: holds frame {stored}, not {frame}")
             views = []
             for i in range(int(data["views"][0])):
-                layers = _dequantised(data[f"v{i}.layers"], data[f"v{i}.low"], data[f"v{i}.high"])
+                codes = data[f"v{i}.layers"]
+                low, high = data[f"v{i}.low"].astype(np.float32), data[f"v{i}.high"].astype(np.float32)
                 depth = data[f"v{i}.depth"].astype(np.float32)
                 cell = int(data[f"v{i}.cell"][0])
                 camera = _camera_from(data[f"v{i}.camera"])
-                if (layers.ndim != 4 or layers.shape[3] != 4 or layers.shape[1:3] != (camera.height, camera.width)
-                        or depth.shape != (camera.height // cell, camera.width // cell)
-                        or not np.isfinite(layers).all() or not np.isfinite(depth).all()):
+                if (codes.dtype != np.uint8 or codes.ndim != 4 or codes.shape[3] != 4
+                        or codes.shape[1:3] != (camera.height, camera.width) or low.shape != (codes.shape[0], 4)
+                        or high.shape != low.shape or depth.shape != (camera.height // cell, camera.width // cell)
+                        or not np.isfinite(low).all() or not np.isfinite(high).all() or not np.isfinite(depth).all()):
                     raise BakeFileError(f"{path}: view {i} is inconsistent")
-                views.append(BakedView(camera, layers, depth, cell))
+                views.append(BakedView(camera, codes, low, high, depth, cell))
             body = data["body.vertices"].astype(np.float32) if "body.vertices" in data.files else None
             if body is not None and (body.ndim != 2 or body.shape[1] != 3 or not np.isfinite(body).all()):
                 raise BakeFileError(f"{path}: the body's vertices are inconsistent")

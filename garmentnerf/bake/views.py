@@ -35,7 +35,7 @@ The surface of a view
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -63,30 +63,67 @@ CROP_VISIBILITY = 0.1
 MAX_PALETTE = 4
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BakedView:
-    """One capture of a frame's garment (module docstring).
+    """One capture of a frame's garment (module docstring), its attributes quantised to 8 bits per channel.
 
     Attributes:
         camera: the layers' camera (``camera.width x camera.height`` = W x H).
-        layers: (L, H, W, 4) float32 attributes, ``L = 2 + G`` for G garment colours.
+        codes: (L, H, W, 4) uint8 attributes, ``L = 2 + G`` for G garment colours: the value of a channel is
+            ``low + code / 255 (high - low)`` (about 1/500 of the channel's range in this view).
+        low, high: (L, 4) float32 each channel's range.
         depth: (H / cell, W / cell) float32 camera-space z of the median depth, 0 where none.
         cell: map pixels per feature ray on each side (the decoder's upsampling).
     """
 
     camera: Camera
-    layers: np.ndarray
+    codes: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
     depth: np.ndarray
     cell: int
+    _meshes: dict = field(default_factory=dict, repr=False)  # mesh step -> ViewMesh, made on first use
+
+    @classmethod
+    def from_values(cls, camera: Camera, layers: np.ndarray, depth: np.ndarray, cell: int) -> "BakedView":
+        """The view of float attributes ``layers (L, H, W, 4)``, quantised."""
+        layers = np.asarray(layers, np.float32)
+        low = layers.min(axis=(1, 2)).astype(np.float32)
+        high = layers.max(axis=(1, 2)).astype(np.float32)
+        span = np.where(high > low, high - low, 1.0)[:, None, None, :]
+        codes = np.clip(np.rint((layers - low[:, None, None, :]) / span * 255.0), 0, 255).astype(np.uint8)
+        return cls(camera, codes, low, high, np.ascontiguousarray(depth, np.float32), int(cell))
+
+    @property
+    def layers(self) -> np.ndarray:
+        """(L, H, W, 4) float32 the attributes."""
+        span = (self.high - self.low)[:, None, None, :] / np.float32(255.0)
+        return (self.codes.astype(np.float32) * span + self.low[:, None, None, :]).astype(np.float32)
+
+    @property
+    def visibility(self) -> np.ndarray:
+        """(H, W) float32 the garment's visibility a."""
+        return (self.low[0, 3] + self.codes[0, ..., 3].astype(np.float32) / 255.0 * (self.high[0, 3] - self.low[0, 3]))
+
+    def mesh(self, step: int = 1) -> "ViewMesh":
+        """:func:`view_mesh` of this view, made once per step."""
+        made = self._meshes.get(step)
+        if made is None:
+            made = self._meshes[step] = view_mesh(self, step)
+        return made
 
     @property
     def garment_colors(self) -> int:
-        return int(self.layers.shape[0]) - 2
+        return int(self.codes.shape[0]) - 2
 
     @property
     def size(self) -> tuple[int, int]:
         """(W, H) of the layers."""
-        return int(self.layers.shape[2]), int(self.layers.shape[1])
+        return int(self.codes.shape[2]), int(self.codes.shape[1])
+
+    @property
+    def nbytes(self) -> int:
+        return self.codes.nbytes + self.depth.nbytes + self.low.nbytes + self.high.nbytes
 
 
 @dataclass(frozen=True)
@@ -100,7 +137,7 @@ class BakedFrame:
 
     @property
     def nbytes(self) -> int:
-        return sum(v.layers.nbytes + v.depth.nbytes for v in self.views)
+        return sum(v.nbytes for v in self.views)
 
 
 def garment_layers(maps: DecomposedMaps) -> np.ndarray:
@@ -158,7 +195,7 @@ def view_from_render(maps: DecomposedMaps, map_camera: Camera, surface_depth: np
     crop[:, :y1 - y0, :x1 - x0] = layers[:, y0:y1, x0:x1]
     depth = np.ascontiguousarray(surface_depth[fy0:fy1, fx0:fx1], dtype=np.float32)
     camera = map_camera.cropped(x0, y0, crop.shape[2], crop.shape[1])
-    return BakedView(camera, crop, depth, int(cell))
+    return BakedView.from_values(camera, crop, depth, int(cell))
 
 
 # ---- the surface of a view ------------------------------------------------------------------------------
@@ -230,7 +267,7 @@ def view_mesh(view: BakedView, step: int = 1, jump: float = DEPTH_JUMP) -> ViewM
     rows = np.arange(0, H, step)
     cols = np.arange(0, W, step)
     zg = z[np.ix_(rows, cols)].astype(np.float64)
-    ag = view.layers[0, ..., 3][np.ix_(rows, cols)]
+    ag = view.visibility[np.ix_(rows, cols)]
     h, w = zg.shape
     valid = zg > 0
     corners = (valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:])

@@ -14,7 +14,9 @@
 #define LAYERS 3
 #endif
 
-uniform sampler2DArray u_layers;
+uniform sampler2DArray u_layers;  // the view's 8-bit codes (normalised): value = u_low[j] + code * u_span[j]
+uniform vec4 u_low[LAYERS];
+uniform vec4 u_span[LAYERS];
 uniform sampler2D u_body_depth;
 uniform vec2 u_target_size;
 uniform float u_body_margin;
@@ -46,15 +48,15 @@ void main() {
     if (body < 1.0 && v_z > linear_z(body) + u_body_margin) {
         discard;
     }
-    out_layer0 = texture(u_layers, vec3(v_uv, 0.0));
-    out_layer1 = vec4(texture(u_layers, vec3(v_uv, 1.0)).rgb, 1.0);
+    out_layer0 = u_low[0] + u_span[0] * texture(u_layers, vec3(v_uv, 0.0));
+    out_layer1 = vec4((u_low[1] + u_span[1] * texture(u_layers, vec3(v_uv, 1.0))).rgb, 1.0);
 #if LAYERS > 2
-    out_layer2 = texture(u_layers, vec3(v_uv, 2.0));
+    out_layer2 = u_low[2] + u_span[2] * texture(u_layers, vec3(v_uv, 2.0));
 #endif
 #if LAYERS > 3
-    out_layer3 = texture(u_layers, vec3(v_uv, 3.0));
+    out_layer3 = u_low[3] + u_span[3] * texture(u_layers, vec3(v_uv, 3.0));
 #endif
 #if LAYERS > 4
-    out_layer4 = texture(u_layers, vec3(v_uv, 4.0));
+    out_layer4 = u_low[4] + u_span[4] * texture(u_layers, vec3(v_uv, 4.0));
 #endif
 }
