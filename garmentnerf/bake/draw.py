@@ -200,8 +200,11 @@ class BakeDrawer:
             b += P @ v.camera.center
         return np.linalg.lstsq(A, b, rcond=None)[0]
 
-    def draw_slots(self, baked: BakedFrame, camera: Camera) -> tuple[_Slots, list[float]] | None:
-        """Passes 1 and 2 (module docstring) at ``camera``'s size; None when the frame has no view."""
+    def draw_slots(self, baked: BakedFrame, camera: Camera,
+                   projection: np.ndarray | None = None) -> tuple[_Slots, list[float]] | None:
+        """Passes 1 and 2 (module docstring) at ``camera``'s size; None when the frame has no view.
+        ``projection``: camera -> clip (default ``camera.gl_projection()``, image row 0 at the framebuffer's
+        first row; a window that shows row 0 at the top passes its flipped one)."""
         chosen = self.views_for(baked, camera)
         if not chosen:
             return None
@@ -209,7 +212,8 @@ class BakeDrawer:
         size = (camera.width, camera.height)
         slots = self._slots_for(size, L)
         ctx = self.ctx
-        view_m, proj_m = _matrix(camera.world_to_camera()), _matrix(camera.gl_projection())
+        projection = camera.gl_projection() if projection is None else projection
+        view_m, proj_m = _matrix(camera.world_to_camera()), _matrix(projection)
         # 1. the body's depth
         slots.body_fbo.use()
         ctx.viewport = (0, 0, *size)
@@ -295,11 +299,12 @@ class BakeDrawer:
         return out
 
     def compose_into(self, fbo: moderngl.Framebuffer, viewport: tuple[int, int, int, int], baked: BakedFrame,
-                     camera: Camera, palette) -> bool:
+                     camera: Camera, palette, projection: np.ndarray | None = None) -> bool:
         """Draw ``baked`` seen by ``camera`` composed with ``palette`` ((P, 3), the body's colour last),
         premultiplied, blended (ONE, ONE_MINUS_SRC_ALPHA) over what ``fbo`` holds in ``viewport``; the
-        camera's size is the viewport's. False when the frame has no view."""
-        drawn = self.draw_slots(baked, camera)
+        camera's size is the viewport's, ``projection`` as :meth:`draw_slots`. False when the frame has no
+        view."""
+        drawn = self.draw_slots(baked, camera, projection)
         if drawn is None:
             return False
         slots, weights = drawn

@@ -32,7 +32,11 @@ def register(sub) -> None:
                         + ")")
     p.add_argument("--workers", type=int, default=None,
                    help="bake processes, each on one core (default: one per core)")
-    p.add_argument("--out", required=True, metavar="DIR", help="the bake folder (made, or resumed)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", metavar="DIR", help="the bake folder (made, or resumed)")
+    where.add_argument("--cache", action="store_true",
+                       help="bake into the user's cache folder of this run, motion and preset (where the previewer "
+                            "looks), printing its path first")
     p.add_argument("--overwrite", action="store_true",
                    help="bake again into a folder that holds a bake of another model, motion or preset")
     add_device_arg(p)
@@ -46,13 +50,14 @@ def run_bake(args: argparse.Namespace) -> int:
     settings = bake_settings(args.preset)
     if args.workers is not None and not 1 <= args.workers <= 64:
         raise ValueError(f"--workers must be in 1..64, got {args.workers}")
-    out = check_output_dir(args.out)
+    out = check_output_dir(args.out) if args.out is not None else None
     run_dir = run_folder_arg(args, DEFAULT_DEMO)
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from tqdm import tqdm
 
     from garmentnerf.bake.clip import (bake_frames, check_can_bake, default_workers, frames_to_bake,
                                        manifest_for_session, prepare_folder)
+    from garmentnerf.bake.store import cache_folder
     from garmentnerf.folder_lock import lock_folder
     from garmentnerf.gl.context import create_context
     from garmentnerf.ranges import parse_frames
@@ -70,14 +75,18 @@ def run_bake(args: argparse.Namespace) -> int:
         frames = list(range(session.num_frames)) if frames is None else frames
         manifest = manifest_for_session(session, settings)
         faces = session.body.faces.cpu().numpy()
+        if out is None:
+            out = check_output_dir(cache_folder(manifest), "--cache")
         motion = args.motion
     finally:
         if session is not None:
             session.close()
         ctx.release()
     with lock_folder(out, "garmentnerf bake", what="bake"):
-        folder = prepare_folder(out, manifest, faces, overwrite=args.overwrite,
+        folder = prepare_folder(out, manifest, faces, overwrite=args.overwrite or args.cache,
                                 notice=lambda m: print(m, file=sys.stderr))
+        if args.cache:
+            print(f"bake folder: {out}", flush=True)  # the previewer reads this line
         todo = frames_to_bake(folder, frames, notice=lambda m: print(m, file=sys.stderr))
         workers = args.workers or default_workers()
         print(f"bake: {len(frames) - len(todo)} of {len(frames)} frames of {name} already baked in {out}; "

@@ -29,6 +29,12 @@ what the machine can do rather than the display's refresh:
   awaited; median (and each) of ``RenderSession.render``'s total time, the render size, and the
   worker's wall time per render.
 
+* **Baked frames** (goal >= 30 fps; needs the clip's frames baked, ``garmentnerf bake --cache``, or the
+  window's own background bake): ``bake.orbit_ui_fps``, the UI frame rate while the camera orbits a
+  paused baked frame, and ``bake.play_orbit_ui_fps`` while the clip plays and the camera orbits at once;
+  ``bake.scene_scale`` (median scale the scene was drawn at), ``bake.shown_share`` (UI frames that drew
+  a bake rather than a neural image) and ``bake.baked_frames`` (of the clip, when measured).
+
 Render-ahead is switched off for these figures (a still view would otherwise keep the worker
 rendering the rest of the clip, which the recolor test counts and the preset times share the CPU
 with); ``garmentnerf bench --run`` measures it (``playback.render_ahead``).
@@ -219,6 +225,53 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
     return out
 
 
+def _orbit_frames(app, seconds: float) -> dict:
+    """Step UI frames for ``seconds`` with the camera orbiting a little each frame: fps, frame times, the
+    scene's median draw scale and the share of frames the baked layer drew."""
+    intervals, scales, baked = [], [], 0
+    start = last = time.perf_counter()
+    while time.perf_counter() - start < seconds and not app.closed:
+        app.controller.orbit(ORBIT_STEP, 0.0)
+        if not app.step():
+            break
+        now = time.perf_counter()
+        intervals.append(now - last)
+        last = now
+        scales.append(app.scene_draw_scale)
+        baked += app.neural_view.showing_bake == "bake"
+    elapsed = time.perf_counter() - start
+    ms = [1000.0 * x for x in intervals]
+    return {"fps": len(ms) / elapsed if elapsed > 0 else float("nan"), "frames": len(ms),
+            "frame_ms_median": _percentile(ms, 50), "frame_ms_p95": _percentile(ms, 95),
+            "scene_scale": _percentile(scales, 50), "shown_share": baked / len(ms) if ms else float("nan")}
+
+
+def measure_bake(app, seconds: float, timeout: float) -> dict:
+    """The baked-frame figures (module docstring): waits (up to ``timeout``) for the shown frame's bake."""
+    view = app.neural_view
+    if view.bakes is None:
+        return {"available": False, "reason": "no bake (the run cannot be baked, or --no-bake)"}
+    app.timeline.pause()
+    deadline = time.monotonic() + timeout
+    while view.bakes.get(app.timeline.frame) is None and time.monotonic() < deadline and not app.closed:
+        app.step()
+        time.sleep(0.01)
+    if view.bakes.get(app.timeline.frame) is None:
+        status = view.bake_status() or {}
+        return {"available": False, "reason": f"frame {app.timeline.frame} not baked within {timeout:.0f} s "
+                                              f"({status.get('error') or 'baking'})"}
+    orbit = _orbit_frames(app, seconds)
+    app.timeline.play()
+    play = _orbit_frames(app, seconds)
+    app.timeline.pause()
+    status = view.bake_status() or {}
+    return {"available": True, "orbit_ui_fps": orbit["fps"], "play_orbit_ui_fps": play["fps"],
+            "scene_scale": orbit["scene_scale"], "play_scene_scale": play["scene_scale"],
+            "shown_share": orbit["shown_share"], "play_shown_share": play["shown_share"],
+            "orbit_frame_ms_median": orbit["frame_ms_median"], "play_frame_ms_median": play["frame_ms_median"],
+            "baked_frames": status.get("baked"), "frames": status.get("frames"), "goal_fps": 30.0}
+
+
 def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.0) -> dict:
     """All three measurements on an open ``app`` (see the module docstring); returns the figures."""
     w, h = app.window.framebuffer_size
@@ -242,6 +295,7 @@ def run_bench(app, seconds: float = 5.0, repeats: int = 3, timeout: float = 180.
                              "goal_body_s": FIRST_BODY_GOAL_S, "goal_garment_s": FIRST_GARMENT_GOAL_S,
                              "other_processes_cores": other_cores_since_start()}
     with OtherProcessesLoad() as load:
+        result["bake"] = measure_bake(app, seconds, timeout)
         result["ui_busy"] = measure_busy_fps(app, seconds)
         result["recolor"] = measure_recolor(app, timeout)
         result["presets"] = measure_presets(app, repeats, timeout)
@@ -267,6 +321,14 @@ def print_figures(result: dict, file=sys.stdout) -> None:
           f"(work {ui['work_ms']:.1f} ms, scene {ui['scene_ms']:.1f} ms drawn at x{ui['scene_scale_median']:.2f}"
           f"{'' if ui['scene_scale_dynamic'] else ', --fixed-scene-scale'})"
           f"{busy}", file=file)
+    bake = result.get("bake") or {}
+    if bake.get("available"):
+        print(f"  baked frames: orbiting {bake['orbit_ui_fps']:.1f} UI fps at scene scale x{bake['scene_scale']:.2f}, "
+              f"playing and orbiting {bake['play_orbit_ui_fps']:.1f} UI fps at x{bake['play_scene_scale']:.2f} (goal "
+              f">= 30); the bake drew {100 * bake['play_shown_share']:.0f}% of the playing frames "
+              f"({bake['baked_frames']} of {bake['frames']} frames baked)", file=file)
+    elif bake:
+        print(f"  baked frames: n/a ({bake.get('reason')})", file=file)
     rc = result["recolor"]
     if rc.get("available"):
         lat = rc["latency_frames"]

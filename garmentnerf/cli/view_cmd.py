@@ -57,6 +57,9 @@ def register(sub) -> None:
                       help="draw the scene at --render-scale even while the view moves (default: smaller while "
                            "it moves, to keep the UI at 30 fps on a software rasteriser)")
     view.add_argument("--paused", action="store_true", help="start paused")
+    view.add_argument("--no-bake", action="store_true",
+                      help="do not bake the clip in the background (baked frames orbit and play at display rate; "
+                           "they are kept in the user's cache, so a second launch opens on them)")
     view.add_argument("--no-vsync", action="store_true", help="do not wait for the display refresh")
     bench = view.add_argument_group("benchmark (--bench)")
     bench.add_argument("--bench", action="store_true",
@@ -119,7 +122,7 @@ def run_view(args: argparse.Namespace) -> int:
                              dynamic_scene=not args.fixed_scene_scale,
                              watch=args.run is not None and not args.no_watch and not bench,
                              snapshot_dir=args.snapshot_dir, snapshot_size=snapshot_size,
-                             playing=not args.paused and not bench)
+                             playing=not args.paused and not bench, bake=not args.no_bake)
     except app_module.NoDisplayError:
         print(cannot_open_window_message(), file=sys.stderr)
         return 2

@@ -97,6 +97,8 @@ class App(Closeable):
         demo_root: where the bundled demos the Garment menu offers are (tests use their own).
         follow: the camera follows the body (:mod:`~garmentnerf.viewer.camera`: why this is the
             default; the "Follow the body (T)" switch).
+        bake: bake the clip in a background process and draw its baked frames from any camera
+            (:mod:`~garmentnerf.viewer.bakes`; ``garmentnerf view`` turns it on, ``--no-bake`` off).
         dynamic_scene: while the view moves, draw the scene at the scale that fits
             :attr:`SceneScale.target_ms <garmentnerf.viewer.quality.SceneScale.target_ms>` (then
             once more at ``render_scale`` when it is still); False: always at ``render_scale``.
@@ -112,7 +114,7 @@ class App(Closeable):
                  fixed_dt: float | None = None, playing: bool = True, sequence: BodySequence | None = None,
                  title: str = "garmentnerf view", clock=time.perf_counter, run=None,
                  dynamic_scene: bool = True, watch: bool = False, demo_root: Path = DEMO_ROOT,
-                 follow: bool = True) -> None:
+                 follow: bool = True, bake: bool = False) -> None:
         width, height = (int(x) for x in size)
         check_size(width, height, "window size")
         check_size(*snapshot_size, "snapshot size")
@@ -163,7 +165,7 @@ class App(Closeable):
             self.window.close()
             raise
         self._resolved_shortcuts = resolve(imgui)
-        self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock, watch=watch)
+        self.neural_view = NeuralView(self.scene, run, neural_motion, self.status.show, clock, watch=watch, bake=bake)
         self.exports = Exports(self.scene, self.controller, self.timeline, self.neural_view, lambda: self.sequence,
                                self._sync_scene, self.status.show, snapshot_dir, snapshot_size,
                                view_camera=self.view_camera, camera_path=self.camera_path)

@@ -155,6 +155,8 @@ def _neural_section(app, em: float) -> None:
         _combo(em, "Scene camera", names, view.gt_camera if view.gt_camera in names else names[0], view.set_gt_camera)
         if not view.ground_truth_available():
             imgui.text_disabled("no ground truth: pick a scene sequence")
+    if view.can_bake:
+        _bake_controls(view)
     q = view.quality
     _combo(em, "Quality", list(VIEWER_LEVELS), q.preset, q.set_preset)
     changed, on = imgui.checkbox("Coarser while moving", q.dynamic)
@@ -193,6 +195,24 @@ def _neural_section(app, em: float) -> None:
     if error:
         imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), "render failed:")
         imgui.text_wrapped(error)
+
+
+def _bake_controls(view) -> None:
+    """"Bake the clip": the switch, what is baked (the violet bar under the timeline) and what shows."""
+    changed, on = imgui.checkbox("Bake the clip", view.bake_wanted)
+    if changed:
+        view.set_baking(on)
+    if imgui.is_item_hovered():
+        imgui.set_tooltip("bake each frame's garment once, in the background on one core (kept in your cache): "
+                          "baked frames orbit and play at display rate, recolour exactly, and the exact neural "
+                          "image replaces the bake when the camera rests (violet bar under the timeline)")
+    status = view.bake_status()
+    if status is not None and status["frames"]:
+        state = "baking" if status["running"] else "baked"
+        imgui.text_disabled(f"{state} {status['baked']} / {status['frames']} frames, {status['loaded']} loaded"
+                            + (f"; showing the {view.showing_bake}" if view.showing_bake else ""))
+    if status is not None and status["error"]:
+        imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), status["error"][:120])
 
 
 def _combo(em: float, label: str, keys: list, current, choose, labels: list | None = None) -> None:

@@ -12,6 +12,14 @@ shows: the finished frame at the playhead from the render-ahead cache
 ahead of the playhead, and hands it to the palette layer's ``submit``; the torch work never runs
 on the UI thread. A newer checkpoint of the run (``watch``) is taken over here too.
 
+Baked frames (:mod:`~garmentnerf.viewer.bakes`): with a run that composes over the rasterised body, a
+background process bakes the clip into the user's cache (on by default; the "Bake the clip" switch).
+In the ``neural`` mode the window then shows, per UI frame: the exact neural image when it is the
+still view of this camera at this frame; else the frame's bake drawn from this camera (the baked layer,
+:mod:`~garmentnerf.viewer.baked_layer`); else the last neural image of this frame reprojected by its
+depth to this camera; else the neural layer as before. While a baked stretch of the clip plays, no
+neural frame is asked for (the bake shows every frame from any camera).
+
 Modes: ``neural`` (the network's image, composited into the scene; optionally with the rasterised
 body by depth), ``ground_truth``, ``side_by_side`` (network | ground truth, fitted beside the
 panels), ``difference``, ``body`` (the rasterised body only, no neural layer) and ``maps`` (the raw
@@ -27,7 +35,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from garmentnerf.bake.capture import DEFAULT_BAKE_PRESET
+from garmentnerf.bake.store import BakeFolder
+from garmentnerf.bake.views import BakedFrame
 from garmentnerf.model.config import BACKGROUND
+from garmentnerf.viewer.bakes import BakeProcess, ClipBakes
 from garmentnerf.viewer.checkpoint_watch import CheckpointWatcher
 from garmentnerf.viewer.palette_layer import MAP_VIEWS
 from garmentnerf.viewer.playback import PlayheadClock, replaces_shown, show_newest
@@ -72,7 +84,7 @@ class NeuralView:
     """
 
     def __init__(self, scene, run, motion, status: Callable[[str], None], clock: Callable[[], float],
-                 watch: bool = False) -> None:
+                 watch: bool = False, bake: bool = True) -> None:
         self.scene, self.run, self.motion = scene, run, motion
         self.watcher = None                             # the CheckpointWatcher (watch=True with a run)
         self._status, self._clock = status, clock
@@ -94,6 +106,12 @@ class NeuralView:
         self._sent_clock = None                         # the PlayheadClock of the last request
         self._keys = None                               # (still, requested) view keys of the last update
         self._clip_serial = 0
+        self.bake_wanted = bool(bake)                   # bake the clip (when the run can be baked)
+        self.bakes: ClipBakes | None = None             # the clip's baked frames (loaded off the UI thread)
+        self.bake_process: BakeProcess | None = None    # the process baking the clip
+        self.showing_bake = ""                          # what the baked layer shows: "", "bake", "reprojection"
+        self._reprojected = None                        # (result, BakedFrame) of the last reprojection
+        self._baked_playback = False                    # a baked stretch plays: no neural request is sent
         if run is not None:
             self._start()
 
@@ -116,6 +134,8 @@ class NeuralView:
         renderer = NeuralRenderer(run, lambda result, request: self._sink(result, request, renderer), self.motion,
                                   clock=self._clock)
         self.renderer = renderer
+        self.scene.baked_layer.palette = self.palette
+        self.set_baking(self.bake_wanted)
         if self._watch:
             self.watcher = CheckpointWatcher(run)
 
@@ -128,6 +148,7 @@ class NeuralView:
         wait for it), and its results are dropped (:meth:`_sink`)."""
         old_renderer, old_watcher = self.renderer, self.watcher
         self.watcher = self.renderer = None
+        self._stop_baking()
         threading.Thread(target=_stop_all, args=(old_renderer, old_watcher), name="garmentnerf-old-garment",
                          daemon=True).start()
         self._watch = False  # a demo is not training
@@ -160,6 +181,7 @@ class NeuralView:
         if not edited:
             self.palette = self.learned_palette.copy()
             self.scene.palette_layer.set_palette(self.palette)
+            self.scene.baked_layer.palette = self.palette
         self._status(f"checkpoint step {run.step} loaded: showing it")
 
     def _sink(self, result, request, renderer) -> None:
@@ -219,7 +241,7 @@ class NeuralView:
         when the run has one, else the studio material), so the stage is never empty; it goes as
         soon as the first neural image (which carries the body) is drawn."""
         body = self.scene.body
-        body.standin = self.waiting_for_garment
+        body.standin = self.waiting_for_garment or self.scene.baked_layer.visible
         body.learned = body.standin and not body.visible and body.has_appearance and self.palette is not None
         if body.learned:
             body.tint = tuple(float(c) for c in self.palette[-1])
@@ -251,11 +273,13 @@ class NeuralView:
             return
         self.palette[index] = np.clip(np.asarray(rgb, dtype=np.float32)[:3], 0.0, 1.0)
         self.scene.palette_layer.set_palette(self.palette)
+        self.scene.baked_layer.palette = self.palette.copy()  # a new array: the scene sees the change
 
     def reset_palette(self) -> None:
         if self.learned_palette is not None:
             self.palette = self.learned_palette.copy()
             self.scene.palette_layer.set_palette(self.palette)
+            self.scene.baked_layer.palette = self.palette
 
     def set_gt_camera(self, name: str) -> None:
         """Show the ground truth of scene camera ``name`` (and render the network from it)."""
@@ -278,6 +302,9 @@ class NeuralView:
         self.motion = motion
         self._clip_serial += 1
         self.scene.palette_layer.submit_ground_truth(None)
+        if self.bakes is not None:
+            self._stop_baking()
+            self.set_baking(self.bake_wanted)
 
     # ---- per UI frame -----------------------------------------------------------------------------
     def update(self, camera, timeline, playback_meter=None, camera_path=None) -> None:
@@ -327,11 +354,86 @@ class NeuralView:
                                     self.weights_step, keep=False, camera_path=path)
         request_key = (request.view_key, self._clip_serial, None if playing else frame, playing)
         drifted = playing and (self._sent_clock is None or self._sent_clock.drifted(playhead))
-        if request_key != self._last_request or drifted:
+        baked_here = self.bakes is not None and self.bakes.get(frame) is not None
+        if self.bakes is not None:
+            self.bakes.set_playhead(frame)
+        if playing and baked_here and self.mode == "neural" and path is None:
+            # a baked stretch plays: the bake shows every frame; the worker's standing request ends with one
+            # still render, and the cores go to the bake and the window
+            if not self._baked_playback:
+                self._baked_playback = True
+                self._last_request = None
+                self.renderer.request(NeuralRequest(frame, cam, self.quality.full, self.motion, gt, self.quality.preset,
+                                                    self.composition, None, self.weights_step))
+        elif request_key != self._last_request or drifted:
+            self._baked_playback = False
             self._last_request, self._sent_clock = request_key, playhead
             self.renderer.request(request)
         self._keys = (still.view_key, request.view_key)
         self._choose_shown(still.view_key, request.view_key, frame, playhead, playback_meter if playing else None)
+        self._choose_bake(frame, still.view_key)
+
+    # ---- baked frames ---------------------------------------------------------------------------------
+    @property
+    def can_bake(self) -> bool:
+        """A bake carries the garment over the rasterised body: the run needs a body appearance and a folder."""
+        return self.can_rasterise_body and getattr(self.run, "root", None) is not None
+
+    def set_baking(self, on: bool) -> None:
+        """Bake the clip in the background (and show its bakes), or stop (the bakes made stay on disk)."""
+        self.bake_wanted = bool(on)
+        if not on:
+            self._stop_baking()
+            return
+        if not self.can_bake or self.bake_process is not None:
+            return
+        if self.bakes is None:
+            self.bakes = ClipBakes()
+        bakes = self.bakes
+        motion = self.motion if isinstance(self.motion, str) else None
+        scene = self.run.scene.root if self.run.scene is not None else None
+        self.bake_process = BakeProcess(self.run.root, motion, DEFAULT_BAKE_PRESET,
+                                        lambda path: bakes.use_folder(BakeFolder.open(path)), scene)
+
+    def _stop_baking(self) -> None:
+        if self.bake_process is not None:
+            process, self.bake_process = self.bake_process, None
+            threading.Thread(target=process.stop, name="garmentnerf-stop-bake", daemon=True).start()
+        if self.bakes is not None:
+            self.bakes.close()
+            self.bakes = None
+        layer = self.scene.baked_layer
+        layer.visible, layer.frame = False, None
+        self.showing_bake = ""
+
+    def bake_status(self) -> dict | None:
+        """The clip's bake as the panel shows it: ``baked`` frames of ``frames``, ``loaded`` in memory,
+        ``running`` (the process bakes), ``error``; None when nothing is baked or baking."""
+        if self.bakes is None:
+            return None
+        process = self.bake_process
+        return {"baked": len(self.bakes.baked()), "frames": self.bakes.num_frames, "loaded": self.bakes.loaded(),
+                "running": process is not None and process.running,
+                "error": (process.error if process is not None else "") or "; ".join(self.bakes.errors[-1:])}
+
+    def _choose_bake(self, frame: int, still_key) -> None:
+        """What the baked layer shows this UI frame (module docstring, "Baked frames")."""
+        layer, palette_layer = self.scene.baked_layer, self.scene.palette_layer
+        shown = None
+        self.showing_bake = ""
+        if self.mode == "neural" and not self.body_with_neural:
+            exact = self.shown is not None and self.shown.frame == frame and self.shown.view_key == still_key
+            if not exact:
+                shown = self.bakes.get(frame) if self.bakes is not None else None
+                self.showing_bake = "bake" if shown is not None else ""
+                if shown is None and self.shown is not None and self.shown.frame == frame \
+                        and self.shown.reprojection is not None:
+                    if self._reprojected is None or self._reprojected[0] is not self.shown:
+                        self._reprojected = (self.shown, BakedFrame(frame, (self.shown.reprojection,)))
+                    shown = self._reprojected[1]
+                    self.showing_bake = "reprojection"
+        layer.visible, layer.frame = shown is not None, shown
+        palette_layer.visible = self.mode != "body" and shown is None
 
     def _choose_shown(self, still_key, request_key, frame: int, playhead, playback_meter) -> None:
         """Show the finished frame of the still view at ``frame`` if the render-ahead cache has it
@@ -403,6 +505,7 @@ class NeuralView:
                 "layer_has_image": self.has_image, **self.last_result}
 
     def stop(self) -> None:
+        self._stop_baking()
         if self.watcher is not None:
             self.watcher.close()
         if self.renderer is not None:

@@ -133,22 +133,26 @@ def ready_runs(ready: list[int]) -> list[tuple[int, int]]:
 #: ahead (finished images), and the mark of the frame the neural image shows.
 PRECOMPUTED_COLOR = (0.35, 0.75, 0.4, 1.0)
 RENDERED_COLOR = (0.35, 0.6, 1.0, 1.0)
+BAKED_COLOR = (0.7, 0.45, 1.0, 1.0)
 SHOWN_COLOR = (1.0, 0.7, 0.2, 1.0)
 
 
 def _render_bar(app) -> None:
     """A video editor's render bars under the frame slider: which frames are precomputed (green),
-    which are rendered ahead (blue), and a mark at the frame the neural image shows (orange)."""
+    which are rendered ahead (blue), which are baked (violet), and a mark at the frame the neural image
+    shows (orange)."""
     renderer = app.neural_view.renderer
     status = renderer.cache_status() if renderer is not None else None
     if not status or status["frames"] < 1:
         return
+    bakes = app.neural_view.bakes
+    baked = sorted(f for f in bakes.baked() if f < status["frames"]) if bakes is not None else []
     lo, hi = imgui.get_item_rect_min(), imgui.get_item_rect_max()
     width, n = hi.x - lo.x, status["frames"]
     top = hi.y + 1.0
     draw = imgui.get_window_draw_list()
     for row, (frames, color) in enumerate(((status["ready"], PRECOMPUTED_COLOR),
-                                           (status["finished"], RENDERED_COLOR))):
+                                           (status["finished"], RENDERED_COLOR), (baked, BAKED_COLOR))):
         y = top + 4.0 * row
         u32 = imgui.get_color_u32(imgui.ImVec4(*color))
         for first, last in ready_runs(frames):
@@ -157,9 +161,9 @@ def _render_bar(app) -> None:
     shown = app.neural_view.shown_frame
     if shown is not None and shown < n:
         x = lo.x + width * (shown + 0.5) / n
-        draw.add_rect_filled(imgui.ImVec2(x - 1.5, lo.y), imgui.ImVec2(x + 1.5, top + 7.0),
+        draw.add_rect_filled(imgui.ImVec2(x - 1.5, lo.y), imgui.ImVec2(x + 1.5, top + 11.0),
                              imgui.get_color_u32(imgui.ImVec4(*SHOWN_COLOR)))
-    imgui.dummy(imgui.ImVec2(0.0, 8.0))
+    imgui.dummy(imgui.ImVec2(0.0, 12.0))
 
 
 # ---- stats overlay (top right) ------------------------------------------------------------------

@@ -4,7 +4,9 @@ Pipeline
     Every view (the window, a GL snapshot, a test's headless reference) is drawn by
     :meth:`SceneRenderer.render` into a :class:`RenderTarget` (multisampled color + depth, resolved
     into a texture): clear to the background, then one pass per renderable in this order: floor
-    (blended over the background, no depth test), body (opaque, depth tested), neural layer
+    (blended over the background, no depth test), body (opaque, depth tested), baked layer
+    (:class:`~garmentnerf.viewer.baked_layer.BakedLayer`: a baked frame's garment from this camera,
+    blended over the body), neural layer
     (:class:`~garmentnerf.viewer.palette_layer.PaletteLayer`: the network's maps composed with the
     palette; blended by its mask, optionally depth tested against the body, or opaque in the
     ground-truth/difference/maps modes), camera path (:class:`~garmentnerf.viewer.renderables.LineSet`:
@@ -34,6 +36,7 @@ import numpy as np
 from garmentnerf.conventions import Camera
 from garmentnerf.gl.context import current, is_released, make_current
 from garmentnerf.gl.shaders import build_program
+from garmentnerf.viewer.baked_layer import BakedLayer
 from garmentnerf.viewer.palette_layer import PaletteLayer, pack_maps
 from garmentnerf.viewer.renderables import FULL_VIEW, BodyMesh, FloorGrid, LineSet, PassState, ViewParams
 
@@ -163,12 +166,13 @@ class SceneRenderer:
         with current(ctx):
             self.floor = FloorGrid(ctx)
             self.body = BodyMesh(ctx)
+            self.baked_layer = BakedLayer(ctx)
             self.palette_layer = PaletteLayer(ctx)
             self.path_lines = LineSet(ctx)
             self.present_program = build_program(ctx, "viewer_fullscreen.vert", "viewer_present.frag")
             self.present_program["u_image"].value = 0
             self.present_vao = ctx.vertex_array(self.present_program, [])
-        self.renderables = [self.floor, self.body, self.palette_layer, self.path_lines]
+        self.renderables = [self.floor, self.body, self.baked_layer, self.palette_layer, self.path_lines]
         self.stats = SceneStats()
         self._window_targets: OrderedDict[tuple[int, int], RenderTarget] = OrderedDict()
         self._released = False
@@ -179,6 +183,7 @@ class SceneRenderer:
         ``center`` (3,) places the floor's contact shadow."""
         self.body.set_topology(faces, vertex_data.shape[0])
         changed = self.body.set_frame(key, vertex_data)
+        self.baked_layer.set_body(key, vertex_data, faces)
         if center is not None:
             self.floor.shadow_center = np.asarray(center, dtype=np.float64)[:2].copy()
         return changed
@@ -237,7 +242,7 @@ class SceneRenderer:
             for r in self.renderables:
                 r.prepare(view)
             layer = self.palette_layer
-            garment = layer.visible and layer.has_image
+            garment = (layer.visible and layer.has_image) or self.baked_layer.showing
             content = SceneContent(body=self.body.drawn or garment, garment=garment)
             target.fbo.use()
             ctx.viewport = (0, 0, *target.size)

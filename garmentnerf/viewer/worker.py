@@ -31,6 +31,7 @@ from collections.abc import Callable, Container
 from dataclasses import dataclass
 from typing import Any
 
+from garmentnerf.bake.views import view_from_render
 from garmentnerf.data.scene_images import SceneImages
 from garmentnerf.model.pipeline import RenderCancelled
 from garmentnerf.render.frame_cache import DEFAULT_CACHE_MB
@@ -319,6 +320,9 @@ class NeuralResult:
         view_key: the request's :attr:`NeuralRequest.view_key`; weights_step: the training step of
             the weights it was rendered with; ahead: rendered ahead of the frame the request wanted
             (shown only from the render-ahead cache, when the playhead gets there).
+        reprojection: the garment of the render as a :class:`~garmentnerf.bake.views.BakedView` (its
+            attributes and median depth; the ``raster_body`` composition), which the window draws from
+            another camera while the frame has no bake; None otherwise.
     """
 
     layers: Any
@@ -337,6 +341,7 @@ class NeuralResult:
     view_key: Any = None
     weights_step: int | None = None
     ahead: bool = False
+    reprojection: Any = None
 
 
 class NeuralRenderer:
@@ -576,9 +581,16 @@ class NeuralRenderer:
             body = BodyView(nf.body[0].numpy(), nf.body[1].numpy(), nf.camera)
         layers, depth, origin = crop_to_content(pack_frame(nf.maps), nf.depth)
         self.render_time.observe(time.perf_counter() - start, cold=not nf.cached_frame)
+        reprojection = None
+        if body is not None and request.gt_camera is None:
+            up = 2 ** session.config.decoder.upsample_steps
+            reprojection = view_from_render(nf.maps, nf.camera.resized(*nf.render_size), nf.surface_depth, up)
+            if reprojection is not None:
+                reprojection.mesh(1)  # made here, not on the UI thread
         return NeuralResult(layers.astype("float16"), depth, nf.output_size, nf.render_size, nf.quality, frame,
                             nf.timings, nf.cached_frame, self._ground_truth(session, request, frame), nf.preset,
-                            dict(nf.counts), body, origin, request.view_key, getattr(self.run, "step", None), ahead)
+                            dict(nf.counts), body, origin, request.view_key, getattr(self.run, "step", None), ahead,
+                            reprojection)
 
     def _precompute(self) -> bool:
         """Idle work: the next frame of the clip nearest to the playhead (see
