@@ -395,6 +395,12 @@ class NeuralView:
         self.bake_process = BakeProcess(self.run.root, motion, DEFAULT_BAKE_PRESET,
                                         lambda path: bakes.use_folder(BakeFolder.open(path)), scene)
 
+    def show_bakes(self, folder: BakeFolder) -> None:
+        """Show the bakes of ``folder`` (made by ``garmentnerf bake`` for this run and clip) without baking."""
+        self._stop_baking()
+        self.bakes = ClipBakes()
+        self.bakes.use_folder(folder)
+
     def _stop_baking(self) -> None:
         if self.bake_process is not None:
             process, self.bake_process = self.bake_process, None
