@@ -49,6 +49,7 @@ class _GpuView:
     triangles: int
     low: np.ndarray   # (L, 4) the range of each layer channel: value = low + code * span
     span: np.ndarray
+    bounds: np.ndarray  # (2, 3) the mesh's box
 
     def release(self) -> None:
         self.vao.release()
@@ -58,12 +59,13 @@ class _GpuView:
 
 
 class _Slots:
-    """The float targets of the views drawn at one size: per slot ``layers`` RGBA32F textures and a depth
-    buffer; plus the body's depth texture and an RGBA32F target for read-backs."""
+    """The float targets of the views drawn at one size: per slot ``layers`` RGBA16F textures and a depth
+    buffer; plus the body's depth texture and an RGBA32F target for read-backs. Every pass touches only
+    :attr:`rect`, the part of the target the frame's garment can cover."""
 
     def __init__(self, ctx: moderngl.Context, size: tuple[int, int], slots: int, layers: int) -> None:
         self.size, self.slots, self.layers = size, slots, layers
-        self.textures = [[ctx.texture(size, 4, dtype="f4") for _ in range(layers)] for _ in range(slots)]
+        self.textures = [[ctx.texture(size, 4, dtype="f2") for _ in range(layers)] for _ in range(slots)]
         self.depths = [ctx.depth_renderbuffer(size) for _ in range(slots)]
         self.fbos = [ctx.framebuffer(color_attachments=tex, depth_attachment=d) for tex, d in zip(self.textures, self.depths)]
         for row in self.textures:
@@ -75,11 +77,31 @@ class _Slots:
         self.body_fbo = ctx.framebuffer(depth_attachment=self.body_depth)
         self.readback = ctx.texture(size, 4, dtype="f4")
         self.readback_fbo = ctx.framebuffer(color_attachments=[self.readback])
+        self.rect = (0, 0, *size)  # (x, y, w, h) in the targets' pixels, set by each draw
 
     def release(self) -> None:
         for obj in (*self.fbos, *self.depths, *(t for row in self.textures for t in row), self.body_fbo,
                     self.body_depth, self.readback_fbo, self.readback):
             obj.release()
+
+
+def screen_rect(points: np.ndarray, camera: Camera, projection: np.ndarray, margin: int = 2) -> tuple[int, int, int, int]:
+    """(x, y, w, h) the framebuffer pixels (GL window coordinates of ``projection``, at the camera's size) that
+    the box around ``points (N, 3)`` can cover, grown by ``margin``; the whole frame when a corner lies behind
+    the camera; (0, 0, 0, 0) when the box is outside the frame."""
+    W, H = camera.width, camera.height
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    clip = corners @ (projection @ camera.world_to_camera()).T
+    if np.any(clip[:, 3] <= camera.near):
+        return 0, 0, W, H
+    ndc = clip[:, :2] / clip[:, 3:]
+    x0 = int(np.floor((ndc[:, 0].min() + 1.0) * 0.5 * W)) - margin
+    x1 = int(np.ceil((ndc[:, 0].max() + 1.0) * 0.5 * W)) + margin
+    y0 = int(np.floor((ndc[:, 1].min() + 1.0) * 0.5 * H)) - margin
+    y1 = int(np.ceil((ndc[:, 1].max() + 1.0) * 0.5 * H)) + margin
+    x0, y0, x1, y1 = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else (0, 0, 0, 0)
 
 
 def _matrix(m: np.ndarray) -> bytes:
@@ -147,7 +169,9 @@ class BakeDrawer:
         texture = self.ctx.texture_array((W, H, L), 4, data=np.ascontiguousarray(view.codes).tobytes(), dtype="f1")
         texture.filter = (moderngl.LINEAR, moderngl.LINEAR)
         texture.repeat_x = texture.repeat_y = False
-        gpu = _GpuView(vao, (vbo, ibo), texture, int(len(mesh.faces)), view.low, view.high - view.low)
+        bounds = (np.stack([mesh.positions.min(0), mesh.positions.max(0)]) if len(mesh.positions)
+                  else np.zeros((2, 3), np.float32))
+        gpu = _GpuView(vao, (vbo, ibo), texture, int(len(mesh.faces)), view.low, view.high - view.low, bounds)
         self._views[key] = (view, gpu)
         while len(self._views) > VIEW_CACHE:
             _, (_, old) = self._views.popitem(last=False)
@@ -214,13 +238,18 @@ class BakeDrawer:
         ctx = self.ctx
         projection = camera.gl_projection() if projection is None else projection
         view_m, proj_m = _matrix(camera.world_to_camera()), _matrix(projection)
+        points = np.concatenate([self._gpu_view(view).bounds for view, _ in chosen])
+        slots.rect = screen_rect(points, camera, projection)
+        if slots.rect[2] == 0:
+            return None
         # 1. the body's depth
         slots.body_fbo.use()
         ctx.viewport = (0, 0, *size)
+        ctx.scissor = slots.rect
         ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
-        slots.body_fbo.clear(depth=1.0)
+        slots.body_fbo.clear(depth=1.0, viewport=slots.rect)
         if self._body is not None:
             self.depth_program["u_world_to_camera"].write(view_m)
             self.depth_program["u_projection"].write(proj_m)
@@ -241,7 +270,8 @@ class BakeDrawer:
         for s in range(self.draw_views):
             fbo = slots.fbos[s]
             fbo.use()
-            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            ctx.scissor = slots.rect
+            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=slots.rect)
             if s < len(chosen):
                 view, weight = chosen[s]
                 gpu = self._gpu_view(view)
@@ -253,6 +283,7 @@ class BakeDrawer:
                 weights.append(float(weight))
             else:
                 weights.append(0.0)
+        ctx.scissor = None
         return slots, weights
 
     def _blend(self, slots: _Slots, weights: list[float], origin: tuple[int, int], mode: int, layer: int = 0,
@@ -276,7 +307,10 @@ class BakeDrawer:
             colors[:len(pal)] = pal
             program["u_palette"].write(colors.tobytes())
         self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        x, y, w, h = slots.rect
+        self.ctx.scissor = (x + int(origin[0]), y + int(origin[1]), w, h)
         self._blend_vaos[slots.layers].render(moderngl.TRIANGLES, vertices=3)
+        self.ctx.scissor = None
 
     def read_layers(self, baked: BakedFrame, camera: Camera) -> np.ndarray | None:
         """(L, H, W, 4) float32 the blended layers of ``baked`` seen by ``camera`` (rows top-first), zero where
@@ -351,4 +385,4 @@ def baked_maps(drawer: BakeDrawer, session, baked: BakedFrame, camera: Camera):
         return maps_from_layers(layers).with_body(*session.body_layer(features, camera))
 
 
-__all__ = ["BakeDrawer", "baked_maps", "BODY_MARGIN", "VIEW_CACHE", "MAX_SLOTS", "MAX_LAYERS"]
+__all__ = ["BakeDrawer", "baked_maps", "screen_rect", "BODY_MARGIN", "VIEW_CACHE", "MAX_SLOTS", "MAX_LAYERS"]

@@ -107,7 +107,7 @@ def test_gl_draw_of_a_view_from_its_own_camera_returns_its_layers(gl_context):
         want = view.layers[j][inner].copy()
         if j == 1:
             want[..., 3] = 1.0  # layer 1's fourth channel: the view covers the pixel
-        assert np.allclose(layers[j][inner], want, atol=2e-5), j
+        assert np.allclose(layers[j][inner], want, atol=1e-3), j  # the slots are half floats
 
 
 def test_gl_body_hides_the_bake_only_beyond_the_margin(gl_context):
