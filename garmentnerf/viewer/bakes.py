@@ -12,6 +12,7 @@ A second launch finds the folder full and loads it at once. The timeline's bar s
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -201,13 +202,15 @@ class BakeProcess:
         return self._proc.poll() is None
 
     def stop(self) -> None:
-        """End the process (the frames it finished stay in the folder)."""
+        """End the process and its worker (the frames finished stay in the folder)."""
         if self._proc.poll() is None:
-            self._proc.terminate()
             try:
+                os.killpg(self._proc.pid, signal.SIGTERM)  # its own session: the bake worker goes too
                 self._proc.wait(5.0)
             except subprocess.TimeoutExpired:
-                self._proc.kill()
+                os.killpg(self._proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
 
 
 __all__ = ["ClipBakes", "BakeProcess", "BAKES_IN_MEMORY_MB", "DISK_POLL_SECONDS"]
