@@ -65,6 +65,27 @@ def export_frames(folder, text: str | None) -> list[int]:
     return frames
 
 
+def _load(folder, frame: int, colors: int, body_faces):
+    """Frame ``frame`` of bake ``folder`` (:meth:`~garmentnerf.bake.store.BakeFolder.load_frame`), checked
+    against the bake's ``colors`` palette colours and its body's triangles ``body_faces (F, 3)`` (or None);
+    ValueError naming its file when it does not fit, FileNotFoundError when it was deleted since listed."""
+    from garmentnerf.bake.store import BakeFileError
+
+    path = folder.frame_path(frame)
+    baked = folder.load_frame(frame)
+    if baked is None:
+        raise FileNotFoundError(f"{path}: frame {frame} is no longer baked")
+    for i, view in enumerate(baked.views):
+        if view.garment_colors != colors - 1:
+            raise BakeFileError(f"{path}: view {i} holds {view.garment_colors} garment colour(s), the bake's palette "
+                                f"{colors - 1}")
+    if body_faces is not None and baked.body_vertices is not None and body_faces.size \
+            and int(body_faces.max()) >= len(baked.body_vertices):
+        raise BakeFileError(f"{path}: its body has {len(baked.body_vertices)} vertices, fewer than the bake's body "
+                            f"triangles use")
+    return baked
+
+
 def run_export(args: argparse.Namespace) -> int:
     out = check_output_file(args.out, "--out", args.overwrite)
     if out.suffix.lower() != ".glb":
@@ -95,14 +116,14 @@ def run_export(args: argparse.Namespace) -> int:
     frames = export_frames(folder, args.frames)
     step = frames[1] - frames[0] if len(frames) > 1 else 1
     body_faces = folder.body_faces()
+    for f in frames:  # every frame file read once before the work: a damaged one fails here, in one line
+        _load(folder, f, len(palette), body_faces)
     exported = []
     bar = None if args.no_progress else tqdm(total=len(frames), unit="frame", desc="export", file=sys.stderr,
                                             dynamic_ncols=True)
     try:
         for f in frames:
-            baked = folder.load_frame(f)
-            if baked is None:  # deleted since it was listed
-                raise FileNotFoundError(f"{folder.frame_path(f)}: frame {f} is no longer baked")
+            baked = _load(folder, f, len(palette), body_faces)
             exported.append(ExportFrame(f, garment_mesh(baked, palette), baked.body_vertices))
             if bar is not None:
                 bar.update(1)
