@@ -6,12 +6,17 @@ One garment mesh a frame (:func:`garment_mesh`)
     a player they would z-fight and double every colour; the previewer blends them per pixel in GL, which
     a glTF file cannot ask of a player. So each part of the cloth is kept from one view only, its *best
     view*: the one whose direction from the triangle (its centroid towards the camera's centre) is most
-    aligned with the triangle's normal, among the views that captured that point (it projects onto their
+    aligned with the cloth's normal there, among the views that captured that point (it projects onto their
     surface, within :data:`~garmentnerf.bake.views.DEPTH_JUMP` of its depth, where their garment is
-    visible); the owning view always counts. The partition leaves one layer of cloth: every point is
-    kept by one view, the seams between views' parts aside (a triangle's width of overlap or crack where
-    two views' grids meet). A view whose camera does not see a point cannot claim it, so the partition
-    leaves no hole where the most aligned camera was blocked.
+    visible); the owning view always counts. The normal is the mean of those views' normals at the point,
+    each of its surface smoothed by :data:`NORMAL_SMOOTHING`: a triangle's own normal turns by tens of
+    degrees from pixel to pixel, and each view's surface leans towards its own camera (two neighbouring
+    views' normals of one point differ by a median 30 degrees on the skirt demo), so with its own normals
+    every view would call itself best and half of all triangles would stay. The partition leaves one layer of cloth. The views' surfaces
+    disagree by millimetres to centimetres, so two views decide a seam a little apart; a triangle whose best
+    view keeps none of its own triangles there stays, so a seam overlaps by a triangle or two rather than
+    cracks (on the skirt demo about one triangle in four kept is such a filler). A view whose camera does not
+    see a point cannot claim it, so the partition leaves no hole where the most aligned camera was blocked.
 
 Colours
     Each vertex carries the garment's colour at the palette, ``c_G = clamp(r * sum_i w_i (p_i + o_i), 0, 1)``
@@ -26,7 +31,9 @@ The file (:func:`glb_bytes`)
     the body's) and the garment (positions, ``COLOR_0``, an unlit material: ``c_G`` already holds the
     captured shading). An animation scales node i to 1 during ``[i / fps, (i + 1) / fps)`` and to 0 outside
     (``STEP`` keys), so players and Blender play the frames in turn. Colours are written in glTF's linear
-    space (the palette and ``c_G`` are sRGB display values).
+    space (the palette and ``c_G`` are sRGB display values). The previewer hides the body behind the baked
+    garment unless it is more than :data:`~garmentnerf.bake.draw.BODY_MARGIN` in front of it; a player draws
+    the nearer surface, so where the skin comes within a few centimetres of the cloth it can show through.
 """
 
 from __future__ import annotations
@@ -35,7 +42,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from garmentnerf.bake.views import DEPTH_JUMP, BakedFrame, BakedView, _smoothed, view_mesh, view_surface_z
+from garmentnerf.bake.views import (DEPTH_JUMP, BakedFrame, BakedView, ViewMesh, _smoothed, view_mesh,
+                                    view_surface_z)
 from garmentnerf.io_utils import write_file_atomic
 
 #: Triangles whose vertices all show less garment than this are dropped; the garment material's
@@ -181,32 +189,76 @@ def _pixel(cam, points: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray,
     return rows, cols
 
 
+class _ViewPart(NamedTuple):
+    """One view's share of a frame's garment mesh while :func:`garment_mesh` partitions it."""
+
+    mesh: ViewMesh
+    rgba: np.ndarray  # (N, 4) (c_G, a) of the mesh's vertices
+    faces: np.ndarray  # (M, 3) int64 the triangles that show garment
+    centroids: np.ndarray  # (M, 3) float64
+    best: np.ndarray  # (M,) int64 their best view
+    cells: np.ndarray  # (H, W) bool: the grid cells (by their top-left pixel) whose triangles the view keeps
+
+
+def _cells(view: BakedView, mesh: ViewMesh, faces: np.ndarray, step: int) -> np.ndarray:
+    """(H, W) bool: the grid cells of ``view``'s mesh holding ``faces``, marked at their top-left pixel."""
+    W, H = view.size
+    px = np.rint(mesh.texcoords[faces] * [W, H] - 0.5).astype(np.int64)  # (M, 3, 2) the corners' pixels
+    out = np.zeros((H, W), bool)
+    out[px[..., 1].min(axis=1), px[..., 0].min(axis=1)] = True
+    return out
+
+
+def _kept_at(view: BakedView, part: _ViewPart, points: np.ndarray, step: int) -> np.ndarray:
+    """(N,) bool: ``points (N, 3)`` project into a grid cell of ``view`` whose triangles it keeps."""
+    cam = view.camera
+    uv = (points @ cam.R.T + cam.t) @ cam.K.T
+    z = np.maximum(uv[:, 2], 1e-9)
+    H, W = part.cells.shape
+    cols = np.clip(np.floor(uv[:, 0] / z / step).astype(np.int64) * step, 0, W - 1)
+    rows = np.clip(np.floor(uv[:, 1] / z / step).astype(np.int64) * step, 0, H - 1)
+    return part.cells[rows, cols]
+
+
 def garment_mesh(baked: BakedFrame, palette, step: int = 1) -> GarmentMesh:
     """The garment of ``baked`` as one mesh at ``palette (G + 1, 3)`` (garment colours first, the body's
     last; sRGB in [0, 1]): each view's :func:`~garmentnerf.bake.views.view_mesh` (one vertex every ``step``
     map pixels) where that view is the best view, the parts concatenated, each vertex coloured with ``c_G``
     and ``a`` from its view's layers (module docstring: the views overlap, and the best-view partition keeps
-    one layer of them)."""
+    one layer of them). A triangle whose best view keeps none of its own triangles there (their surfaces
+    disagree by a little, so they decide a little apart) stays, so the seams between views leave no crack."""
     views = tuple(baked.views)
     surfaces = [view_surface(v) for v in views]
-    positions, colors, faces = [], [], []
-    count = 0
+    parts: list[_ViewPart | None] = []
     for k, view in enumerate(views):
         mesh = view_mesh(view, step)
-        if len(mesh.faces) == 0:
-            continue
         rgba = garment_rgba(sample_layers(view.layers, mesh.texcoords), palette)
-        shown = rgba[:, 3] >= ALPHA_CUTOFF
         f = mesh.faces.astype(np.int64)
-        keep = shown[f].any(axis=1)
-        centroids = mesh.positions[f[keep]].astype(np.float64).mean(axis=1)
-        keep[keep] = best_views(centroids, k, views, surfaces) == k
-        f = f[keep]
-        used = np.zeros(len(mesh.positions), bool)
+        f = f[(rgba[f, 3] >= ALPHA_CUTOFF).any(axis=1)]
+        if len(f) == 0:
+            parts.append(None)
+            continue
+        centroids = mesh.positions[f].astype(np.float64).mean(axis=1)
+        best = best_views(centroids, k, views, surfaces)
+        parts.append(_ViewPart(mesh, rgba, f, centroids, best, _cells(view, mesh, f[best == k], step)))
+    positions, colors, faces = [], [], []
+    count = 0
+    for k, part in enumerate(parts):
+        if part is None:
+            continue
+        keep = part.best == k
+        for j in np.unique(part.best[~keep]):  # the triangles another view is best for: kept where it keeps none
+            lost = np.flatnonzero(part.best == j)
+            if parts[j] is None:
+                keep[lost] = True
+            else:
+                keep[lost[~_kept_at(views[j], parts[j], part.centroids[lost], step)]] = True
+        f = part.faces[keep]
+        used = np.zeros(len(part.mesh.positions), bool)
         used[f.ravel()] = True
         index = np.cumsum(used) - 1
-        positions.append(mesh.positions[used])
-        colors.append(np.rint(rgba[used] * 255.0).astype(np.uint8))
+        positions.append(part.mesh.positions[used])
+        colors.append(np.rint(part.rgba[used] * 255.0).astype(np.uint8))
         faces.append(index[f] + count)
         count += int(used.sum())
     if not positions:
