@@ -16,6 +16,7 @@ import sys
 import garmentnerf.startup  # noqa: F401 - before the subcommands: its clock is the command's start
 from garmentnerf.cli import (bake_cmd, bench_cmd, body_cmd, data_cmd, demo_cmd, eval_cmd, maps_cmd, motion_cmd, render_cmd,
                              train_cmd, view_cmd)
+from garmentnerf.cli import export_cmd
 from garmentnerf.interrupts import interrupting
 
 
@@ -37,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmd.register(sub)  # eval and report
     demo_cmd.register(sub)
     bake_cmd.register(sub)
+    export_cmd.register(sub)
     return parser
 
 
