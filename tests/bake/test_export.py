@@ -39,7 +39,7 @@ def _plane_view(azimuth: float = 0.0, size=(48, 40), cell=4, seed=0, colors: int
     layers = rng.uniform(0.1, 0.9, (2 + colors, H, W, 4)).astype(np.float32)
     layers[0, ..., 3] = 1.0
     layers[1, ..., :colors] /= layers[1, ..., :colors].sum(-1, keepdims=True)
-    return BakedView(camera, layers, depth.astype(np.float32), cell)
+    return BakedView.from_values(camera, layers, depth.astype(np.float32), cell)
 
 
 def _c_g(layers: np.ndarray, rows: np.ndarray, cols: np.ndarray, palette: np.ndarray) -> np.ndarray:
@@ -57,10 +57,12 @@ def _pixels(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def test_garment_colours_are_the_hybrid_composition_and_faint_triangles_go():
-    view = _plane_view(seed=3)
-    view.layers[2, ..., :3] -= 0.5  # offsets of both signs, and radiance over 1: some colours clamp
-    view.layers[0, ..., :3] *= 1.6
-    view.layers[0, :, :10, 3] = 0.3  # the left ten columns show little garment
+    plane = _plane_view(seed=3)
+    layers = plane.layers
+    layers[2, ..., :3] -= 0.5  # offsets of both signs, and radiance over 1: some colours clamp
+    layers[0, ..., :3] *= 1.6
+    layers[0, :, :10, 3] = 0.3  # the left ten columns show little garment
+    view = BakedView.from_values(plane.camera, layers, plane.depth, plane.cell)
     mesh = garment_mesh(BakedFrame(0, (view,)), PALETTE)
     rows, cols = _pixels(view.camera, mesh.positions)
     assert np.abs(mesh.colors[:, :3] / 255.0 - _c_g(view.layers, rows, cols, PALETTE)).max() <= 0.5 / 255 + 1e-6
