@@ -224,11 +224,13 @@ class BakeDrawer:
             b += P @ v.camera.center
         return np.linalg.lstsq(A, b, rcond=None)[0]
 
-    def draw_slots(self, baked: BakedFrame, camera: Camera,
-                   projection: np.ndarray | None = None) -> tuple[_Slots, list[float]] | None:
+    def draw_slots(self, baked: BakedFrame, camera: Camera, projection: np.ndarray | None = None,
+                   body_depth: moderngl.Texture | None = None) -> tuple[_Slots, list[float]] | None:
         """Passes 1 and 2 (module docstring) at ``camera``'s size; None when the frame has no view.
         ``projection``: camera -> clip (default ``camera.gl_projection()``, image row 0 at the framebuffer's
-        first row; a window that shows row 0 at the top passes its flipped one)."""
+        first row; a window that shows row 0 at the top passes its flipped one). ``body_depth``: a depth
+        texture of the same camera and projection that holds the body already (the previewer's scene):
+        pass 1 is skipped."""
         chosen = self.views_for(baked, camera)
         if not chosen:
             return None
@@ -243,17 +245,19 @@ class BakeDrawer:
         if slots.rect[2] == 0:
             return None
         # 1. the body's depth
-        slots.body_fbo.use()
         ctx.viewport = (0, 0, *size)
         ctx.scissor = slots.rect
         ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
-        slots.body_fbo.clear(depth=1.0, viewport=slots.rect)
-        if self._body is not None:
-            self.depth_program["u_world_to_camera"].write(view_m)
-            self.depth_program["u_projection"].write(proj_m)
-            self._body[3].render(moderngl.TRIANGLES)
+        if body_depth is None:
+            slots.body_fbo.use()
+            slots.body_fbo.clear(depth=1.0, viewport=slots.rect)
+            if self._body is not None:
+                self.depth_program["u_world_to_camera"].write(view_m)
+                self.depth_program["u_projection"].write(proj_m)
+                self._body[3].render(moderngl.TRIANGLES)
+            body_depth = slots.body_depth
         # 2. each view into its slot
         program = self._view_program(L)
         program["u_world_to_camera"].write(view_m)
@@ -264,7 +268,7 @@ class BakeDrawer:
         program["u_far"].value = float(camera.far)
         program["u_layers"].value = 0
         program["u_body_depth"].value = 1
-        slots.body_depth.use(1)
+        body_depth.use(1)
         weights = []
         self.triangles_drawn = 0
         for s in range(self.draw_views):
@@ -333,12 +337,13 @@ class BakeDrawer:
         return out
 
     def compose_into(self, fbo: moderngl.Framebuffer, viewport: tuple[int, int, int, int], baked: BakedFrame,
-                     camera: Camera, palette, projection: np.ndarray | None = None) -> bool:
+                     camera: Camera, palette, projection: np.ndarray | None = None,
+                     body_depth: moderngl.Texture | None = None) -> bool:
         """Draw ``baked`` seen by ``camera`` composed with ``palette`` ((P, 3), the body's colour last),
         premultiplied, blended (ONE, ONE_MINUS_SRC_ALPHA) over what ``fbo`` holds in ``viewport``; the
-        camera's size is the viewport's, ``projection`` as :meth:`draw_slots`. False when the frame has no
-        view."""
-        drawn = self.draw_slots(baked, camera, projection)
+        camera's size is the viewport's, ``projection`` and ``body_depth`` as :meth:`draw_slots`. False when
+        the frame has no view."""
+        drawn = self.draw_slots(baked, camera, projection, body_depth)
         if drawn is None:
             return False
         slots, weights = drawn

@@ -64,7 +64,9 @@ class BakedLayer:
         if not self.showing:
             return
         target, viewport = self.ctx.fbo, self.ctx.viewport
-        self.drawer.compose_into(target, viewport, self.frame, view.camera, self.palette, view.proj)
+        depth = target.depth_attachment
+        body_depth = depth if isinstance(depth, moderngl.Texture) and viewport[:2] == (0, 0) else None
+        self.drawer.compose_into(target, viewport, self.frame, view.camera, self.palette, view.proj, body_depth)
         target.use()
         self.ctx.viewport = viewport
 

@@ -62,7 +62,8 @@ def is_software_renderer(name: str) -> bool:
 
 
 class RenderTarget:
-    """Multisampled color + depth renderbuffers and the single-sample texture they resolve into."""
+    """Multisampled color + depth renderbuffers and the single-sample texture they resolve into (without
+    multisampling the depth is a texture: the baked layer tests the garment against the body drawn there)."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, samples: int = 4) -> None:
         if width < 1 or height < 1:
@@ -76,7 +77,12 @@ class RenderTarget:
         self.content = SceneContent()  # what that image shows
         self.samples = max(0, min(int(samples), int(ctx.max_samples))) if samples > 1 else 0
         self.color_ms = ctx.renderbuffer(self.size, 4, samples=self.samples)
-        self.depth_ms = ctx.depth_renderbuffer(self.size, samples=self.samples)
+        if self.samples:
+            self.depth_ms = ctx.depth_renderbuffer(self.size, samples=self.samples)
+        else:  # single-sampled: a texture, which the baked layer reads as the body's depth
+            self.depth_ms = ctx.depth_texture(self.size)
+            self.depth_ms.compare_func = ""
+            self.depth_ms.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.fbo = ctx.framebuffer(color_attachments=[self.color_ms], depth_attachment=self.depth_ms)
         self.resolved = ctx.texture(self.size, 4)
         self.resolved.repeat_x = self.resolved.repeat_y = False
