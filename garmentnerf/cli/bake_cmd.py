@@ -30,6 +30,8 @@ def register(sub) -> None:
                    help=f"capture views and quality (default: {DEFAULT_BAKE_PRESET}; "
                         + "; ".join(f"{k}: {s.views} views at quality {s.quality:g}" for k, s in BAKE_PRESETS.items())
                         + ")")
+    p.add_argument("--first", type=int, default=None, metavar="F",
+                   help="bake from frame F on, then the frames before it (the previewer starts at its playhead)")
     p.add_argument("--workers", type=int, default=None,
                    help="bake processes, each on one core (default: one per core)")
     where = p.add_mutually_exclusive_group(required=True)
@@ -88,6 +90,8 @@ def run_bake(args: argparse.Namespace) -> int:
         if args.cache:
             print(f"bake folder: {out}", flush=True)  # the previewer reads this line
         todo = frames_to_bake(folder, frames, notice=lambda m: print(m, file=sys.stderr))
+        if args.first is not None:
+            todo = [f for f in todo if f >= args.first] + [f for f in todo if f < args.first]
         workers = args.workers or default_workers()
         print(f"bake: {len(frames) - len(todo)} of {len(frames)} frames of {name} already baked in {out}; "
               f"baking {len(todo)} with {settings.name} ({settings.views} views at quality {settings.quality:g}) "

@@ -25,6 +25,8 @@ from garmentnerf.byte_lru import ByteBoundedLRU
 
 #: How often the loader looks for frames the bake process wrote (seconds).
 DISK_POLL_SECONDS = 0.5
+#: Frames whose arrival times give the bake's rate (and so its time left).
+ETA_WINDOW = 8
 #: Memory the baked frames of the clip may hold (MiB): a balanced skirt frame is about 8 MiB with its
 #: view meshes, so this keeps a 170-frame clip.
 BAKES_IN_MEMORY_MB = 2048.0
@@ -54,6 +56,7 @@ class ClipBakes:
         self._playhead = 0
         self._stop = False
         self._serial = 0  # a new folder (another clip or run) makes the loader start over
+        self._arrivals: list[float] = []  # when the last frames appeared on disk (the bake's rate)
         self.errors: list[str] = []
         self._thread = threading.Thread(target=self._load_loop, name="garmentnerf-bake-loader", daemon=True)
         self._thread.start()
@@ -69,6 +72,7 @@ class ClipBakes:
             for key in list(self._memory.keys()):
                 self._memory.pop(key)
             self._on_disk = folder.baked_frames() if folder is not None else set()
+            self._arrivals = []
             self._num_frames = folder.num_frames if folder is not None else 0
             self._lock.notify_all()
 
@@ -114,13 +118,28 @@ class ClipBakes:
         return frame, self._folder, self._serial
 
     def _look_at_disk(self) -> None:
-        """The frames the folder holds now (another process bakes into it)."""
+        """The frames the folder holds now (another process bakes into it), and when new ones appeared."""
         folder = self._folder
         if folder is not None:
             found = folder.baked_frames()
             with self._lock:
                 if folder is self._folder:
+                    new = found - self._on_disk
+                    if new:
+                        self._arrivals.extend([time.monotonic()] * len(new))
+                        del self._arrivals[:-ETA_WINDOW]
                     self._on_disk |= found
+
+    def seconds_left(self) -> float | None:
+        """The time the bake of the clip still needs at the rate its last frames arrived (None: unknown)."""
+        with self._lock:
+            left = self._num_frames - len(self._on_disk)
+            if left <= 0:
+                return 0.0
+            if len(self._arrivals) < 2 or self._arrivals[-1] <= self._arrivals[0]:
+                return None
+            per_frame = (self._arrivals[-1] - self._arrivals[0]) / (len(self._arrivals) - 1)
+            return left * per_frame
 
     def _load_loop(self) -> None:
         while True:
@@ -167,13 +186,14 @@ class BakeProcess:
 
     Args:
         run_dir: the run folder; motion: the clip (a scene sequence or motion name); preset: the bake preset;
-        scene: the scene folder the run is shown with (None: the run's own).
+        scene: the scene folder the run is shown with (None: the run's own); first: the frame to bake first
+            (the playhead's; the frames after it follow, then those before).
         on_folder: called (on a reader thread) with the bake folder's path once the process names it.
     """
 
-    def __init__(self, run_dir, motion: str | None, preset: str, on_folder, scene=None) -> None:
+    def __init__(self, run_dir, motion: str | None, preset: str, on_folder, scene=None, first: int = 0) -> None:
         command = [sys.executable, "-m", "garmentnerf.cli.main", "bake", "--run", str(run_dir), "--cache",
-                   "--preset", preset, "--workers", "1", "--no-progress"]
+                   "--preset", preset, "--workers", "1", "--no-progress", "--first", str(int(first))]
         if motion is not None:
             command += ["--motion", str(motion)]
         if scene is not None:

@@ -209,7 +209,9 @@ def _bake_controls(view) -> None:
     status = view.bake_status()
     if status is not None and status["frames"]:
         state = "baking" if status["running"] else "baked"
-        imgui.text_disabled(f"{state} {status['baked']} / {status['frames']} frames, {status['loaded']} loaded"
+        left = status["seconds_left"]
+        eta = f", {left / 60:.0f} min left" if status["running"] and left else ""
+        imgui.text_disabled(f"{state} {status['baked']} / {status['frames']} frames{eta}, {status['loaded']} loaded"
                             + (f"; showing the {view.showing_bake}" if view.showing_bake else ""))
     if status is not None and status["error"]:
         imgui.text_colored(imgui.ImVec4(*ERROR_COLOR), status["error"][:120])

@@ -112,6 +112,7 @@ class NeuralView:
         self.showing_bake = ""                          # what the baked layer shows: "", "bake", "reprojection"
         self._reprojected = None                        # (result, BakedFrame) of the last reprojection
         self._baked_playback = False                    # a baked stretch plays: no neural request is sent
+        self._playhead = 0                              # the timeline's frame at the last update
         if run is not None:
             self._start()
 
@@ -323,7 +324,7 @@ class NeuralView:
 
         self._take_checkpoint()
 
-        frame = timeline.frame
+        frame = self._playhead = timeline.frame
         playhead = PlayheadClock.of(timeline, self._clock())
         while self.results:
             result = self.results.popleft()
@@ -393,7 +394,7 @@ class NeuralView:
         motion = self.motion if isinstance(self.motion, str) else None
         scene = self.run.scene.root if self.run.scene is not None else None
         self.bake_process = BakeProcess(self.run.root, motion, DEFAULT_BAKE_PRESET,
-                                        lambda path: bakes.use_folder(BakeFolder.open(path)), scene)
+                                        lambda path: bakes.use_folder(BakeFolder.open(path)), scene, self._playhead)
 
     def show_bakes(self, folder: BakeFolder) -> None:
         """Show the bakes of ``folder`` (made by ``garmentnerf bake`` for this run and clip) without baking."""
@@ -419,7 +420,7 @@ class NeuralView:
             return None
         process = self.bake_process
         return {"baked": len(self.bakes.baked()), "frames": self.bakes.num_frames, "loaded": self.bakes.loaded(),
-                "running": process is not None and process.running,
+                "running": process is not None and process.running, "seconds_left": self.bakes.seconds_left(),
                 "error": (process.error if process is not None else "") or "; ".join(self.bakes.errors[-1:])}
 
     def _choose_bake(self, frame: int, still_key) -> None:
