@@ -54,7 +54,7 @@ class BakeSettings:
 #: The measured trades (``docs/results.md``, "Baked frames"), fastest first.
 BAKE_PRESETS: dict[str, BakeSettings] = {
     "draft": BakeSettings("draft", views=8, quality=0.5),
-    "balanced": BakeSettings("balanced", views=16, quality=0.5),
+    "balanced": BakeSettings("balanced", views=16, quality=0.75),
     "fine": BakeSettings("fine", views=16, quality=1.0),
 }
 #: The preset ``garmentnerf bake`` and the previewer use unless told otherwise.
