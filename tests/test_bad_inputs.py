@@ -232,3 +232,70 @@ def test_render_interrupted_before_its_first_frame_reports_no_speed(world, tmp_p
     out, err = capfd.readouterr()
     assert code == 130 and "0 frame(s)" in out and "no frame finished" in out and "nan" not in out
     assert err.strip() == "garmentnerf: interrupted after 0 of 2 frames"
+
+
+class _FullDiskFile:
+    """A file opened for writing on a disk that fills up: the first write stores half its bytes, then
+    raises what ``write()`` raises there (ENOSPC, naming no file)."""
+
+    def __init__(self, real):
+        self._real = real
+
+    def write(self, data):
+        import errno
+
+        self._real.write(bytes(data)[:len(data) // 2] if not isinstance(data, str) else data[:len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._real.close()
+
+
+def full_disk(monkeypatch, folder: Path) -> None:
+    """Make every file opened for writing under ``folder`` (by ``open``, ``io.open`` and so ``Path.write_text``)
+    a :class:`_FullDiskFile`: the disk under ``folder`` is full."""
+    import builtins
+    import io
+
+    real_open = io.open
+
+    def opening(file, mode="r", *args, **kwargs):
+        handle = real_open(file, mode, *args, **kwargs)
+        inside = isinstance(file, (str, Path)) and Path(file).resolve().is_relative_to(folder.resolve())
+        return _FullDiskFile(handle) if inside and any(m in mode for m in "wax+") else handle
+
+    monkeypatch.setattr(builtins, "open", opening)
+    monkeypatch.setattr(io, "open", opening)
+
+
+@pytest.mark.parametrize("argv, written", [
+    (["body", "export", "--out", "{disk}/body.ply"], "body.ply"),
+    (["maps", "--out", "{disk}/maps.npz"], "maps.npz"),
+    (["eval", "--run", "{run}", "--split", "seen", "--frames", "0", "--cameras", "{camera}", "--no-progress",
+      "--json", "{disk}/eval.json"], "eval.json"),
+])
+def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(world, argv, written, tmp_path, capfd,
+                                                                     monkeypatch):
+    """Every command writes through the atomic writers of garmentnerf.io_utils, which name the file a full
+    disk refused and remove their temporary (the half a full disk left)."""
+    from garmentnerf.data.scene import Scene
+
+    _, places = world
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    camera = Scene.load(places["scene"]).camera_names("train")[0]
+    argv = [a.format(disk=disk, camera=camera, **places) for a in argv]
+    full_disk(monkeypatch, disk)
+    code = main(argv)
+    err = capfd.readouterr().err
+    # warp's notice that this machine has no CUDA is printed once per process, by whichever test loads it first
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("Warp CUDA warning")]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err[-2000:]
+    assert lines[0] == f"garmentnerf: error: {disk / written}: cannot write (No space left on device)"
+    assert list(disk.iterdir()) == []  # no temporary, no half file
