@@ -114,17 +114,19 @@ class Demo:
         return out
 
 
-def demo(name: str, root: Path = DEMO_ROOT) -> Demo:
-    """The demo called ``name`` (under ``root``); ValueError naming the choices for an unknown name."""
+def demo(name: str, root: Path = DEMO_ROOT, what: str | None = None) -> Demo:
+    """The demo called ``name`` (under ``root``); ValueError naming the choices for an unknown name,
+    after ``what`` when given: the flag or key the name came from (``--demo``, ``--name``)."""
     if name not in _RUN_FOLDERS:
-        raise ValueError(f"--demo: unknown demo {name!r}; choose one of {', '.join(DEMO_NAMES)}")
+        where = f"{what}: " if what else ""
+        raise ValueError(f"{where}unknown demo {name!r}; choose one of {', '.join(DEMO_NAMES)}")
     return Demo(name, Path(root) / _RUN_FOLDERS[name])
 
 
-def demo_run_dir(name: str, root: Path = DEMO_ROOT) -> Path:
-    """The run folder of demo ``name``. FileNotFoundError when it is not installed (the message
-    names the demos that are)."""
-    d = demo(name, root)
+def demo_run_dir(name: str, root: Path = DEMO_ROOT, what: str | None = None) -> Path:
+    """The run folder of demo ``name`` (``what``: where the name came from, as for :func:`demo`).
+    FileNotFoundError when it is not installed (the message names the demos that are)."""
+    d = demo(name, root, what)
     if not d.installed:
         have = ", ".join(x.name for x in installed_demos(root)) or "none"
         raise FileNotFoundError(f"{d.run_dir}: the {name} demo is not installed (installed demos: {have}); "
@@ -143,7 +145,8 @@ def demo_of_run(run_dir, root: Path = DEMO_ROOT) -> str | None:
     return next((n for n in DEMO_NAMES if demo(n, root).run_dir.resolve() == run_dir), None)
 
 
-def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False) -> Demo:
+def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False,
+              what: str | None = None) -> Demo:
     """Make the trained run ``run_dir`` demo ``name`` under ``root``: its weights cast to float16
     (:func:`pack_weights`), its body appearance, ``TRAINING.md``, ``recipe.json`` (a ``train --recipe``
     folder's: the recipe as run) and ``eval_*.json`` if present,
@@ -154,16 +157,17 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     does not wait for the measurement).
 
     Staged in a temporary folder under ``root`` and moved into place at the end. Raises
-    FileNotFoundError (not a run, or its scene missing), FileExistsError (the demo is installed
-    and ``overwrite`` is False) and ValueError (weights over :data:`MAX_DEMO_WEIGHTS_BYTES`),
+    ValueError (an unknown ``name``, named after ``what``, the flag or key it came from, as by
+    :func:`demo`; weights over :data:`MAX_DEMO_WEIGHTS_BYTES`), FileNotFoundError (not a run, or
+    its scene missing) and FileExistsError (the demo is installed and ``overwrite`` is False),
     each before anything under ``root`` changes.
     """
+    target = demo(name, root, what)  # an unknown name first, before torch loads
     # lazy: the registry above is read by every command's flag checks; loading a run needs torch
     from garmentnerf.render.band_cache import SCENE_BAND_FILE, band_key, save_band
     from garmentnerf.render.presets import BOX_TRAINED_MARGIN_IN, height_range_for_run
     from garmentnerf.runs import load_run
 
-    target = demo(name, root)
     run_dir = Path(run_dir)
     for file in ("run.json", "model.safetensors"):
         if not (run_dir / file).is_file():

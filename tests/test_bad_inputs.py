@@ -113,6 +113,9 @@ CASES = [
     (["view", "--json", "{new}.json"], "--json needs --bench"),
     (["view", "--bench", "--json", "{json}"], "--json"),
     (["view", "--run", "{orphan}"], "scene"),
+    # --- demo ---------------------------------------------------------------------------------------
+    (["demo", "pack", "{run}", "--name", "nosuch"], "--name: unknown demo 'nosuch'; choose one of skirt"),
+    (["demo", "table", "--out", "{md}"], "--out"),
 ]
 
 

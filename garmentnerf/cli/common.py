@@ -53,7 +53,7 @@ def run_folder_arg(args, default_demo: str | None = None) -> Path | None:
         return Path(run)
     if name is None and default_demo is None:
         return None
-    return demo_run_dir(name if name is not None else default_demo)
+    return demo_run_dir(name if name is not None else default_demo, what="--demo")
 
 
 def add_device_arg(parser: argparse.ArgumentParser) -> None:
