@@ -27,6 +27,7 @@ from pathlib import Path
 from garmentnerf.io_utils import atomic_write_path, read_json_strict
 
 __all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "EVAL_FILES", "MAX_DEMO_WEIGHTS_BYTES", "PAPER_TABLE_1", "Demo",
+           "BODY_APPEARANCE_FILE", "COMPOSITION_FILES", "missing_for_evaluation",
            "demo", "demo_run_dir", "results_table",
            "demo_of_run", "installed_demos", "pack_demo", "pack_weights"]
 
@@ -43,6 +44,22 @@ MAX_DEMO_WEIGHTS_BYTES = 25 * 1024 * 1024
 #: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``), per split.
 EVAL_FILES = {"seen": "eval_seen.json", "unseen_view": "eval_unseen_view.json",
               "unseen_motion": "eval_unseen_motion.json"}
+#: A run's learned body appearance (:data:`garmentnerf.model.body_appearance.BODY_APPEARANCE_FILE`, named
+#: here too so that listing the demos loads no torch).
+BODY_APPEARANCE_FILE = "body_appearance.safetensors"
+#: The file of the run folder, besides the weights, that an evaluation's ``composition`` draws with: its
+#: figures describe the run only while the file is there (without its body appearance a run draws the
+#: body with the network: another picture than the one measured).
+COMPOSITION_FILES = {"raster_body": BODY_APPEARANCE_FILE}
+
+
+def missing_for_evaluation(report, run_dir) -> Path | None:
+    """The file of ``run_dir`` that the evaluation ``report`` (``garmentnerf eval --json``) was measured
+    with and that is missing there (:data:`COMPOSITION_FILES`), or None: its figures describe the run."""
+    needed = COMPOSITION_FILES.get(report.get("composition")) if isinstance(report, dict) else None
+    if needed is None or (Path(run_dir) / needed).is_file():
+        return None
+    return Path(run_dir) / needed
 #: The paper's Table 1 ("ours"): per garment and split (its "seen motion" is the training motion seen
 #: from held-out cameras: our ``unseen_view``), PSNR / SSIM / LPIPS / tOF; "nearest view" its baseline.
 PAPER_TABLE_1 = {
@@ -92,9 +109,14 @@ class Demo:
         return total
 
     def evaluation(self, split: str) -> dict | None:
-        """The shipped ``garmentnerf eval --json`` report of ``split`` (a key of :data:`EVAL_FILES`), or None."""
+        """The shipped ``garmentnerf eval --json`` report of ``split`` (a key of :data:`EVAL_FILES`), or None:
+        none is shipped, or the one shipped was measured with a file the demo lacks
+        (:func:`missing_for_evaluation`; its figures are not the demo's, so it reads "not evaluated")."""
         path = self.run_dir / EVAL_FILES[split]
-        return read_json_strict(path, "evaluation") if path.is_file() else None
+        if not path.is_file():
+            return None
+        report = read_json_strict(path, "evaluation")
+        return None if missing_for_evaluation(report, self.run_dir) is not None else report
 
     def figures(self) -> dict[str, dict[str, float]]:
         """Per split with a shipped evaluation (``unseen_view``, ``unseen_motion``): the foreground
@@ -156,11 +178,17 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     (:data:`~garmentnerf.render.band_cache.SCENE_BAND_FILE`: the previewer's first garment frame
     does not wait for the measurement).
 
+    An evaluation is shipped only with what it was measured with: a run whose ``eval_*.json`` used
+    its body appearance (composition ``raster_body``) but has no ``body_appearance.safetensors`` any
+    more is refused, naming the missing file (:func:`missing_for_evaluation`), rather than packed into a
+    demo whose listed figures would describe another picture than the one it draws.
+
     Staged in a temporary folder under ``root`` and moved into place at the end. Raises
     ValueError (an unknown ``name``, named after ``what``, the flag or key it came from, as by
-    :func:`demo`; weights over :data:`MAX_DEMO_WEIGHTS_BYTES`), FileNotFoundError (not a run, or
-    its scene missing) and FileExistsError (the demo is installed and ``overwrite`` is False),
-    each before anything under ``root`` changes.
+    :func:`demo`; an unreadable ``eval_*.json``; weights over :data:`MAX_DEMO_WEIGHTS_BYTES`),
+    FileNotFoundError (not a run, its scene missing, or a file an evaluation was measured with
+    missing) and FileExistsError (the demo is installed and ``overwrite`` is False), each before
+    anything under ``root`` changes.
     """
     target = demo(name, root, what)  # an unknown name first, before torch loads
     # lazy: the registry above is read by every command's flag checks; loading a run needs torch
@@ -175,6 +203,16 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     run = load_run(run_dir)  # the weights match the config and the scene is there
     if run.scene is None:
         raise FileNotFoundError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing")
+    evaluations = sorted(run_dir.glob("eval_*.json"))
+    for path in evaluations:
+        report = read_json_strict(path, "evaluation")
+        missing = missing_for_evaluation(report, run_dir)
+        if missing is not None:
+            raise FileNotFoundError(
+                f"{missing}: missing, but {path.name} was measured with it (composition {report['composition']}), so "
+                f"the demo's figures would describe another picture; put it back, or evaluate the run again "
+                f"without it (garmentnerf eval --run {run_dir} --split {report.get('split', 'SPLIT')} "
+                f"--composition nerf --json {path} --overwrite)")
     scene_dst = Path(root) / name
     for path in (target.run_dir, scene_dst):
         if path.exists() and not overwrite:
@@ -188,7 +226,7 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
         if weights > MAX_DEMO_WEIGHTS_BYTES:
             raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
                              f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
-        extras = ["body_appearance.safetensors", "TRAINING.md", "recipe.json", *sorted(p.name for p in run_dir.glob("eval_*.json"))]
+        extras = [BODY_APPEARANCE_FILE, "TRAINING.md", "recipe.json", *(p.name for p in evaluations)]
         for extra in extras:
             if (run_dir / extra).is_file():
                 shutil.copy2(run_dir / extra, run_out / extra)
