@@ -24,6 +24,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from garmentnerf.folder_lock import lock_folder
 from garmentnerf.io_utils import atomic_write_path, read_json_strict
 
 __all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "EVAL_FILES", "MAX_DEMO_WEIGHTS_BYTES", "PAPER_TABLE_1", "Demo",
@@ -213,37 +214,39 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
                 f"the demo's figures would describe another picture; put it back, or evaluate the run again "
                 f"without it (garmentnerf eval --run {run_dir} --split {report.get('split', 'SPLIT')} "
                 f"--composition nerf --json {path} --overwrite)")
-    scene_dst = Path(root) / name
-    for path in (target.run_dir, scene_dst):
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path}: already exists (pass --overwrite to replace the {name} demo)")
-    Path(root).mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".pack-{name}-", dir=root))
-    try:
-        run_out, scene_out = staging / "run", staging / "scene"
-        run_out.mkdir()
-        weights = pack_weights(run_dir / "model.safetensors", run_out / "model.safetensors")
-        if weights > MAX_DEMO_WEIGHTS_BYTES:
-            raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
-                             f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
-        extras = [BODY_APPEARANCE_FILE, "TRAINING.md", "recipe.json", *(p.name for p in evaluations)]
-        for extra in extras:
-            if (run_dir / extra).is_file():
-                shutil.copy2(run_dir / extra, run_out / extra)
-        info = dict(run.info, scene=f"../{name}")
-        (run_out / "run.json").write_text(json.dumps(info, indent=1) + "\n")
-        scene_src = Path(run.scene.root)
-        scene_out.mkdir()
-        shutil.copy2(scene_src / "scene.json", scene_out / "scene.json")
-        shutil.copytree(scene_src / "sequences", scene_out / "sequences")
-        save_band(scene_out / SCENE_BAND_FILE, height_range_for_run(run),
-                  band_key(run.scene, run.model.body, run.betas, BOX_TRAINED_MARGIN_IN))
-        for src, dst in ((run_out, target.run_dir), (scene_out, scene_dst)):
-            if dst.exists():
-                shutil.rmtree(dst)
-            os.replace(src, dst)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    # one writer of the demos at a time (garmentnerf.folder_lock): the check that the demo is not installed
+    # and the move into place see the same folder
+    with lock_folder(root, f"garmentnerf demo pack --name {name}", what="demos"):
+        scene_dst = Path(root) / name
+        for path in (target.run_dir, scene_dst):
+            if path.exists() and not overwrite:
+                raise FileExistsError(f"{path}: already exists (pass --overwrite to replace the {name} demo)")
+        staging = Path(tempfile.mkdtemp(prefix=f".pack-{name}-", dir=root))
+        try:
+            run_out, scene_out = staging / "run", staging / "scene"
+            run_out.mkdir()
+            weights = pack_weights(run_dir / "model.safetensors", run_out / "model.safetensors")
+            if weights > MAX_DEMO_WEIGHTS_BYTES:
+                raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
+                                 f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
+            extras = [BODY_APPEARANCE_FILE, "TRAINING.md", "recipe.json", *(p.name for p in evaluations)]
+            for extra in extras:
+                if (run_dir / extra).is_file():
+                    shutil.copy2(run_dir / extra, run_out / extra)
+            info = dict(run.info, scene=f"../{name}")
+            (run_out / "run.json").write_text(json.dumps(info, indent=1) + "\n")
+            scene_src = Path(run.scene.root)
+            scene_out.mkdir()
+            shutil.copy2(scene_src / "scene.json", scene_out / "scene.json")
+            shutil.copytree(scene_src / "sequences", scene_out / "sequences")
+            save_band(scene_out / SCENE_BAND_FILE, height_range_for_run(run),
+                      band_key(run.scene, run.model.body, run.betas, BOX_TRAINED_MARGIN_IN))
+            for src, dst in ((run_out, target.run_dir), (scene_out, scene_dst)):
+                if dst.exists():
+                    shutil.rmtree(dst)
+                os.replace(src, dst)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
     return target
 
 

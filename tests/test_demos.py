@@ -176,3 +176,32 @@ def test_pack_refuses_figures_measured_with_a_body_appearance_the_run_no_longer_
     (packed.run_dir / "eval_unseen_view.json").write_text(json.dumps(measured))
     assert packed.figures() == {"unseen_motion": {"fg_psnr": 24.0, "garment_psnr": 22.0, "silhouette_iou": 0.97}}
     assert "not evaluated" in next(line for line in results_table([packed]).splitlines() if "held-out cameras" in line)
+
+
+def test_pack_is_refused_while_another_process_writes_the_demos(untrained_run, tmp_path):
+    """demo pack holds the demos folder's writer lock while it checks and replaces a demo: a second pack
+    at once is refused naming the first's PID, before anything changes."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from garmentnerf.folder_lock import FolderBusyError
+
+    root = tmp_path / "demo"
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
+        import sys, time
+        from garmentnerf.folder_lock import lock_folder
+        lock = lock_folder(sys.argv[1], "garmentnerf demo pack --name dress")
+        print("held", flush=True)
+        time.sleep(600)
+    """), str(root)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderBusyError, match=rf"PID {holder.pid}, 'garmentnerf demo pack --name dress'"):
+            pack_demo(untrained_run, "tshirt", root)
+        assert sorted(p.name for p in root.iterdir()) == [".garmentnerf-writer.lock"]
+    finally:
+        holder.kill()
+        holder.wait()
+    pack_demo(untrained_run, "tshirt", root)
+    assert sorted(p.name for p in root.iterdir()) == ["run_tshirt", "tshirt"]
