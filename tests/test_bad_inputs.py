@@ -7,7 +7,8 @@ untrained run of the tiny scene, ``{scene}`` the scene, ``{file}`` / ``{json}`` 
 ``{png}`` / ``{ply}`` / ``{npz}`` existing files, ``{dir}`` an existing folder, ``{new}`` a path
 that does not exist yet, ``{orphan}`` a run whose scene folder is gone, ``{nan_scene}`` a scene
 whose camera K holds a NaN, ``{broken_scene}`` a scene with a sequence file that is not an npz,
-``{taken}`` a render folder that already holds frame 0.
+``{taken}`` a render folder that already holds frame 0, ``{far}`` a motion file whose root is 1e20 m away
+(float32 holds every vertex of the posed body as one point).
 """
 
 from __future__ import annotations
@@ -103,6 +104,12 @@ CASES = [
     (["body", "export", "--out", "{new}.xyz"], "unsupported mesh format"),
     (["maps", "--motion", "walk", "--frame", "99999", "--out", "{new}.npz"], "out of range"),
     (["maps", "--out", "{npz}"], "already exists"),
+    (["body", "export", "--motion", "{far}", "--frame", "1", "--out", "{new}.ply"],
+     "--motion {far} frame 1: the posed body collapses to one point: its coordinates reach 1e+20"),
+    (["maps", "--motion", "{far}", "--frame", "2", "--out", "{new}.npz"],
+     "--motion {far} frame 0: the posed body collapses to one point"),  # the first frame of its history
+    (["render", "--run", "{run}", "--motion", "{far}", "--frames", "0:2", "--out", "{new}"],
+     "--motion {far} frame 0: the posed body collapses to one point"),
     (["bench", "--runs", "0"], "--runs"),
     (["bench", "--plot", "{new}.png"], "--plot needs --run"),
     (["bench", "--run", "{run}", "--frames", "0"], "--frames"),
@@ -157,9 +164,17 @@ def world(tmp_path_factory, tiny_scene):
     taken = root / "taken"
     taken.mkdir()
     (taken / "frame_0000.png").write_bytes(b"a frame the user keeps\n")
+    # a motion whose root translation float32 cannot hold beside a body's size: every vertex one point
+    from garmentnerf.body.model import BodyModel
+    from garmentnerf.motion.library import load_motion
+
+    far = load_motion("walk", BodyModel.default()).slice(0, 3)
+    far.translation[:] = 1e20
+    far.save(root / "far.npz")
     places = {key: str(root / name) for key, name in files.items()}
     places.update(run=str(run), scene=str(scene), dir=str(root / "folder"), orphan=str(orphan),
-                  nan_scene=str(nan_scene), broken_scene=str(broken_scene), taken=str(taken), new=str(root / "new"))
+                  nan_scene=str(nan_scene), broken_scene=str(broken_scene), taken=str(taken), new=str(root / "new"),
+                  far=str(root / "far.npz"))
     return root, places
 
 
@@ -302,3 +317,31 @@ def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(world, argv,
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err[-2000:]
     assert lines[0] == f"garmentnerf: error: {disk / written}: cannot write (No space left on device)"
     assert list(disk.iterdir()) == []  # no temporary, no half file
+
+
+def test_output_checks_refuse_what_float_arithmetic_lost_naming_the_cause():
+    import numpy as np
+
+    from garmentnerf.output_checks import DegenerateOutputError, check_finite, check_points, check_varies
+
+    body = np.random.default_rng(0).uniform(-0.3, 0.3, (500, 3)).astype(np.float32)
+    body[:, 2] *= 3  # about 1.8 m tall
+    for moved in (0.0, 1e3, 8e3):  # float32 keeps a millimetre here
+        check_points(body + np.float32(moved), "the posed body", "--motion m frame 0")
+    with pytest.raises(DegenerateOutputError, match=r"^--motion m frame 3: the posed body loses its shape: its "
+                                                    r"coordinates reach 1e\+05, where float32 holds values 0.00781"):
+        check_points(body + np.float32(1e5), "the posed body", "--motion m frame 3")
+    with pytest.raises(DegenerateOutputError, match="collapses to one point"):
+        check_points(body + np.float32(1e20), "the posed body", "m")
+    check_points((body + 1e5).astype(np.float64), "the posed body", "m")  # float64 still holds it
+    with pytest.raises(DegenerateOutputError, match=r"holds 1 of 1500 values that are not finite \(NaN\)"):
+        bad = body.copy()
+        bad[7, 1] = np.nan
+        check_points(bad, "the posed body", "m")
+    with pytest.raises(DegenerateOutputError, match=r"^frame 2: the image holds 2 of 12 values that are not finite "
+                                                    r"\(NaN and infinity\); nothing written$"):
+        check_finite(np.array([np.nan, np.inf] + [0.5] * 10), "the image", "frame 2")
+    check_finite(np.zeros(4, np.uint8), "the image", "x")  # whole numbers are always finite
+    with pytest.raises(DegenerateOutputError, match="the normal map is 0 throughout"):
+        check_varies(np.zeros((4, 4, 3), np.float32), "the normal map", "m")
+    check_varies(np.eye(3, dtype=np.float32), "the normal map", "m")

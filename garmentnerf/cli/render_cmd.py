@@ -21,6 +21,7 @@ from garmentnerf.cli.common import (
 from garmentnerf.demos import DEFAULT_DEMO
 from garmentnerf.ranges import parse_frames, parse_list
 from garmentnerf.budgets import QUALITY, VIDEO_FPS
+from garmentnerf.output_checks import check_finite, check_points
 from garmentnerf.render.video import FrameWriter, VideoWriter
 
 
@@ -126,10 +127,15 @@ def run_render(args: argparse.Namespace) -> int:
                     frames = camera_path.render_frames()
                 except ValueError as exc:
                     raise ValueError(f"--camera-path {args.camera_path}: {exc}") from None
+        else:
+            frames = render_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+        given = f"--motion {args.motion}" if args.motion is not None else f"motion '{motion_name}'"
+        for f in frames:  # a body float32 cannot place (moved 1e5 m away) renders nothing: refused, not rendered
+            check_points(session.posed.vertices[f], "the posed body", f"{given} frame {f}")
+        if camera_path is not None:
             cameras = camera_path.cameras(frames, size)
             cam_label, fps = Path(args.camera_path).stem, args.fps or camera_path.fps
         else:
-            frames = render_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
             centers = [session.body_center(f)[:2] for f in frames]
             cameras = cameras_for(spec, frames, size or 256, run.scene, centers)
             cam_label, fps = spec.name if spec.kind == "scene" else spec.kind, args.fps or session.fps
@@ -139,7 +145,8 @@ def run_render(args: argparse.Namespace) -> int:
         video_path = out / f"{_safe(motion_name)}_{_safe(cam_label)}.mp4"
         video = VideoWriter(video_path, fps) if args.video else None
         times, interrupted, written_video = _render_frames(session, frames, cameras, args, preset, palette,
-                                                           background, writer, video)
+                                                           background, writer, video,
+                                                           f"{given} seen by camera {cam_label}")
         n = len(writer.written)
         speed = f"{sum(times) / len(times):.0f} ms/frame" if times else "no frame finished"
         where = f"{out}" + (f" and {written_video}" if written_video else "")
@@ -199,9 +206,10 @@ def _load_render_run(args: argparse.Namespace):
     return run_dir, run
 
 
-def _render_frames(session, frames, cameras, args, preset, palette, background, writer, video):
+def _render_frames(session, frames, cameras, args, preset, palette, background, writer, video, label):
     """Render and write every frame (and append it to ``video``); Ctrl-C stops after the frames
-    written. Returns (ms per frame rendered, interrupted, the video written or None)."""
+    written, an image that is not finite before it is written (``label``: what is rendered, for the
+    message). Returns (ms per frame rendered, interrupted, the video written or None)."""
     interrupted = False
     times = []
     progress = None
@@ -211,6 +219,7 @@ def _render_frames(session, frames, cameras, args, preset, palette, background, 
         for f, cam in zip(frames, cameras):
             nf = session.render(f, cam, args.quality, preset=preset)
             image = nf.composite(palette, background)
+            check_finite(image, "the rendered image", f"{label}, frame {f}")
             writer.write(f, image)
             if video is not None:
                 video.append(image)
