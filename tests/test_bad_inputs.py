@@ -52,6 +52,9 @@ CASES = [
     (["render", "--run", "{new}", "--out", "{new}"], "{new}"),
     (["render", "--run", "{orphan}", "--out", "{new}"], "scene"),
     (["render", "--run", "{run}", "--frames", "0", "--out", "{taken}"], "frame_0000.png: already exists"),
+    (["render", "--run", "{run}", "--quality", "4", "--max-memory-gib", "0.25", "--out", "{new}"],
+     "a render of 256x256 pixels at quality 4 needs about 0.9 GiB at its peak (estimated: 0.0655 million output"),
+    (["render", "--run", "{run}", "--max-memory-gib", "1e9", "--out", "{new}"], "--max-memory-gib must be in"),
     # --- train --------------------------------------------------------------------------------------
     (["train", "--scene", "{scene}", "--out", "{file}"], "--out"),
     (["train", "--scene", "{scene}", "--out", "{file}/run"], "is a file, not a folder"),
@@ -81,6 +84,8 @@ CASES = [
     (["eval", "--run", "{run}", "--split", "seen", "--cameras", ","], "--cameras ',': an empty camera"),
     (["eval", "--run", "{run}", "--split", "seen", "--cameras", ""], "--cameras is empty"),
     (["eval", "--run", "{new}", "--split", "seen"], "{new}"),
+    (["eval", "--run", "{run}", "--split", "seen", "--max-memory-gib", "0.25"],
+     "evaluating views of 64x64 pixels needs about 0.9 GiB at its peak"),
     (["report", "--scene", "{scene}", "--out", "{md}"], "--out"),
     (["report", "--scene", "{scene}", "--out", "{new}.md", "--preset", "huge"], "unknown preset 'huge'"),
     (["report", "--scene", "{scene}", "--out", "{new}.md", "--device", "potato"], "--device 'potato'"),
