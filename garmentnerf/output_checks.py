@@ -50,7 +50,7 @@ def check_finite(values, what: str, cause: str) -> None:
         kinds = " and ".join(k for k, present in (("NaN", np.isnan(array).any()), ("infinity", np.isinf(array).any()))
                              if present)
         raise DegenerateOutputError(f"{cause}: {what} holds {int(bad.sum())} of {array.size} values that are "
-                                    f"not finite ({kinds}); nothing written")
+                                    f"not finite ({kinds}); not written")
 
 
 def check_points(points, what: str, cause: str, *, detail: float | None = None, dtype=None) -> None:
@@ -72,12 +72,12 @@ def check_points(points, what: str, cause: str, *, detail: float | None = None, 
     if extent == 0.0 and len(flat) > 1:
         raise DegenerateOutputError(
             f"{cause}: {what} collapses to one point: its coordinates reach {magnitude:.3g}, where {kind.name} "
-            f"holds values {step:.3g} apart; bring it nearer the origin; nothing written")
+            f"holds values {step:.3g} apart; bring it nearer the origin; not written")
     if step > needed:
         raise DegenerateOutputError(
             f"{cause}: {what} loses its shape: its coordinates reach {magnitude:.3g}, where {kind.name} holds "
             f"values {step:.3g} apart, coarser than the {needed:.3g} it needs ({extent:.3g} across); bring it "
-            f"nearer the origin; nothing written")
+            f"nearer the origin; not written")
 
 
 def check_varies(values, what: str, cause: str) -> None:
@@ -86,4 +86,4 @@ def check_varies(values, what: str, cause: str) -> None:
     array = _array(values)
     check_finite(array, what, cause)
     if array.size > 1 and np.all(array == array.flat[0]):
-        raise DegenerateOutputError(f"{cause}: {what} is {array.flat[0]:.6g} throughout (degenerate); nothing written")
+        raise DegenerateOutputError(f"{cause}: {what} is {array.flat[0]:.6g} throughout (degenerate); not written")

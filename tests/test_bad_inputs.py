@@ -344,9 +344,34 @@ def test_output_checks_refuse_what_float_arithmetic_lost_naming_the_cause():
         bad[7, 1] = np.nan
         check_points(bad, "the posed body", "m")
     with pytest.raises(DegenerateOutputError, match=r"^frame 2: the image holds 2 of 12 values that are not finite "
-                                                    r"\(NaN and infinity\); nothing written$"):
+                                                    r"\(NaN and infinity\); not written$"):
         check_finite(np.array([np.nan, np.inf] + [0.5] * 10), "the image", "frame 2")
     check_finite(np.zeros(4, np.uint8), "the image", "x")  # whole numbers are always finite
     with pytest.raises(DegenerateOutputError, match="the normal map is 0 throughout"):
         check_varies(np.zeros((4, 4, 3), np.float32), "the normal map", "m")
     check_varies(np.eye(3, dtype=np.float32), "the normal map", "m")
+
+
+def test_render_refuses_an_image_that_is_not_finite_and_keeps_the_frames_before(world, tmp_path, capfd, monkeypatch):
+    import numpy as np
+
+    from garmentnerf.render.session import NeuralFrame
+
+    _, places = world
+    real = NeuralFrame.composite
+
+    def nan_at_frame_1(self, *args, **kwargs):
+        image = real(self, *args, **kwargs)
+        if self.frame == 1:
+            image[3, 4, 1] = np.nan  # what a diverged model gives
+        return image
+
+    monkeypatch.setattr(NeuralFrame, "composite", nan_at_frame_1)
+    out = tmp_path / "r"
+    code = main(["render", "--run", places["run"], "--frames", "0:3", "--size", "32", "--preset", "reference",
+                 "--out", str(out), "--no-progress"])
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip() and not line.startswith("Warp CUDA")]
+    assert code == 2 and len(err) == 1, err
+    assert err[0] == ("garmentnerf: error: motion 'train' seen by camera turntable, frame 1: the rendered image holds "
+                      "1 of 3072 values that are not finite (NaN); not written"), err
+    assert sorted(p.name for p in out.iterdir()) == ["frame_0000.png"]  # the frame before stays; no temporary
