@@ -24,9 +24,11 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from garmentnerf.folder_lock import lock_folder
 from garmentnerf.io_utils import atomic_write_path, read_json_strict
 
 __all__ = ["DEMO_ROOT", "DEMO_NAMES", "DEFAULT_DEMO", "EVAL_FILES", "MAX_DEMO_WEIGHTS_BYTES", "PAPER_TABLE_1", "Demo",
+           "BODY_APPEARANCE_FILE", "COMPOSITION_FILES", "missing_for_evaluation",
            "demo", "demo_run_dir", "results_table",
            "demo_of_run", "installed_demos", "pack_demo", "pack_weights"]
 
@@ -43,6 +45,22 @@ MAX_DEMO_WEIGHTS_BYTES = 25 * 1024 * 1024
 #: The evaluations a demo's figures are read from (written by ``garmentnerf eval --json``), per split.
 EVAL_FILES = {"seen": "eval_seen.json", "unseen_view": "eval_unseen_view.json",
               "unseen_motion": "eval_unseen_motion.json"}
+#: A run's learned body appearance (:data:`garmentnerf.model.body_appearance.BODY_APPEARANCE_FILE`, named
+#: here too so that listing the demos loads no torch).
+BODY_APPEARANCE_FILE = "body_appearance.safetensors"
+#: The file of the run folder, besides the weights, that an evaluation's ``composition`` draws with: its
+#: figures describe the run only while the file is there (without its body appearance a run draws the
+#: body with the network: another picture than the one measured).
+COMPOSITION_FILES = {"raster_body": BODY_APPEARANCE_FILE}
+
+
+def missing_for_evaluation(report, run_dir) -> Path | None:
+    """The file of ``run_dir`` that the evaluation ``report`` (``garmentnerf eval --json``) was measured
+    with and that is missing there (:data:`COMPOSITION_FILES`), or None: its figures describe the run."""
+    needed = COMPOSITION_FILES.get(report.get("composition")) if isinstance(report, dict) else None
+    if needed is None or (Path(run_dir) / needed).is_file():
+        return None
+    return Path(run_dir) / needed
 #: The paper's Table 1 ("ours"): per garment and split (its "seen motion" is the training motion seen
 #: from held-out cameras: our ``unseen_view``), PSNR / SSIM / LPIPS / tOF; "nearest view" its baseline.
 PAPER_TABLE_1 = {
@@ -92,9 +110,14 @@ class Demo:
         return total
 
     def evaluation(self, split: str) -> dict | None:
-        """The shipped ``garmentnerf eval --json`` report of ``split`` (a key of :data:`EVAL_FILES`), or None."""
+        """The shipped ``garmentnerf eval --json`` report of ``split`` (a key of :data:`EVAL_FILES`), or None:
+        none is shipped, or the one shipped was measured with a file the demo lacks
+        (:func:`missing_for_evaluation`; its figures are not the demo's, so it reads "not evaluated")."""
         path = self.run_dir / EVAL_FILES[split]
-        return read_json_strict(path, "evaluation") if path.is_file() else None
+        if not path.is_file():
+            return None
+        report = read_json_strict(path, "evaluation")
+        return None if missing_for_evaluation(report, self.run_dir) is not None else report
 
     def figures(self) -> dict[str, dict[str, float]]:
         """Per split with a shipped evaluation (``unseen_view``, ``unseen_motion``): the foreground
@@ -114,17 +137,19 @@ class Demo:
         return out
 
 
-def demo(name: str, root: Path = DEMO_ROOT) -> Demo:
-    """The demo called ``name`` (under ``root``); ValueError naming the choices for an unknown name."""
+def demo(name: str, root: Path = DEMO_ROOT, what: str | None = None) -> Demo:
+    """The demo called ``name`` (under ``root``); ValueError naming the choices for an unknown name,
+    after ``what`` when given: the flag or key the name came from (``--demo``, ``--name``)."""
     if name not in _RUN_FOLDERS:
-        raise ValueError(f"--demo: unknown demo {name!r}; choose one of {', '.join(DEMO_NAMES)}")
+        where = f"{what}: " if what else ""
+        raise ValueError(f"{where}unknown demo {name!r}; choose one of {', '.join(DEMO_NAMES)}")
     return Demo(name, Path(root) / _RUN_FOLDERS[name])
 
 
-def demo_run_dir(name: str, root: Path = DEMO_ROOT) -> Path:
-    """The run folder of demo ``name``. FileNotFoundError when it is not installed (the message
-    names the demos that are)."""
-    d = demo(name, root)
+def demo_run_dir(name: str, root: Path = DEMO_ROOT, what: str | None = None) -> Path:
+    """The run folder of demo ``name`` (``what``: where the name came from, as for :func:`demo`).
+    FileNotFoundError when it is not installed (the message names the demos that are)."""
+    d = demo(name, root, what)
     if not d.installed:
         have = ", ".join(x.name for x in installed_demos(root)) or "none"
         raise FileNotFoundError(f"{d.run_dir}: the {name} demo is not installed (installed demos: {have}); "
@@ -143,7 +168,8 @@ def demo_of_run(run_dir, root: Path = DEMO_ROOT) -> str | None:
     return next((n for n in DEMO_NAMES if demo(n, root).run_dir.resolve() == run_dir), None)
 
 
-def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False) -> Demo:
+def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool = False,
+              what: str | None = None) -> Demo:
     """Make the trained run ``run_dir`` demo ``name`` under ``root``: its weights cast to float16
     (:func:`pack_weights`), its body appearance, ``TRAINING.md``, ``recipe.json`` (a ``train --recipe``
     folder's: the recipe as run) and ``eval_*.json`` if present,
@@ -153,17 +179,24 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     (:data:`~garmentnerf.render.band_cache.SCENE_BAND_FILE`: the previewer's first garment frame
     does not wait for the measurement).
 
+    An evaluation is shipped only with what it was measured with: a run whose ``eval_*.json`` used
+    its body appearance (composition ``raster_body``) but has no ``body_appearance.safetensors`` any
+    more is refused, naming the missing file (:func:`missing_for_evaluation`), rather than packed into a
+    demo whose listed figures would describe another picture than the one it draws.
+
     Staged in a temporary folder under ``root`` and moved into place at the end. Raises
-    FileNotFoundError (not a run, or its scene missing), FileExistsError (the demo is installed
-    and ``overwrite`` is False) and ValueError (weights over :data:`MAX_DEMO_WEIGHTS_BYTES`),
-    each before anything under ``root`` changes.
+    ValueError (an unknown ``name``, named after ``what``, the flag or key it came from, as by
+    :func:`demo`; an unreadable ``eval_*.json``; weights over :data:`MAX_DEMO_WEIGHTS_BYTES`),
+    FileNotFoundError (not a run, its scene missing, or a file an evaluation was measured with
+    missing) and FileExistsError (the demo is installed and ``overwrite`` is False), each before
+    anything under ``root`` changes.
     """
+    target = demo(name, root, what)  # an unknown name first, before torch loads
     # lazy: the registry above is read by every command's flag checks; loading a run needs torch
     from garmentnerf.render.band_cache import SCENE_BAND_FILE, band_key, save_band
     from garmentnerf.render.presets import BOX_TRAINED_MARGIN_IN, height_range_for_run
     from garmentnerf.runs import load_run
 
-    target = demo(name, root)
     run_dir = Path(run_dir)
     for file in ("run.json", "model.safetensors"):
         if not (run_dir / file).is_file():
@@ -171,37 +204,49 @@ def pack_demo(run_dir: Path, name: str, root: Path = DEMO_ROOT, overwrite: bool 
     run = load_run(run_dir)  # the weights match the config and the scene is there
     if run.scene is None:
         raise FileNotFoundError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing")
-    scene_dst = Path(root) / name
-    for path in (target.run_dir, scene_dst):
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path}: already exists (pass --overwrite to replace the {name} demo)")
-    Path(root).mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".pack-{name}-", dir=root))
-    try:
-        run_out, scene_out = staging / "run", staging / "scene"
-        run_out.mkdir()
-        weights = pack_weights(run_dir / "model.safetensors", run_out / "model.safetensors")
-        if weights > MAX_DEMO_WEIGHTS_BYTES:
-            raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
-                             f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
-        extras = ["body_appearance.safetensors", "TRAINING.md", "recipe.json", *sorted(p.name for p in run_dir.glob("eval_*.json"))]
-        for extra in extras:
-            if (run_dir / extra).is_file():
-                shutil.copy2(run_dir / extra, run_out / extra)
-        info = dict(run.info, scene=f"../{name}")
-        (run_out / "run.json").write_text(json.dumps(info, indent=1) + "\n")
-        scene_src = Path(run.scene.root)
-        scene_out.mkdir()
-        shutil.copy2(scene_src / "scene.json", scene_out / "scene.json")
-        shutil.copytree(scene_src / "sequences", scene_out / "sequences")
-        save_band(scene_out / SCENE_BAND_FILE, height_range_for_run(run),
-                  band_key(run.scene, run.model.body, run.betas, BOX_TRAINED_MARGIN_IN))
-        for src, dst in ((run_out, target.run_dir), (scene_out, scene_dst)):
-            if dst.exists():
-                shutil.rmtree(dst)
-            os.replace(src, dst)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    evaluations = sorted(run_dir.glob("eval_*.json"))
+    for path in evaluations:
+        report = read_json_strict(path, "evaluation")
+        missing = missing_for_evaluation(report, run_dir)
+        if missing is not None:
+            raise FileNotFoundError(
+                f"{missing}: missing, but {path.name} was measured with it (composition {report['composition']}), so "
+                f"the demo's figures would describe another picture; put it back, or evaluate the run again "
+                f"without it (garmentnerf eval --run {run_dir} --split {report.get('split', 'SPLIT')} "
+                f"--composition nerf --json {path} --overwrite)")
+    # one writer of the demos at a time (garmentnerf.folder_lock): the check that the demo is not installed
+    # and the move into place see the same folder
+    with lock_folder(root, f"garmentnerf demo pack --name {name}", what="demos"):
+        scene_dst = Path(root) / name
+        for path in (target.run_dir, scene_dst):
+            if path.exists() and not overwrite:
+                raise FileExistsError(f"{path}: already exists (pass --overwrite to replace the {name} demo)")
+        staging = Path(tempfile.mkdtemp(prefix=f".pack-{name}-", dir=root))
+        try:
+            run_out, scene_out = staging / "run", staging / "scene"
+            run_out.mkdir()
+            weights = pack_weights(run_dir / "model.safetensors", run_out / "model.safetensors")
+            if weights > MAX_DEMO_WEIGHTS_BYTES:
+                raise ValueError(f"{run_dir / 'model.safetensors'}: {weights / 2**20:.1f} MiB in float16, more than the "
+                                 f"{MAX_DEMO_WEIGHTS_BYTES / 2**20:.0f} MiB a demo may ship")
+            extras = [BODY_APPEARANCE_FILE, "TRAINING.md", "recipe.json", *(p.name for p in evaluations)]
+            for extra in extras:
+                if (run_dir / extra).is_file():
+                    shutil.copy2(run_dir / extra, run_out / extra)
+            info = dict(run.info, scene=f"../{name}")
+            (run_out / "run.json").write_text(json.dumps(info, indent=1) + "\n")
+            scene_src = Path(run.scene.root)
+            scene_out.mkdir()
+            shutil.copy2(scene_src / "scene.json", scene_out / "scene.json")
+            shutil.copytree(scene_src / "sequences", scene_out / "sequences")
+            save_band(scene_out / SCENE_BAND_FILE, height_range_for_run(run),
+                      band_key(run.scene, run.model.body, run.betas, BOX_TRAINED_MARGIN_IN))
+            for src, dst in ((run_out, target.run_dir), (scene_out, scene_dst)):
+                if dst.exists():
+                    shutil.rmtree(dst)
+                os.replace(src, dst)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
     return target
 
 

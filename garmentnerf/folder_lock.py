@@ -6,14 +6,19 @@ A writer takes :func:`lock_folder` on the folder before it reads what it will ch
   for the whole sitting), ``body fit-appearance`` writing into a run, ``report`` on its runs folder
   and on each variant while it trains or is evaluated;
 - scene folders: ``data make`` on the scene, each of its simulation processes on its
-  ``sim/<sequence>`` folder.
+  ``sim/<sequence>`` folder, ``data add-sequence`` on the scene that receives the sequence;
+- the bundled demos' folder: ``demo pack`` while it checks and replaces a demo's run and scene.
+
+The scene's image cache (``cache/``, filled by ``data render`` and by every reader that renders a
+missing ground-truth image) takes no lock: its files are named by a digest of what they show and
+written atomically, so two processes filling it write the same bytes to the same name.
 
 The lock is ``flock`` on the file :data:`LOCK_FILE` in the folder: the kernel releases it when the
 holding process ends, however it ends (a crash or SIGKILL leaves at most a stale file, which the
 next writer takes over). A second writer is refused with :class:`FolderBusyError`, one line naming
 the holder's PID and command (or, with ``wait_s``, after waiting that long for the holder to end).
-Readers (``view``, ``eval``, ``render``, ``demo pack``) take no lock: every file of a run is
-written atomically, so they see the old or the new file, never half of one.
+Readers (``view``, ``eval``, ``render``, ``demo pack`` of the run it packs) take no lock: every file
+of a run is written atomically, so they see the old or the new file, never half of one.
 
 A clean release deletes the lock file (under the lock; a new holder checks that the file it locked
 is still the one at the path, so two holders never coexist), and removes again the folders the

@@ -29,12 +29,19 @@ def atomic_write_path(path: str | Path, overwrite: bool = True):
 
     The rename is atomic on POSIX, so readers see either the old file or the complete new one.
     With ``overwrite=False`` an existing file raises :class:`FileExistsError` before any work.
+    A write the operating system refuses (a full disk or quota, a read-only file system: an
+    :class:`OSError` of the block naming no file, or naming the temporary) removes the temporary,
+    leaves any old file as it was and is raised again as one line naming ``path``
+    (:func:`write_error`), for every command that writes through here.
     """
     path = Path(path)
     if not overwrite and path.exists():
         raise FileExistsError(f"{path}: already exists (refusing to overwrite)")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:  # no inode left, or a folder not writable: it names a temporary the user never saw
+        raise write_error(exc, path, exc.filename) from None
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
@@ -51,14 +58,26 @@ def atomic_write_path(path: str | Path, overwrite: bool = True):
     except OSError as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        if exc.filename is not None and Path(exc.filename) == Path(tmp):
-            # name the file the user asked for, not our temporary
-            raise type(exc)(exc.errno, f"{path}: cannot write ({exc.strerror})") from None
-        raise
+        raise write_error(exc, path, tmp) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def write_error(exc: OSError, path: str | Path, temporary: str | Path | None = None) -> OSError:
+    """``exc``, raised while writing ``path`` (through ``temporary``), as the error to report: when the
+    operating system raised it (it has an errno) naming no file or ``temporary``, an error of the same
+    type and errno whose message is one line naming ``path``: ``<path>: cannot write (No space left
+    on device)``; any other error as it is (it names its own file, or is a writer's own message)."""
+    named = exc.filename
+    ours = named is None or (temporary is not None and Path(named) == Path(temporary))
+    if exc.errno is None or not ours:
+        return exc
+    reason = exc.strerror or os.strerror(exc.errno)
+    error = type(exc)(f"{path}: cannot write ({reason})")
+    error.errno = exc.errno  # set after construction: the message stays this one line, without "[Errno N]"
+    return error
 
 
 def _write_synced(path: Path, data: bytes) -> None:
@@ -73,17 +92,12 @@ def _write_synced(path: Path, data: bytes) -> None:
 def write_file_atomic(path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically: a synced temporary beside it, renamed over ``path``.
 
-    Readers see the old file or the complete new one; a failed write (OSError naming ``path``)
-    leaves the old file and no temporary.
+    Readers see the old file or the complete new one; a failed write (OSError naming ``path``,
+    :func:`write_error`) leaves the old file and no temporary.
     """
     path = Path(path)
-    try:
-        with atomic_write_path(path) as tmp:
-            _write_synced(tmp, data)
-    except OSError as exc:
-        if exc.filename is None and str(path) not in str(exc):  # write() errors name no file
-            raise type(exc)(exc.errno, f"{path}: cannot write ({exc.strerror or exc})") from exc
-        raise
+    with atomic_write_path(path) as tmp:
+        _write_synced(tmp, data)
     return path
 
 

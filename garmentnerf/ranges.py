@@ -130,7 +130,7 @@ def parse_list(text, what: str, item: Callable[[str], T] | None = None, *, kind:
     if not isinstance(text, str):
         raise ValueError(f"{what} must be a comma-separated list as text, got {text!r}")
     if not text.strip():
-        raise ValueError(f"{what} is empty; give one or more {kind}s separated by commas")
+        raise ValueError(f"{what} is empty; give one or more {_plural(kind)} separated by commas")
     items = [p.strip() for p in text.split(",")]
     if any(not p for p in items):
         raise ValueError(f"{what} {text.strip()!r}: an empty {kind} (two commas in a row, or one at an end)")
@@ -145,3 +145,9 @@ def parse_list(text, what: str, item: Callable[[str], T] | None = None, *, kind:
             detail = plain or (str(exc).splitlines()[0] if str(exc) else "not valid")
             raise ValueError(f"{what} {text.strip()!r}: {kind} {p!r}: {detail}") from None
     return out
+
+
+def _plural(kind: str) -> str:
+    """``kind`` in the plural: ``colour ('-' keeps one)`` -> ``colours ('-' keeps one)``."""
+    noun, sep, note = kind.partition(" (")
+    return f"{noun}s{sep}{note}"

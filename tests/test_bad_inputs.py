@@ -7,7 +7,8 @@ untrained run of the tiny scene, ``{scene}`` the scene, ``{file}`` / ``{json}`` 
 ``{png}`` / ``{ply}`` / ``{npz}`` existing files, ``{dir}`` an existing folder, ``{new}`` a path
 that does not exist yet, ``{orphan}`` a run whose scene folder is gone, ``{nan_scene}`` a scene
 whose camera K holds a NaN, ``{broken_scene}`` a scene with a sequence file that is not an npz,
-``{taken}`` a render folder that already holds frame 0.
+``{taken}`` a render folder that already holds frame 0, ``{far}`` a motion file whose root is 1e20 m away
+(float32 holds every vertex of the posed body as one point).
 """
 
 from __future__ import annotations
@@ -51,6 +52,9 @@ CASES = [
     (["render", "--run", "{new}", "--out", "{new}"], "{new}"),
     (["render", "--run", "{orphan}", "--out", "{new}"], "scene"),
     (["render", "--run", "{run}", "--frames", "0", "--out", "{taken}"], "frame_0000.png: already exists"),
+    (["render", "--run", "{run}", "--quality", "4", "--max-memory-gib", "0.25", "--out", "{new}"],
+     "a render of 256x256 pixels at quality 4 needs about 0.9 GiB at its peak (estimated: 0.0655 million output"),
+    (["render", "--run", "{run}", "--max-memory-gib", "1e9", "--out", "{new}"], "--max-memory-gib must be in"),
     # --- train --------------------------------------------------------------------------------------
     (["train", "--scene", "{scene}", "--out", "{file}"], "--out"),
     (["train", "--scene", "{scene}", "--out", "{file}/run"], "is a file, not a folder"),
@@ -80,6 +84,8 @@ CASES = [
     (["eval", "--run", "{run}", "--split", "seen", "--cameras", ","], "--cameras ',': an empty camera"),
     (["eval", "--run", "{run}", "--split", "seen", "--cameras", ""], "--cameras is empty"),
     (["eval", "--run", "{new}", "--split", "seen"], "{new}"),
+    (["eval", "--run", "{run}", "--split", "seen", "--max-memory-gib", "0.25"],
+     "evaluating views of 64x64 pixels needs about 0.9 GiB at its peak"),
     (["report", "--scene", "{scene}", "--out", "{md}"], "--out"),
     (["report", "--scene", "{scene}", "--out", "{new}.md", "--preset", "huge"], "unknown preset 'huge'"),
     (["report", "--scene", "{scene}", "--out", "{new}.md", "--device", "potato"], "--device 'potato'"),
@@ -103,6 +109,12 @@ CASES = [
     (["body", "export", "--out", "{new}.xyz"], "unsupported mesh format"),
     (["maps", "--motion", "walk", "--frame", "99999", "--out", "{new}.npz"], "out of range"),
     (["maps", "--out", "{npz}"], "already exists"),
+    (["body", "export", "--motion", "{far}", "--frame", "1", "--out", "{new}.ply"],
+     "--motion {far} frame 1: the posed body collapses to one point: its coordinates reach 1e+20"),
+    (["maps", "--motion", "{far}", "--frame", "2", "--out", "{new}.npz"],
+     "--motion {far} frame 0: the posed body collapses to one point"),  # the first frame of its history
+    (["render", "--run", "{run}", "--motion", "{far}", "--frames", "0:2", "--out", "{new}"],
+     "--motion {far} frame 0: the posed body collapses to one point"),
     (["bench", "--runs", "0"], "--runs"),
     (["bench", "--plot", "{new}.png"], "--plot needs --run"),
     (["bench", "--run", "{run}", "--frames", "0"], "--frames"),
@@ -113,6 +125,9 @@ CASES = [
     (["view", "--json", "{new}.json"], "--json needs --bench"),
     (["view", "--bench", "--json", "{json}"], "--json"),
     (["view", "--run", "{orphan}"], "scene"),
+    # --- demo ---------------------------------------------------------------------------------------
+    (["demo", "pack", "{run}", "--name", "nosuch"], "--name: unknown demo 'nosuch'; choose one of skirt"),
+    (["demo", "table", "--out", "{md}"], "--out"),
 ]
 
 
@@ -154,9 +169,17 @@ def world(tmp_path_factory, tiny_scene):
     taken = root / "taken"
     taken.mkdir()
     (taken / "frame_0000.png").write_bytes(b"a frame the user keeps\n")
+    # a motion whose root translation float32 cannot hold beside a body's size: every vertex one point
+    from garmentnerf.body.model import BodyModel
+    from garmentnerf.motion.library import load_motion
+
+    far = load_motion("walk", BodyModel.default()).slice(0, 3)
+    far.translation[:] = 1e20
+    far.save(root / "far.npz")
     places = {key: str(root / name) for key, name in files.items()}
     places.update(run=str(run), scene=str(scene), dir=str(root / "folder"), orphan=str(orphan),
-                  nan_scene=str(nan_scene), broken_scene=str(broken_scene), taken=str(taken), new=str(root / "new"))
+                  nan_scene=str(nan_scene), broken_scene=str(broken_scene), taken=str(taken), new=str(root / "new"),
+                  far=str(root / "far.npz"))
     return root, places
 
 
@@ -232,3 +255,123 @@ def test_render_interrupted_before_its_first_frame_reports_no_speed(world, tmp_p
     out, err = capfd.readouterr()
     assert code == 130 and "0 frame(s)" in out and "no frame finished" in out and "nan" not in out
     assert err.strip() == "garmentnerf: interrupted after 0 of 2 frames"
+
+
+class _FullDiskFile:
+    """A file opened for writing on a disk that fills up: the first write stores half its bytes, then
+    raises what ``write()`` raises there (ENOSPC, naming no file)."""
+
+    def __init__(self, real):
+        self._real = real
+
+    def write(self, data):
+        import errno
+
+        self._real.write(bytes(data)[:len(data) // 2] if not isinstance(data, str) else data[:len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._real.close()
+
+
+def full_disk(monkeypatch, folder: Path) -> None:
+    """Make every file opened for writing under ``folder`` (by ``open``, ``io.open`` and so ``Path.write_text``)
+    a :class:`_FullDiskFile`: the disk under ``folder`` is full."""
+    import builtins
+    import io
+
+    real_open = io.open
+
+    def opening(file, mode="r", *args, **kwargs):
+        handle = real_open(file, mode, *args, **kwargs)
+        inside = isinstance(file, (str, Path)) and Path(file).resolve().is_relative_to(folder.resolve())
+        return _FullDiskFile(handle) if inside and any(m in mode for m in "wax+") else handle
+
+    monkeypatch.setattr(builtins, "open", opening)
+    monkeypatch.setattr(io, "open", opening)
+
+
+@pytest.mark.parametrize("argv, written", [
+    (["body", "export", "--out", "{disk}/body.ply"], "body.ply"),
+    (["maps", "--out", "{disk}/maps.npz"], "maps.npz"),
+    (["eval", "--run", "{run}", "--split", "seen", "--frames", "0", "--cameras", "{camera}", "--no-progress",
+      "--json", "{disk}/eval.json"], "eval.json"),
+])
+def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(world, argv, written, tmp_path, capfd,
+                                                                     monkeypatch):
+    """Every command writes through the atomic writers of garmentnerf.io_utils, which name the file a full
+    disk refused and remove their temporary (the half a full disk left)."""
+    from garmentnerf.data.scene import Scene
+
+    _, places = world
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    camera = Scene.load(places["scene"]).camera_names("train")[0]
+    argv = [a.format(disk=disk, camera=camera, **places) for a in argv]
+    full_disk(monkeypatch, disk)
+    code = main(argv)
+    err = capfd.readouterr().err
+    # warp's notice that this machine has no CUDA is printed once per process, by whichever test loads it first
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("Warp CUDA warning")]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err[-2000:]
+    assert lines[0] == f"garmentnerf: error: {disk / written}: cannot write (No space left on device)"
+    assert list(disk.iterdir()) == []  # no temporary, no half file
+
+
+def test_output_checks_refuse_what_float_arithmetic_lost_naming_the_cause():
+    import numpy as np
+
+    from garmentnerf.output_checks import DegenerateOutputError, check_finite, check_points, check_varies
+
+    body = np.random.default_rng(0).uniform(-0.3, 0.3, (500, 3)).astype(np.float32)
+    body[:, 2] *= 3  # about 1.8 m tall
+    for moved in (0.0, 1e3, 8e3):  # float32 keeps a millimetre here
+        check_points(body + np.float32(moved), "the posed body", "--motion m frame 0")
+    with pytest.raises(DegenerateOutputError, match=r"^--motion m frame 3: the posed body loses its shape: its "
+                                                    r"coordinates reach 1e\+05, where float32 holds values 0.00781"):
+        check_points(body + np.float32(1e5), "the posed body", "--motion m frame 3")
+    with pytest.raises(DegenerateOutputError, match="collapses to one point"):
+        check_points(body + np.float32(1e20), "the posed body", "m")
+    check_points((body + 1e5).astype(np.float64), "the posed body", "m")  # float64 still holds it
+    with pytest.raises(DegenerateOutputError, match=r"holds 1 of 1500 values that are not finite \(NaN\)"):
+        bad = body.copy()
+        bad[7, 1] = np.nan
+        check_points(bad, "the posed body", "m")
+    with pytest.raises(DegenerateOutputError, match=r"^frame 2: the image holds 2 of 12 values that are not finite "
+                                                    r"\(NaN and infinity\); not written$"):
+        check_finite(np.array([np.nan, np.inf] + [0.5] * 10), "the image", "frame 2")
+    check_finite(np.zeros(4, np.uint8), "the image", "x")  # whole numbers are always finite
+    with pytest.raises(DegenerateOutputError, match="the normal map is 0 throughout"):
+        check_varies(np.zeros((4, 4, 3), np.float32), "the normal map", "m")
+    check_varies(np.eye(3, dtype=np.float32), "the normal map", "m")
+
+
+def test_render_refuses_an_image_that_is_not_finite_and_keeps_the_frames_before(world, tmp_path, capfd, monkeypatch):
+    import numpy as np
+
+    from garmentnerf.render.session import NeuralFrame
+
+    _, places = world
+    real = NeuralFrame.composite
+
+    def nan_at_frame_1(self, *args, **kwargs):
+        image = real(self, *args, **kwargs)
+        if self.frame == 1:
+            image[3, 4, 1] = np.nan  # what a diverged model gives
+        return image
+
+    monkeypatch.setattr(NeuralFrame, "composite", nan_at_frame_1)
+    out = tmp_path / "r"
+    code = main(["render", "--run", places["run"], "--frames", "0:3", "--size", "32", "--preset", "reference",
+                 "--out", str(out), "--no-progress"])
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip() and not line.startswith("Warp CUDA")]
+    assert code == 2 and len(err) == 1, err
+    assert err[0] == ("garmentnerf: error: motion 'train' seen by camera turntable, frame 1: the rendered image holds "
+                      "1 of 3072 values that are not finite (NaN); not written"), err
+    assert sorted(p.name for p in out.iterdir()) == ["frame_0000.png"]  # the frame before stays; no temporary

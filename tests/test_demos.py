@@ -10,7 +10,16 @@ import torch
 from safetensors.torch import load_file
 
 from garmentnerf.cli.main import main
-from garmentnerf.demos import DEFAULT_DEMO, DEMO_NAMES, demo, demo_run_dir, installed_demos, pack_demo, pack_weights
+from garmentnerf.demos import (
+    DEFAULT_DEMO,
+    DEMO_NAMES,
+    demo,
+    demo_run_dir,
+    installed_demos,
+    pack_demo,
+    pack_weights,
+    results_table,
+)
 from garmentnerf.model.config import ModelConfig
 from garmentnerf.render.band_cache import SCENE_BAND_FILE, band_key, load_band
 from garmentnerf.render.presets import BOX_TRAINED_MARGIN_IN, height_range_for_run
@@ -131,3 +140,68 @@ def test_the_results_table_puts_each_split_beside_the_papers_table_1(untrained_r
     assert f"{paper['unseen_view'][0] - paper['nearest view'][0]:.2f} dB" in held_out  # 11.54
     assert "not evaluated" in next(line for line in lines if "training cameras" in line)
     assert "not evaluated" in next(line for line in lines if "held-out motion" in line)
+
+
+def test_pack_refuses_figures_measured_with_a_body_appearance_the_run_no_longer_has(tiny_scene, tmp_path, capfd,
+                                                                                    monkeypatch):
+    """A run's eval_*.json measured with composition raster_body needs its body_appearance.safetensors: packed
+    without it, the demo would list figures of a picture it does not draw. Refused in one line naming the
+    missing file, nothing written; a demo installed that way by hand lists those figures as not evaluated."""
+    import functools
+    import shutil
+
+    from garmentnerf.cli import demo_cmd
+    from garmentnerf.demos import BODY_APPEARANCE_FILE as named_here
+    from garmentnerf.model.body_appearance import BODY_APPEARANCE_FILE
+
+    assert named_here == BODY_APPEARANCE_FILE
+    run_dir = create_untrained_run(tmp_path / "run", tiny_scene.root, ModelConfig.tiny(), seed=2)
+    measured = {"split": "unseen_view", "composition": "raster_body",
+                "means": {"fg_psnr": 24.0, "garment_psnr": 22.0, "silhouette_iou": 0.97}}
+    (run_dir / "eval_unseen_view.json").write_text(json.dumps(measured))
+    root = tmp_path / "demo"
+    monkeypatch.setattr(demo_cmd, "pack_demo", functools.partial(pack_demo, root=root))
+    assert main(["demo", "pack", str(run_dir), "--name", "skirt"]) == 2
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip() and not line.startswith("Warp CUDA")]
+    assert len(err) == 1 and err[0].startswith(f"garmentnerf: error: {run_dir / BODY_APPEARANCE_FILE}: missing, but "
+                                               f"eval_unseen_view.json was measured with it"), err
+    assert not root.exists()
+    # measured without it (the network draws the body): packed, and listed
+    (run_dir / "eval_unseen_view.json").write_text(json.dumps(dict(measured, composition="nerf")))
+    assert main(["demo", "pack", str(run_dir), "--name", "skirt"]) == 0
+    packed = demo("skirt", root)
+    assert packed.figures() == {"unseen_view": {"fg_psnr": 24.0, "garment_psnr": 22.0, "silhouette_iou": 0.97}}
+    # a raster_body evaluation copied in by hand is not the demo's: not evaluated, in the list and the table
+    shutil.copy(run_dir / "eval_unseen_view.json", packed.run_dir / "eval_unseen_motion.json")
+    (packed.run_dir / "eval_unseen_view.json").write_text(json.dumps(measured))
+    assert packed.figures() == {"unseen_motion": {"fg_psnr": 24.0, "garment_psnr": 22.0, "silhouette_iou": 0.97}}
+    assert "not evaluated" in next(line for line in results_table([packed]).splitlines() if "held-out cameras" in line)
+
+
+def test_pack_is_refused_while_another_process_writes_the_demos(untrained_run, tmp_path):
+    """demo pack holds the demos folder's writer lock while it checks and replaces a demo: a second pack
+    at once is refused naming the first's PID, before anything changes."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from garmentnerf.folder_lock import FolderBusyError
+
+    root = tmp_path / "demo"
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
+        import sys, time
+        from garmentnerf.folder_lock import lock_folder
+        lock = lock_folder(sys.argv[1], "garmentnerf demo pack --name dress")
+        print("held", flush=True)
+        time.sleep(600)
+    """), str(root)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderBusyError, match=rf"PID {holder.pid}, 'garmentnerf demo pack --name dress'"):
+            pack_demo(untrained_run, "tshirt", root)
+        assert sorted(p.name for p in root.iterdir()) == [".garmentnerf-writer.lock"]
+    finally:
+        holder.kill()
+        holder.wait()
+    pack_demo(untrained_run, "tshirt", root)
+    assert sorted(p.name for p in root.iterdir()) == ["run_tshirt", "tshirt"]

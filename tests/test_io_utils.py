@@ -55,6 +55,45 @@ def test_a_failed_write_names_the_target_not_the_temporary(tmp_path):
     assert list(tmp_path.iterdir()) == []  # neither the target nor the temporary
 
 
+@pytest.mark.parametrize("overwrite", [True, False])
+def test_a_full_disk_at_the_write_names_the_target_and_keeps_the_old_file(tmp_path, overwrite):
+    """write() reports ENOSPC naming no file (the disk filled while the data went out): the error names
+    the file asked for, in one line without "[Errno 28]", and the old file and nothing else is left."""
+    import errno
+
+    from garmentnerf.io_utils import write_file_atomic
+
+    target = tmp_path / "mesh.ply"
+    if overwrite:
+        target.write_bytes(b"the user's mesh")
+    with pytest.raises(OSError) as info, atomic_write_path(target, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
+        fh.write(b"half a me")
+        raise OSError(errno.ENOSPC, "No space left on device")  # what a full disk's write() raises
+    assert info.value.errno == errno.ENOSPC and type(info.value) is OSError
+    assert str(info.value) == f"{target}: cannot write (No space left on device)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["mesh.ply"] if overwrite else [])
+    if overwrite:
+        assert target.read_bytes() == b"the user's mesh"
+    # the writers built on it say the same; an error naming another file, or a writer's own, passes unchanged
+    import garmentnerf.io_utils as io_module
+
+    def full(path, data):
+        raise OSError(errno.EDQUOT, os.strerror(errno.EDQUOT))
+
+    real, io_module._write_synced = io_module._write_synced, full
+    try:
+        with pytest.raises(OSError, match=rf"^{tmp_path / 'w.bin'}: cannot write \(Disk quota exceeded\)$"):
+            write_file_atomic(tmp_path / "w.bin", b"x")
+    finally:
+        io_module._write_synced = real
+    with pytest.raises(FileNotFoundError, match="input.npz") as other, atomic_write_path(tmp_path / "out.bin"):
+        (tmp_path / "input.npz").read_bytes()
+    assert other.value.filename == str(tmp_path / "input.npz")
+    with pytest.raises(FileExistsError, match="^my own words$"), atomic_write_path(tmp_path / "out.bin"):
+        raise FileExistsError("my own words")
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["mesh.ply"] if overwrite else [])
+
+
 def test_stale_temporaries_of_killed_writes_are_removed(tmp_path):
     import time
 

@@ -31,10 +31,11 @@ ROOT_UNIT = "__init__"
 LAYERS: tuple[tuple[str, ...], ...] = (
     # The ground: camera and array conventions, safe file writes, signals, closeable objects, the
     # machine's CPU load, the package version, the byte-bounded cache, frame ranges and lists, argument
-    # budgets, the folder lock, the package's data files (body asset, demos, shaders) and the package's
-    # own (empty) __init__. They import nothing of garmentnerf.
+    # budgets, the folder lock, the checks of a command's output before it is written, the package's data
+    # files (body asset, demos, shaders) and the package's own (empty) __init__. They import nothing of
+    # garmentnerf.
     ("conventions", "io_utils", "interrupts", "lifecycle", "cpu_load", "version", "byte_lru", "ranges", "budgets",
-     "folder_lock", "assets", "shaders", ROOT_UNIT),
+     "folder_lock", "output_checks", "assets", "shaders", ROOT_UNIT),
     # Reading pickled files without running their code (reads .npy headers with io_utils); the
     # command's start time and the machine's load since then (reads cpu_load).
     ("safe_pickle", "startup"),

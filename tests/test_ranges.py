@@ -51,6 +51,13 @@ def test_empty_lists_and_items_are_refused(text, message):
         parse_list(text, "--cameras", kind="camera")
 
 
+def test_an_empty_list_names_its_items_in_the_plural():
+    with pytest.raises(ValueError, match=r"^--cameras is empty; give one or more cameras separated by commas$"):
+        parse_list(" ", "--cameras", kind="camera")
+    with pytest.raises(ValueError, match=r"^--palette is empty; give one or more colours \('-' keeps one\) separated"):
+        parse_list("", "--palette", kind="colour ('-' keeps one)")
+
+
 def test_list_items_are_stripped_and_converted():
     assert parse_list(" cam01 , cam02", "--cameras") == ["cam01", "cam02"]
     assert parse_list("1, 2.5", "--shape", float) == [1.0, 2.5]

@@ -19,6 +19,7 @@ from garmentnerf.cli.common import (
     refuse_existing,
 )
 from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.output_checks import check_points
 
 
 def register(sub) -> None:
@@ -81,6 +82,8 @@ def run_export(args: argparse.Namespace) -> int:
     motion = load_motion_arg(args, body, betas)
     check_frame(motion, args.frame)
     posed = motion.slice(args.frame, args.frame + 1).pose(body, betas)
+    # a root translation float32 cannot hold (1e20 m: every vertex the same point) is refused, not written
+    check_points(posed.vertices[0], "the posed body", f"--motion {args.motion} frame {args.frame}")
     mesh = trimesh.Trimesh(posed.vertices[0].numpy(), body.faces.numpy(), process=False)
     with atomic_write_path(out) as tmp:
         mesh.export(tmp, file_type=out.suffix.lower().lstrip("."))

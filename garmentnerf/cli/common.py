@@ -53,7 +53,7 @@ def run_folder_arg(args, default_demo: str | None = None) -> Path | None:
         return Path(run)
     if name is None and default_demo is None:
         return None
-    return demo_run_dir(name if name is not None else default_demo)
+    return demo_run_dir(name if name is not None else default_demo, what="--demo")
 
 
 def add_device_arg(parser: argparse.ArgumentParser) -> None:
@@ -168,3 +168,61 @@ def check_output_file(path, flag: str, overwrite: bool = False) -> Path:
     if not os.access(parent, os.W_OK | os.X_OK):
         raise PermissionError(f"{flag} {path}: folder {parent} is not writable")
     return path
+
+
+# ---- memory: a render's estimated peak against what the process may use (garmentnerf.budgets) ----------
+def add_memory_arg(parser: argparse.ArgumentParser) -> None:
+    """``--max-memory-gib``: the memory a render may use instead of what the machine has free."""
+    parser.add_argument("--max-memory-gib", type=float, default=None, metavar="GIB",
+                        help="memory in GiB the render may use, checked against an estimate of its peak before "
+                             "it starts (default: what the machine, an address-space limit or a control group "
+                             "leaves this process); more than that for a machine with swap, less to keep room")
+
+
+def check_memory_arg(args) -> float | None:
+    """``--max-memory-gib`` within :data:`garmentnerf.budgets.MEMORY_GIB` (None: not given)."""
+    from garmentnerf.budgets import MEMORY_GIB
+
+    value = getattr(args, "max_memory_gib", None)
+    return None if value is None else MEMORY_GIB.check(value, "--max-memory-gib")
+
+
+def render_geometry(run_dir, scene=None):
+    """The :class:`~garmentnerf.budgets.RenderGeometry` of a run, read from its ``run.json`` and the
+    ``scene.json`` of ``scene`` (default: the run's) as JSON, without torch; None when they do not say
+    (a missing or older file: :func:`render_geometry_of` the loaded run says)."""
+    from garmentnerf.budgets import RenderGeometry
+    from garmentnerf.io_utils import read_json_strict
+
+    try:
+        info = read_json_strict(Path(run_dir) / "run.json", "run")
+        config = info["model_config"]
+        side, rays_side = config["decoder"]["image_resolution"], config["decoder"]["feature_image_resolution"]
+        density = config["schedule"]["training_crop_density"]
+        folder = Path(scene) if scene is not None else Path(run_dir) / info["scene"]
+        width, height = read_json_strict(folder / "scene.json", "scene")["image_size"]
+        numbers = (side, rays_side, density, width, height)
+        if not all(isinstance(n, (int, float)) and not isinstance(n, bool) and n >= 0 for n in numbers):
+            return None
+        if not (side > 0 and rays_side > 0 and width > 0 and height > 0):
+            return None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return RenderGeometry(_trained_side(side, density, width, height), max(1, int(side) // int(rays_side)),
+                          (int(width), int(height)))
+
+
+def render_geometry_of(run):
+    """The :class:`~garmentnerf.budgets.RenderGeometry` of a loaded run (its model config and scene)."""
+    from garmentnerf.budgets import RenderGeometry
+
+    cfg = run.config
+    width, height = run.scene.image_size if run.scene is not None else (cfg.decoder.image_resolution,) * 2
+    side = _trained_side(cfg.decoder.image_resolution, cfg.schedule.training_crop_density, width, height)
+    return RenderGeometry(side, 2 ** cfg.decoder.upsample_steps, (int(width), int(height)))
+
+
+def _trained_side(image_resolution, crop_density, width, height) -> float:
+    """The longer side of a ``width x height`` scene view at the density a model trains at
+    (:meth:`~garmentnerf.model.config.ModelConfig.training_camera`, without importing torch)."""
+    return float(max(width, height) * crop_density if crop_density > 0 else image_resolution)

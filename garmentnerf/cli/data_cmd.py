@@ -167,11 +167,10 @@ def _parse_setting(text: str):
 
 def run_add_sequence(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
-    from garmentnerf.data.scene import Scene
-    from garmentnerf.data.scene_merge import import_sequence
+    from garmentnerf.data.scene_merge import add_sequence
 
-    target, source = Scene.load(args.scene), Scene.load(args.source)
-    info = import_sequence(target, source, args.sequence, as_name=args.as_name, split=args.split)
+    # the scene's writer lock held from before it is read (garmentnerf.folder_lock), as data make holds it
+    target, info = add_sequence(args.scene, args.source, args.sequence, as_name=args.as_name, split=args.split)
     print(f"{info.name}: {info.frames} frames ({info.split}, {info.motion}) added to {target.scene_file}"
           f"{_penetration_text(target, info.name)}")
     return 0

@@ -67,7 +67,7 @@ def run_table(args: argparse.Namespace) -> int:
 
 
 def run_pack(args: argparse.Namespace) -> int:
-    target = pack_demo(Path(args.run), args.name, overwrite=args.overwrite)
+    target = pack_demo(Path(args.run), args.name, overwrite=args.overwrite, what="--name")
     print(f"packed {args.run} as the {args.name} demo: {target.run_dir} ({target.size_bytes() / 1e6:.1f} MB with "
           f"its scene {target.scene_dir})")
     return 0

@@ -10,13 +10,17 @@ import json
 import re
 from pathlib import Path
 
-from garmentnerf.budgets import HISTORY, QUALITY
+from garmentnerf.budgets import HISTORY, QUALITY, check_memory, render_memory
 from garmentnerf.cli.common import (
     add_demo_arg,
     add_device_arg,
+    add_memory_arg,
     add_scene_override_arg,
+    check_memory_arg,
     check_output_file,
     parse_device,
+    render_geometry,
+    render_geometry_of,
     run_folder_arg,
 )
 from garmentnerf.io_utils import atomic_write_path
@@ -70,6 +74,7 @@ def register(sub) -> None:
                    help="also score the run's bake at this bake preset (draft, balanced, fine: 'garmentnerf bake'): "
                         "each frame baked once, drawn from every camera as the previewer draws it")
     add_device_arg(p)
+    add_memory_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_eval)
 
@@ -114,6 +119,12 @@ def run_eval(args: argparse.Namespace) -> int:
     # the arguments that scale the work first, before anything is imported or loaded (garmentnerf.budgets)
     if args.quality is not None:
         QUALITY.check(args.quality, "--quality")
+    max_gib = check_memory_arg(args)
+    run_dir = run_folder_arg(args)
+    if run_dir is None:
+        raise ValueError("eval needs --run DIR or --demo NAME")
+    # its peak memory against what the process may use, before torch loads (garmentnerf.budgets, "Memory")
+    geometry = _check_eval_memory(args, render_geometry(run_dir, args.scene), args.quality, max_gib)
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.eval.evaluate import RESOLUTIONS, SPLITS, evaluate_run, format_result_table
     from garmentnerf.eval.gallery import Gallery
@@ -121,13 +132,10 @@ def run_eval(args: argparse.Namespace) -> int:
     from garmentnerf.runs import load_run
 
     # everything that can be wrong with the arguments fails before the model loads
-    run_dir = run_folder_arg(args)
-    if run_dir is None:
-        raise ValueError("eval needs --run DIR or --demo NAME")
     if args.split not in SPLITS:
         raise ValueError(f"unknown split '{args.split}' (known: {', '.join(SPLITS)})")
     try:
-        get_render_preset(args.preset)
+        preset = get_render_preset(args.preset)
     except ValueError as e:
         raise ValueError(f"--preset: {e}") from None
     if args.resolution not in RESOLUTIONS:
@@ -153,6 +161,8 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.composition not in COMPOSITIONS:
         raise ValueError(f"--composition: unknown composition '{args.composition}' (known: {', '.join(COMPOSITIONS)})")
+    quality = args.quality if args.quality is not None else preset.resolution_scale
+    _check_eval_memory(args, geometry, quality, max_gib)
     if args.json is not None:
         check_output_file(args.json, "--json", args.overwrite)
     if args.gallery is not None:
@@ -164,6 +174,8 @@ def run_eval(args: argparse.Namespace) -> int:
         raise ValueError(f"{run_dir}: the run's scene ({run.info.get('scene') or 'not recorded'}) is missing; "
                          f"pass --scene DIR")
     resolve_composition(args.composition, run)  # raster_body without a body appearance fails here, not mid-way
+    if geometry is None:  # the run's files did not say: its loaded config does
+        _check_eval_memory(args, render_geometry_of(run), quality, max_gib)
     gallery = Gallery(args.gallery_views) if args.gallery is not None else None
     result = evaluate_run(run, args.split, frames=frames, cameras=cameras, progress=not args.no_progress,
                           baseline=args.baseline, preset=args.preset, quality=args.quality,
@@ -178,6 +190,23 @@ def run_eval(args: argparse.Namespace) -> int:
             tmp.write_text(text + "\n", encoding="utf-8")
         print(f"eval: wrote {args.json}")
     return 0
+
+
+def _check_eval_memory(args, geometry, quality, max_gib):
+    """Refuse an evaluation whose views (the scene's cameras at ``--resolution``) at ``quality`` (None: not
+    known yet) need more memory than the process may use (:func:`garmentnerf.budgets.check_memory`);
+    returns ``geometry`` (None: the run's files did not say, nothing was checked)."""
+    if geometry is None:
+        return None
+    width, height = geometry.image_size
+    if args.resolution == "model":  # the training camera's size
+        scale = geometry.trained_side / max(width, height)
+        width, height = max(1, round(width * scale)), max(1, round(height * scale))
+    estimate = render_memory(geometry, width, height, quality)
+    shown = f" at quality {quality:g}" if quality is not None else ""
+    check_memory(estimate, f"evaluating views of {width}x{height} pixels{shown}", max_gib,
+                 lower="--quality (or --resolution model)" if args.resolution != "model" else "--quality")
+    return geometry
 
 
 def _whole_number(text: str) -> int:

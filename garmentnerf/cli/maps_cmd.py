@@ -12,6 +12,7 @@ from garmentnerf.budgets import HISTORY
 from garmentnerf.cli.common import (add_body_args, add_motion_args, check_frame, check_motion_fps, load_body,
                                     load_motion_arg, refuse_existing)
 from garmentnerf.io_utils import atomic_write_path
+from garmentnerf.output_checks import check_finite, check_points, check_varies
 
 DESCRIPTION = """\
 Rasterise the body's UV-space info maps for one frame of a motion and save them as .npz:
@@ -60,7 +61,14 @@ def run_maps(args: argparse.Namespace) -> int:
     renderer = InfoMapRenderer(ctx, body, resolution=args.resolution, history=args.history)
     first = max(0, args.frame - args.history)
     clip = motion.slice(first, args.frame + 1)
-    maps = renderer.render_clip(clip.pose(body, betas), fps=motion.fps)[args.frame - first]
+    posed = clip.pose(body, betas)
+    # what the maps are made of, and the maps, checked before they are written (garmentnerf.output_checks)
+    for i, vertices in enumerate(posed.vertices):
+        check_points(vertices, "the posed body", f"--motion {args.motion} frame {first + i}")
+    maps = renderer.render_clip(posed, fps=motion.fps)[args.frame - first]
+    cause = f"--motion {args.motion} frame {args.frame}"
+    check_varies(maps.normal, "the normal map", cause)  # a body's normals point every way
+    check_finite(maps.velocity, "the velocity map", cause)
     with atomic_write_path(out) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, normal=maps.normal.numpy(), velocity=maps.velocity.numpy(), mask=maps.mask.numpy())

@@ -13,14 +13,19 @@ from tqdm import tqdm
 from garmentnerf.cli.common import (
     add_demo_arg,
     add_device_arg,
+    add_memory_arg,
     add_scene_override_arg,
+    check_memory_arg,
     check_output_dir,
     parse_device,
+    render_geometry,
+    render_geometry_of,
     run_folder_arg,
 )
 from garmentnerf.demos import DEFAULT_DEMO
 from garmentnerf.ranges import parse_frames, parse_list
-from garmentnerf.budgets import QUALITY, VIDEO_FPS
+from garmentnerf.budgets import QUALITY, VIDEO_FPS, check_memory, render_memory
+from garmentnerf.output_checks import check_finite, check_points
 from garmentnerf.render.video import FrameWriter, VideoWriter
 
 
@@ -65,8 +70,13 @@ def register(sub) -> None:
     p.add_argument("--video", action="store_true", help="also write an mp4 of the frames")
     p.add_argument("--fps", type=float, default=None, help="video frame rate, 0.1..1000 (default: the motion's)")
     add_device_arg(p)
+    add_memory_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_render)
+
+
+#: The output size of a render whose --size and camera path say none (an orbit's side).
+DEFAULT_SIZE = 256
 
 
 def render_frames(text: str | None, num_frames: int, motion: str) -> list[int]:
@@ -102,6 +112,9 @@ def run_render(args: argparse.Namespace) -> int:
         QUALITY.check(args.quality, "--quality")
     if args.fps is not None:
         VIDEO_FPS.check(args.fps, "--fps")
+    max_gib = check_memory_arg(args)
+    if args.size is not None:  # what any preset needs, before torch loads (garmentnerf.budgets, "Memory")
+        _check_render_memory(args, parse_output_size(args.size), args.quality, max_gib)
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack (0.4 s against 6 s)
     from garmentnerf.gl.context import create_context
     from garmentnerf.render.cameras import cameras_for, parse_camera_spec
@@ -109,7 +122,12 @@ def run_render(args: argparse.Namespace) -> int:
     from garmentnerf.render.session import RenderSession
 
     size, preset, background, camera_path = _checked_render_args(args)  # before the model loads
+    out_size = size if size is not None else (camera_path.size(None) if camera_path is not None else DEFAULT_SIZE)
+    quality = args.quality if args.quality is not None else preset.resolution_scale
+    geometry = _check_render_memory(args, out_size, quality, max_gib)
     run_dir, run = _load_render_run(args)
+    if geometry is None:  # the run's files did not say: its loaded config does
+        _check_render_memory(args, out_size, quality, max_gib, render_geometry_of(run))
     spec = parse_camera_spec(args.camera or "orbit", run.scene) if camera_path is None else None
     palette = build_palette(run.palette(), args.palette, args.body_color)
     ctx = create_context(headless=True)
@@ -126,12 +144,17 @@ def run_render(args: argparse.Namespace) -> int:
                     frames = camera_path.render_frames()
                 except ValueError as exc:
                     raise ValueError(f"--camera-path {args.camera_path}: {exc}") from None
+        else:
+            frames = render_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
+        given = f"--motion {args.motion}" if args.motion is not None else f"motion '{motion_name}'"
+        for f in frames:  # a body float32 cannot place (moved 1e5 m away) renders nothing: refused, not rendered
+            check_points(session.posed.vertices[f], "the posed body", f"{given} frame {f}")
+        if camera_path is not None:
             cameras = camera_path.cameras(frames, size)
             cam_label, fps = Path(args.camera_path).stem, args.fps or camera_path.fps
         else:
-            frames = render_frames(args.frames, session.num_frames, f"motion '{motion_name}'")
             centers = [session.body_center(f)[:2] for f in frames]
-            cameras = cameras_for(spec, frames, size or 256, run.scene, centers)
+            cameras = cameras_for(spec, frames, size or DEFAULT_SIZE, run.scene, centers)
             cam_label, fps = spec.name if spec.kind == "scene" else spec.kind, args.fps or session.fps
         out = Path(args.out)
         writer = FrameWriter(out, prefix="frame")
@@ -139,7 +162,8 @@ def run_render(args: argparse.Namespace) -> int:
         video_path = out / f"{_safe(motion_name)}_{_safe(cam_label)}.mp4"
         video = VideoWriter(video_path, fps) if args.video else None
         times, interrupted, written_video = _render_frames(session, frames, cameras, args, preset, palette,
-                                                           background, writer, video)
+                                                           background, writer, video,
+                                                           f"{given} seen by camera {cam_label}")
         n = len(writer.written)
         speed = f"{sum(times) / len(times):.0f} ms/frame" if times else "no frame finished"
         where = f"{out}" + (f" and {written_video}" if written_video else "")
@@ -154,6 +178,20 @@ def run_render(args: argparse.Namespace) -> int:
         if session is not None:
             session.close()
         ctx.release()
+
+
+def _check_render_memory(args, size, quality, max_gib, geometry=None):
+    """Refuse a render of ``size`` (N: at most N x N; or (W, H)) at ``quality`` (None: not known yet)
+    whose estimated peak memory does not fit (:func:`garmentnerf.budgets.check_memory`). Returns the
+    run's :class:`~garmentnerf.budgets.RenderGeometry` read from its files (``geometry`` when given), or
+    None when they do not say (then only the output pixels were counted)."""
+    width, height = (size, size) if isinstance(size, int) else size
+    if geometry is None:
+        geometry = render_geometry(run_folder_arg(args, DEFAULT_DEMO), args.scene)
+    estimate = render_memory(geometry, width, height, quality if geometry is not None else None)
+    shown = f" at quality {quality:g}" if estimate.rays else ""
+    check_memory(estimate, f"a render of {width}x{height} pixels{shown}", max_gib, lower="--size or --quality")
+    return geometry
 
 
 def _checked_render_args(args: argparse.Namespace):
@@ -199,9 +237,10 @@ def _load_render_run(args: argparse.Namespace):
     return run_dir, run
 
 
-def _render_frames(session, frames, cameras, args, preset, palette, background, writer, video):
+def _render_frames(session, frames, cameras, args, preset, palette, background, writer, video, label):
     """Render and write every frame (and append it to ``video``); Ctrl-C stops after the frames
-    written. Returns (ms per frame rendered, interrupted, the video written or None)."""
+    written, an image that is not finite before it is written (``label``: what is rendered, for the
+    message). Returns (ms per frame rendered, interrupted, the video written or None)."""
     interrupted = False
     times = []
     progress = None
@@ -211,6 +250,7 @@ def _render_frames(session, frames, cameras, args, preset, palette, background, 
         for f, cam in zip(frames, cameras):
             nf = session.render(f, cam, args.quality, preset=preset)
             image = nf.composite(palette, background)
+            check_finite(image, "the rendered image", f"{label}, frame {f}")
             writer.write(f, image)
             if video is not None:
                 video.append(image)

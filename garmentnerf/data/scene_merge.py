@@ -6,7 +6,10 @@ a sequence made by ``garmentnerf data make`` for one scene can train another whe
 same body (model and shape) in the same garment at the same frame rate. :func:`import_sequence`
 checks exactly that (the garment's mesh must have the receiving scene's topology), copies the
 folder under a temporary name, renames it into place and only then saves ``scene.json``
-(atomically), so an interrupted import leaves the scene as it was.
+(atomically), so an interrupted import leaves the scene as it was. :func:`add_sequence` (``garmentnerf
+data add-sequence``) does it holding the receiving scene's writer lock (:mod:`garmentnerf.folder_lock`),
+taken before the scene is read: a ``data make`` or another import writing the scene meanwhile is
+refused, naming its PID, instead of one ``scene.json`` overwriting the other's.
 """
 
 from __future__ import annotations
@@ -18,8 +21,9 @@ import numpy as np
 
 from garmentnerf.data.scene import Scene, SceneError, SequenceInfo, read_garment_arrays
 from garmentnerf.data.scene_schema import SEQUENCE_SPLITS, SchemaChecker
+from garmentnerf.folder_lock import lock_folder
 
-__all__ = ["import_sequence", "garment_difference"]
+__all__ = ["add_sequence", "import_sequence", "garment_difference"]
 
 
 def garment_difference(ours: dict, theirs: dict, whose: str = "this scene's") -> str | None:
@@ -98,3 +102,21 @@ def import_sequence(target: Scene, source: Scene, name: str, *, as_name: str | N
         shutil.rmtree(destination, ignore_errors=True)
         raise
     return copied
+
+
+def add_sequence(target_dir, source_dir, name: str, *, as_name: str | None = None,
+                 split: str | None = None) -> tuple[Scene, SequenceInfo]:
+    """:func:`import_sequence` of the scene folders ``target_dir`` and ``source_dir``, holding the writer
+    lock of ``target_dir`` from before it is read until its ``scene.json`` is saved.
+
+    Returns:
+        (the receiving scene as saved, the new :class:`SequenceInfo`).
+    Raises:
+        SceneError: as :func:`import_sequence`, and for a folder that holds no scene (checked before the
+            lock, which would make the folders of a mistyped path).
+        FolderBusyError: another process writes ``target_dir`` (one line naming its PID and command).
+    """
+    Scene.load(target_dir, check_files=False)  # no scene there: refused as such, before the lock
+    with lock_folder(target_dir, "garmentnerf data add-sequence", what="scene"):
+        target, source = Scene.load(target_dir), Scene.load(source_dir)
+        return target, import_sequence(target, source, name, as_name=as_name, split=split)

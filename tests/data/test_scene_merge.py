@@ -106,6 +106,43 @@ def test_cli(tmp_path, capsys):
     assert target.scene_file.read_text() == text
 
 
+def test_a_scene_another_process_writes_is_refused_naming_its_pid(tmp_path, capsys):
+    """add-sequence holds the receiving scene's writer lock, as data make does: while another process holds
+    it, the import is refused at once in one line naming that process, and the scene is left as it was."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from garmentnerf.folder_lock import LOCK_FILE
+
+    target = build_scene(tmp_path / "target")
+    source = build_scene(tmp_path / "source", train_frames=4)
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
+        import sys, time
+        from garmentnerf.folder_lock import lock_folder
+        lock = lock_folder(sys.argv[1], "garmentnerf data make", what="scene")
+        print("held", flush=True)
+        time.sleep(600)
+    """), str(target.root)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        text = target.scene_file.read_text()
+        assert main(["data", "add-sequence", str(target.root), "--from", str(source.root), "--as", "train_more"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err
+        assert f"{target.root}: another process is writing this scene (PID {holder.pid}, 'garmentnerf data make')" in err
+        assert target.scene_file.read_text() == text and not (target.root / "sequences" / "train_more").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["data", "add-sequence", str(target.root), "--from", str(source.root), "--as", "train_more"]) == 0
+    assert Scene.load(target.root).sequence_names("train") == ["train", "train_more"]
+    assert not (target.root / LOCK_FILE).exists()  # released, and its file gone
+    # a folder without a scene is refused as such, and the lock makes no folder for it
+    assert main(["data", "add-sequence", str(tmp_path / "typo"), "--from", str(source.root)]) == 2
+    assert "typo" in capsys.readouterr().err and not (tmp_path / "typo").exists()
+
+
 def test_penetration_summary_counts_the_frames_over_the_bound():
     assert penetration_summary(np.array([0.0, 0.004, 0.0099]), 0.010) == "max penetration 9.9 mm"
     line = penetration_summary(np.array([0.0, 0.02, 0.005, 0.0931, 0.011]), 0.010)
