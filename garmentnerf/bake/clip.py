@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from garmentnerf.bake.capture import BakeSettings, capture_frame, check_can_bake
+from garmentnerf.bake.capture import capture_frame, check_can_bake
+from garmentnerf.bake.settings import BakeSettings
 from garmentnerf.bake.store import MANIFEST_FILE, BakeFileError, BakeFolder, model_key, motion_key
 from garmentnerf.folder_lock import LOCK_FILE
 

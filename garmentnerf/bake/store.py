@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from garmentnerf.bake.capture import BakeSettings
+from garmentnerf.bake.settings import BakeSettings
 from garmentnerf.bake.views import BakedFrame, BakedView
 from garmentnerf.conventions import Camera
 from garmentnerf.io_utils import read_json_strict, user_cache_dir, write_file_atomic

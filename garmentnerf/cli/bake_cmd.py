@@ -12,7 +12,7 @@ DEFAULT_DEMO = "skirt"
 
 
 def register(sub) -> None:
-    from garmentnerf.bake.capture import BAKE_PRESETS, DEFAULT_BAKE_PRESET
+    from garmentnerf.bake.settings import BAKE_PRESETS, DEFAULT_BAKE_PRESET
 
     p = sub.add_parser(
         "bake", help="bake a clip's garment once, for display-rate orbiting in the previewer and for export",
@@ -47,7 +47,7 @@ def register(sub) -> None:
 
 
 def run_bake(args: argparse.Namespace) -> int:
-    from garmentnerf.bake.capture import bake_settings
+    from garmentnerf.bake.settings import bake_settings
 
     settings = bake_settings(args.preset)
     if args.workers is not None and not 1 <= args.workers <= 64:

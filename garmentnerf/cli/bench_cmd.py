@@ -163,7 +163,7 @@ def run_bench(args: argparse.Namespace) -> int:
         if path:
             check_output_file(path, flag, args.overwrite)
     if getattr(args, "bake", None) is not None:
-        from garmentnerf.bake.capture import bake_settings
+        from garmentnerf.bake.settings import bake_settings
 
         if not getattr(args, "run", None) or getattr(args, "training", False):
             raise ValueError("--bake needs --run or --demo (and not --training)")

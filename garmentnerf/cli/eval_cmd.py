@@ -150,7 +150,7 @@ def run_eval(args: argparse.Namespace) -> int:
     parse_device(args.device)
     bake = None
     if args.bake is not None:
-        from garmentnerf.bake.capture import bake_settings
+        from garmentnerf.bake.settings import bake_settings
 
         try:
             bake = bake_settings(args.bake)

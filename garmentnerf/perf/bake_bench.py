@@ -15,7 +15,7 @@ nearest-view baseline. The figures under ``bake`` in the JSON, named to be compa
 
 from __future__ import annotations
 
-from garmentnerf.bake.capture import bake_settings
+from garmentnerf.bake.settings import bake_settings
 from garmentnerf.eval.evaluate import evaluate_run, format_result_table
 
 #: The demo's held-out frames the figures are measured on.

@@ -35,7 +35,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from garmentnerf.bake.capture import DEFAULT_BAKE_PRESET
+from garmentnerf.bake.settings import DEFAULT_BAKE_PRESET
 from garmentnerf.bake.store import BakeFolder
 from garmentnerf.bake.views import BakedFrame
 from garmentnerf.model.config import BACKGROUND

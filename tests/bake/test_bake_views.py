@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentnerf.bake.capture import BakeSettings
+from garmentnerf.bake.settings import BakeSettings
 from garmentnerf.bake.store import BakeFileError, BakeFolder, frame_bytes, read_frame_file
 from garmentnerf.bake.views import (BakedFrame, BakedView, filled_depth, garment_layers, maps_from_layers,
                                     nearest_views, ring_cameras, view_mesh)

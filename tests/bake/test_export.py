@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from garmentnerf.bake.capture import BakeSettings
+from garmentnerf.bake.settings import BakeSettings
 from garmentnerf.bake.export import ALPHA_CUTOFF, ExportFrame, garment_mesh, glb_bytes, write_glb
 from garmentnerf.bake.store import BakeFolder
 from garmentnerf.bake.views import BakedFrame, BakedView, view_mesh

@@ -11,7 +11,8 @@ import torch
 @pytest.fixture(scope="module")
 def skirt_bake(gl_context, tmp_path_factory):
     """The bundled skirt and a bake folder holding its frame 0 (draft preset)."""
-    from garmentnerf.bake.capture import BAKE_PRESETS, capture_frame
+    from garmentnerf.bake.capture import capture_frame
+    from garmentnerf.bake.settings import BAKE_PRESETS
     from garmentnerf.bake.clip import manifest_for_session, prepare_folder
     from garmentnerf.demos import demo
     from garmentnerf.render.session import RenderSession
