@@ -183,6 +183,9 @@ class NeuralView:
             self.palette = self.learned_palette.copy()
             self.scene.palette_layer.set_palette(self.palette)
             self.scene.baked_layer.palette = self.palette
+        if self.bakes is not None:  # the bakes were of the old weights: bake the new ones
+            self._stop_baking()
+            self.set_baking(self.bake_wanted)
         self._status(f"checkpoint step {run.step} loaded: showing it")
 
     def _sink(self, result, request, renderer) -> None:
