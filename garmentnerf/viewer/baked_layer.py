@@ -19,6 +19,9 @@ from garmentnerf.bake.draw import BakeDrawer
 from garmentnerf.bake.views import BakedFrame
 from garmentnerf.viewer.renderables import PassState, ViewParams
 
+#: Map pixels between the vertices of the view meshes the window draws: llvmpipe's cost goes with the
+#: triangles (the attributes stay textures at the maps' resolution).
+WINDOW_MESH_STEP = 2
 #: The bake's own passes set their state; the scene's pass state for this layer is "nothing".
 _OWN_STATE = PassState(moderngl.NOTHING)
 
@@ -32,7 +35,7 @@ class BakedLayer:
         palette: (P, 3) the palette (the body's colour last).
     """
 
-    def __init__(self, ctx: moderngl.Context, draw_views: int = 2, mesh_step: int = 1) -> None:
+    def __init__(self, ctx: moderngl.Context, draw_views: int = 2, mesh_step: int = WINDOW_MESH_STEP) -> None:
         self.ctx = ctx
         self.drawer = BakeDrawer(ctx, draw_views, mesh_step)
         self.visible = False
@@ -74,4 +77,4 @@ class BakedLayer:
         self.drawer.release()
 
 
-__all__ = ["BakedLayer"]
+__all__ = ["BakedLayer", "WINDOW_MESH_STEP"]

@@ -17,8 +17,9 @@ background process bakes the clip into the user's cache (on by default; the "Bak
 In the ``neural`` mode the window then shows, per UI frame: the exact neural image when it is the
 still view of this camera at this frame; else the frame's bake drawn from this camera (the baked layer,
 :mod:`~garmentnerf.viewer.baked_layer`); else the last neural image of this frame reprojected by its
-depth to this camera; else the neural layer as before. While a baked stretch of the clip plays, no
-neural frame is asked for (the bake shows every frame from any camera).
+depth to this camera; else the neural layer as before. While the view moves over a baked frame, or a
+baked stretch of the clip plays, no neural frame is asked for (the bake shows every frame from any camera,
+and the cores go to the window); the exact still is asked for once the view rests.
 
 Modes: ``neural`` (the network's image, composited into the scene; optionally with the rasterised
 body by depth), ``ground_truth``, ``side_by_side`` (network | ground truth, fitted beside the
@@ -361,9 +362,12 @@ class NeuralView:
         baked_here = self.bakes is not None and self.bakes.get(frame) is not None
         if self.bakes is not None:
             self.bakes.set_playhead(frame)
-        if playing and baked_here and self.mode == "neural" and path is None:
+        bake_shows = baked_here and self.mode == "neural" and path is None and not self.body_with_neural
+        if bake_shows and not playing and request is not still:
+            pass  # the view moves over a baked frame: the bake shows it, the exact still is asked for once it rests
+        elif bake_shows and playing:
             # a baked stretch plays: the bake shows every frame; the worker's standing request ends with one
-            # still render, and the cores go to the bake and the window
+            # still render, and the cores go to the window
             if not self._baked_playback:
                 self._baked_playback = True
                 self._last_request = None
@@ -392,7 +396,7 @@ class NeuralView:
         if not self.can_bake or self.bake_process is not None:
             return
         if self.bakes is None:
-            self.bakes = ClipBakes()
+            self.bakes = ClipBakes(self.scene.baked_layer.drawer.mesh_step)
         bakes = self.bakes
         motion = self.motion if isinstance(self.motion, str) else None
         scene = self.run.scene.root if self.run.scene is not None else None
@@ -402,7 +406,7 @@ class NeuralView:
     def show_bakes(self, folder: BakeFolder) -> None:
         """Show the bakes of ``folder`` (made by ``garmentnerf bake`` for this run and clip) without baking."""
         self._stop_baking()
-        self.bakes = ClipBakes()
+        self.bakes = ClipBakes(self.scene.baked_layer.drawer.mesh_step)
         self.bakes.use_folder(folder)
 
     def _stop_baking(self) -> None:
