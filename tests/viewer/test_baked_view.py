@@ -50,7 +50,7 @@ def test_the_window_draws_and_recolours_a_baked_frame_as_compose_does(xvfb, gl_c
         shown = app.read_framebuffer().astype(np.float64) / 255.0
 
         session = RenderSession(run, gl_context)
-        drawer = BakeDrawer(gl_context)
+        drawer = BakeDrawer(gl_context, mesh_step=app.scene.baked_layer.drawer.mesh_step)  # the window's meshes
         try:
             maps = baked_maps(drawer, session, folder.load_frame(0), camera)
             palette = torch.as_tensor(view.palette)
