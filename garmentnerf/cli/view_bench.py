@@ -33,8 +33,8 @@ what the machine can do rather than the display's refresh:
   window's own background bake): ``bake.orbit_ui_fps``, the UI frame rate while the camera orbits a
   paused baked frame, and ``bake.play_orbit_ui_fps`` while the clip plays and the camera orbits at once;
   ``bake.scene_scale`` (median scale the scene was drawn at), ``bake.shown_share`` (UI frames that drew
-  a bake rather than a neural image) and ``bake.baked_frames`` (of the clip, when measured). Before playing,
-  the window waits for its loader to read every baked frame into memory (``bake.load_wait_s``).
+  a bake rather than a neural image) and ``bake.baked_frames`` (of the clip, when measured). Before orbiting,
+  the window first waits for its loader to read every baked frame into memory (``bake.load_wait_s``).
 
 Render-ahead is switched off for these figures (a still view would otherwise keep the worker
 rendering the rest of the clip, which the recolor test counts and the preset times share the CPU
@@ -261,12 +261,12 @@ def measure_bake(app, seconds: float, timeout: float) -> dict:
         status = view.bake_status() or {}
         return {"available": False, "reason": f"frame {app.timeline.frame} not baked within {timeout:.0f} s "
                                               f"({status.get('error') or 'baking'})"}
-    orbit = _orbit_frames(app, seconds)
     t0 = time.monotonic()
     while view.bakes.loaded() < len(view.bakes.baked()) and time.monotonic() - t0 < timeout and not app.closed:
         app.step()  # the loader reads the rest of the clip (a second launch's first seconds)
         time.sleep(0.01)
     loaded_s = time.monotonic() - t0
+    orbit = _orbit_frames(app, seconds)
     app.timeline.play()
     play = _orbit_frames(app, seconds)
     app.timeline.pause()

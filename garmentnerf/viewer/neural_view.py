@@ -362,7 +362,7 @@ class NeuralView:
         baked_here = self.bakes is not None and self.bakes.get(frame) is not None
         if self.bakes is not None:
             self.bakes.set_playhead(frame)
-        bake_shows = baked_here and self.mode == "neural" and path is None and not self.body_with_neural
+        bake_shows = baked_here and self.mode == "neural" and not self.body_with_neural
         if bake_shows and not playing and request is not still:
             pass  # the view moves over a baked frame: the bake shows it, the exact still is asked for once it rests
         elif bake_shows and playing:
