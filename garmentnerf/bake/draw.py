@@ -28,6 +28,7 @@ import numpy as np
 
 from garmentnerf.bake.views import BakedFrame, BakedView, nearest_views
 from garmentnerf.conventions import Camera
+from garmentnerf.gl.context import current, is_released, make_current
 from garmentnerf.gl.shaders import build_program
 
 #: The body hides the baked garment only where it is more than this (metres) in front of it: cloth lies
@@ -111,6 +112,8 @@ def _matrix(m: np.ndarray) -> bytes:
 class BakeDrawer:
     """Draws :class:`~garmentnerf.bake.views.BakedFrame` objects on ``ctx`` (module docstring).
 
+    Every public method makes ``ctx`` current (and leaves it current), as the package's GL passes do.
+
     Args:
         draw_views: captures blended at a pixel (1..:data:`MAX_SLOTS`).
         mesh_step: map pixels between a view mesh's vertices.
@@ -125,13 +128,15 @@ class BakeDrawer:
         self.draw_views = int(draw_views)
         self.mesh_step = int(mesh_step)
         self.body_margin = float(body_margin)
-        self.depth_program = build_program(ctx, "bake_depth.vert", "bake_depth.frag")
+        with current(ctx):
+            self.depth_program = build_program(ctx, "bake_depth.vert", "bake_depth.frag")
         self._view_programs: dict[int, moderngl.Program] = {}
         self._blend_programs: dict[int, moderngl.Program] = {}
         self._views: OrderedDict[int, tuple[BakedView, _GpuView]] = OrderedDict()
         self._slots: _Slots | None = None
         self._blend_vaos: dict[int, moderngl.VertexArray] = {}
         self._body: tuple | None = None  # (key, vbo, ibo, vao)
+        self._released = False
         self.triangles_drawn = 0
 
     # ---- resources ----------------------------------------------------------------------------------
@@ -188,6 +193,7 @@ class BakeDrawer:
     def set_body(self, key: object, vertices: np.ndarray, faces: np.ndarray) -> None:
         """The posed body the views are tested against (``vertices (V, 3)``, ``faces (F, 3)``); ``key`` names
         it, so an unchanged body is not uploaded again."""
+        make_current(self.ctx)
         if self._body is not None and self._body[0] == key:
             return
         self._release_body()
@@ -231,6 +237,7 @@ class BakeDrawer:
         first row; a window that shows row 0 at the top passes its flipped one). ``body_depth``: a depth
         texture of the same camera and projection that holds the body already (the previewer's scene):
         pass 1 is skipped."""
+        make_current(self.ctx)
         chosen = self.views_for(baked, camera)
         if not chosen:
             return None
@@ -320,6 +327,7 @@ class BakeDrawer:
         """(L, H, W, 4) float32 the blended layers of ``baked`` seen by ``camera`` (rows top-first), zero where
         no view covers; None when the frame has no view. With the body layer they compose as the network's
         maps do (:func:`~garmentnerf.bake.views.maps_from_layers`)."""
+        make_current(self.ctx)
         drawn = self.draw_slots(baked, camera)
         if drawn is None:
             return None
@@ -343,6 +351,7 @@ class BakeDrawer:
         premultiplied, blended (ONE, ONE_MINUS_SRC_ALPHA) over what ``fbo`` holds in ``viewport``; the
         camera's size is the viewport's, ``projection`` and ``body_depth`` as :meth:`draw_slots`. False when
         the frame has no view."""
+        make_current(self.ctx)
         drawn = self.draw_slots(baked, camera, projection, body_depth)
         if drawn is None:
             return False
@@ -356,6 +365,10 @@ class BakeDrawer:
         return True
 
     def release(self) -> None:
+        if self._released or is_released(self.ctx):
+            return
+        self._released = True
+        make_current(self.ctx)
         for _, gpu in self._views.values():
             gpu.release()
         self._views.clear()

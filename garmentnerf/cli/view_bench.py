@@ -102,16 +102,11 @@ def _wait_settled(app, timeout: float) -> bool:
     return False
 
 
-def measure_busy_fps(app, seconds: float) -> dict:
-    """UI frame rate while the timeline plays, the camera orbits and the worker renders."""
-    app.timeline.play()
-    intervals: list[float] = []
-    busy = 0
-    frames = 0
-    scene_scales: list[float] = []
+def _orbit_frames(app, seconds: float) -> dict:
+    """Step UI frames for ``seconds`` with the camera orbiting a little each frame: fps, frame times, the
+    scene's median draw scale, the share of frames the baked layer drew and the share the worker was busy."""
+    intervals, scales, baked, busy = [], [], 0, 0
     renderer = app.neural_view.renderer
-    renders0 = renderer.stats.renders if renderer is not None else 0
-    dropped0 = renderer.stats.dropped if renderer is not None else 0
     start = last = time.perf_counter()
     while time.perf_counter() - start < seconds and not app.closed:
         app.controller.orbit(ORBIT_STEP, 0.0)
@@ -120,22 +115,34 @@ def measure_busy_fps(app, seconds: float) -> dict:
         now = time.perf_counter()
         intervals.append(now - last)
         last = now
-        frames += 1
-        scene_scales.append(app.scene_draw_scale)
-        if renderer is not None and not renderer.worker.idle():
-            busy += 1
+        scales.append(app.scene_draw_scale)
+        baked += app.neural_view.showing_bake == "bake"
+        busy += renderer is not None and not renderer.worker.idle()
     elapsed = time.perf_counter() - start
-    app.timeline.pause()
     ms = [1000.0 * x for x in intervals]
-    out = {"seconds": elapsed, "frames": frames, "fps": frames / elapsed if elapsed > 0 else float("nan"),
-           "frame_ms_median": _percentile(ms, 50), "frame_ms_p95": _percentile(ms, 95),
-           "frame_ms_max": max(ms) if ms else float("nan"), "goal_fps": 30.0,
-           # the App's own split of the last frames: time inside a frame before the swap, and the scene's share
-           "work_ms": app.timer.work_ms, "scene_ms": app.timer.scene_ms,
-           # the scene's draw scale while the view moved (SceneScale; 1 with --fixed-scene-scale)
-           "scene_scale_median": _percentile(scene_scales, 50), "scene_scale_dynamic": app.scene_scale.dynamic}
+    n = len(ms)
+    return {"seconds": elapsed, "frames": n, "fps": n / elapsed if elapsed > 0 else float("nan"),
+            "frame_ms_median": _percentile(ms, 50), "frame_ms_p95": _percentile(ms, 95),
+            "frame_ms_max": max(ms) if ms else float("nan"), "scene_scale": _percentile(scales, 50),
+            "shown_share": baked / n if n else float("nan"), "busy_share": busy / n if n else float("nan")}
+
+
+def measure_busy_fps(app, seconds: float) -> dict:
+    """UI frame rate while the timeline plays, the camera orbits and the worker renders."""
+    renderer = app.neural_view.renderer
+    renders0 = renderer.stats.renders if renderer is not None else 0
+    dropped0 = renderer.stats.dropped if renderer is not None else 0
+    app.timeline.play()
+    orbit = _orbit_frames(app, seconds)
+    app.timeline.pause()
+    out = {k: orbit[k] for k in ("seconds", "frames", "fps", "frame_ms_median", "frame_ms_p95", "frame_ms_max")}
+    out.update({"goal_fps": 30.0,
+                # the App's own split of the last frames: time inside a frame before the swap, and the scene's share
+                "work_ms": app.timer.work_ms, "scene_ms": app.timer.scene_ms,
+                # the scene's draw scale while the view moved (SceneScale; 1 with --fixed-scene-scale)
+                "scene_scale_median": orbit["scene_scale"], "scene_scale_dynamic": app.scene_scale.dynamic})
     if renderer is not None:
-        out["worker_busy_fraction"] = busy / frames if frames else float("nan")
+        out["worker_busy_fraction"] = orbit["busy_share"]
         out["worker_renders"] = renderer.stats.renders - renders0
         out["worker_superseded"] = renderer.stats.dropped - dropped0
     out["meets_goal"] = bool(out["fps"] >= 30.0)
@@ -224,27 +231,6 @@ def measure_presets(app, repeats: int, timeout: float) -> dict:
         q.dynamic = saved[1]
         q.set_preset(saved[0])
     return out
-
-
-def _orbit_frames(app, seconds: float) -> dict:
-    """Step UI frames for ``seconds`` with the camera orbiting a little each frame: fps, frame times, the
-    scene's median draw scale and the share of frames the baked layer drew."""
-    intervals, scales, baked = [], [], 0
-    start = last = time.perf_counter()
-    while time.perf_counter() - start < seconds and not app.closed:
-        app.controller.orbit(ORBIT_STEP, 0.0)
-        if not app.step():
-            break
-        now = time.perf_counter()
-        intervals.append(now - last)
-        last = now
-        scales.append(app.scene_draw_scale)
-        baked += app.neural_view.showing_bake == "bake"
-    elapsed = time.perf_counter() - start
-    ms = [1000.0 * x for x in intervals]
-    return {"fps": len(ms) / elapsed if elapsed > 0 else float("nan"), "frames": len(ms),
-            "frame_ms_median": _percentile(ms, 50), "frame_ms_p95": _percentile(ms, 95),
-            "scene_scale": _percentile(scales, 50), "shown_share": baked / len(ms) if ms else float("nan")}
 
 
 def measure_bake(app, seconds: float, timeout: float) -> dict:
