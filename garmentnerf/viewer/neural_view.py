@@ -228,6 +228,9 @@ class NeuralView:
         layer.side_by_side = mode == "side_by_side"
         layer.mode = mode if mode in ("ground_truth", "difference", "maps") else "neural"
         layer.use_depth = mode == "neural" and self.body_with_neural
+        if mode != "neural":  # the bake shows in the neural mode only (chosen per UI frame, _choose_bake)
+            self.scene.baked_layer.visible, self.scene.baked_layer.frame = False, None
+            self.showing_bake = ""
         self.scene.body.visible = mode == "body" or (mode == "neural" and self.body_with_neural)
         self.sync_body()
         if mode in GROUND_TRUTH_MODES and not self.ground_truth_available():
