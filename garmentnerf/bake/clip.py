@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from garmentnerf.bake.capture import capture_frame, check_can_bake
+from garmentnerf.bake.capture import capture_frame
 from garmentnerf.bake.settings import BakeSettings
 from garmentnerf.bake.store import MANIFEST_FILE, BakeFileError, BakeFolder, model_key, motion_key
 from garmentnerf.folder_lock import LOCK_FILE
@@ -147,5 +147,4 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-__all__ = ["prepare_folder", "manifest_for_session", "frames_to_bake", "bake_frames", "default_workers", "FrameDone",
-           "check_can_bake"]
+__all__ = ["prepare_folder", "manifest_for_session", "frames_to_bake", "bake_frames", "default_workers", "FrameDone"]

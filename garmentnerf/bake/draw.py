@@ -136,6 +136,7 @@ class BakeDrawer:
         self._slots: _Slots | None = None
         self._blend_vaos: dict[int, moderngl.VertexArray] = {}
         self._body: tuple | None = None  # (key, vbo, ibo, vao)
+        self._frame_geometry: tuple | None = None  # (baked frame, its captures' centres, the garment's centre)
         self._released = False
         self.triangles_drawn = 0
 
@@ -214,8 +215,10 @@ class BakeDrawer:
         """The views ``camera`` draws, with their weights, nearest first."""
         if not baked.views:
             return []
-        centers = np.stack([v.camera.center for v in baked.views])
-        target = self._garment_center(baked)
+        if self._frame_geometry is None or self._frame_geometry[0] is not baked:  # once per frame, not per draw
+            self._frame_geometry = (baked, np.stack([v.camera.center for v in baked.views]),
+                                    self._garment_center(baked))
+        _, centers, target = self._frame_geometry
         return [(baked.views[i], w) for i, w in nearest_views(centers, target, camera.center, self.draw_views)]
 
     @staticmethod

@@ -57,8 +57,8 @@ def run_bake(args: argparse.Namespace) -> int:
     # lazy: 'garmentnerf --help' and flag errors answer without torch and the model stack
     from tqdm import tqdm
 
-    from garmentnerf.bake.clip import (bake_frames, check_can_bake, default_workers, frames_to_bake,
-                                       manifest_for_session, prepare_folder)
+    from garmentnerf.bake.capture import check_can_bake
+    from garmentnerf.bake.clip import bake_frames, default_workers, frames_to_bake, manifest_for_session, prepare_folder
     from garmentnerf.bake.store import cache_folder
     from garmentnerf.folder_lock import lock_folder
     from garmentnerf.gl.context import create_context
